@@ -1,0 +1,29 @@
+# The README's two commands: `make run` (train + evaluate + report the default recipe) and `make test`.
+# Both create .venv on first use and install the project with the exact versions in constraints.txt.
+PYTHON ?= python3
+VENV   := .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed
+RECIPE ?= quickstart
+ARGS   ?=
+
+.PHONY: install run test clean
+
+install: $(STAMP)
+
+$(STAMP): pyproject.toml constraints.txt
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	# torch first, by exact version: the CPU wheel, never a CUDA build pulled in by a loose requirement.
+	$(BIN)/python -m pip install -q torch==2.13.0
+	$(BIN)/python -m pip install -q -c constraints.txt -e ".[dev]"
+	touch $(STAMP)
+
+run: $(STAMP)
+	MUJOCO_GL=egl $(BIN)/adarl run $(RECIPE) $(ARGS)
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q tests
+
+clean:
+	rm -rf $(VENV) runs

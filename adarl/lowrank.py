@@ -1,0 +1,258 @@
+"""Low-rank linear layers: ``W = W1 @ W2`` with a bias-free bottleneck (paper Fig. 5, App. D.2).
+
+The factorised layer is what makes a rank constraint cheap: between rank events the optimiser trains the two
+factors, and the product can never exceed rank ``r``. A rank event SVDs the product and re-factorises it as
+``W1 = U sqrt(S)``, ``W2 = sqrt(S) V^T`` (the balanced split, so neither factor dominates the gradients).
+
+The SVD helpers here work on batched factors (leading dimensions are kept) so that the same code serves a
+single module and the stacked Q-ensemble parameters that :class:`~torchrl.objectives.SACLoss` trains under
+vmap.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterator, Sequence
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from adarl.errors import AdaRLValueError
+
+__all__ = [
+    "LowRankLinear",
+    "factor_svd",
+    "refactorize",
+    "truncation_error",
+    "low_rank_mlp",
+    "iter_low_rank",
+]
+
+
+def factor_svd(w1: torch.Tensor, w2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Exact thin SVD of ``w1 @ w2`` without forming a full-size SVD.
+
+    ``w1`` is ``(..., out, r)`` and ``w2`` is ``(..., r, in)`` with ``r <= min(out, in)``. QR of ``w1`` and of
+    ``w2^T`` reduces the problem to the SVD of an ``r x r`` core; everything runs in float64 (at energy
+    thresholds near 1, float32 shares are not reliable). Returns ``U (..., out, r)``, ``S (..., r)`` (descending)
+    and ``Vh (..., r, in)``, all float64.
+    """
+    a = w1.detach().to(torch.float64)
+    b = w2.detach().to(torch.float64)
+    q1, r1 = torch.linalg.qr(a, mode="reduced")
+    q2, r2 = torch.linalg.qr(b.transpose(-1, -2), mode="reduced")
+    core = r1 @ r2.transpose(-1, -2)
+    uc, s, vhc = torch.linalg.svd(core, full_matrices=False)
+    return q1 @ uc, s, vhc @ q2.transpose(-1, -2)
+
+
+def refactorize(
+    u: torch.Tensor, s: torch.Tensor, vh: torch.Tensor, rank: int, dtype: torch.dtype
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Balanced factors of the best rank-``rank`` approximation: ``W1 = U sqrt(S)``, ``W2 = sqrt(S) V^T``."""
+    root = s[..., :rank].sqrt()
+    w1 = u[..., :, :rank] * root.unsqueeze(-2)
+    w2 = root.unsqueeze(-1) * vh[..., :rank, :]
+    return w1.to(dtype).contiguous(), w2.to(dtype).contiguous()
+
+
+def truncation_error(s: torch.Tensor, rank: int) -> torch.Tensor:
+    """``||W - Pi_rank(W)||_F`` from the singular values (Eckart-Young-Mirsky)."""
+    return s[..., rank:].pow(2).sum(-1).sqrt()
+
+
+class LowRankLinear(nn.Module):
+    """A linear layer ``y = x W2^T W1^T + b`` whose weight ``W = W1 W2`` has rank at most ``rank``.
+
+    ``w1`` is ``(out_features, rank)``, ``w2`` is ``(rank, in_features)``; the bottleneck has no bias or
+    activation, so the layer is exactly a linear map of rank ``<= rank``. ``rank=None`` means full rank
+    ``min(in_features, out_features)``, which represents every dense layer. Initialisation draws a dense
+    weight the way :class:`torch.nn.Linear` does and factorises it, so a full-rank layer starts out as a
+    standard ``nn.Linear`` would.
+
+    The layer is a plain module with plain parameters, so it works as the ``layer_class`` of
+    :class:`torchrl.modules.MLP`, inside ``TensorDictModule``/``ProbabilisticActor``/``ValueOperator`` and
+    under ``torch.vmap`` with stacked parameters (the Q ensemble of ``SACLoss``).
+    """
+
+    def __init__(
+        self,
+        in_features: int,
+        out_features: int,
+        rank: int | None = None,
+        bias: bool = True,
+        device: torch.device | str | None = None,
+        dtype: torch.dtype | None = None,
+    ) -> None:
+        super().__init__()
+        if int(in_features) < 1 or int(out_features) < 1:
+            raise AdaRLValueError(
+                f"LowRankLinear needs in_features >= 1 and out_features >= 1, got ({in_features}, {out_features})"
+            )
+        self.in_features = int(in_features)
+        self.out_features = int(out_features)
+        rank = self._check_rank(rank)
+        factory = {"device": device, "dtype": dtype}
+        self.w1 = nn.Parameter(torch.empty(self.out_features, rank, **factory))
+        self.w2 = nn.Parameter(torch.empty(rank, self.in_features, **factory))
+        if bias:
+            self.bias = nn.Parameter(torch.empty(self.out_features, **factory))
+        else:
+            self.register_parameter("bias", None)
+        self.reset_parameters()
+
+    @property
+    def max_rank(self) -> int:
+        """The largest rank a ``(out, in)`` matrix can have: ``min(in_features, out_features)``."""
+        return min(self.in_features, self.out_features)
+
+    @property
+    def rank(self) -> int:
+        """The current bottleneck width (an upper bound on the rank of :attr:`weight`)."""
+        return self.w2.shape[-2]
+
+    @property
+    def weight(self) -> torch.Tensor:
+        """The dense product ``W1 @ W2`` (``(out_features, in_features)``); read-only, computed on access."""
+        return self.w1 @ self.w2
+
+    def _check_rank(self, rank: int | None) -> int:
+        if rank is None:
+            return self.max_rank
+        if isinstance(rank, bool) or not isinstance(rank, int) or not 1 <= rank <= self.max_rank:
+            raise AdaRLValueError(
+                f"rank must be an integer in [1, {self.max_rank}] (min(in_features={self.in_features}, "
+                f"out_features={self.out_features})) or None for full rank, got {rank!r}"
+            )
+        return rank
+
+    @torch.no_grad()
+    def reset_parameters(self) -> None:
+        """Draw a dense weight as ``nn.Linear`` does and store its best rank-``rank`` factorisation."""
+        dense = torch.empty(self.out_features, self.in_features, dtype=torch.float64, device=self.w1.device)
+        nn.init.kaiming_uniform_(dense, a=math.sqrt(5))
+        u, s, vh = torch.linalg.svd(dense, full_matrices=False)
+        w1, w2 = refactorize(u, s, vh, self.rank, self.w1.dtype)
+        self.w1.copy_(w1)
+        self.w2.copy_(w2)
+        if self.bias is not None:
+            bound = 1.0 / math.sqrt(self.in_features)
+            nn.init.uniform_(self.bias, -bound, bound)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return F.linear(F.linear(x, self.w2), self.w1, self.bias)
+
+    def singular_values(self) -> torch.Tensor:
+        """Singular values of :attr:`weight` (``rank`` of them, descending, float64), via :func:`factor_svd`."""
+        return factor_svd(self.w1, self.w2)[1]
+
+    @torch.no_grad()
+    def truncate_(self, rank: int) -> LowRankLinear:
+        """Project the weight onto rank ``rank`` in place and re-factorise it balanced.
+
+        The parameters keep their identity (``.data`` is replaced), so modules, collectors and loss modules
+        that hold them see the new tensors. Optimiser state and ``.grad`` for ``w1``/``w2`` become stale: reset
+        them (:class:`adarl.RankAdapter` does this for you). ``rank`` may not exceed the current rank.
+        """
+        if isinstance(rank, bool) or not isinstance(rank, int) or not 1 <= rank <= self.rank:
+            raise AdaRLValueError(f"truncate_ rank must be an integer in [1, {self.rank}] (the current rank), got {rank!r}")
+        u, s, vh = factor_svd(self.w1, self.w2)
+        w1, w2 = refactorize(u, s, vh, rank, self.w1.dtype)
+        self.w1.data = w1.to(self.w1.device)
+        self.w2.data = w2.to(self.w2.device)
+        self.w1.grad = None
+        self.w2.grad = None
+        return self
+
+    @classmethod
+    def from_linear(cls, linear: nn.Linear, rank: int | None = None) -> LowRankLinear:
+        """A :class:`LowRankLinear` holding the best rank-``rank`` approximation of ``linear`` (exact at full rank)."""
+        layer = cls(
+            linear.in_features,
+            linear.out_features,
+            rank=rank,
+            bias=linear.bias is not None,
+            device=linear.weight.device,
+            dtype=linear.weight.dtype,
+        )
+        with torch.no_grad():
+            u, s, vh = torch.linalg.svd(linear.weight.detach().to(torch.float64), full_matrices=False)
+            w1, w2 = refactorize(u, s, vh, layer.rank, layer.w1.dtype)
+            layer.w1.copy_(w1)
+            layer.w2.copy_(w2)
+            if linear.bias is not None:
+                layer.bias.copy_(linear.bias)
+        return layer
+
+    def extra_repr(self) -> str:
+        return (
+            f"in_features={self.in_features}, out_features={self.out_features}, rank={self.rank}, "
+            f"max_rank={self.max_rank}, bias={self.bias is not None}"
+        )
+
+
+def iter_low_rank(module: nn.Module, prefix: str = "") -> Iterator[tuple[str, LowRankLinear]]:
+    """Yield ``(qualified_name, layer)`` for every :class:`LowRankLinear` inside ``module``."""
+    for name, sub in module.named_modules(prefix=prefix):
+        if isinstance(sub, LowRankLinear):
+            yield name, sub
+
+
+def _layer_factory(in_features: int, out_features: int, bias: bool = True, rank: int | None | str = "dense",
+                   device=None, dtype=None) -> nn.Module:
+    if rank == "dense":
+        return nn.Linear(in_features, out_features, bias=bias, device=device, dtype=dtype)
+    return LowRankLinear(in_features, out_features, rank=rank, bias=bias, device=device, dtype=dtype)
+
+
+def low_rank_mlp(
+    in_features: int,
+    out_features: int | Sequence[int],
+    num_cells: Sequence[int] = (64, 64),
+    activation_class: type[nn.Module] | Callable[[], nn.Module] = nn.ReLU,
+    low_rank_layers: Sequence[int] = (0, 1),
+    rank: int | None | Sequence[int | None] = None,
+    device: torch.device | str | None = None,
+) -> nn.Module:
+    """A :class:`torchrl.modules.MLP` whose chosen hidden layers are :class:`LowRankLinear`.
+
+    ``low_rank_layers`` indexes the ``len(num_cells) + 1`` linear layers (default: the first two, as in the
+    paper); the output head may not be low-rank (it stays a plain ``nn.Linear``). ``rank`` is the initial
+    rank, one value for all chosen layers or one per chosen layer (``None`` = full rank).
+    """
+    from torchrl.modules import MLP
+
+    n_layers = len(num_cells) + 1
+    chosen = sorted(set(int(i) for i in low_rank_layers))
+    bad = [i for i in chosen if not 0 <= i < n_layers - 1]
+    if bad:
+        raise AdaRLValueError(
+            f"low_rank_layers {bad} out of range: with num_cells={list(num_cells)} the hidden layers are "
+            f"{list(range(n_layers - 1))} (the output head, index {n_layers - 1}, stays a plain Linear)"
+        )
+    if rank is None or isinstance(rank, int):
+        ranks = [rank] * len(chosen)
+    else:
+        ranks = list(rank)
+        if len(ranks) != len(chosen):
+            raise AdaRLValueError(
+                f"rank has {len(ranks)} entries but low_rank_layers has {len(chosen)}: give one rank per layer"
+            )
+    per_layer = {i: r for i, r in zip(chosen, ranks)}
+    widths_in = [int(in_features), *num_cells]
+    widths_out = list(num_cells)
+    for i, r in per_layer.items():
+        limit = min(widths_in[i], widths_out[i])
+        if r is not None and (isinstance(r, bool) or not isinstance(r, int) or not 1 <= r <= limit):
+            raise AdaRLValueError(f"rank for layer {i} must be an integer in [1, {limit}] or None, got {r!r}")
+    layer_kwargs = [{"rank": per_layer.get(i, "dense")} for i in range(n_layers)]
+    return MLP(
+        in_features=in_features,
+        out_features=out_features,
+        num_cells=list(num_cells),
+        activation_class=activation_class,
+        layer_class=_layer_factory,
+        layer_kwargs=layer_kwargs,
+        device=device,
+    )
