@@ -3,6 +3,7 @@
 Every rule sees the spectrum in float64, never returns more than the current rank (ranks only go down, which is
 what makes them settle: paper Lemma 3) nor less than ``min_rank``, and refuses to act on a spectrum that is
 non-finite or numerically zero (two zero factors could never train again): it then keeps the rank and says why.
+A share or ratio within 1e-12 of ``beta`` counts as equal to it (``beta=0.7`` means 7/10 at any spectrum scale).
 
 =====================  =====================================================================================
 ``EnergyRule``         paper Eq. 10, literal: the largest ``l`` whose cumulative share ``sum_{i<=l} s_i / sum s``
@@ -43,6 +44,10 @@ __all__ = [
 ]
 
 FitFn = Callable[[int], float]
+
+# Shares and ratios within this of beta count as ties (equal to beta): a beta written as a decimal (0.7) means
+# the decimal, and float64 rounding of a cumsum must not make the answer depend on the spectrum's scale.
+_TIE_TOL = 1e-12
 
 
 @dataclass(frozen=True)
@@ -131,7 +136,11 @@ class EnergyRule(RankRule):
 
     def select(self, s, current_rank, min_rank, fit):
         share = s.cumsum(0) / s.sum()
-        ok = torch.nonzero(share <= self.beta).flatten()
+        # The same tie tolerance as the inclusive rule, so that a share of exactly beta in exact arithmetic
+        # counts as <= beta whatever the scale of the spectrum (cumsum of ten 0.1s reaches 0.7000000000000001).
+        # The full share is 1 > beta in exact arithmetic, so l = n is never a candidate (for beta within the
+        # tolerance of 1 it would otherwise slip in).
+        ok = torch.nonzero(share[:-1] <= self.beta + _TIE_TOL).flatten()
         return int(ok[-1]) + 1 if ok.numel() else 0
 
 
@@ -147,7 +156,7 @@ class InclusiveEnergyRule(RankRule):
     def select(self, s, current_rank, min_rank, fit):
         share = s.cumsum(0) / s.sum()
         # A tiny tolerance so that a share of exactly beta in exact arithmetic is not lost to rounding.
-        ok = torch.nonzero(share >= self.beta - 1e-12).flatten()
+        ok = torch.nonzero(share >= self.beta - _TIE_TOL).flatten()
         return int(ok[0]) + 1 if ok.numel() else current_rank
 
 
@@ -161,7 +170,7 @@ class RatioRule(RankRule):
         self.beta = _check_unit_interval("beta", beta, type(self).__name__)
 
     def select(self, s, current_rank, min_rank, fit):
-        ok = torch.nonzero(s / s[0] <= self.beta).flatten()
+        ok = torch.nonzero(s / s[0] <= self.beta + _TIE_TOL).flatten()
         return int(ok[0]) + 1 if ok.numel() else current_rank
 
 

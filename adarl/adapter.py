@@ -1,0 +1,778 @@
+"""RankAdapter: the rank adaptation step of Algorithm 1 (step 6) on a TorchRL loss module.
+
+Every ``interval`` optimisation steps the adapter SVDs each :class:`~adarl.lowrank.LowRankLinear` of the actor
+and/or critic, asks a rank rule (:mod:`adarl.rank`) for a new rank, and re-factorises the layer at that rank
+(paper App. D.2) *in place*, so that everything holding the parameters keeps working:
+
+* the online factors get new ``.data`` (the ``Parameter`` objects keep their identity: the loss, the policy a
+  collector runs and :class:`~torchrl.objectives.SoftUpdate` all see the new tensors), ``.grad`` is cleared and the
+  optimiser state of exactly those parameters is dropped in every optimiser (Adam moments of the old basis mean
+  nothing in the new one);
+* target factors get the same shape: ``target_mode="sync"`` copies the new online factors, ``"project"`` applies
+  the same change of basis to the target factors (keeping the Polyak lag);
+* the loss's cached detached/stacked parameter views are erased, the given learning-rate schedulers are restarted
+  (warm-up from zero, :mod:`adarl.lr_schedule`) and the ``on_truncate`` callbacks run (e.g.
+  :class:`adarl.warmstart.ReplayWarmStart`).
+
+The layers are found generically, not only for SAC: every network attribute of the loss (``actor_network``,
+``qvalue_network``, ``critic_network``, ``value_network``, ...) lives in the loss's ``__dict__`` (not in
+``loss.modules()``); each LowRankLinear's module path is mapped to keys of ``<name>_params`` and, if present,
+``target_<name>_params``. Stacked ensembles (the ``[num_qvalue_nets, ...]`` Q parameters run under vmap) get one
+rank per layer: the largest of the members' choices, so no member is cut below what its own spectrum asks for.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import math
+import numbers
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+from torch import nn
+from torchrl.trainers.trainers import TrainerHookBase
+
+from adarl.errors import AdaRLValueError, CheckpointError
+from adarl.lowrank import LowRankLinear, factor_svd, refactorize, truncation_error
+from adarl.lr_schedule import restart_lr_scheduler, warmup_cosine_lambdas
+from adarl.rank import RankRule, energy_share
+
+__all__ = [
+    "RankAdapter",
+    "RankEvent",
+    "LayerRecord",
+    "LowRankSite",
+    "find_low_rank_layers",
+    "resize_to_ranks",
+    "SCOPES",
+    "TARGET_MODES",
+    "ACTOR_NETWORK_NAMES",
+]
+
+SCOPES = ("actor", "critic", "both")
+TARGET_MODES = ("sync", "project")
+#: Network attributes of a loss that count as the actor (everything else with LowRankLinear layers is a critic).
+ACTOR_NETWORK_NAMES = ("actor_network", "actor", "policy_network", "policy")
+#: ``target_mode="project"`` falls back to "sync" when cond(R1) or cond(R2) exceeds this (float64).
+PROJECT_COND_LIMIT = 1e6
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Finding the layers behind a loss's functional parameters
+# ----------------------------------------------------------------------------------------------------------------
+
+
+@dataclass(eq=False)
+class LowRankSite:
+    """One LowRankLinear as the loss trains it: its online and target factor tensors.
+
+    ``w1``/``w2`` are the tensors the optimiser steps (the ``Parameter`` objects in ``<network>_params``, stacked
+    ``[members, ...]`` for an ensemble); ``target_w1``/``target_w2`` those of ``target_<network>_params`` or
+    ``None``; ``template`` the module the loss runs under ``to_module``; ``extra`` parameters of that module that
+    are distinct objects from ``w1``/``w2`` (the Q template's own, unused parameters), resized to stay consistent.
+    """
+
+    path: str  # "<network attribute>.<module path>", e.g. "qvalue_network.module.mlp.0"
+    network_name: str  # the loss attribute, e.g. "qvalue_network"
+    role: str  # "actor" | "critic"
+    module_path: str
+    network: nn.Module
+    template: LowRankLinear
+    params: TensorDictBase | None  # <network>_params (None for a non-functional network)
+    w1: torch.Tensor
+    w2: torch.Tensor
+    target_w1: torch.Tensor | None
+    target_w2: torch.Tensor | None
+    extra: tuple[torch.Tensor, torch.Tensor] | None
+
+    @property
+    def key(self) -> tuple[str, ...]:
+        return tuple(self.module_path.split(".")) if self.module_path else ()
+
+    @property
+    def batch_shape(self) -> torch.Size:
+        """Leading (ensemble) dimensions of the factors; empty for a single network."""
+        return self.w1.shape[:-2]
+
+    @property
+    def rank(self) -> int:
+        return int(self.w2.shape[-2])
+
+    @property
+    def max_rank(self) -> int:
+        return self.template.max_rank
+
+
+def _network_candidates(loss: nn.Module) -> list[tuple[str, nn.Module]]:
+    found: dict[int, tuple[str, nn.Module]] = {}
+    items = list(vars(loss).items()) + list(getattr(loss, "_modules", {}).items())
+    for name, mod in items:
+        if name.startswith("_") or not isinstance(mod, nn.Module) or isinstance(mod, TensorDictBase):
+            continue
+        if name.endswith("_params"):
+            continue
+        prev = found.get(id(mod))
+        # The same module under two names: keep the one with functional parameters.
+        if prev is None or (
+            getattr(loss, f"{prev[0]}_params", None) is None and getattr(loss, f"{name}_params", None) is not None
+        ):
+            found[id(mod)] = (name, mod)
+    return list(found.values())
+
+
+def _role(name: str) -> str:
+    return "actor" if name in ACTOR_NETWORK_NAMES else "critic"
+
+
+def find_low_rank_layers(loss_module: nn.Module, scope: str = "both") -> tuple[list[LowRankSite], list[str]]:
+    """All :class:`LowRankSite` of ``loss_module`` in ``scope``, and the networks searched (for error messages).
+
+    Works for any TorchRL loss that keeps its networks as attributes (``convert_to_functional``: module in
+    ``__dict__``, parameters in ``<name>_params``, optional ``target_<name>_params``) and for plain modules
+    registered on the loss (non-functional losses, e.g. ``ClipPPOLoss(functional=False)``).
+    """
+    if scope not in SCOPES:
+        raise AdaRLValueError(f"scope must be one of {list(SCOPES)}, got {scope!r}")
+    sites: list[LowRankSite] = []
+    searched: list[str] = []
+    seen_params: set[int] = set()
+    for name, network in _network_candidates(loss_module):
+        role = _role(name)
+        searched.append(f"{name} ({role})")
+        if scope != "both" and role != scope:
+            continue
+        params = getattr(loss_module, f"{name}_params", None)
+        if params is not None and not isinstance(params, TensorDictBase):
+            params = None
+        target = loss_module._modules.get(f"target_{name}_params") if hasattr(loss_module, "_modules") else None
+        if target is not None and not isinstance(target, TensorDictBase):
+            target = None
+        for module_path, layer in network.named_modules():
+            if not isinstance(layer, LowRankLinear):
+                continue
+            path = f"{name}.{module_path}" if module_path else name
+            key = tuple(module_path.split(".")) if module_path else ()
+            if params is not None:
+                w1 = params.get(key + ("w1",), None)
+                w2 = params.get(key + ("w2",), None)
+                if w1 is None or w2 is None:
+                    raise AdaRLValueError(
+                        f"cannot map LowRankLinear {path!r} to keys of {name}_params (looked for "
+                        f"{key + ('w1',)} and {key + ('w2',)}; available: {sorted(map(str, params.keys(True, True)))[:8]}...)"
+                    )
+            else:
+                w1, w2 = layer.w1, layer.w2
+            if not isinstance(w1, nn.Parameter) or not isinstance(w2, nn.Parameter):
+                raise AdaRLValueError(
+                    f"LowRankLinear {path!r}: its factors in {name}_params are not trainable Parameters (a view of "
+                    f"another network's parameters: shared layers are not supported by RankAdapter)"
+                )
+            if id(w1) in seen_params:
+                continue  # the same parameters reached through another network: handled once
+            seen_params.add(id(w1))
+            tw1 = tw2 = None
+            if target is not None:
+                tw1 = target.get(key + ("w1",), None)
+                tw2 = target.get(key + ("w2",), None)
+                if (tw1 is None) != (tw2 is None):
+                    raise AdaRLValueError(f"target_{name}_params holds only one factor of {path!r}")
+            extra = None
+            if layer.w1 is not w1 and isinstance(layer.w1, nn.Parameter) and id(layer.w1) not in seen_params:
+                extra = (layer.w1, layer.w2)
+            sites.append(
+                LowRankSite(path, name, role, module_path, network, layer, params, w1, w2, tw1, tw2, extra)
+            )
+    return sites, searched
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Records
+# ----------------------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class LayerRecord:
+    """What one rank event did to one layer.
+
+    For a stacked ensemble, ``singular_values``, ``retained_energy`` and ``truncation_error`` are per member
+    (lists), and ``member_ranks`` holds each member's own choice (the layer takes the largest).
+    ``retained_energy`` and ``truncation_error`` (``||W - Pi_r(W)||_F``) are at the applied ``new_rank``.
+    ``skipped`` is ``None`` when the layer changed, otherwise why not. ``target`` says how the target factors were
+    given the new shape (``"sync"``, ``"project"``, ``"sync (fallback: ...)"``) or ``None`` (no target / no change).
+    """
+
+    step: int
+    layer: str
+    network: str  # "actor" | "critic"
+    old_rank: int
+    new_rank: int
+    singular_values: list
+    retained_energy: Any
+    truncation_error: Any
+    skipped: str | None = None
+    member_ranks: list[int] | None = None
+    target: str | None = None
+
+    @property
+    def changed(self) -> bool:
+        return self.new_rank != self.old_rank
+
+    def as_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+@dataclass
+class RankEvent:
+    """One call of :meth:`RankAdapter.adapt`: the optimisation step it ran at and one record per layer."""
+
+    step: int
+    index: int
+    layers: list[LayerRecord] = field(default_factory=list)
+
+    @property
+    def changed(self) -> bool:
+        """Whether any layer's rank changed (only then are caches, schedulers and callbacks touched)."""
+        return any(r.changed for r in self.layers)
+
+    @property
+    def ranks(self) -> dict[str, int]:
+        return {r.layer: r.new_rank for r in self.layers}
+
+    def as_dict(self) -> dict:
+        return {"step": self.step, "index": self.index, "layers": [r.as_dict() for r in self.layers]}
+
+    @classmethod
+    def from_dict(cls, d: Mapping) -> RankEvent:
+        return cls(int(d["step"]), int(d["index"]), [LayerRecord(**r) for r in d["layers"]])
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# In-place tensor surgery
+# ----------------------------------------------------------------------------------------------------------------
+
+
+def _erase_loss_caches(loss: nn.Module) -> None:
+    """Drop the loss's cached detached / stacked parameter views (they would still point at the old tensors)."""
+    cache = loss.__dict__.get("_cache")
+    if isinstance(cache, dict):
+        cache.clear()
+    erase = getattr(loss, "_erase_cache", None)
+    if callable(erase):
+        erase()
+
+
+def _set_data(t: torch.Tensor, value: torch.Tensor) -> None:
+    """``t.data = value`` keeping ``t``'s identity, dtype and device; clears ``.grad``.
+
+    A leaf's cached gradient accumulator (kept alive by any autograd graph still referenced, e.g. last step's loss
+    tensor) records the leaf's old shape, and ``set_data`` only drops it on a dtype/device change: the next
+    backward would then fail with "invalid gradient ... expected shape". Passing through another dtype first
+    makes autograd drop the stale accumulator, so a graph left alive across the event is harmless.
+    """
+    value = value.to(device=t.device, dtype=t.dtype).contiguous()
+    if t.requires_grad:
+        other = torch.float64 if t.dtype != torch.float64 else torch.float32
+        t.data = value.to(other)
+    t.data = value
+    if getattr(t, "grad", None) is not None:
+        t.grad = None
+
+
+def _forget_optimizer_state(optimizers: Iterable[torch.optim.Optimizer], tensors: Iterable[torch.Tensor]) -> None:
+    tensors = list(tensors)
+    for opt in optimizers:
+        for t in tensors:
+            opt.state.pop(t, None)
+
+
+def _project_basis(w1: torch.Tensor, w2: torch.Tensor, rank: int):
+    """The online rank-``rank`` factors and the change of basis that produced them (float64, batched).
+
+    ``W1 = Q1 R1``, ``W2^T = Q2 R2``, ``R1 R2^T = Uc S Vch``. The new online factors are
+    ``W1' = Q1 Uc_k sqrt(S_k) = W1 T'`` and ``W2' = sqrt(S_k) Vch_k Q2^T = T W2`` with
+    ``T' = R1^-1 Uc_k sqrt(S_k)`` (r x k) and ``T = sqrt(S_k) Vch_k R2^-T`` (k x r). Returns
+    ``(W1', W2', T', T, cond)`` where ``cond`` is the worst condition number of R1/R2. The online factors come
+    from this same decomposition (not from :func:`factor_svd`, whose singular vectors may differ by signs) so that
+    the target factors ``W1t T'``, ``T W2t`` stay in the online factors' basis: SoftUpdate lerps them elementwise.
+    """
+    a = w1.detach().to(torch.float64)
+    b = w2.detach().to(torch.float64)
+    q1, r1 = torch.linalg.qr(a, mode="reduced")
+    q2, r2 = torch.linalg.qr(b.transpose(-1, -2), mode="reduced")
+    cond = max(float(torch.linalg.cond(r1).max()), float(torch.linalg.cond(r2).max()))
+    uc, s, vhc = torch.linalg.svd(r1 @ r2.transpose(-1, -2), full_matrices=False)
+    root = s[..., :rank].sqrt()
+    left = uc[..., :, :rank] * root.unsqueeze(-2)  # Uc_k sqrt(S_k), r x k
+    right = root.unsqueeze(-1) * vhc[..., :rank, :]  # sqrt(S_k) Vch_k, k x r
+    new_w1 = q1 @ left
+    new_w2 = right @ q2.transpose(-1, -2)
+    if not math.isfinite(cond):
+        return new_w1, new_w2, None, None, cond
+    t_right = torch.linalg.solve_triangular(r1, left, upper=True)
+    t_left = torch.linalg.solve_triangular(r2, right.transpose(-1, -2), upper=True).transpose(-1, -2)
+    return new_w1, new_w2, t_right, t_left, cond
+
+
+def _resize_site(site: LowRankSite, w1: torch.Tensor, w2: torch.Tensor, optimizers) -> None:
+    """Give a site's online, target and template factors new values (in place, identities kept)."""
+    _set_data(site.w1, w1)
+    _set_data(site.w2, w2)
+    _forget_optimizer_state(optimizers, (site.w1, site.w2))
+    if site.extra is not None:
+        e1, e2 = site.extra
+        lead = (0,) * len(site.batch_shape)
+        _set_data(e1, w1[lead].clone())
+        _set_data(e2, w2[lead].clone())
+        _forget_optimizer_state(optimizers, (e1, e2))
+
+
+def _padded_factors(u, s, vh, rank: int, width: int, dtype) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rank-``rank`` factors stored at width ``width`` (zero columns/rows beyond ``rank``)."""
+    s = s.clone()
+    s[..., rank:] = 0
+    return refactorize(u, s, vh, width, dtype)
+
+
+def resize_to_ranks(
+    loss_module: nn.Module,
+    ranks: Mapping,
+    optimizers: torch.optim.Optimizer | Sequence[torch.optim.Optimizer] = (),
+) -> dict[str, tuple[int, int]]:
+    """Give a freshly built loss the ranks of a checkpoint, so ``loss.load_state_dict`` can load it.
+
+    A rank event changes parameter *shapes*; ``loss.load_state_dict`` of a truncated checkpoint into a freshly
+    built (full-rank) loss fails, even with ``strict=False``. Call this first::
+
+        resize_to_ranks(loss, checkpoint["adapter"], optimizer)   # or checkpoint["loss"], or {path: rank}
+        loss.load_state_dict(checkpoint["loss"])
+        optimizer.load_state_dict(checkpoint["optimizer"])
+        adapter.load_state_dict(checkpoint["adapter"])
+
+    ``ranks`` may be ``{layer_path: rank}`` (see :attr:`RankAdapter.ranks`), a :meth:`RankAdapter.state_dict`
+    (its ``"ranks"``) or the loss's own ``state_dict()`` (ranks read from the ``w2`` shapes). Every LowRankLinear of
+    the loss (actor and critics, online, stacked ensemble, targets, template) is resized in place (``.data``; the
+    values are a truncated projection, or zero-padded when growing, and are meant to be overwritten by the load),
+    and the optimiser state of resized parameters is dropped (``optimizer.load_state_dict`` restores it).
+    Returns ``{layer_path: (old_rank, new_rank)}`` for the resized layers.
+    """
+    if isinstance(optimizers, torch.optim.Optimizer):
+        optimizers = [optimizers]
+    sites, searched = find_low_rank_layers(loss_module, "both")
+    if not sites:
+        raise CheckpointError(f"no LowRankLinear layers found in {type(loss_module).__name__}; searched {searched}")
+    by_path = {s.path: s for s in sites}
+    wanted = _ranks_from_source(ranks, sites)
+    unknown = sorted(set(wanted) - set(by_path))
+    if unknown:
+        raise CheckpointError(f"checkpoint has ranks for unknown layers {unknown}; this model has {sorted(by_path)}")
+    changed: dict[str, tuple[int, int]] = {}
+    with torch.no_grad():
+        for path, rank in wanted.items():
+            site = by_path[path]
+            if isinstance(rank, bool) or not isinstance(rank, int) or not 1 <= rank <= site.max_rank:
+                raise CheckpointError(f"rank for {path!r} must be an integer in [1, {site.max_rank}], got {rank!r}")
+            old = site.rank
+            if rank == old:
+                continue
+            w1, w2 = _resized(site.w1, site.w2, rank)
+            _resize_site(site, w1, w2, optimizers)
+            if site.target_w1 is not None:
+                t1, t2 = _resized(site.target_w1, site.target_w2, rank)
+                _set_data(site.target_w1, t1)
+                _set_data(site.target_w2, t2)
+            changed[path] = (old, rank)
+    if changed:
+        _erase_loss_caches(loss_module)
+    return changed
+
+
+def _resized(w1: torch.Tensor, w2: torch.Tensor, rank: int) -> tuple[torch.Tensor, torch.Tensor]:
+    old = int(w2.shape[-2])
+    u, s, vh = factor_svd(w1, w2)
+    a, b = refactorize(u, s, vh, min(rank, old), w1.dtype)
+    if rank > old:
+        pad = rank - old
+        a = torch.cat([a, a.new_zeros(*a.shape[:-1], pad)], -1)
+        b = torch.cat([b, b.new_zeros(*b.shape[:-2], pad, b.shape[-1])], -2)
+    return a, b
+
+
+def _ranks_from_source(source: Mapping, sites: list[LowRankSite]) -> dict[str, int]:
+    if not isinstance(source, Mapping):
+        raise CheckpointError(f"ranks must be a mapping (ranks, adapter state_dict or loss state_dict), got {type(source)}")
+    if "ranks" in source and isinstance(source["ranks"], Mapping):
+        source = source["ranks"]
+    if any(isinstance(v, torch.Tensor) for v in source.values()):
+        out = {}
+        for site in sites:
+            owner = f"{site.network_name}_params" if site.params is not None else site.network_name
+            key = ".".join(p for p in (owner, site.module_path, "w2") if p)
+            if key in source:
+                out[site.path] = int(source[key].shape[-2])
+        if not out:
+            raise CheckpointError("the state_dict holds no LowRankLinear factor of this model (no '...w2' keys matched)")
+        return out
+    bad = {k: v for k, v in source.items() if isinstance(v, bool) or not isinstance(v, numbers.Integral)}
+    if bad:
+        raise CheckpointError(f"ranks must be integers, got {bad}")
+    try:
+        return {str(k): int(v) for k, v in source.items()}
+    except (TypeError, ValueError) as err:
+        raise CheckpointError(f"cannot read ranks from {type(source).__name__}: {err}") from None
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Policy-fit measurement (PolicyFitRule)
+# ----------------------------------------------------------------------------------------------------------------
+
+
+def _float_keys(td: TensorDictBase, keys) -> list:
+    return [k for k in keys if k in td.keys(True) and torch.is_floating_point(td.get(k))]
+
+
+class _FitProbe:
+    """Runs one network (one ensemble member) with a layer projected to rank r; measures the output distance."""
+
+    def __init__(self, site: LowRankSite, member: tuple, batch: TensorDictBase) -> None:
+        from tensordict import TensorDict
+
+        self.site = site
+        self.network = site.network
+        if site.params is not None:
+            base = site.params.detach().clone()
+        else:
+            base = TensorDict.from_module(site.network, as_module=False).detach().clone()
+        if member:
+            base = base[member] if len(base.batch_size) >= len(member) else base.apply(lambda t: t[member])
+        self.base = base
+        self.batch = batch
+        self.k1, self.k2 = site.key + ("w1",), site.key + ("w2",)
+        self.reference = self._run()
+
+    def _run(self) -> torch.Tensor:
+        from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+        net = self.network
+        in_keys = getattr(net, "in_keys", None)
+        x = self.batch.select(*in_keys, strict=False) if in_keys is not None else self.batch.clone(False)
+        with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC), self.base.to_module(net):
+            if hasattr(net, "get_dist_params") and hasattr(net, "dist_params_keys"):
+                out = net.get_dist_params(x)
+                keys = list(net.dist_params_keys)
+            else:
+                out = net(x)
+                keys = list(getattr(net, "out_keys", []))
+        keys = _float_keys(out, keys)
+        if not keys:
+            raise AdaRLValueError(f"PolicyFitRule: network {self.site.network_name!r} produced no float outputs to compare")
+        n = out.batch_size.numel()
+        return torch.cat([out.get(k).reshape(n, -1).to(torch.float64) for k in keys], -1)
+
+    def distance(self, w1: torch.Tensor, w2: torch.Tensor) -> float:
+        old1, old2 = self.base.get(self.k1), self.base.get(self.k2)
+        self.base.set(self.k1, w1)
+        self.base.set(self.k2, w2)
+        try:
+            out = self._run()
+        finally:
+            self.base.set(self.k1, old1)
+            self.base.set(self.k2, old2)
+        return float((out - self.reference).norm(dim=-1).mean())
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# The adapter
+# ----------------------------------------------------------------------------------------------------------------
+
+
+class RankAdapter(TrainerHookBase):
+    """Rank adaptation (Algorithm 1, step 6) for the LowRankLinear layers behind a TorchRL loss.
+
+    Args:
+        loss_module: a TorchRL loss (``SACLoss``, ``DiscreteSACLoss``, ``TD3Loss``, ``ClipPPOLoss``, ...) whose
+            actor and/or critic contain :class:`~adarl.lowrank.LowRankLinear` layers.
+        optimizers: the optimiser(s) training the loss's parameters; the state of truncated parameters is dropped
+            in each (plain, ``foreach`` and ``fused`` Adam alike).
+        rule: a :class:`~adarl.rank.RankRule` (``EnergyRule(0.98)`` is the paper's Eq. 10). A
+            :class:`~adarl.rank.PolicyFitRule` needs ``fit_data``.
+        interval: run an event every ``interval`` calls of :meth:`step` (paper: 0.7e6 or 1e6 optimisation steps).
+        scope: ``"actor"``, ``"critic"`` or ``"both"`` (paper Table 2): which networks are adapted. The actor is
+            the loss's ``actor_network``; every other network attribute is a critic.
+        min_rank: no layer goes below this rank.
+        target_mode: ``"sync"`` copies the new online factors into the target factors; ``"project"`` applies the
+            online change of basis to the target factors (keeps the Polyak lag; falls back to "sync", with the
+            reason in the history, when the factors are ill-conditioned).
+        lr_schedulers: ``LambdaLR`` schedulers built with :class:`~adarl.lr_schedule.WarmupCosine` (e.g. by
+            :func:`~adarl.lr_schedule.make_lr_scheduler`), or objects with a ``restart()`` method; restarted
+            (learning rate to 0, then warm-up) after every event that changed a rank.
+        on_truncate: callables ``fn(event)`` run after every event that changed a rank (e.g.
+            :class:`~adarl.warmstart.ReplayWarmStart`).
+        fit_data: for :class:`~adarl.rank.PolicyFitRule`: a callable returning a TensorDict batch, or a TorchRL
+            replay buffer (``.sample()`` is called; give it a ``batch_size``).
+        logger: a TorchRL logger; the rank of each layer is logged as ``rank/<layer path>`` at every event.
+
+    Call :meth:`step` after every optimisation step, at a clean point (after the optimiser step and the target
+    update, with no live autograd graph), or register the adapter on a ``torchrl.trainers.Trainer``
+    (:meth:`register`, stage ``"post_optim"``).
+    """
+
+    def __init__(
+        self,
+        loss_module: nn.Module,
+        optimizers: torch.optim.Optimizer | Sequence[torch.optim.Optimizer],
+        rule: RankRule,
+        interval: int,
+        *,
+        scope: str = "both",
+        min_rank: int = 1,
+        target_mode: str = "sync",
+        lr_schedulers: Sequence = (),
+        on_truncate: Sequence[Callable] | Callable = (),
+        fit_data: Callable[[], TensorDictBase] | Any = None,
+        logger: Any = None,
+    ) -> None:
+        if isinstance(interval, bool) or not isinstance(interval, int) or interval < 1:
+            raise AdaRLValueError(f"interval must be an integer >= 1 (optimisation steps between events), got {interval!r}")
+        if scope not in SCOPES:
+            raise AdaRLValueError(f"scope must be one of {list(SCOPES)}, got {scope!r}")
+        if target_mode not in TARGET_MODES:
+            raise AdaRLValueError(f"target_mode must be one of {list(TARGET_MODES)}, got {target_mode!r}")
+        if isinstance(min_rank, bool) or not isinstance(min_rank, int) or min_rank < 1:
+            raise AdaRLValueError(f"min_rank must be an integer >= 1, got {min_rank!r}")
+        if not isinstance(rule, RankRule):
+            raise AdaRLValueError(f"rule must be an adarl.rank.RankRule (e.g. EnergyRule(0.98)), got {type(rule).__name__}")
+        if isinstance(optimizers, torch.optim.Optimizer):
+            optimizers = [optimizers]
+        optimizers = list(optimizers)
+        bad = [type(o).__name__ for o in optimizers if not isinstance(o, torch.optim.Optimizer)]
+        if bad:
+            raise AdaRLValueError(f"optimizers must be torch.optim.Optimizer instances, got {bad}")
+        lr_schedulers = list(lr_schedulers)
+        for sch in lr_schedulers:
+            if not warmup_cosine_lambdas(sch) and not callable(getattr(sch, "restart", None)):
+                raise AdaRLValueError(
+                    f"lr_schedulers must be LambdaLR schedulers with WarmupCosine lambdas (adarl.make_lr_scheduler) "
+                    f"or objects with a restart() method, got {type(sch).__name__}"
+                )
+        if callable(on_truncate):
+            on_truncate = [on_truncate]
+        on_truncate = list(on_truncate)
+        for cb in on_truncate:
+            if not callable(cb):
+                raise AdaRLValueError(f"on_truncate entries must be callables fn(event), got {type(cb).__name__}")
+        if rule.needs_fit:
+            if fit_data is None:
+                raise AdaRLValueError(
+                    f"{type(rule).__name__} measures the network's outputs: pass fit_data (a callable returning a "
+                    f"TensorDict batch, or a replay buffer)"
+                )
+            if not callable(fit_data) and not callable(getattr(fit_data, "sample", None)):
+                raise AdaRLValueError(f"fit_data must be a callable or a replay buffer, got {type(fit_data).__name__}")
+
+        self.loss_module = loss_module
+        self.optimizers = optimizers
+        self.rule = rule
+        self.interval = interval
+        self.scope = scope
+        self.min_rank = min_rank
+        self.target_mode = target_mode
+        self.lr_schedulers = lr_schedulers
+        self.on_truncate = on_truncate
+        self.fit_data = fit_data
+        self.logger = logger
+        self.sites, searched = find_low_rank_layers(loss_module, scope)
+        if not self.sites:
+            raise AdaRLValueError(
+                f"no LowRankLinear layer found in scope {scope!r} of {type(loss_module).__name__}; networks searched: "
+                f"{searched or 'none'} (build them with adarl.low_rank_mlp or LowRankLinear)"
+            )
+        self.step_count = 0
+        self.history: list[RankEvent] = []
+
+    # -- properties ---------------------------------------------------------------------------------------------
+
+    @property
+    def ranks(self) -> dict[str, int]:
+        """``{layer_path: current rank}`` of the adapted layers (e.g. ``"actor_network.module.0.module.0.0"``)."""
+        return {s.path: s.rank for s in self.sites}
+
+    @property
+    def layers(self) -> dict[str, str]:
+        """``{layer_path: "actor" | "critic"}`` of the adapted layers."""
+        return {s.path: s.role for s in self.sites}
+
+    # -- hooks --------------------------------------------------------------------------------------------------
+
+    def step(self) -> RankEvent | None:
+        """Count one optimisation step; every ``interval`` steps run :meth:`adapt` and return its event."""
+        self.step_count += 1
+        if self.step_count % self.interval == 0:
+            return self.adapt()
+        return None
+
+    __call__ = step
+
+    def register(self, trainer, name: str = "rank_adapter") -> None:
+        """Register :meth:`step` at the trainer's ``"post_optim"`` stage and the adapter as a checkpointed module."""
+        trainer.register_op("post_optim", self.step)
+        trainer.register_module(name, self)
+
+    # -- the event ----------------------------------------------------------------------------------------------
+
+    def _fit_batch(self) -> TensorDictBase:
+        src = self.fit_data
+        batch = src.sample() if callable(getattr(src, "sample", None)) else src()
+        if isinstance(batch, tuple):  # ReplayBuffer.sample(return_info=True)
+            batch = batch[0]
+        if not isinstance(batch, TensorDictBase):
+            raise AdaRLValueError(f"fit_data must give a TensorDict batch, got {type(batch).__name__}")
+        return batch.reshape(-1) if batch.batch_dims != 1 else batch
+
+    @torch.no_grad()
+    def adapt(self) -> RankEvent:
+        """Run a rank event now: decide every layer's rank from the current network, then apply the changes."""
+        event = RankEvent(step=self.step_count, index=len(self.history))
+        batch = self._fit_batch() if self.rule.needs_fit else None
+        plans = []
+        for site in self.sites:
+            record, svd = self._decide(site, event.step, batch)
+            event.layers.append(record)
+            plans.append((site, record, svd))
+        for site, record, (u, s, vh) in plans:
+            if record.changed:
+                record.target = self._apply(site, record.new_rank, u, s, vh)
+        self.history.append(event)
+        if event.changed:
+            _erase_loss_caches(self.loss_module)
+            for sch in self.lr_schedulers:
+                if warmup_cosine_lambdas(sch):
+                    restart_lr_scheduler(sch)
+                else:
+                    sch.restart()
+        if self.logger is not None:
+            for record in event.layers:
+                self.logger.log_scalar(f"rank/{record.layer}", float(record.new_rank), step=event.step)
+        if event.changed:
+            for cb in self.on_truncate:
+                cb(event)
+        return event
+
+    def _decide(self, site: LowRankSite, step: int, batch) -> tuple[LayerRecord, tuple]:
+        u, s, vh = factor_svd(site.w1, site.w2)
+        current = site.rank
+        lead = site.batch_shape
+        members = list(itertools.product(*[range(n) for n in lead]))  # [()] for a single network
+        choices, reasons = [], []
+        for m in members:
+            idx = tuple(m)
+            fit = None
+            if self.rule.needs_fit:
+                fit = self._make_fit(site, idx, u[idx], s[idx], vh[idx], batch)
+            d = self.rule(s[idx], current, min_rank=self.min_rank, fit=fit)
+            choices.append(int(d.rank))
+            if d.skipped:
+                reasons.append(d.skipped if not lead else f"member {idx}: {d.skipped}")
+        new = max(choices)
+        flat_s = s.reshape(-1, s.shape[-1])
+        energies = [energy_share(row, new) for row in flat_s]
+        errors = [float(truncation_error(row, new)) for row in flat_s]
+        skipped = None
+        if new == current:
+            skipped = "; ".join(reasons) if reasons else f"rule kept rank {current}"
+        record = LayerRecord(
+            step=step,
+            layer=site.path,
+            network=site.role,
+            old_rank=current,
+            new_rank=new,
+            singular_values=[row.tolist() for row in flat_s] if lead else flat_s[0].tolist(),
+            retained_energy=energies if lead else energies[0],
+            truncation_error=errors if lead else errors[0],
+            skipped=skipped,
+            member_ranks=choices if lead else None,
+        )
+        return record, (u, s, vh)
+
+    def _make_fit(self, site, member, u, s, vh, batch) -> Callable[[int], float]:
+        probe = _FitProbe(site, member, batch)
+        width = site.rank
+        dtype = site.w1.dtype
+        device = site.w1.device
+
+        def fit(rank: int) -> float:
+            w1, w2 = _padded_factors(u, s, vh, int(rank), width, dtype)
+            return probe.distance(w1.to(device), w2.to(device))
+
+        return fit
+
+    def _apply(self, site: LowRankSite, rank: int, u, s, vh) -> str | None:
+        dtype = site.w1.dtype
+        mode = None
+        w1 = w2 = t1 = t2 = None
+        if site.target_w1 is not None:
+            mode = self.target_mode
+            if mode == "project":
+                p1, p2, t_right, t_left, cond = _project_basis(site.w1, site.w2, rank)
+                if not math.isfinite(cond) or cond > PROJECT_COND_LIMIT:
+                    mode = f"sync (fallback: cond(R1, R2) = {cond:.3g} > {PROJECT_COND_LIMIT:.0g})"
+                else:
+                    tw1 = site.target_w1.detach().to(torch.float64)
+                    tw2 = site.target_w2.detach().to(torch.float64)
+                    t1, t2 = tw1 @ t_right, t_left @ tw2
+                    if torch.isfinite(t1).all() and torch.isfinite(t2).all():
+                        w1, w2 = p1.to(dtype), p2.to(dtype)
+                    else:
+                        mode, t1, t2 = "sync (fallback: non-finite projected target)", None, None
+        if w1 is None:
+            w1, w2 = refactorize(u, s, vh, rank, dtype)
+        _resize_site(site, w1, w2, self.optimizers)
+        if site.target_w1 is not None:
+            if t1 is None:
+                t1, t2 = w1.clone(), w2.clone()
+            _set_data(site.target_w1, t1)
+            _set_data(site.target_w2, t2)
+        return mode
+
+    # -- checkpointing ------------------------------------------------------------------------------------------
+
+    def state_dict(self) -> dict[str, Any]:
+        """Ranks, step counter, history and the schedulers' state (with their WarmupCosine restart points)."""
+        return {
+            "version": 1,
+            "step_count": self.step_count,
+            "ranks": self.ranks,
+            "history": [e.as_dict() for e in self.history],
+            "lr_schedulers": [sch.state_dict() for sch in self.lr_schedulers if hasattr(sch, "state_dict")],
+        }
+
+    def load_state_dict(self, state_dict: Mapping[str, Any]) -> None:
+        """Restore the counter, history and schedulers. The live ranks must already match (:func:`resize_to_ranks`)."""
+        ranks = dict(state_dict.get("ranks", {}))
+        live = self.ranks
+        mismatch = {p: (live.get(p), r) for p, r in ranks.items() if live.get(p) != r}
+        if mismatch:
+            raise CheckpointError(
+                f"the model's ranks differ from the checkpoint's ({{layer: (model, checkpoint)}} = {mismatch}); call "
+                f"adarl.adapter.resize_to_ranks(loss, checkpoint_state) before loss.load_state_dict and "
+                f"adapter.load_state_dict"
+            )
+        self.step_count = int(state_dict.get("step_count", 0))
+        self.history = [RankEvent.from_dict(e) for e in state_dict.get("history", [])]
+        saved = list(state_dict.get("lr_schedulers", []))
+        with_state = [sch for sch in self.lr_schedulers if hasattr(sch, "load_state_dict")]
+        if saved and len(saved) != len(with_state):
+            raise CheckpointError(
+                f"checkpoint has {len(saved)} scheduler states but the adapter holds {len(with_state)} schedulers"
+            )
+        for sch, sd in zip(with_state, saved):
+            sch.load_state_dict(sd)
+
+    def __repr__(self) -> str:
+        return (
+            f"RankAdapter(rule={self.rule!r}, interval={self.interval}, scope={self.scope!r}, "
+            f"target_mode={self.target_mode!r}, layers={self.ranks}, step_count={self.step_count})"
+        )

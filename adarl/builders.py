@@ -1,0 +1,160 @@
+"""Builders: actor, critic and SAC loss from a recipe, out of stock TorchRL pieces and :class:`LowRankLinear`.
+
+Each builder takes plain arguments (not the recipe object) so that users composing in Python can call them
+directly; :func:`make_sac_modules` is the recipe-facing wrapper.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+from tensordict.nn import NormalParamExtractor, TensorDictModule
+from torch import nn
+from torchrl.data import Categorical, OneHot
+from torchrl.envs import EnvBase
+from torchrl.modules import MLP, OneHotCategorical, ProbabilisticActor, TanhNormal, ValueOperator
+from torchrl.objectives import DiscreteSACLoss, SACLoss, SoftUpdate, ValueEstimators
+
+from adarl.errors import AdaRLValueError
+from adarl.lowrank import low_rank_mlp
+
+__all__ = ["ACTIVATIONS", "make_mlp", "make_sac_actor", "make_sac_critic", "make_sac_loss", "SACModules", "make_sac_modules"]
+
+ACTIVATIONS: dict[str, type[nn.Module]] = {
+    "relu": nn.ReLU,
+    "tanh": nn.Tanh,
+    "softplus": nn.Softplus,
+    "elu": nn.ELU,
+    "gelu": nn.GELU,
+}
+
+
+def _activation(name: str) -> type[nn.Module]:
+    if name not in ACTIVATIONS:
+        raise AdaRLValueError(f"unknown activation {name!r}; allowed: {sorted(ACTIVATIONS)}")
+    return ACTIVATIONS[name]
+
+
+def make_mlp(
+    in_features: int,
+    out_features: int,
+    num_cells: Sequence[int] = (64, 64),
+    activation: str = "relu",
+    low_rank_layers: Sequence[int] = (0, 1),
+    rank: int | None = None,
+    device: torch.device | str = "cpu",
+) -> nn.Module:
+    """An MLP with the chosen hidden layers low-rank (empty ``low_rank_layers`` gives a plain TorchRL MLP)."""
+    act = _activation(activation)
+    if len(low_rank_layers) == 0:
+        return MLP(in_features=in_features, out_features=out_features, num_cells=list(num_cells),
+                   activation_class=act, device=device)
+    return low_rank_mlp(in_features, out_features, num_cells, activation_class=act,
+                        low_rank_layers=low_rank_layers, rank=rank, device=device)
+
+
+def _is_discrete(action_spec) -> bool:
+    return isinstance(action_spec, (OneHot, Categorical))
+
+
+def make_sac_actor(env: EnvBase, obs_key="observation", **mlp_kwargs) -> ProbabilisticActor:
+    """SAC's stochastic policy: TanhNormal for boxes, OneHotCategorical for discrete action specs."""
+    obs_dim = env.observation_spec[obs_key].shape[-1]
+    spec = env.action_spec_unbatched if hasattr(env, "action_spec_unbatched") else env.action_spec
+    if _is_discrete(spec):
+        n = spec.space.n
+        net = make_mlp(obs_dim, n, **mlp_kwargs)
+        module = TensorDictModule(net, in_keys=[obs_key], out_keys=["logits"])
+        return ProbabilisticActor(module, in_keys=["logits"], spec=spec, distribution_class=OneHotCategorical,
+                                  return_log_prob=False)
+    act_dim = spec.shape[-1]
+    net = make_mlp(obs_dim, 2 * act_dim, **mlp_kwargs)
+    module = TensorDictModule(nn.Sequential(net, NormalParamExtractor()), in_keys=[obs_key], out_keys=["loc", "scale"])
+    return ProbabilisticActor(
+        module,
+        in_keys=["loc", "scale"],
+        spec=spec,
+        distribution_class=TanhNormal,
+        distribution_kwargs={"low": spec.space.low, "high": spec.space.high},
+        return_log_prob=False,
+    )
+
+
+def make_sac_critic(env: EnvBase, obs_key="observation", **mlp_kwargs) -> ValueOperator:
+    """Q(s, a) for boxes (input ``[s, a]``), or Q(s, .) over all actions for discrete specs."""
+    obs_dim = env.observation_spec[obs_key].shape[-1]
+    spec = env.action_spec_unbatched if hasattr(env, "action_spec_unbatched") else env.action_spec
+    if _is_discrete(spec):
+        net = make_mlp(obs_dim, spec.space.n, **mlp_kwargs)
+        return ValueOperator(net, in_keys=[obs_key], out_keys=["action_value"])
+    net = make_mlp(obs_dim + spec.shape[-1], 1, **mlp_kwargs)
+    return ValueOperator(net, in_keys=[obs_key, "action"])
+
+
+def make_sac_loss(
+    actor: ProbabilisticActor,
+    critic: ValueOperator,
+    env: EnvBase,
+    *,
+    gamma: float = 0.99,
+    num_qvalue_nets: int = 2,
+    loss_function: str = "l2",
+    init_alpha: float = 1.0,
+    fixed_alpha: bool = False,
+    target_entropy: float | str = "auto",
+) -> SACLoss | DiscreteSACLoss:
+    """TorchRL's ``SACLoss`` (or ``DiscreteSACLoss``) with the TD(0) estimator, as TorchRL's reference SAC."""
+    spec = env.action_spec_unbatched if hasattr(env, "action_spec_unbatched") else env.action_spec
+    if _is_discrete(spec):
+        loss = DiscreteSACLoss(
+            actor_network=actor,
+            qvalue_network=critic,
+            action_space=spec,
+            num_actions=spec.space.n,
+            num_qvalue_nets=num_qvalue_nets,
+            loss_function=loss_function,
+            alpha_init=init_alpha,
+            fixed_alpha=fixed_alpha,
+            target_entropy=target_entropy,
+        )
+    else:
+        loss = SACLoss(
+            actor_network=actor,
+            qvalue_network=critic,
+            num_qvalue_nets=num_qvalue_nets,
+            loss_function=loss_function,
+            alpha_init=init_alpha,
+            fixed_alpha=fixed_alpha,
+            target_entropy=target_entropy,
+            action_spec=spec,
+        )
+    loss.make_value_estimator(ValueEstimators.TD0, gamma=gamma)
+    return loss
+
+
+@dataclass
+class SACModules:
+    """The networks and loss of one SAC agent, with the policy the collector and evaluator run."""
+
+    actor: ProbabilisticActor
+    critic: ValueOperator
+    loss: SACLoss | DiscreteSACLoss
+    target_updater: SoftUpdate
+
+
+def make_sac_modules(recipe, env: EnvBase) -> SACModules:
+    """Build actor, critic, loss and target updater from a recipe's ``network`` and ``algorithm`` sections."""
+    device = torch.device(recipe.device)
+    a, c = recipe.network.actor, recipe.network.critic
+    actor = make_sac_actor(env, num_cells=a.num_cells, activation=a.activation,
+                           low_rank_layers=a.low_rank_layers, rank=a.rank, device=device)
+    critic = make_sac_critic(env, num_cells=c.num_cells, activation=c.activation,
+                             low_rank_layers=c.low_rank_layers, rank=c.rank, device=device)
+    alg = recipe.algorithm
+    loss = make_sac_loss(actor, critic, env, gamma=alg.gamma, num_qvalue_nets=alg.num_qvalue_nets,
+                         loss_function=alg.loss_function, init_alpha=alg.init_alpha, fixed_alpha=alg.fixed_alpha,
+                         target_entropy=alg.target_entropy)
+    updater = SoftUpdate(loss, tau=alg.tau)
+    return SACModules(actor=actor, critic=critic, loss=loss, target_updater=updater)

@@ -1,0 +1,189 @@
+"""The ``adarl`` command: run, inspect, resume and evaluate recipes.
+
+Errors that adarl raises on purpose (bad recipe, existing run folder, corrupt checkpoint) print one clear line
+and exit with status 2 (bad input) or 1; nothing is written for a recipe that does not validate.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+__all__ = ["main"]
+
+
+def _err(msg: str) -> None:
+    print(f"adarl: error: {msg}", file=sys.stderr)
+
+
+def _quiet_env() -> None:
+    # MuJoCo renders headless; keep TorchRL's import-time deprecation chatter out of the user's terminal.
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    import warnings
+
+    warnings.filterwarnings("ignore", category=DeprecationWarning)
+    warnings.filterwarnings("ignore", category=FutureWarning)
+    warnings.filterwarnings("ignore", message=".*WeightUpdaterBase.*")
+    warnings.filterwarnings("ignore", message=".*settotalmass.*")
+
+
+def _run_folder(recipe, output: str | None) -> Path:
+    if output:
+        return Path(output)
+    if recipe.output.dir:
+        return Path(recipe.output.dir)
+    return Path(recipe.output.root) / f"{recipe.name}-{time.strftime('%Y%m%d-%H%M%S')}"
+
+
+def cmd_run(args) -> int:
+    from adarl.config import load_recipe, save_resolved
+    from adarl.run_dir import RunDir
+    from adarl.training import Trainer
+
+    recipe = load_recipe(args.recipe, args.overrides)  # validates everything before anything is written
+    path = _run_folder(recipe, args.output)
+    existed = path.exists()
+    run_dir = RunDir.create(path, overwrite=args.overwrite)
+    try:
+        save_resolved(recipe, run_dir.recipe_path)
+        trainer = Trainer(recipe, run_dir, quiet=args.quiet)
+    except BaseException:
+        # Nothing ran: leave no half-made run folder behind (and never remove one the user had).
+        if not existed:
+            import shutil
+
+            shutil.rmtree(path, ignore_errors=True)
+        raise
+    summary = trainer.train()
+    _print_summary(summary, run_dir.path)
+    return 0
+
+
+def _print_summary(summary: dict, path: Path) -> None:
+    ev = summary.get("final_eval") or {}
+    print(f"run finished: {summary['frames']} frames, {summary['updates']} updates, "
+          f"{summary['rank_events']} rank events, final ranks {summary['ranks']}")
+    if ev:
+        print(f"nominal-dynamics evaluation: {ev['mean']:.1f} ± {ev['std']:.1f} over {ev['episodes']} episodes")
+    print(f"results: {path}  (report: {path / 'report.md'})")
+
+
+def cmd_resume(args) -> int:
+    from adarl.training import Trainer
+
+    trainer = Trainer.resume(args.run_dir, quiet=args.quiet)
+    summary = trainer.train()
+    _print_summary(summary, Path(args.run_dir))
+    return 0
+
+
+def cmd_recipes(args) -> int:
+    from adarl.config import list_recipes
+
+    rows = list_recipes()
+    width = max((len(n) for n, _ in rows), default=10)
+    for name, desc in rows:
+        print(f"{name:<{width}}  {desc}")
+    return 0
+
+
+def cmd_show(args) -> int:
+    from adarl.config import load_recipe, recipe_to_yaml
+
+    print(recipe_to_yaml(load_recipe(args.recipe, args.overrides)), end="")
+    return 0
+
+
+def cmd_eval(args) -> int:
+    import json
+
+    from adarl.evaluation import evaluate_policy
+    from adarl.training import Trainer
+
+    trainer = Trainer.resume(args.run_dir, quiet=True, truncate_metrics=False)
+    recipe = trainer.recipe
+    episodes = args.episodes or recipe.eval.episodes
+    result = evaluate_policy(trainer.c.modules.actor, trainer.c.eval_env, episodes=episodes,
+                             max_steps=recipe.eval.max_steps)
+    trainer.close()
+    out = Path(args.run_dir) / "eval_nominal.json"
+    payload = {"frames": trainer.frames, "episodes": episodes, **result.as_dict()}
+    out.write_text(json.dumps(payload, indent=2) + "\n")
+    print(f"nominal-dynamics evaluation at {trainer.frames} frames: {result.mean:.1f} ± {result.std:.1f} "
+          f"(95% CI ± {result.ci95:.1f}) over {episodes} episodes -> {out}")
+    return 0
+
+
+def cmd_report(args) -> int:
+    from adarl.report import write_report
+
+    print(write_report(args.run_dir))
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="adarl", description="Robust RL by adaptive rank control, on TorchRL.")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    r = sub.add_parser("run", help="train a recipe in a new run folder, evaluate it and write a report",
+                       description="Train RECIPE (a shipped name, see `adarl recipes`, or a .yaml path). "
+                                   "Overrides are key=value in OmegaConf dotlist style, e.g. rank.beta=0.95.")
+    r.add_argument("recipe")
+    r.add_argument("overrides", nargs="*", metavar="key=value")
+    r.add_argument("--output", "-o", help="run folder (default: output.dir, or output.root/<name>-<time>)")
+    r.add_argument("--overwrite", action="store_true", help="replace an existing run folder")
+    r.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
+    r.set_defaults(func=cmd_run)
+
+    rs = sub.add_parser("resume", help="continue a run from its latest checkpoint",
+                        description="Continue the run in RUN_DIR from its latest loadable checkpoint.")
+    rs.add_argument("run_dir")
+    rs.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
+    rs.set_defaults(func=cmd_resume)
+
+    ls = sub.add_parser("recipes", help="list the shipped recipes", description="List the shipped recipes.")
+    ls.set_defaults(func=cmd_recipes)
+
+    sh = sub.add_parser("show", help="print a recipe fully resolved (extends and overrides applied)",
+                        description="Print RECIPE resolved and validated, as YAML.")
+    sh.add_argument("recipe")
+    sh.add_argument("overrides", nargs="*", metavar="key=value")
+    sh.set_defaults(func=cmd_show)
+
+    ev = sub.add_parser("eval", help="evaluate a run's saved policy on the nominal dynamics",
+                        description="Evaluate the latest checkpoint of RUN_DIR deterministically on the nominal "
+                                    "dynamics (the centre of the uncertainty set); writes eval_nominal.json.")
+    ev.add_argument("run_dir")
+    ev.add_argument("--episodes", type=int, default=None, help="episodes (default: the recipe's eval.episodes)")
+    ev.set_defaults(func=cmd_eval)
+
+    rp = sub.add_parser("report", help="(re)write a run folder's report.md and plots",
+                        description="Write report.md and plots/*.png from the files in RUN_DIR.")
+    rp.add_argument("run_dir")
+    rp.set_defaults(func=cmd_report)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    _quiet_env()
+    from adarl.errors import AdaRLError, RecipeError
+
+    try:
+        return int(args.func(args) or 0)
+    except RecipeError as err:
+        _err(str(err))
+        return 2
+    except AdaRLError as err:
+        _err(str(err))
+        return 2 if isinstance(err, ValueError) else 1
+    except KeyboardInterrupt:
+        _err("interrupted")
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

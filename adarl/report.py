@@ -1,0 +1,152 @@
+"""A run's report: a markdown summary and PNG plots, made only from the files in its run folder.
+
+``plots/return.png``: training episode return and nominal-dynamics evaluation against frames, rank events as red
+dashed lines (paper Fig. 3). ``plots/ranks.png``: each low-rank layer's rank over optimisation steps (Fig. 4).
+matplotlib (Agg backend, no display) draws them.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+from adarl.run_dir import RunDir
+
+__all__ = ["write_report", "plot_returns", "plot_ranks"]
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _event_frames(run: RunDir) -> list[int]:
+    scalars = run.scalars()
+    rows = scalars.get("rank.warm_start_frames", [])
+    return sorted({step for step, _ in rows})
+
+
+def plot_returns(run: RunDir, out: Path) -> Path | None:
+    """Training return (per finished episode batch) and evaluation mean ± std, rank events marked."""
+    scalars = run.scalars()
+    train = scalars.get("train.episode_return", [])
+    evals = run.read_eval()
+    if not train and not evals:
+        return None
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(7, 4))
+    if train:
+        ax.plot([s for s, _ in train], [v for _, v in train], lw=0.8, alpha=0.6, label="training return (perturbed)")
+    if evals:
+        x = [int(r["frames"]) for r in evals]
+        m = [float(r["mean"]) for r in evals]
+        sd = [float(r["std"]) for r in evals]
+        ax.errorbar(x, m, yerr=sd, fmt="o-", color="black", capsize=3, label="evaluation (nominal dynamics)")
+    for i, f in enumerate(_event_frames(run)):
+        ax.axvline(f, color="red", ls="--", lw=1, label="rank event" if i == 0 else None)
+    ax.set_xlabel("environment frames")
+    ax.set_ylabel("episode return")
+    ax.legend(loc="best", fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(out, dpi=120)
+    plt.close(fig)
+    return out
+
+
+def plot_ranks(run: RunDir, out: Path) -> Path | None:
+    """Rank of each low-rank layer against optimisation steps (a step plot through every event)."""
+    history = run.read_rank_history()
+    if not history:
+        return None
+    series: dict[str, list[tuple[int, int]]] = {}
+    for event in history:
+        step = int(event.get("step", 0))
+        for layer in event.get("layers", []):
+            name = f"{layer.get('network', '')}:{layer.get('layer', '?')}"
+            pts = series.setdefault(name, [(0, int(layer["old_rank"]))])
+            pts.append((step, int(layer["new_rank"])))
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for name, pts in series.items():
+        ax.step([p[0] for p in pts], [p[1] for p in pts], where="post", marker="o", ms=3, label=name)
+    ax.set_xlabel("optimisation steps")
+    ax.set_ylabel("rank")
+    ax.set_yscale("log", base=2)
+    ax.legend(loc="best", fontsize=7)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(out, dpi=120)
+    plt.close(fig)
+    return out
+
+
+def write_report(path: str | os.PathLike) -> Path:
+    """Write ``report.md`` and ``plots/*.png`` for the run folder at ``path``; returns the report's path."""
+    run = RunDir(path)
+    plots = run.path / "plots"
+    plots.mkdir(exist_ok=True)
+    ret = plot_returns(run, plots / "return.png")
+    rk = plot_ranks(run, plots / "ranks.png")
+    summary_path = run.path / "summary.json"
+    summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
+    evals = run.read_eval()
+    history = run.read_rank_history()
+
+    lines = [f"# Run report: {summary.get('name', run.path.name)}", ""]
+    if summary:
+        lines += [
+            f"- frames: {summary.get('frames')}, optimisation steps: {summary.get('updates')}, "
+            f"episodes: {summary.get('episodes')}",
+            f"- wall time: {summary.get('wall_time_s', 0):.0f} s ({summary.get('updates_per_s', 0):.1f} updates/s)",
+            f"- rank events: {summary.get('rank_events')}; final ranks: {summary.get('ranks')}",
+            "",
+        ]
+    if evals:
+        last = evals[-1]
+        lines += [
+            "## Evaluation on nominal dynamics",
+            "",
+            f"Final: **{float(last['mean']):.1f} ± {float(last['std']):.1f}** (std over {last['episodes']} episodes; "
+            f"95% CI ± {float(last['ci95']):.1f}) at {last['frames']} frames.",
+            "",
+            "| frames | updates | mean | std | episodes |",
+            "|---:|---:|---:|---:|---:|",
+        ]
+        lines += [f"| {r['frames']} | {r['updates']} | {float(r['mean']):.1f} | {float(r['std']):.1f} | {r['episodes']} |"
+                  for r in evals]
+        lines.append("")
+    if history:
+        lines += ["## Rank events", "", "| step | network | layer | old rank | new rank | retained energy | error |",
+                  "|---:|---|---|---:|---:|---:|---:|"]
+        for ev in history:
+            for layer in ev.get("layers", []):
+                err = layer.get("truncation_error")
+                err = max(err) if isinstance(err, list) else err
+                energy = layer.get("retained_energy")
+                energy = min(energy) if isinstance(energy, list) else energy
+                lines.append(
+                    f"| {ev.get('step')} | {layer.get('network', '')} | {layer.get('layer', '')} | {layer.get('old_rank')} "
+                    f"| {layer.get('new_rank')} | {_fmt(energy)} | {_fmt(err)} |"
+                )
+        lines.append("")
+    lines += ["## Plots", ""]
+    if ret:
+        lines += ["Training and evaluation return; red dashed lines mark rank events.", "", "![return](plots/return.png)", ""]
+    if rk:
+        lines += ["Rank per low-rank layer.", "", "![ranks](plots/ranks.png)", ""]
+    out = run.path / "report.md"
+    out.write_text("\n".join(lines) + "\n")
+    return out
+
+
+def _fmt(x) -> str:
+    try:
+        return f"{float(x):.4g}"
+    except (TypeError, ValueError):
+        return "-"

@@ -1,0 +1,308 @@
+"""The run folder: one directory per run with everything it produced.
+
+::
+
+    <run>/recipe.yaml            resolved recipe (what ran; `adarl resume` rebuilds from it)
+    <run>/metrics/scalars/*.csv  TorchRL CSVLogger scalars, one file per metric ("step,value", step = frames)
+    <run>/eval.csv               nominal-dynamics evaluations (frames, updates, mean, std, ci95, episodes, ranks)
+    <run>/ranks.json, ranks.csv  rank history: per event and layer, old/new rank, spectrum, energy, error
+    <run>/checkpoints/           ckpt-<frames>.pt (torch.save, loaded with weights_only=True) [+ replay buffer]
+    <run>/summary.json           final counters, ranks and evaluation
+    <run>/report.md, plots/      the report (training return with rank events, rank over time)
+
+Checkpoints are written to a temporary file, fsync'ed and renamed, so a crash mid-write leaves the previous one
+intact; the last ``keep_last`` are kept.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import shutil
+from pathlib import Path
+
+import torch
+
+from adarl.errors import AdaRLError, CheckpointError
+
+__all__ = ["RunDir", "CHECKPOINT_FORMAT", "CHECKPOINT_VERSION"]
+
+CHECKPOINT_FORMAT = "adarl.checkpoint"
+CHECKPOINT_VERSION = 1
+_EVAL_FIELDS = ["frames", "updates", "mean", "std", "ci95", "episodes", "returns", "ranks"]
+
+
+class _Fanout:
+    """Send each scalar to every configured TorchRL logger (CSV always; tensorboard / wandb on request)."""
+
+    def __init__(self, loggers):
+        self.loggers = loggers
+
+    def log_scalar(self, name: str, value: float, step: int | None = None) -> None:
+        for lg in self.loggers:
+            lg.log_scalar(name, float(value), step=step)
+
+
+class RunDir:
+    """A run folder; see the module docstring for its layout."""
+
+    def __init__(self, path: str | os.PathLike) -> None:
+        self.path = Path(path)
+
+    # ------------------------------------------------------------------ creation
+    @classmethod
+    def create(cls, path: str | os.PathLike, *, overwrite: bool = False) -> RunDir:
+        """Make a new run folder; refuse an existing non-empty one unless ``overwrite`` (then it is replaced)."""
+        p = Path(path)
+        if p.exists() and any(p.iterdir()):
+            if not overwrite:
+                raise AdaRLError(
+                    f"run folder {str(p)!r} already exists and is not empty; choose another output.dir, "
+                    f"resume it with `adarl resume {p}`, or pass --overwrite to replace it"
+                )
+            shutil.rmtree(p)
+        p.mkdir(parents=True, exist_ok=True)
+        return cls(p)
+
+    @classmethod
+    def open(cls, path: str | os.PathLike) -> RunDir:
+        p = Path(path)
+        if not (p / "recipe.yaml").is_file():
+            raise AdaRLError(f"{str(p)!r} is not an adarl run folder (no recipe.yaml in it)")
+        return cls(p)
+
+    @property
+    def recipe_path(self) -> Path:
+        return self.path / "recipe.yaml"
+
+    @property
+    def checkpoint_dir(self) -> Path:
+        return self.path / "checkpoints"
+
+    # ------------------------------------------------------------------ logging
+    def make_logger(self, recipe) -> _Fanout:
+        """TorchRL loggers from ``recipe.logging``: CSV into ``metrics/``, optional tensorboard and wandb."""
+        from torchrl.record.loggers import CSVLogger
+
+        loggers = [CSVLogger(exp_name="metrics", log_dir=str(self.path))]
+        backends = set(recipe.logging.backends)
+        if "tensorboard" in backends:
+            from torchrl.record.loggers import TensorboardLogger
+
+            loggers.append(TensorboardLogger(exp_name="tensorboard", log_dir=str(self.path)))
+        if "wandb" in backends and recipe.logging.wandb_mode != "disabled":
+            from torchrl.record.loggers import WandbLogger
+
+            loggers.append(WandbLogger(exp_name=recipe.name, project=recipe.logging.wandb_project,
+                                       offline=recipe.logging.wandb_mode == "offline", save_dir=str(self.path)))
+        return _Fanout(loggers)
+
+    def close_logger(self, logger: _Fanout) -> None:
+        for lg in logger.loggers:
+            exp = getattr(lg, "experiment", None)
+            for fd in getattr(exp, "files", {}).values():
+                try:
+                    fd.close()
+                except OSError:
+                    pass
+
+    def scalars(self) -> dict[str, list[tuple[int, float]]]:
+        """All CSV scalars as ``{name: [(step, value), ...]}``."""
+        out = {}
+        root = self.path / "metrics" / "scalars"
+        for f in sorted(root.glob("*.csv")) if root.is_dir() else []:
+            rows = []
+            for line in f.read_text().splitlines():
+                parts = line.split(",")
+                if len(parts) == 2:
+                    try:
+                        rows.append((int(float(parts[0])), float(parts[1])))
+                    except ValueError:
+                        continue
+            out[f.stem] = rows
+        return out
+
+    def truncate_metrics(self, frames: int) -> None:
+        """Drop metric rows logged after ``frames`` (work lost since the checkpoint being resumed)."""
+        root = self.path / "metrics" / "scalars"
+        for f in root.glob("*.csv") if root.is_dir() else []:
+            keep = []
+            for line in f.read_text().splitlines():
+                parts = line.split(",")
+                try:
+                    if int(float(parts[0])) <= frames:
+                        keep.append(line)
+                except (ValueError, IndexError):
+                    continue
+            _atomic_write_text(f, "".join(k + "\n" for k in keep))
+        ev = self.path / "eval.csv"
+        if ev.is_file():
+            rows = [r for r in self.read_eval() if int(r["frames"]) <= frames]
+            self._write_eval_rows(rows)
+
+    # ------------------------------------------------------------------ evaluation and ranks
+    def append_eval(self, frames: int, updates: int, result, ranks: dict) -> None:
+        path = self.path / "eval.csv"
+        new = not path.exists()
+        with path.open("a", newline="") as fh:
+            w = csv.DictWriter(fh, fieldnames=_EVAL_FIELDS)
+            if new:
+                w.writeheader()
+            w.writerow({"frames": frames, "updates": updates, "mean": result.mean, "std": result.std,
+                        "ci95": result.ci95, "episodes": len(result.returns),
+                        "returns": json.dumps(result.returns), "ranks": json.dumps(ranks)})
+
+    def read_eval(self) -> list[dict]:
+        path = self.path / "eval.csv"
+        if not path.is_file():
+            return []
+        with path.open(newline="") as fh:
+            return list(csv.DictReader(fh))
+
+    def _write_eval_rows(self, rows: list[dict]) -> None:
+        import io
+
+        buf = io.StringIO()
+        w = csv.DictWriter(buf, fieldnames=_EVAL_FIELDS)
+        w.writeheader()
+        w.writerows(rows)
+        _atomic_write_text(self.path / "eval.csv", buf.getvalue())
+
+    def last_eval(self) -> dict | None:
+        rows = self.read_eval()
+        if not rows:
+            return None
+        r = rows[-1]
+        return {"frames": int(r["frames"]), "mean": float(r["mean"]), "std": float(r["std"]),
+                "ci95": float(r["ci95"]), "episodes": int(r["episodes"])}
+
+    def write_rank_history(self, history: list, frames: int | None = None) -> None:
+        """Rank events as JSON (with spectra) and a flat CSV, one row per event and layer."""
+        records = [h if isinstance(h, dict) else h.as_dict() if hasattr(h, "as_dict") else vars(h) for h in history]
+        self.write_json("ranks.json", records)
+        flat = []
+        for rec in records:
+            for layer in rec.get("layers", [rec]):
+                flat.append({k: v for k, v in {**{k: rec.get(k) for k in ("step",)}, **layer}.items()
+                             if not isinstance(v, (list, dict))})
+        if flat:
+            import io
+
+            keys = list(dict.fromkeys(k for row in flat for k in row))
+            buf = io.StringIO()
+            w = csv.DictWriter(buf, fieldnames=keys)
+            w.writeheader()
+            w.writerows(flat)
+            _atomic_write_text(self.path / "ranks.csv", buf.getvalue())
+
+    def read_rank_history(self) -> list[dict]:
+        p = self.path / "ranks.json"
+        return json.loads(p.read_text()) if p.is_file() else []
+
+    def write_json(self, name: str, obj) -> None:
+        _atomic_write_text(self.path / name, json.dumps(obj, indent=2, default=_json_default) + "\n")
+
+    # ------------------------------------------------------------------ checkpoints
+    def checkpoints(self) -> list[Path]:
+        """Checkpoint files, oldest first."""
+        d = self.checkpoint_dir
+        return sorted(d.glob("ckpt-*.pt")) if d.is_dir() else []
+
+    def save_checkpoint(self, state: dict, *, frames: int, keep_last: int = 3, replay_buffer=None) -> Path:
+        from adarl import __version__
+
+        self.checkpoint_dir.mkdir(parents=True, exist_ok=True)
+        payload = {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "adarl_version": __version__,
+                   "frames": int(frames), "state": state}
+        path = self.checkpoint_dir / f"ckpt-{int(frames):012d}.pt"
+        if replay_buffer is not None:
+            rb_dir = self.checkpoint_dir / f"rb-{int(frames):012d}"
+            tmp_dir = rb_dir.with_name(rb_dir.name + ".tmp")
+            shutil.rmtree(tmp_dir, ignore_errors=True)
+            replay_buffer.dumps(str(tmp_dir))
+            shutil.rmtree(rb_dir, ignore_errors=True)
+            os.replace(tmp_dir, rb_dir)
+        tmp = path.with_suffix(".pt.tmp")
+        with tmp.open("wb") as fh:
+            torch.save(payload, fh)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+        _fsync_dir(self.checkpoint_dir)
+        for old in self.checkpoints()[:-keep_last]:
+            old.unlink(missing_ok=True)
+            shutil.rmtree(self.checkpoint_dir / old.name.replace("ckpt-", "rb-").replace(".pt", ""),
+                          ignore_errors=True)
+        return path
+
+    def load_checkpoint(self, path: str | os.PathLike) -> dict:
+        """Load one checkpoint safely (``weights_only=True``: no code runs from the file)."""
+        path = Path(path)
+        try:
+            payload = torch.load(path, map_location="cpu", weights_only=True)
+        except FileNotFoundError:
+            raise CheckpointError(f"checkpoint {str(path)!r} does not exist") from None
+        except Exception as err:  # truncated zip, pickle with code, garbage bytes
+            raise CheckpointError(
+                f"checkpoint {str(path)!r} cannot be loaded safely (corrupt, truncated or not an adarl "
+                f"checkpoint; only tensors and plain containers are accepted): {type(err).__name__}: "
+                f"{str(err).splitlines()[0] if str(err) else ''}"
+            ) from None
+        if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
+            raise CheckpointError(f"{str(path)!r} is not an adarl checkpoint (format marker missing)")
+        if int(payload.get("version", 0)) > CHECKPOINT_VERSION:
+            raise CheckpointError(
+                f"{str(path)!r} was written by a newer adarl (checkpoint version {payload['version']}, this "
+                f"version reads up to {CHECKPOINT_VERSION}); upgrade adarl to load it"
+            )
+        return payload["state"]
+
+    def load_latest_checkpoint(self) -> dict:
+        """The newest checkpoint that loads; older ones are tried if the newest is damaged."""
+        errors = []
+        for path in reversed(self.checkpoints()):
+            try:
+                return self.load_checkpoint(path)
+            except CheckpointError as err:
+                errors.append(str(err))
+        if errors:
+            raise CheckpointError("no loadable checkpoint in run folder: " + "; ".join(errors))
+        raise CheckpointError(f"no checkpoint in {str(self.checkpoint_dir)!r} to resume from")
+
+    def load_replay_buffer(self, replay_buffer, *, frames: int) -> bool:
+        rb_dir = self.checkpoint_dir / f"rb-{int(frames):012d}"
+        if not rb_dir.is_dir():
+            return False
+        replay_buffer.loads(str(rb_dir))
+        return True
+
+
+def _json_default(obj):
+    if isinstance(obj, torch.Tensor):
+        return obj.tolist()
+    if hasattr(obj, "as_dict"):
+        return obj.as_dict()
+    if hasattr(obj, "__dict__"):
+        return vars(obj)
+    return str(obj)
+
+
+def _atomic_write_text(path: Path, text: str) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    with tmp.open("w") as fh:
+        fh.write(text)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+def _fsync_dir(path: Path) -> None:
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)

@@ -1,0 +1,416 @@
+"""AdaRL-SAC end to end: compose TorchRL's SACLoss, replay buffer and Collector with adarl's components.
+
+:func:`build_components` returns every piece a recipe describes, wired together, for users who want to write
+their own loop; :class:`Trainer` runs the recipe's loop in a run folder (metrics, rank history, evaluation,
+checkpoints, report). The loop is CleanRL-style: readable top to bottom in :meth:`Trainer.train`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import random
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from tensordict import TensorDictBase
+from torchrl.collectors import Collector
+from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.data.replay_buffers.samplers import RandomSampler
+
+from adarl.adapter import RankAdapter
+from adarl.builders import SACModules, make_sac_modules
+from adarl.envs import dynamics_state_dict, load_dynamics_state_dict, make_env, make_eval_env
+from adarl.errors import AdaRLError
+from adarl.evaluation import EvalResult, evaluate_policy
+from adarl.lr_schedule import make_lr_scheduler
+from adarl.rank import make_rule
+from adarl.run_dir import RunDir
+from adarl.warmstart import ReplayWarmStart
+
+__all__ = ["Components", "build_components", "Trainer"]
+
+
+@dataclass
+class Components:
+    """Everything a recipe builds, wired together (no training has happened yet)."""
+
+    recipe: object
+    env: object
+    eval_env: object
+    modules: SACModules
+    optimizers: dict[str, torch.optim.Optimizer]
+    schedulers: dict[str, torch.optim.lr_scheduler.LRScheduler]
+    replay_buffer: TensorDictReplayBuffer
+    collector: Collector
+    adapter: RankAdapter | None
+    warm_start: ReplayWarmStart | None
+    total_updates: int
+    extras: dict = field(default_factory=dict)
+
+    @property
+    def policy(self):
+        """The stochastic policy the collector runs (the same parameter objects as the loss's actor)."""
+        return self.modules.actor
+
+
+def seed_everything(seed: int) -> None:
+    """Seed Python, NumPy and torch (CPU determinism is what the exact-resume guarantee relies on)."""
+    random.seed(seed)
+    np.random.seed(seed % 2**32)
+    torch.manual_seed(seed)
+
+
+def planned_updates(recipe) -> int:
+    """Optimisation steps the recipe's budget allows (frames after the random phase times the UTD ratio)."""
+    c = recipe.collector
+    return max(1, int((c.total_frames - min(c.init_random_frames, c.total_frames)) * recipe.algorithm.utd_ratio))
+
+
+def _env_kwargs(recipe) -> dict:
+    e = recipe.env
+    p = e.perturbation
+    return dict(mode=p.mode, dynamics_key=p.key, device=recipe.device, max_episode_steps=e.max_episode_steps)
+
+
+def build_components(recipe, *, init_random_frames: int | None = None) -> Components:
+    """Build env, networks, SAC loss, optimisers, LR schedules, buffer, collector, rank adapter and warm start."""
+    seed_everything(recipe.seed)
+    e = recipe.env
+    p = e.perturbation
+    env = make_env(e.id, preset=p.preset, schedule=p.schedule, num_envs=e.num_envs, parallel=e.parallel,
+                   seed=recipe.seed, **_env_kwargs(recipe))
+    # Evaluation runs on the nominal dynamics: the centre of the training schedule (or the plain env).
+    nominal = (p.schedule if p.schedule is not None else p.preset) if recipe.eval.nominal else "none"
+    eval_env = make_eval_env(e.id, nominal, seed=recipe.seed + 10_000, **_env_kwargs(recipe))
+    modules = make_sac_modules(recipe, env)
+    loss = modules.loss
+    alg = recipe.algorithm
+
+    actor_params = list(loss.actor_network_params.flatten_keys().values())
+    critic_params = list(loss.qvalue_network_params.flatten_keys().values())
+    optimizers = {
+        "actor": torch.optim.Adam(actor_params, lr=alg.lr),
+        "critic": torch.optim.Adam(critic_params, lr=alg.lr),
+    }
+    if not alg.fixed_alpha:
+        optimizers["alpha"] = torch.optim.Adam([loss.log_alpha], lr=alg.alpha_lr)
+    total_updates = planned_updates(recipe)
+    s = recipe.lr_schedule
+    schedulers = {
+        name: make_lr_scheduler(
+            optimizers[name],
+            warmup_steps=s.warmup_steps,
+            total_steps=total_updates if s.cosine else None,
+            min_factor=s.min_factor,
+        )
+        for name in ("actor", "critic")
+    }
+
+    generator = torch.Generator().manual_seed(recipe.seed + 1)
+    replay_buffer = TensorDictReplayBuffer(
+        storage=LazyTensorStorage(recipe.replay.size, device=recipe.device),
+        sampler=RandomSampler(),
+        batch_size=alg.batch_size,
+        generator=generator,
+    )
+    c = recipe.collector
+    collector = Collector(
+        env,
+        modules.actor,
+        frames_per_batch=c.frames_per_batch,
+        total_frames=-1,
+        init_random_frames=c.init_random_frames if init_random_frames is None else init_random_frames,
+        device=recipe.device,
+    )
+
+    adapter = warm_start = None
+    r = recipe.rank
+    if r.enabled:
+        if r.rule == "fixed":
+            rule = make_rule("fixed", rank=r.target_rank)
+        elif r.rule == "policy_fit":
+            rule = make_rule("policy_fit", lam=r.lam)
+        else:
+            rule = make_rule(r.rule, beta=r.beta)
+        w = recipe.replay.warm_start
+        if w.mode != "keep" and w.frames > 0:
+            warm_start = ReplayWarmStart(replay_buffer, collector, frames=w.frames, mode=w.mode)
+        adapter = RankAdapter(
+            loss,
+            list(optimizers.values()),
+            rule,
+            interval=r.interval,
+            scope=r.scope,
+            min_rank=r.min_rank,
+            target_mode=r.target_mode,
+            lr_schedulers=list(schedulers.values()),
+            fit_data=replay_buffer if r.rule == "policy_fit" else None,
+        )
+    return Components(recipe, env, eval_env, modules, optimizers, schedulers, replay_buffer, collector, adapter,
+                      warm_start, total_updates, extras={"sampling_generator": generator})
+
+
+def _rank_summary(adapter: RankAdapter | None) -> str:
+    if adapter is None:
+        return "-"
+    return ",".join(str(v) for v in adapter.ranks.values())
+
+
+class Trainer:
+    """Runs one recipe in one run folder: train, evaluate on nominal dynamics, checkpoint, report.
+
+    ``Trainer(recipe, run_dir).train()`` for a new run; ``Trainer.resume(run_dir).train()`` to continue one.
+    """
+
+    def __init__(self, recipe, run_dir: RunDir, *, quiet: bool = False, _resume_state: dict | None = None) -> None:
+        self.recipe = recipe
+        self.run_dir = run_dir
+        self.quiet = quiet
+        self.frames = 0
+        self.updates = 0
+        self.episodes = 0
+        self.last_eval_frames = 0
+        self.last_ckpt_frames = 0
+        self.best_eval = -math.inf
+        self.last_return = float("nan")
+        self._pending_updates = 0.0
+        init_random = None
+        if _resume_state is not None:
+            init_random = max(0, recipe.collector.init_random_frames - int(_resume_state["counters"]["frames"]))
+        self.c = build_components(recipe, init_random_frames=init_random)
+        self.logger = run_dir.make_logger(recipe)
+        if self.c.adapter is not None:
+            self.c.adapter.on_truncate.append(self._on_truncate)
+        if _resume_state is not None:
+            self._load_state(_resume_state)
+
+    # ------------------------------------------------------------------ construction helpers
+    @classmethod
+    def resume(cls, path: str | os.PathLike, *, quiet: bool = False, truncate_metrics: bool = True) -> Trainer:
+        """Continue the run in ``path`` from its latest checkpoint (metrics after it are dropped first)."""
+        from adarl.config import load_recipe
+
+        run_dir = RunDir.open(path)
+        recipe = load_recipe(str(run_dir.recipe_path))
+        state = run_dir.load_latest_checkpoint()
+        if truncate_metrics:
+            run_dir.truncate_metrics(int(state["counters"]["frames"]))
+        return cls(recipe, run_dir, quiet=quiet, _resume_state=state)
+
+    # ------------------------------------------------------------------ the loop
+    def train(self) -> dict:
+        """Collect, update, adapt ranks, evaluate and checkpoint until the frame budget is spent."""
+        from tqdm.auto import tqdm
+
+        rc, c = self.recipe, self.c
+        total = rc.collector.total_frames
+        bar = tqdm(total=total, initial=self.frames, unit="frame", disable=self.quiet, dynamic_ncols=True,
+                   desc=rc.name)
+        start = time.perf_counter()
+        try:
+            for batch in c.collector:
+                if self.frames >= total:
+                    break
+                batch = batch.reshape(-1)
+                if self.frames + batch.numel() > total:
+                    batch = batch[: total - self.frames]
+                c.replay_buffer.extend(batch)
+                self.frames += batch.numel()
+                bar.update(batch.numel())
+                self._log_episodes(batch)
+
+                if self.frames >= rc.collector.init_random_frames and len(c.replay_buffer) >= rc.algorithm.batch_size:
+                    self._pending_updates += batch.numel() * rc.algorithm.utd_ratio
+                    n_updates = int(self._pending_updates)
+                    self._pending_updates -= n_updates
+                    losses = [self._update() for _ in range(n_updates)]
+                    if losses:
+                        self._log_losses(losses)
+
+                if self.frames - self.last_eval_frames >= rc.eval.interval:
+                    self._evaluate()
+                if self.frames - self.last_ckpt_frames >= rc.checkpoint.interval:
+                    self.save_checkpoint()
+                bar.set_postfix(ret=f"{self.last_return:.1f}", ranks=_rank_summary(c.adapter), upd=self.updates,
+                                refresh=False)
+                if self.frames >= total:
+                    break
+        finally:
+            bar.close()
+        if self.last_eval_frames != self.frames:
+            self._evaluate()
+        self.save_checkpoint()
+        elapsed = time.perf_counter() - start
+        summary = self._write_summary(elapsed)
+        from adarl.report import write_report
+
+        write_report(self.run_dir.path)
+        self.close()
+        return summary
+
+    def _update(self) -> dict[str, float]:
+        """One SAC optimisation step, then the target update and (maybe) a rank event."""
+        c, alg = self.c, self.recipe.algorithm
+        sample = c.replay_buffer.sample()
+        td = c.modules.loss(sample)
+        loss = td["loss_actor"] + td["loss_qvalue"] + td["loss_alpha"]
+        loss.backward()
+        if alg.max_grad_norm is not None:
+            for opt in c.optimizers.values():
+                for group in opt.param_groups:
+                    torch.nn.utils.clip_grad_norm_(group["params"], alg.max_grad_norm)
+        for opt in c.optimizers.values():
+            opt.step()
+            opt.zero_grad(set_to_none=True)
+        for sched in c.schedulers.values():
+            sched.step()
+        c.modules.target_updater.step()
+        self.updates += 1
+        out = {"loss_actor": td["loss_actor"].detach(), "loss_qvalue": td["loss_qvalue"].detach(),
+               "loss_alpha": td["loss_alpha"].detach(), "alpha": td["alpha"].detach()}
+        if c.adapter is not None:
+            c.adapter.step()
+        return out
+
+    def _on_truncate(self, event) -> None:
+        """After a rank event: warm-start the buffer (its frames count towards the budget) and record ranks."""
+        c = self.c
+        added = 0
+        if c.warm_start is not None:
+            added = int(c.warm_start(event).frames_added)
+            self.frames += added
+        for path, rank in c.adapter.ranks.items():
+            self.logger.log_scalar(f"rank.{path}", rank, step=self.frames)
+        self.logger.log_scalar("rank.warm_start_frames", added, step=self.frames)
+        self.run_dir.write_rank_history(c.adapter.history, frames=self.frames)
+
+    # ------------------------------------------------------------------ logging and evaluation
+    def _log_episodes(self, batch: TensorDictBase) -> None:
+        done = batch["next", "done"].reshape(-1)
+        if not bool(done.any()):
+            return
+        returns = batch["next", "episode_reward"].reshape(-1)[done]
+        self.episodes += int(done.sum())
+        self.last_return = float(returns.mean())
+        self.logger.log_scalar("train.episode_return", self.last_return, step=self.frames)
+        self.logger.log_scalar("train.episodes", self.episodes, step=self.frames)
+        key = self.recipe.env.perturbation.key
+        if key in batch.keys():
+            for name, value in batch[key].items():
+                if name != "episode":
+                    self.logger.log_scalar(f"dynamics.{name}", float(value.reshape(-1)[done].float().mean()),
+                                           step=self.frames)
+
+    def _log_losses(self, losses: list[dict[str, torch.Tensor]]) -> None:
+        for k in losses[0]:
+            self.logger.log_scalar(f"train.{k}", float(torch.stack([d[k] for d in losses]).mean()), step=self.frames)
+        self.logger.log_scalar("train.updates", self.updates, step=self.frames)
+        self.logger.log_scalar("train.lr", self.c.optimizers["actor"].param_groups[0]["lr"], step=self.frames)
+
+    def _evaluate(self) -> EvalResult:
+        e = self.recipe.eval
+        result = evaluate_policy(self.c.modules.actor, self.c.eval_env, episodes=e.episodes, max_steps=e.max_steps)
+        self.last_eval_frames = self.frames
+        self.logger.log_scalar("eval.return_mean", result.mean, step=self.frames)
+        self.logger.log_scalar("eval.return_std", result.std, step=self.frames)
+        self.run_dir.append_eval(self.frames, self.updates, result, ranks=self.c.adapter.ranks if self.c.adapter else {})
+        self.best_eval = max(self.best_eval, result.mean)
+        return result
+
+    # ------------------------------------------------------------------ checkpoints
+    def state_dict(self) -> dict:
+        """Everything needed to continue this run (the replay buffer is dumped beside it when configured)."""
+        c = self.c
+        return {
+            "counters": {"frames": self.frames, "updates": self.updates, "episodes": self.episodes,
+                         "last_eval_frames": self.last_eval_frames, "pending_updates": self._pending_updates,
+                         "best_eval": self.best_eval},
+            "loss": c.modules.loss.state_dict(),
+            "optimizers": {k: o.state_dict() for k, o in c.optimizers.items()},
+            "schedulers": {k: s.state_dict() for k, s in c.schedulers.items()},
+            "adapter": c.adapter.state_dict() if c.adapter is not None else None,
+            "rng": _rng_state(),
+            "dynamics": dynamics_state_dict(c.env),
+            "sampling_rng": c.extras["sampling_generator"].get_state(),
+        }
+
+    def save_checkpoint(self) -> Path:
+        path = self.run_dir.save_checkpoint(
+            self.state_dict(), frames=self.frames, keep_last=self.recipe.checkpoint.keep_last,
+            replay_buffer=self.c.replay_buffer if self.recipe.checkpoint.replay_buffer else None,
+        )
+        self.last_ckpt_frames = self.frames
+        return path
+
+    def _load_state(self, state: dict) -> None:
+        from adarl.adapter import resize_to_ranks
+
+        c = self.c
+        if state.get("adapter") is not None and c.adapter is not None:
+            resize_to_ranks(c.modules.loss, state["adapter"], optimizers=list(c.optimizers.values()))
+        c.modules.loss.load_state_dict(state["loss"])
+        for k, o in c.optimizers.items():
+            o.load_state_dict(state["optimizers"][k])
+        for k, s in c.schedulers.items():
+            s.load_state_dict(state["schedulers"][k])
+        if c.adapter is not None and state.get("adapter") is not None:
+            c.adapter.load_state_dict(state["adapter"])
+        cnt = state["counters"]
+        self.frames, self.updates, self.episodes = int(cnt["frames"]), int(cnt["updates"]), int(cnt["episodes"])
+        self.last_eval_frames = self.last_ckpt_frames = int(cnt["last_eval_frames"])
+        self.last_ckpt_frames = self.frames
+        self._pending_updates = float(cnt["pending_updates"])
+        self.best_eval = float(cnt["best_eval"])
+        _set_rng_state(state["rng"])
+        load_dynamics_state_dict(c.env, state["dynamics"])
+        c.extras["sampling_generator"].set_state(state["sampling_rng"])
+        if self.recipe.checkpoint.replay_buffer:
+            self.run_dir.load_replay_buffer(self.c.replay_buffer, frames=self.frames)
+
+    def _write_summary(self, elapsed: float) -> dict:
+        summary = {
+            "name": self.recipe.name,
+            "frames": self.frames,
+            "updates": self.updates,
+            "episodes": self.episodes,
+            "wall_time_s": elapsed,
+            "updates_per_s": self.updates / elapsed if elapsed > 0 else float("nan"),
+            "ranks": self.c.adapter.ranks if self.c.adapter is not None else {},
+            "rank_events": len(self.c.adapter.history) if self.c.adapter is not None else 0,
+            "final_eval": self.run_dir.last_eval(),
+            "best_eval_mean": self.best_eval,
+        }
+        self.run_dir.write_json("summary.json", summary)
+        return summary
+
+    def close(self) -> None:
+        for closable in (self.c.collector, self.c.env, self.c.eval_env):
+            try:
+                closable.shutdown() if hasattr(closable, "shutdown") else closable.close()
+            except Exception:  # already closed
+                pass
+        self.run_dir.close_logger(self.logger)
+
+
+def _rng_state() -> dict:
+    np_state = np.random.get_state()
+    return {
+        "torch": torch.get_rng_state(),
+        "numpy": {"key": np_state[0], "state": torch.from_numpy(np_state[1].astype(np.int64)), "pos": int(np_state[2]),
+                  "has_gauss": int(np_state[3]), "cached_gaussian": float(np_state[4])},
+        "python": json.dumps(random.getstate()),
+    }
+
+
+def _set_rng_state(state: dict) -> None:
+    torch.set_rng_state(state["torch"])
+    n = state["numpy"]
+    np.random.set_state((n["key"], n["state"].numpy().astype(np.uint32), n["pos"], n["has_gauss"], n["cached_gaussian"]))
+    py = json.loads(state["python"])
+    random.setstate((py[0], tuple(py[1]), py[2]))
