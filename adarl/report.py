@@ -71,9 +71,13 @@ def plot_ranks(run: RunDir, out: Path) -> Path | None:
             name = f"{layer.get('network', '')}:{layer.get('layer', '?')}"
             pts = series.setdefault(name, [(0, int(layer["old_rank"]))])
             pts.append((step, int(layer["new_rank"])))
+    summary = run.path / "summary.json"
+    end = int(json.loads(summary.read_text()).get("updates", 0)) if summary.is_file() else 0
     plt = _plt()
     fig, ax = plt.subplots(figsize=(7, 4))
     for name, pts in series.items():
+        if end > pts[-1][0]:
+            pts = [*pts, (end, pts[-1][1])]
         ax.step([p[0] for p in pts], [p[1] for p in pts], where="post", marker="o", ms=3, label=name)
     ax.set_xlabel("optimisation steps")
     ax.set_ylabel("rank")

@@ -214,9 +214,7 @@ class Trainer:
                    desc=rc.name)
         start = time.perf_counter()
         try:
-            for batch in c.collector:
-                if self.frames >= total:
-                    break
+            for batch in c.collector if self.frames < total else ():
                 batch = batch.reshape(-1)
                 if self.frames + batch.numel() > total:
                     batch = batch[: total - self.frames]
