@@ -87,11 +87,23 @@ class RunDir:
 
         loggers = [CSVLogger(exp_name="metrics", log_dir=str(self.path))]
         backends = set(recipe.logging.backends)
+        if recipe.logging.wandb_mode == "disabled":
+            backends.discard("wandb")
+        for backend, package in (("tensorboard", "tensorboard"), ("wandb", "wandb")):
+            if backend in backends:
+                import importlib.util
+
+                if importlib.util.find_spec(package) is None:
+                    raise AdaRLError(
+                        f"logging.backends includes {backend!r} but the {package!r} package is not installed; "
+                        f"install it (pip install 'adarl[{backend}]') or remove {backend!r} from logging.backends "
+                        f"(allowed without extras: ['csv'])"
+                    )
         if "tensorboard" in backends:
             from torchrl.record.loggers import TensorboardLogger
 
             loggers.append(TensorboardLogger(exp_name="tensorboard", log_dir=str(self.path)))
-        if "wandb" in backends and recipe.logging.wandb_mode != "disabled":
+        if "wandb" in backends:
             from torchrl.record.loggers import WandbLogger
 
             loggers.append(WandbLogger(exp_name=recipe.name, project=recipe.logging.wandb_project,
