@@ -8,8 +8,6 @@ module does not provide them (yet), a small stand-in with the same names and the
 from __future__ import annotations
 
 import os
-import sys
-import types
 from pathlib import Path
 
 import pytest
@@ -35,46 +33,14 @@ SHIPPED = sorted(p.stem for p in (REPO / "recipes").glob("*.yaml"))
 PAPER_RECIPES = ["hopper_adarl", "walker2d_adarl", "ant_adarl", "humanoid_adarl"]
 
 
-def _stand_in_envs() -> types.ModuleType:
-    m = types.ModuleType("adarl.envs")
-    params = {
-        "Hopper-v5": ["torso_length", "foot_length"],
-        "Walker2d-v5": ["torso_length", "foot_length"],
-        "Ant-v5": ["gravity", "wind"],
-        "Humanoid-v5": ["gravity", "wind"],
-        "CartPole-v1": ["pole_length"],
-    }
-    m.SUPPORTED_ENVS = tuple(params)
-
-    def env_parameters(env_id):
-        if env_id not in params:
-            raise AdaRLValueError(f"unknown env id {env_id!r}")
-        return {p: object() for p in params[env_id]}
-
-    def preset_names(env_id):
-        return ["paper", "low", "high", "nominal", "none"]
-
-    def schedule_from_dict(d):
-        if not isinstance(d, dict) or "kind" not in d:
-            raise AdaRLValueError("bad schedule")
-        return d
-
-    m.env_parameters, m.preset_names, m.schedule_from_dict = env_parameters, preset_names, schedule_from_dict
-    return m
 
 
 @pytest.fixture(scope="module", autouse=True)
 def env_api():
-    """The real adarl.envs if it exposes the registry, else the stand-in (patched in for this module only)."""
+    """The real adarl.envs registry (recipes are validated against it)."""
     real = cfg._envs_module()
-    if real is not None and hasattr(real, "SUPPORTED_ENVS") and hasattr(real, "env_parameters"):
-        yield real
-        return
-    fake = _stand_in_envs()
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setitem(sys.modules, "adarl.envs", fake)
-        mp.setattr(adarl, "envs", fake, raising=False)
-        yield fake
+    assert real is not None and hasattr(real, "SUPPORTED_ENVS")
+    yield real
 
 
 def _err(name="quickstart", overrides=()) -> str:

@@ -8,9 +8,7 @@ from __future__ import annotations
 
 import os
 import shutil
-import sys
 import tempfile
-import types
 from pathlib import Path
 
 import pytest
@@ -32,39 +30,14 @@ FUZZ = settings(
 )
 
 
-def _stand_in_envs() -> types.ModuleType:
-    m = types.ModuleType("adarl.envs")
-    params = {
-        "Hopper-v5": ["torso_length", "foot_length"],
-        "Walker2d-v5": ["torso_length", "foot_length"],
-        "Ant-v5": ["gravity", "wind"],
-        "Humanoid-v5": ["gravity", "wind"],
-        "CartPole-v1": ["pole_length"],
-    }
-    m.SUPPORTED_ENVS = tuple(params)
-
-    def env_parameters(env_id):
-        if env_id not in params:
-            raise AdaRLValueError(f"unknown env id {env_id!r}")
-        return {p: object() for p in params[env_id]}
-
-    m.env_parameters = env_parameters
-    m.preset_names = lambda env_id: ["paper", "low", "high", "nominal", "none"]
-    m.schedule_from_dict = lambda d: d
-    return m
 
 
 @pytest.fixture(scope="module", autouse=True)
 def env_api():
+    """The real adarl.envs registry (recipes are validated against it)."""
     real = cfg._envs_module()
-    if real is not None and hasattr(real, "SUPPORTED_ENVS") and hasattr(real, "env_parameters"):
-        yield real
-        return
-    fake = _stand_in_envs()
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setitem(sys.modules, "adarl.envs", fake)
-        mp.setattr(adarl, "envs", fake, raising=False)
-        yield fake
+    assert real is not None and hasattr(real, "SUPPORTED_ENVS")
+    yield real
 
 
 @pytest.fixture(scope="module")
