@@ -103,7 +103,7 @@ def cmd_eval(args) -> int:
     from adarl.evaluation import evaluate_policy
     from adarl.training import Trainer
 
-    trainer = Trainer.resume(args.run_dir, quiet=True, truncate_metrics=False)
+    trainer = Trainer.resume(args.run_dir, quiet=True, truncate_metrics=False, checkpoint=args.checkpoint)
     recipe = trainer.recipe
     episodes = args.episodes or recipe.eval.episodes
     result = evaluate_policy(trainer.c.modules.actor, trainer.c.eval_env, episodes=episodes,
@@ -158,6 +158,8 @@ def build_parser() -> argparse.ArgumentParser:
                                     "dynamics (the centre of the uncertainty set); writes eval_nominal.json.")
     ev.add_argument("run_dir")
     ev.add_argument("--episodes", type=int, default=None, help="episodes (default: the recipe's eval.episodes)")
+    ev.add_argument("--checkpoint", default="latest", metavar="latest|best|PATH",
+                    help="which checkpoint: the latest (default), the best nominal evaluation, or a file")
     ev.set_defaults(func=cmd_eval)
 
     rp = sub.add_parser("report", help="(re)write a run folder's report.md and plots",
@@ -171,9 +173,13 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     _quiet_env()
     from adarl.errors import AdaRLError, RecipeError
+    from adarl.signals import RunInterrupted
 
     try:
         return int(args.func(args) or 0)
+    except RunInterrupted as err:  # SIGINT/SIGTERM: a checkpoint was saved, the run can be resumed
+        _err(str(err))
+        return err.exit_code
     except RecipeError as err:
         _err(str(err))
         return 2
@@ -181,7 +187,7 @@ def main(argv: list[str] | None = None) -> int:
         _err(str(err))
         return 2 if isinstance(err, ValueError) else 1
     except KeyboardInterrupt:
-        _err("interrupted")
+        _err("interrupted (stopped at once; the run folder keeps its previous checkpoint: `adarl resume RUN_DIR`)")
         return 130
 
 

@@ -52,6 +52,7 @@ __all__ = [
     "EvalConfig",
     "LoggingConfig",
     "CheckpointConfig",
+    "GuardsConfig",
     "OutputConfig",
     "load_recipe",
     "validate_recipe",
@@ -436,7 +437,23 @@ class LoggingConfig(_Section):
 class CheckpointConfig(_Section):
     interval: PosInt = Field(50_000, description="Frames between checkpoints.")
     keep_last: PosInt = Field(3, description="Checkpoints kept (older ones are deleted).")
-    replay_buffer: bool = Field(False, description="Also dump the replay buffer (exact resume, but up to GBs on disk).")
+    replay_buffer: bool = Field(
+        True, description="Also dump the replay buffer (needed for an exact resume; up to GBs on disk for 1e6 frames)."
+    )
+    keep_best: bool = Field(True, description="Also keep checkpoints/best.pt, the policy of the best nominal evaluation.")
+
+
+class GuardsConfig(_Section):
+    on_nonfinite: Literal["stop", "rollback"] = Field(
+        "stop",
+        description="NaN/inf in a loss, gradient or parameter: 'stop' the run (the last good checkpoint is kept) or "
+        "'rollback' to the last checkpoint with the learning rate scaled by lr_factor.",
+    )
+    lr_factor: Annotated[Float, Field(gt=0, lt=1)] = Field(
+        0.5, description="Learning-rate multiplier applied at each rollback.",
+        json_schema_extra={"allowed": "a number in (0, 1)"},
+    )
+    max_rollbacks: NonNegInt = Field(3, description="Rollbacks allowed before the run stops anyway.")
 
 
 class OutputConfig(_Section):
@@ -483,6 +500,7 @@ class Recipe(_Section):
     eval: EvalConfig = Field(default_factory=EvalConfig, description="Periodic evaluation.")
     logging: LoggingConfig = Field(default_factory=LoggingConfig, description="Metric loggers.")
     checkpoint: CheckpointConfig = Field(default_factory=CheckpointConfig, description="Checkpoints for resume.")
+    guards: GuardsConfig = Field(default_factory=GuardsConfig, description="What to do when training diverges.")
     output: OutputConfig = Field(default_factory=OutputConfig, description="Where the run folder goes.")
 
     @field_validator("version")

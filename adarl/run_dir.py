@@ -17,6 +17,7 @@ intact; the last ``keep_last`` are kept.
 from __future__ import annotations
 
 import csv
+import errno
 import json
 import os
 import shutil
@@ -142,8 +143,9 @@ class RunDir:
             keep = []
             for line in f.read_text().splitlines():
                 parts = line.split(",")
-                try:
-                    if int(float(parts[0])) <= frames:
+                try:  # a line cut short by a crash (no value, or no number) is dropped too
+                    float(parts[1])
+                    if len(parts) == 2 and int(float(parts[0])) <= frames:
                         keep.append(line)
                 except (ValueError, IndexError):
                     continue
@@ -164,6 +166,18 @@ class RunDir:
             w.writerow({"frames": frames, "updates": updates, "mean": result.mean, "std": result.std,
                         "ci95": result.ci95, "episodes": len(result.returns),
                         "returns": json.dumps(result.returns), "ranks": json.dumps(ranks)})
+            fh.flush()
+            os.fsync(fh.fileno())
+
+    def sync_metrics(self, logger: _Fanout) -> None:
+        """Flush and fsync the CSV metric files, so that what a checkpoint says was logged is on disk."""
+        for lg in logger.loggers:
+            for fd in list(getattr(getattr(lg, "experiment", None), "files", {}).values()):
+                try:
+                    fd.flush()
+                    os.fsync(fd.fileno())
+                except (OSError, ValueError):  # closed file
+                    pass
 
     def read_eval(self) -> list[dict]:
         path = self.path / "eval.csv"
@@ -221,32 +235,63 @@ class RunDir:
         d = self.checkpoint_dir
         return sorted(d.glob("ckpt-*.pt")) if d.is_dir() else []
 
-    def save_checkpoint(self, state: dict, *, frames: int, keep_last: int = 3, replay_buffer=None) -> Path:
+    @property
+    def best_checkpoint_path(self) -> Path:
+        """``checkpoints/best.pt``: the state at the best nominal evaluation so far (no replay buffer)."""
+        return self.checkpoint_dir / "best.pt"
+
+    def _payload(self, state: dict, frames: int, **extra) -> dict:
         from adarl import __version__
 
+        return {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "adarl_version": __version__,
+                "frames": int(frames), **extra, "state": state}
+
+    def save_checkpoint(self, state: dict, *, frames: int, keep_last: int = 3, replay_buffer=None) -> Path:
+        """Write ``ckpt-<frames>.pt`` (and the replay buffer beside it) atomically, then delete the oldest.
+
+        Order: buffer to a temporary folder, renamed; checkpoint to a temporary file, fsync'ed, renamed; folder
+        fsync'ed; only then older checkpoints are removed. A crash or a full disk at any point leaves the previous
+        checkpoint loadable; on a write error the partial files are removed and :class:`CheckpointError` says so.
+        """
         self.checkpoint_dir.mkdir(parents=True, exist_ok=True)
-        payload = {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "adarl_version": __version__,
-                   "frames": int(frames), "state": state}
         path = self.checkpoint_dir / f"ckpt-{int(frames):012d}.pt"
-        if replay_buffer is not None:
-            rb_dir = self.checkpoint_dir / f"rb-{int(frames):012d}"
-            tmp_dir = rb_dir.with_name(rb_dir.name + ".tmp")
-            shutil.rmtree(tmp_dir, ignore_errors=True)
-            replay_buffer.dumps(str(tmp_dir))
-            shutil.rmtree(rb_dir, ignore_errors=True)
-            os.replace(tmp_dir, rb_dir)
-        tmp = path.with_suffix(".pt.tmp")
-        with tmp.open("wb") as fh:
-            torch.save(payload, fh)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-        _fsync_dir(self.checkpoint_dir)
+        rb_dir = self.checkpoint_dir / f"rb-{int(frames):012d}"
+        rb_tmp = rb_dir.with_name(rb_dir.name + ".tmp")
+        try:
+            if replay_buffer is not None:
+                shutil.rmtree(rb_tmp, ignore_errors=True)
+                replay_buffer.dumps(str(rb_tmp))
+                shutil.rmtree(rb_dir, ignore_errors=True)
+                os.replace(rb_tmp, rb_dir)
+            _atomic_torch_save(self._payload(state, frames, replay_buffer=replay_buffer is not None), path)
+            _fsync_dir(self.checkpoint_dir)
+        except OSError as err:
+            shutil.rmtree(rb_tmp, ignore_errors=True)
+            if replay_buffer is not None and not path.exists():
+                shutil.rmtree(rb_dir, ignore_errors=True)
+            prev = [p.name for p in self.checkpoints() if p != path]
+            hint = " (disk full)" if err.errno == errno.ENOSPC else ""
+            raise CheckpointError(
+                f"could not write checkpoint {path.name}{hint}: {err.strerror or err}; the run stopped. The previous "
+                f"checkpoint {prev[-1] if prev else '(none)'} is intact: free space and `adarl resume {self.path}`"
+            ) from None
         for old in self.checkpoints()[:-keep_last]:
             old.unlink(missing_ok=True)
             shutil.rmtree(self.checkpoint_dir / old.name.replace("ckpt-", "rb-").replace(".pt", ""),
                           ignore_errors=True)
         return path
+
+    def save_best(self, state: dict, *, frames: int, score: float) -> Path | None:
+        """Replace ``checkpoints/best.pt`` (atomically); a write error keeps the old one and only warns."""
+        self.checkpoint_dir.mkdir(parents=True, exist_ok=True)
+        try:
+            _atomic_torch_save(self._payload(state, frames, score=float(score)), self.best_checkpoint_path)
+        except OSError as err:
+            import warnings
+
+            warnings.warn(f"could not update {self.best_checkpoint_path}: {err}", stacklevel=2)
+            return None
+        return self.best_checkpoint_path
 
     def load_checkpoint(self, path: str | os.PathLike) -> dict:
         """Load one checkpoint safely (``weights_only=True``: no code runs from the file)."""
@@ -268,16 +313,31 @@ class RunDir:
                 f"{str(path)!r} was written by a newer adarl (checkpoint version {payload['version']}, this "
                 f"version reads up to {CHECKPOINT_VERSION}); upgrade adarl to load it"
             )
-        return payload["state"]
+        state = payload["state"]
+        if payload.get("replay_buffer") and not (self.checkpoint_dir / f"rb-{int(payload['frames']):012d}").is_dir():
+            raise CheckpointError(f"{str(path)!r}: its replay buffer folder rb-{int(payload['frames']):012d} is missing")
+        if not isinstance(state, dict) or "counters" not in state:
+            raise CheckpointError(f"{str(path)!r} is not an adarl checkpoint (no training state in it)")
+        return state
 
-    def load_latest_checkpoint(self) -> dict:
-        """The newest checkpoint that loads; older ones are tried if the newest is damaged."""
-        errors = []
+    def load_latest_checkpoint(self, *, quarantine: bool = False) -> dict:
+        """The newest checkpoint that loads; older ones are tried if the newest is damaged.
+
+        ``quarantine=True`` (resume) renames the damaged newer ones to ``*.pt.corrupt`` so that rotation never
+        keeps them in place of good checkpoints.
+        """
+        errors, bad = [], []
         for path in reversed(self.checkpoints()):
             try:
-                return self.load_checkpoint(path)
+                state = self.load_checkpoint(path)
             except CheckpointError as err:
                 errors.append(str(err))
+                bad.append(path)
+                continue
+            if quarantine:
+                for b in bad:
+                    os.replace(b, b.with_name(b.name + ".corrupt"))
+            return state
         if errors:
             raise CheckpointError("no loadable checkpoint in run folder: " + "; ".join(errors))
         raise CheckpointError(f"no checkpoint in {str(self.checkpoint_dir)!r} to resume from")
@@ -307,6 +367,19 @@ def _atomic_write_text(path: Path, text: str) -> None:
         fh.flush()
         os.fsync(fh.fileno())
     os.replace(tmp, path)
+
+
+def _atomic_torch_save(obj, path: Path) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        with tmp.open("wb") as fh:
+            torch.save(obj, fh)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 def _fsync_dir(path: Path) -> None:

@@ -25,12 +25,22 @@ from torchrl.data.replay_buffers.samplers import RandomSampler
 
 from adarl.adapter import RankAdapter
 from adarl.builders import SACModules, make_sac_modules
+from adarl.env_state import (
+    collector_state_dict,
+    env_state_dict,
+    gym_rng_state_dict,
+    load_collector_state_dict,
+    load_env_state_dict,
+    load_gym_rng_state_dict,
+)
 from adarl.envs import dynamics_state_dict, load_dynamics_state_dict, make_env, make_eval_env
-from adarl.errors import AdaRLError
+from adarl.errors import AdaRLError, CheckpointError
 from adarl.evaluation import EvalResult, evaluate_policy
+from adarl.guards import NonFiniteError, NonFiniteGuard, check_live_layers
 from adarl.lr_schedule import make_lr_scheduler
 from adarl.rank import make_rule
 from adarl.run_dir import RunDir
+from adarl.signals import GracefulInterrupt, RunInterrupted
 from adarl.warmstart import ReplayWarmStart
 
 __all__ = ["Components", "build_components", "Trainer"]
@@ -179,71 +189,81 @@ class Trainer:
         self.last_ckpt_frames = 0
         self.best_eval = -math.inf
         self.last_return = float("nan")
+        self.rollbacks = 0
         self._pending_updates = 0.0
-        init_random = None
-        if _resume_state is not None:
-            init_random = max(0, recipe.collector.init_random_frames - int(_resume_state["counters"]["frames"]))
-        self.c = build_components(recipe, init_random_frames=init_random)
         self.logger = run_dir.make_logger(recipe)
+        self._build(_resume_state)
+
+    def _build(self, state: dict | None) -> None:
+        """Build the components (fresh, or to continue from checkpoint ``state``)."""
+        init_random = None
+        if state is not None and state.get("collector") is None:
+            # Checkpoints without the collector's state (older format): skip the random frames already done.
+            init_random = max(0, self.recipe.collector.init_random_frames - int(state["counters"]["frames"]))
+        self.c = build_components(self.recipe, init_random_frames=init_random)
         if self.c.adapter is not None:
             self.c.adapter.on_truncate.append(self._on_truncate)
-        if _resume_state is not None:
-            self._load_state(_resume_state)
+        loss = self.c.modules.loss
+        named = {f"actor.{k}": v for k, v in loss.actor_network_params.flatten_keys(".").items()}
+        named.update({f"critic.{k}": v for k, v in loss.qvalue_network_params.flatten_keys(".").items()})
+        if not self.recipe.algorithm.fixed_alpha:
+            named["log_alpha"] = loss.log_alpha
+        self.guard = NonFiniteGuard(named)
+        self._factors = {k: v for k, v in named.items() if k.endswith((".w1", ".w2"))}
+        if state is not None:
+            self._load_state(state)
 
     # ------------------------------------------------------------------ construction helpers
     @classmethod
-    def resume(cls, path: str | os.PathLike, *, quiet: bool = False, truncate_metrics: bool = True) -> Trainer:
-        """Continue the run in ``path`` from its latest checkpoint (metrics after it are dropped first)."""
+    def resume(cls, path: str | os.PathLike, *, quiet: bool = False, truncate_metrics: bool = True,
+               checkpoint: str | os.PathLike | None = None) -> Trainer:
+        """Continue the run in ``path`` from its latest loadable checkpoint (metrics after it are dropped first).
+
+        ``checkpoint``: ``"best"`` (the best nominal evaluation), or a checkpoint file, instead of the latest.
+        """
         from adarl.config import load_recipe
 
         run_dir = RunDir.open(path)
         recipe = load_recipe(str(run_dir.recipe_path))
-        state = run_dir.load_latest_checkpoint()
+        if checkpoint is None or checkpoint == "latest":
+            state = run_dir.load_latest_checkpoint(quarantine=truncate_metrics)
+        else:
+            state = run_dir.load_checkpoint(run_dir.best_checkpoint_path if checkpoint == "best" else checkpoint)
         if truncate_metrics:
             run_dir.truncate_metrics(int(state["counters"]["frames"]))
         return cls(recipe, run_dir, quiet=quiet, _resume_state=state)
 
     # ------------------------------------------------------------------ the loop
     def train(self) -> dict:
-        """Collect, update, adapt ranks, evaluate and checkpoint until the frame budget is spent."""
+        """Collect, update, adapt ranks, evaluate and checkpoint until the frame budget is spent.
+
+        The first SIGINT/SIGTERM checkpoints after the current batch and raises :class:`RunInterrupted`; NaN/inf
+        in training raises :class:`~adarl.guards.NonFiniteError` (or rolls back, per ``recipe.guards``).
+        """
         from tqdm.auto import tqdm
 
-        rc, c = self.recipe, self.c
+        rc = self.recipe
         total = rc.collector.total_frames
         bar = tqdm(total=total, initial=self.frames, unit="frame", disable=self.quiet, dynamic_ncols=True,
                    desc=rc.name)
         start = time.perf_counter()
         try:
-            for batch in c.collector if self.frames < total else ():
-                batch = batch.reshape(-1)
-                if self.frames + batch.numel() > total:
-                    batch = batch[: total - self.frames]
-                c.replay_buffer.extend(batch)
-                self.frames += batch.numel()
-                bar.update(batch.numel())
-                self._log_episodes(batch)
-
-                if self.frames >= rc.collector.init_random_frames and len(c.replay_buffer) >= rc.algorithm.batch_size:
-                    self._pending_updates += batch.numel() * rc.algorithm.utd_ratio
-                    n_updates = int(self._pending_updates)
-                    self._pending_updates -= n_updates
-                    losses = [self._update() for _ in range(n_updates)]
-                    if losses:
-                        self._log_losses(losses)
-
-                if self.frames - self.last_eval_frames >= rc.eval.interval:
+            with GracefulInterrupt(quiet=self.quiet) as interrupt:
+                if not self.run_dir.checkpoints():
+                    self.save_checkpoint()  # frame 0: a run killed at any later moment can be resumed
+                while True:
+                    try:
+                        self._train_batches(bar, interrupt)
+                        break
+                    except NonFiniteError as err:
+                        self._on_nonfinite(err)
+                        bar.reset(total=total)
+                        bar.update(self.frames)
+                if self.last_eval_frames != self.frames:
                     self._evaluate()
-                if self.frames - self.last_ckpt_frames >= rc.checkpoint.interval:
-                    self.save_checkpoint()
-                bar.set_postfix(ret=f"{self.last_return:.1f}", ranks=_rank_summary(c.adapter), upd=self.updates,
-                                refresh=False)
-                if self.frames >= total:
-                    break
+                self.save_checkpoint()
         finally:
             bar.close()
-        if self.last_eval_frames != self.frames:
-            self._evaluate()
-        self.save_checkpoint()
         elapsed = time.perf_counter() - start
         summary = self._write_summary(elapsed)
         from adarl.report import write_report
@@ -252,13 +272,92 @@ class Trainer:
         self.close()
         return summary
 
+    def _train_batches(self, bar, interrupt: GracefulInterrupt) -> None:
+        rc, c = self.recipe, self.c
+        total = rc.collector.total_frames
+        for batch in c.collector if self.frames < total else ():
+            batch = batch.reshape(-1)
+            if self.frames + batch.numel() > total:
+                batch = batch[: total - self.frames]
+            c.replay_buffer.extend(batch)
+            self.frames += batch.numel()
+            bar.update(batch.numel())
+            self._log_episodes(batch)
+
+            if self.frames >= rc.collector.init_random_frames and len(c.replay_buffer) >= rc.algorithm.batch_size:
+                self._pending_updates += batch.numel() * rc.algorithm.utd_ratio
+                n_updates = int(self._pending_updates)
+                self._pending_updates -= n_updates
+                losses = [self._update() for _ in range(n_updates)]
+                if losses:
+                    self._log_losses(losses)
+
+            if self.frames - self.last_eval_frames >= rc.eval.interval:
+                self._evaluate()
+            if self.frames - self.last_ckpt_frames >= rc.checkpoint.interval:
+                self.save_checkpoint()
+            bar.set_postfix(ret=f"{self.last_return:.1f}", ranks=_rank_summary(c.adapter), upd=self.updates,
+                            refresh=False)
+            if interrupt.requested is not None and self.frames < total:
+                path = self.save_checkpoint(scheduled=False)
+                self.close()
+                import signal
+
+                name = signal.Signals(interrupt.requested).name
+                raise RunInterrupted(
+                    f"stopped on {name} at {self.frames} frames; checkpoint {path.name} saved, continue with "
+                    f"`adarl resume {self.run_dir.path}`", signum=interrupt.requested, checkpoint=path)
+            if self.frames >= total:
+                break
+
+    def _on_nonfinite(self, err: NonFiniteError) -> None:
+        """Stop with a clear message, or roll back to the last checkpoint with a lower learning rate."""
+        g = self.recipe.guards
+        ckpts = self.run_dir.checkpoints()
+        last = ckpts[-1].name if ckpts else "none"
+        if g.on_nonfinite == "rollback" and self.rollbacks < g.max_rollbacks and ckpts:
+            self._rollback(err)
+            return
+        self.close()
+        why = (f"after {self.rollbacks} rollback(s) (guards.max_rollbacks={g.max_rollbacks})"
+               if g.on_nonfinite == "rollback" else "(guards.on_nonfinite=stop)")
+        raise NonFiniteError(
+            f"training diverged: {err} at {self.frames} frames; stopped {why} without writing a checkpoint. The last "
+            f"good checkpoint is {last}; continue it with `adarl resume {self.run_dir.path}`, or lower algorithm.lr, "
+            f"or set guards.on_nonfinite=rollback", stage=err.stage, what=err.what, update=err.update) from None
+
+    def _rollback(self, err: NonFiniteError) -> None:
+        g = self.recipe.guards
+        rollbacks = self.rollbacks + 1
+        state = self.run_dir.load_latest_checkpoint()
+        self.close()
+        self.run_dir.truncate_metrics(int(state["counters"]["frames"]))
+        self.logger = self.run_dir.make_logger(self.recipe)
+        self._build(state)
+        self.rollbacks = rollbacks
+        for sched in self.c.schedulers.values():
+            sched.base_lrs = [lr * g.lr_factor for lr in sched.base_lrs]
+        for opt in self.c.optimizers.values():
+            for group in opt.param_groups:
+                group["lr"] *= g.lr_factor
+                if "initial_lr" in group:
+                    group["initial_lr"] *= g.lr_factor
+        self.logger.log_scalar("guards.rollbacks", self.rollbacks, step=self.frames)
+        if not self.quiet:
+            import sys
+
+            print(f"adarl: {err}; rolled back to {self.frames} frames with the learning rate x{g.lr_factor} "
+                  f"(rollback {self.rollbacks}/{g.max_rollbacks})", file=sys.stderr, flush=True)
+
     def _update(self) -> dict[str, float]:
         """One SAC optimisation step, then the target update and (maybe) a rank event."""
         c, alg = self.c, self.recipe.algorithm
         sample = c.replay_buffer.sample()
         td = c.modules.loss(sample)
+        self.guard.check_losses({k: td[k] for k in ("loss_actor", "loss_qvalue", "loss_alpha")}, self.updates)
         loss = td["loss_actor"] + td["loss_qvalue"] + td["loss_alpha"]
         loss.backward()
+        self.guard.check_grads(self.updates)
         if alg.max_grad_norm is not None:
             for opt in c.optimizers.values():
                 for group in opt.param_groups:
@@ -269,6 +368,7 @@ class Trainer:
         for sched in c.schedulers.values():
             sched.step()
         c.modules.target_updater.step()
+        self.guard.check_params(self.updates)
         self.updates += 1
         out = {"loss_actor": td["loss_actor"].detach(), "loss_qvalue": td["loss_qvalue"].detach(),
                "loss_alpha": td["loss_alpha"].detach(), "alpha": td["alpha"].detach()}
@@ -279,6 +379,7 @@ class Trainer:
     def _on_truncate(self, event) -> None:
         """After a rank event: warm-start the buffer (its frames count towards the budget) and record ranks."""
         c = self.c
+        check_live_layers(self._factors, event_step=getattr(event, "step", None))
         added = 0
         if c.warm_start is not None:
             added = int(c.warm_start(event).frames_added)
@@ -318,7 +419,10 @@ class Trainer:
         self.logger.log_scalar("eval.return_mean", result.mean, step=self.frames)
         self.logger.log_scalar("eval.return_std", result.std, step=self.frames)
         self.run_dir.append_eval(self.frames, self.updates, result, ranks=self.c.adapter.ranks if self.c.adapter else {})
-        self.best_eval = max(self.best_eval, result.mean)
+        if result.mean > self.best_eval:
+            self.best_eval = result.mean
+            if self.recipe.checkpoint.keep_best:
+                self.run_dir.save_best(self.state_dict(), frames=self.frames, score=result.mean)
         return result
 
     # ------------------------------------------------------------------ checkpoints
@@ -328,7 +432,8 @@ class Trainer:
         return {
             "counters": {"frames": self.frames, "updates": self.updates, "episodes": self.episodes,
                          "last_eval_frames": self.last_eval_frames, "pending_updates": self._pending_updates,
-                         "best_eval": self.best_eval},
+                         "best_eval": self.best_eval, "last_ckpt_frames": self.last_ckpt_frames,
+                         "rollbacks": self.rollbacks},
             "loss": c.modules.loss.state_dict(),
             "optimizers": {k: o.state_dict() for k, o in c.optimizers.items()},
             "schedulers": {k: s.state_dict() for k, s in c.schedulers.items()},
@@ -336,15 +441,27 @@ class Trainer:
             "rng": _rng_state(),
             "dynamics": dynamics_state_dict(c.env),
             "sampling_rng": c.extras["sampling_generator"].get_state(),
+            "warm_start": c.warm_start.state_dict() if c.warm_start is not None else None,
+            # The live episode (exact resume): simulator + gymnasium state, the collector's carrier and counters.
+            "env_state": env_state_dict(c.env),
+            "collector": collector_state_dict(c.collector),
+            "eval_rng": gym_rng_state_dict(c.eval_env),
         }
 
-    def save_checkpoint(self) -> Path:
-        path = self.run_dir.save_checkpoint(
-            self.state_dict(), frames=self.frames, keep_last=self.recipe.checkpoint.keep_last,
-            replay_buffer=self.c.replay_buffer if self.recipe.checkpoint.replay_buffer else None,
+    def save_checkpoint(self, *, scheduled: bool = True) -> Path:
+        """Write a checkpoint (atomically; metric files are fsync'ed first so they are as durable as it).
+
+        ``scheduled=False`` (an interrupt) does not move the checkpoint schedule, so resumed runs keep it.
+        """
+        if scheduled:
+            self.last_ckpt_frames = self.frames
+        self.run_dir.sync_metrics(self.logger)
+        rb = self.c.replay_buffer if self.recipe.checkpoint.replay_buffer and len(self.c.replay_buffer) else None
+        state = self.state_dict()
+        state["replay_buffer_saved"] = rb is not None
+        return self.run_dir.save_checkpoint(
+            state, frames=self.frames, keep_last=self.recipe.checkpoint.keep_last, replay_buffer=rb,
         )
-        self.last_ckpt_frames = self.frames
-        return path
 
     def _load_state(self, state: dict) -> None:
         from adarl.adapter import resize_to_ranks
@@ -361,15 +478,27 @@ class Trainer:
             c.adapter.load_state_dict(state["adapter"])
         cnt = state["counters"]
         self.frames, self.updates, self.episodes = int(cnt["frames"]), int(cnt["updates"]), int(cnt["episodes"])
-        self.last_eval_frames = self.last_ckpt_frames = int(cnt["last_eval_frames"])
-        self.last_ckpt_frames = self.frames
+        self.last_eval_frames = int(cnt["last_eval_frames"])
+        self.last_ckpt_frames = int(cnt.get("last_ckpt_frames", self.frames))
         self._pending_updates = float(cnt["pending_updates"])
         self.best_eval = float(cnt["best_eval"])
-        _set_rng_state(state["rng"])
+        self.rollbacks = int(cnt.get("rollbacks", 0))
+        if c.warm_start is not None and state.get("warm_start") is not None:
+            c.warm_start.load_state_dict(state["warm_start"])
         load_dynamics_state_dict(c.env, state["dynamics"])
+        live_episode = load_env_state_dict(c.env, state.get("env_state"))
+        if state.get("collector") is not None:
+            load_collector_state_dict(c.collector, state["collector"], carrier=live_episode)
+        load_gym_rng_state_dict(c.eval_env, state.get("eval_rng"))
         c.extras["sampling_generator"].set_state(state["sampling_rng"])
-        if self.recipe.checkpoint.replay_buffer:
-            self.run_dir.load_replay_buffer(self.c.replay_buffer, frames=self.frames)
+        saved = state.get("replay_buffer_saved")
+        if saved or (saved is None and self.recipe.checkpoint.replay_buffer):
+            if not self.run_dir.load_replay_buffer(self.c.replay_buffer, frames=self.frames) and saved:
+                raise CheckpointError(f"the replay buffer saved with the checkpoint at {self.frames} frames is missing "
+                                      f"from {self.run_dir.checkpoint_dir}")
+        if c.adapter is not None:
+            self.run_dir.write_rank_history(c.adapter.history, frames=self.frames)
+        _set_rng_state(state["rng"])  # last: nothing after it may draw random numbers
 
     def _write_summary(self, elapsed: float) -> dict:
         summary = {

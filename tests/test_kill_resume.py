@@ -1,0 +1,127 @@
+"""Real CLI runs killed and resumed: kill -9 at random moments (5 times in one run) must end with exactly the
+metrics of an uninterrupted run; SIGTERM must save a checkpoint and exit cleanly.
+
+The seed of the kill times is printed on failure (ADARL_KILL_SEED picks one). Budget: about a minute on 2 cores.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+RUN = [
+    "collector.total_frames=600",
+    "collector.init_random_frames=100",
+    "collector.frames_per_batch=50",
+    "algorithm.batch_size=32",
+    "rank.interval=150",
+    "replay.size=2000",
+    "replay.warm_start.frames=50",
+    "lr_schedule.warmup_steps=20",
+    "eval.interval=200",
+    "eval.episodes=1",
+    "eval.max_steps=30",
+    "checkpoint.interval=50",
+    "checkpoint.keep_last=2",
+]
+
+
+def _env() -> dict:
+    # one torch thread: fastest for (64, 64) nets, and the exactness guarantee is per thread count
+    return {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1", "MUJOCO_GL": "egl"}
+
+
+def _start(*args: str) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "adarl.cli", *args], cwd=REPO, env=_env(),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _finish(proc: subprocess.Popen, timeout: float = 300) -> tuple[int, str]:
+    _, err = proc.communicate(timeout=timeout)
+    return proc.returncode, err
+
+
+def _wait_for_checkpoint(path: Path, proc: subprocess.Popen, newer_than: set[str] = frozenset(),
+                         timeout: float = 120) -> bool:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        names = {p.name for p in (path / "checkpoints").glob("ckpt-*.pt")} if (path / "checkpoints").is_dir() else set()
+        if names - set(newer_than):
+            return True
+        if proc.poll() is not None:
+            return False
+        time.sleep(0.05)
+    return False
+
+
+def _results(run: Path) -> dict[str, str]:
+    """Every metric file and the evaluation/rank records, as text (timing fields left out)."""
+    out = {f"metrics/{p.name}": p.read_text() for p in sorted((run / "metrics" / "scalars").glob("*.csv"))}
+    out["eval.csv"] = (run / "eval.csv").read_text()
+    out["ranks.json"] = (run / "ranks.json").read_text()
+    summary = json.loads((run / "summary.json").read_text())
+    for k in ("wall_time_s", "updates_per_s"):
+        summary.pop(k)
+    out["summary.json"] = json.dumps(summary, sort_keys=True)
+    return out
+
+
+@pytest.mark.slow
+def test_kill_9_at_random_moments_then_resume_matches_an_uninterrupted_run(tmp_path):
+    seed = int(os.environ.get("ADARL_KILL_SEED", random.randrange(10**6)))
+    rng = random.Random(seed)
+    ref, killed = tmp_path / "reference", tmp_path / "killed"
+    reference = _start("run", "quickstart", *RUN, "-o", str(ref), "--quiet")  # runs beside the killed one
+
+    kills = []
+    proc = _start("run", "quickstart", *RUN, "-o", str(killed), "--quiet")
+    for _ in range(5):
+        seen = {p.name for p in (killed / "checkpoints").glob("ckpt-*.pt")} if (killed / "checkpoints").is_dir() else set()
+        # Kill after a random delay once the process is past start-up (it has written a new checkpoint or a
+        # resumed one is training), so that every kill lands somewhere in the training loop.
+        assert _wait_for_checkpoint(killed, proc, newer_than=seen if kills else set()), proc.communicate()[1][-3000:]
+        time.sleep(rng.uniform(0.0, 1.5))
+        if proc.poll() is not None:  # finished before the kill: nothing left to kill
+            break
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+        kills.append(sorted(p.name for p in (killed / "checkpoints").glob("ckpt-*.pt"))[-1])
+        proc = _start("resume", str(killed), "--quiet")
+    rc, err = _finish(proc)
+    assert rc == 0, f"seed {seed}: {err[-3000:]}"
+    assert len(kills) >= 5, f"seed {seed}: the run finished after {len(kills)} kills ({kills})"
+    rc, err = _finish(reference)
+    assert rc == 0, err[-3000:]
+
+    want, got = _results(ref), _results(killed)
+    assert set(want) == set(got), f"seed {seed}: metric files differ: {set(want) ^ set(got)}"
+    for name in want:  # bit-identical, not approximately equal
+        assert got[name] == want[name], f"seed {seed}, kills after {kills}: {name} differs from the uninterrupted run"
+
+
+@pytest.mark.slow
+def test_sigterm_saves_a_checkpoint_and_exits_cleanly(tmp_path):
+    run = tmp_path / "run"
+    proc = _start("run", "quickstart", *RUN, "checkpoint.interval=10000", "-o", str(run), "--quiet")
+    assert _wait_for_checkpoint(run, proc), proc.communicate()[1][-3000:]  # the frame-0 checkpoint: training began
+    time.sleep(2.0)
+    proc.send_signal(signal.SIGTERM)
+    rc, err = _finish(proc, timeout=120)
+    assert rc == 128 + signal.SIGTERM, err[-3000:]
+    assert "SIGTERM" in err and "adarl resume" in err and "Traceback" not in err
+    ckpts = sorted((run / "checkpoints").glob("ckpt-*.pt"))
+    frames = int(ckpts[-1].stem.split("-")[1])
+    assert frames > 0, "SIGTERM saved no new checkpoint"
+    rc, err = _finish(_start("resume", str(run), "--quiet"))
+    assert rc == 0, err[-3000:]
+    assert json.loads((run / "summary.json").read_text())["frames"] >= 600
