@@ -20,13 +20,14 @@ import numpy as np
 import torch
 from tensordict import TensorDictBase
 from torchrl.collectors import Collector
-from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.data import LazyMemmapStorage, LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.data.replay_buffers.samplers import RandomSampler
 
 from adarl.adapter import RankAdapter
 from adarl.builders import SACModules, make_sac_modules
 from adarl.envs import dynamics_state_dict, load_dynamics_state_dict, make_env, make_eval_env
 from adarl.errors import AdaRLError
+from adarl.fast_sac import FusedSACUpdate, make_adam, wants_fused
 from adarl.evaluation import EvalResult, evaluate_policy
 from adarl.lr_schedule import make_lr_scheduler
 from adarl.rank import make_rule
@@ -78,8 +79,14 @@ def _env_kwargs(recipe) -> dict:
     return dict(mode=p.mode, dynamics_key=p.key, device=recipe.device, max_episode_steps=e.max_episode_steps)
 
 
-def build_components(recipe, *, init_random_frames: int | None = None) -> Components:
-    """Build env, networks, SAC loss, optimisers, LR schedules, buffer, collector, rank adapter and warm start."""
+def build_components(recipe, *, init_random_frames: int | None = None,
+                     scratch_dir: str | os.PathLike | None = None) -> Components:
+    """Build env, networks, SAC loss, optimisers, LR schedules, buffer, collector, rank adapter and warm start.
+
+    With ``algorithm.fused`` the SAC step is a :class:`~adarl.fast_sac.FusedSACUpdate` in ``extras["fused_update"]``
+    (same parameters, losses and optimisers as the plain path). ``scratch_dir`` holds a memmap replay storage."""
+    if recipe.algorithm.num_threads is not None:
+        torch.set_num_threads(recipe.algorithm.num_threads)
     seed_everything(recipe.seed)
     e = recipe.env
     p = e.perturbation
@@ -94,12 +101,13 @@ def build_components(recipe, *, init_random_frames: int | None = None) -> Compon
 
     actor_params = list(loss.actor_network_params.flatten_keys().values())
     critic_params = list(loss.qvalue_network_params.flatten_keys().values())
+    fused = wants_fused(alg.fused, loss)
     optimizers = {
-        "actor": torch.optim.Adam(actor_params, lr=alg.lr),
-        "critic": torch.optim.Adam(critic_params, lr=alg.lr),
+        "actor": make_adam(actor_params, alg.lr, fused=fused),
+        "critic": make_adam(critic_params, alg.lr, fused=fused),
     }
     if not alg.fixed_alpha:
-        optimizers["alpha"] = torch.optim.Adam([loss.log_alpha], lr=alg.alpha_lr)
+        optimizers["alpha"] = make_adam([loss.log_alpha], alg.alpha_lr, fused=fused)
     total_updates = planned_updates(recipe)
     s = recipe.lr_schedule
     schedulers = {
@@ -114,7 +122,8 @@ def build_components(recipe, *, init_random_frames: int | None = None) -> Compon
 
     generator = torch.Generator().manual_seed(recipe.seed + 1)
     replay_buffer = TensorDictReplayBuffer(
-        storage=LazyTensorStorage(recipe.replay.size, device=recipe.device),
+        storage=(LazyMemmapStorage(recipe.replay.size, scratch_dir=scratch_dir, device=recipe.device)
+                 if recipe.replay.storage == "memmap" else LazyTensorStorage(recipe.replay.size, device=recipe.device)),
         sampler=RandomSampler(),
         batch_size=alg.batch_size,
         generator=generator,
@@ -152,8 +161,15 @@ def build_components(recipe, *, init_random_frames: int | None = None) -> Compon
             lr_schedulers=list(schedulers.values()),
             fit_data=replay_buffer if r.rule == "policy_fit" else None,
         )
+    extras = {"sampling_generator": generator}
+    if fused:
+        update = FusedSACUpdate(loss, list(optimizers.values()), tau=alg.tau, schedulers=list(schedulers.values()),
+                                max_grad_norm=alg.max_grad_norm, compile=alg.compile)
+        extras["fused_update"] = update
+        if adapter is not None:
+            adapter.on_truncate.insert(0, update.on_rank_event)
     return Components(recipe, env, eval_env, modules, optimizers, schedulers, replay_buffer, collector, adapter,
-                      warm_start, total_updates, extras={"sampling_generator": generator})
+                      warm_start, total_updates, extras=extras)
 
 
 def _rank_summary(adapter: RankAdapter | None) -> str:
@@ -183,7 +199,7 @@ class Trainer:
         init_random = None
         if _resume_state is not None:
             init_random = max(0, recipe.collector.init_random_frames - int(_resume_state["counters"]["frames"]))
-        self.c = build_components(recipe, init_random_frames=init_random)
+        self.c = build_components(recipe, init_random_frames=init_random, scratch_dir=run_dir.path / "replay_storage")
         self.logger = run_dir.make_logger(recipe)
         if self.c.adapter is not None:
             self.c.adapter.on_truncate.append(self._on_truncate)
@@ -256,6 +272,13 @@ class Trainer:
         """One SAC optimisation step, then the target update and (maybe) a rank event."""
         c, alg = self.c, self.recipe.algorithm
         sample = c.replay_buffer.sample()
+        fused = c.extras.get("fused_update")
+        if fused is not None:  # adarl.fast_sac: the same step without SACLoss's TensorDict overhead
+            out = fused(sample)
+            self.updates += 1
+            if c.adapter is not None:
+                c.adapter.step()
+            return out
         td = c.modules.loss(sample)
         loss = td["loss_actor"] + td["loss_qvalue"] + td["loss_alpha"]
         loss.backward()
