@@ -420,6 +420,11 @@ class CollectorConfig(_Section):
     init_random_frames: NonNegInt = Field(
         10_000, description="Uniform-random actions before the policy acts (TorchRL rounds up to a batch multiple)."
     )
+    lean: Literal["auto"] | bool = Field(
+        "auto",
+        description="LeanCollector (adarl.lean_collector: same env, policy sampled straight from the actor network, "
+        "no Collector overhead); 'auto' = on for one env with a TanhNormal actor; false = torchrl Collector.",
+    )
 
 
 class EvalConfig(_Section):

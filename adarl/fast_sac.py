@@ -67,12 +67,26 @@ def _mlp_layers(net: nn.Module, what: str) -> list[nn.Module]:
     return layers
 
 
+def low_rank_matmul(x: torch.Tensor, w1: torch.Tensor, w2: torch.Tensor) -> torch.Tensor:
+    """``x @ (w1 @ w2)^T`` by whichever order costs fewer flops (stacked ``[N, ...]`` factors allowed).
+
+    Factored, ``x @ w2^T @ w1^T`` costs ``B r (in + out)``; merged, ``w1 @ w2`` then one matmul costs
+    ``out r in + B in out``. Near full rank (every layer before its first rank event) merging is cheaper."""
+    out_f, r = w1.shape[-2], w1.shape[-1]
+    in_f = w2.shape[-1]
+    rows = x.shape[-2] if x.dim() > 1 else 1
+    if out_f * r * in_f + rows * in_f * out_f < rows * r * (in_f + out_f):
+        return torch.matmul(x, torch.matmul(w1, w2).transpose(-1, -2))
+    return torch.matmul(torch.matmul(x, w2.transpose(-1, -2)), w1.transpose(-1, -2))
+
+
 class _StackedMLP:
     """Forward of an ensemble MLP whose parameters are stacked ``[N, ...]`` tensors (the SACLoss layout)."""
 
-    def __init__(self, net: nn.Module, params: dict[str, torch.Tensor], prefix: str = "module") -> None:
+    def __init__(self, net: nn.Module, params: dict[str, torch.Tensor], prefix: str = "module",
+                 what: str = "critic") -> None:
         self.layers: list[tuple[str, object]] = []
-        for i, layer in enumerate(_mlp_layers(net, "critic")):
+        for i, layer in enumerate(_mlp_layers(net, what)):
             key = f"{prefix}.{i}"
             if isinstance(layer, LowRankLinear):
                 self.layers.append(("lowrank", (key + ".w1", key + ".w2", key + ".bias" if layer.bias is not None else None)))
@@ -97,7 +111,7 @@ class _StackedMLP:
             else:
                 w1, w2 = params[spec[0]], params[spec[1]]
                 b = params[spec[2]] if spec[2] is not None else None
-                x = torch.matmul(torch.matmul(x, w2.transpose(-1, -2)), w1.transpose(-1, -2))
+                x = low_rank_matmul(x, w1, w2)
                 if b is not None:
                     x = x + b.unsqueeze(-2)
         return x
@@ -111,8 +125,12 @@ def _actor_net(loss) -> nn.Module:
     if net is None or list(first.in_keys) != ["observation"] or list(first.out_keys) != ["loc", "scale"]:
         raise AdaRLValueError("the fused SAC update needs an actor built by adarl.builders.make_sac_actor "
                               "(observation -> loc, scale -> TanhNormal)")
-    if isinstance(net, nn.Sequential):
-        _mlp_layers(net[0], "actor")
+    from tensordict.nn import NormalParamExtractor
+
+    if not (isinstance(net, nn.Sequential) and len(net) == 2 and isinstance(net[1], NormalParamExtractor)):
+        raise AdaRLValueError("the fused SAC update needs the actor network Sequential(MLP, NormalParamExtractor) "
+                              "that adarl.builders.make_sac_actor builds (set algorithm.fused: false otherwise)")
+    _mlp_layers(net[0], "actor")
     return net
 
 
@@ -153,6 +171,9 @@ class FusedSACUpdate:
         self.target_entropy = float(loss.target_entropy)
         self.min_log_alpha, self.max_log_alpha = loss.min_log_alpha, loss.max_log_alpha
         self.actor_net = _actor_net(loss)
+        mlp, self._param_extractor = self.actor_net[0], self.actor_net[1]
+        self.actor_params = dict(mlp.named_parameters(prefix="module"))
+        self.actor_mlp = _StackedMLP(mlp, self.actor_params, what="actor")
         spec = loss.actor_network.module[1]
         kw = getattr(spec, "distribution_kwargs", {}) or {}
         low, high = kw.get("low", -1.0), kw.get("high", 1.0)
@@ -176,7 +197,7 @@ class FusedSACUpdate:
         """Reparameterised TanhNormal sample and its log-probability, scored at the exact pre-tanh value."""
         from torchrl.modules.distributions.utils import safetanh_noeps
 
-        loc, scale = self.actor_net(obs)
+        loc, scale = self._param_extractor(self.actor_mlp(self.actor_params, obs))
         pre = loc + noise * scale
         action = safetanh_noeps(pre)
         log_prob = (-0.5 * noise.pow(2) - scale.log() - 0.5 * math.log(2 * math.pi)).sum(-1)

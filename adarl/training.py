@@ -28,6 +28,7 @@ from adarl.builders import SACModules, make_sac_modules
 from adarl.envs import dynamics_state_dict, load_dynamics_state_dict, make_env, make_eval_env
 from adarl.errors import AdaRLError
 from adarl.fast_sac import FusedSACUpdate, make_adam, wants_fused
+from adarl.lean_collector import LeanCollector, wants_lean
 from adarl.evaluation import EvalResult, evaluate_policy
 from adarl.lr_schedule import make_lr_scheduler
 from adarl.rank import make_rule
@@ -48,7 +49,7 @@ class Components:
     optimizers: dict[str, torch.optim.Optimizer]
     schedulers: dict[str, torch.optim.lr_scheduler.LRScheduler]
     replay_buffer: TensorDictReplayBuffer
-    collector: Collector
+    collector: Collector | LeanCollector
     adapter: RankAdapter | None
     warm_start: ReplayWarmStart | None
     total_updates: int
@@ -129,14 +130,14 @@ def build_components(recipe, *, init_random_frames: int | None = None,
         generator=generator,
     )
     c = recipe.collector
-    collector = Collector(
-        env,
-        modules.actor,
-        frames_per_batch=c.frames_per_batch,
-        total_frames=-1,
-        init_random_frames=c.init_random_frames if init_random_frames is None else init_random_frames,
-        device=recipe.device,
-    )
+    init_random = c.init_random_frames if init_random_frames is None else init_random_frames
+    lean = wants_lean(c.lean, env, modules.actor)
+    if lean:
+        collector = LeanCollector(env, modules.actor, frames_per_batch=c.frames_per_batch,
+                                  init_random_frames=init_random)
+    else:
+        collector = Collector(env, modules.actor, frames_per_batch=c.frames_per_batch, total_frames=-1,
+                              init_random_frames=init_random, device=recipe.device)
 
     adapter = warm_start = None
     r = recipe.rank
@@ -149,7 +150,9 @@ def build_components(recipe, *, init_random_frames: int | None = None,
             rule = make_rule(r.rule, beta=r.beta)
         w = recipe.replay.warm_start
         if w.mode != "keep" and w.frames > 0:
-            warm_start = ReplayWarmStart(replay_buffer, collector, frames=w.frames, mode=w.mode)
+            # the lean collector is no torchrl Collector: the warm start rolls the same env and policy out itself
+            source = (env, modules.actor) if lean else collector
+            warm_start = ReplayWarmStart(replay_buffer, source, frames=w.frames, mode=w.mode)
         adapter = RankAdapter(
             loss,
             list(optimizers.values()),
@@ -203,6 +206,8 @@ class Trainer:
         self.logger = run_dir.make_logger(recipe)
         if self.c.adapter is not None:
             self.c.adapter.on_truncate.append(self._on_truncate)
+            if isinstance(self.c.collector, LeanCollector):  # the warm start stepped the env under it
+                self.c.adapter.on_truncate.append(lambda event: self.c.collector.reset())
         if _resume_state is not None:
             self._load_state(_resume_state)
 
