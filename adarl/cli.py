@@ -117,6 +117,12 @@ def cmd_eval(args) -> int:
     return 0
 
 
+def cmd_bench(args) -> int:
+    from adarl.bench import cli
+
+    return cli(args)
+
+
 def cmd_report(args) -> int:
     from adarl.report import write_report
 
@@ -166,6 +172,15 @@ def build_parser() -> argparse.ArgumentParser:
                         description="Write report.md and plots/*.png from the files in RUN_DIR.")
     rp.add_argument("run_dir")
     rp.set_defaults(func=cmd_report)
+
+    from adarl.bench import add_arguments as bench_arguments
+
+    bn = sub.add_parser("bench", help="side-by-side SAC speed benchmark (AdaRL-SAC, no-rank, stock TorchRL, SB3)",
+                        description="Interleaved, repeated (median) speed benchmark of AdaRL-SAC against the same loop "
+                        "without rank adaptation, a stock TorchRL SAC loop and Stable-Baselines3 SAC (when installed: "
+                        "pip install 'adarl[bench]'). Prints a table and writes a JSON report.")
+    bench_arguments(bn)
+    bn.set_defaults(func=cmd_bench)
     return p
 
 

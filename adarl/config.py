@@ -337,6 +337,17 @@ class AlgorithmConfig(_Section):
         "auto", description="Entropy target of the alpha tuning; 'auto' = -action_dim (continuous) or TorchRL's default."
     )
     max_grad_norm: PosFloat | None = Field(None, description="Clip gradient norm per optimiser; null = no clipping.")
+    fused: Literal["auto"] | bool = Field(
+        "auto",
+        description="Fused SAC update (adarl.fast_sac: same losses as SACLoss, batched critics, fused Adam, foreach "
+        "target update); 'auto' = on for continuous actions, TorchRL's SACLoss path for discrete; false = SACLoss.",
+    )
+    compile: bool = Field(
+        False, description="torch.compile the fused SAC update (needs fused; one recompilation per rank event)."
+    )
+    num_threads: PosInt | None = Field(
+        None, description="torch.set_num_threads for the run; null = leave torch's setting (1 is best at (64, 64) on CPU)."
+    )
 
 
 class RankConfig(_Section):
@@ -396,6 +407,11 @@ class WarmStartConfig(_Section):
 
 class ReplayConfig(_Section):
     size: PosInt = Field(1_000_000, description="Replay buffer capacity in transitions (paper: 1e6).")
+    storage: Literal["memory", "memmap"] = Field(
+        "memory",
+        description="Replay storage: 'memory' (LazyTensorStorage) or 'memmap' (LazyMemmapStorage, on disk in the "
+        "run folder; for Humanoid's 1e6 transitions on small machines).",
+    )
     warm_start: WarmStartConfig = Field(default_factory=WarmStartConfig, description="Warm-start after rank events.")
 
 
@@ -404,6 +420,11 @@ class CollectorConfig(_Section):
     frames_per_batch: PosInt = Field(1000, description="Frames per collector batch; optimisation runs between batches.")
     init_random_frames: NonNegInt = Field(
         10_000, description="Uniform-random actions before the policy acts (TorchRL rounds up to a batch multiple)."
+    )
+    lean: Literal["auto"] | bool = Field(
+        "auto",
+        description="LeanCollector (adarl.lean_collector: same env, policy sampled straight from the actor network, "
+        "no Collector overhead); 'auto' = on for one env with a TanhNormal actor; false = torchrl Collector.",
     )
 
 
@@ -527,6 +548,8 @@ class Recipe(_Section):
             p.append(
                 ("collector.frames_per_batch", c.frames_per_batch, f"must be <= collector.total_frames ({c.total_frames})")
             )
+        if self.algorithm.compile and self.algorithm.fused is False:
+            p.append(("algorithm.compile", True, "needs algorithm.fused: true or 'auto' (it compiles the fused update)"))
         r = self.rank
         if r.enabled:
             scoped = ["actor", "critic"] if r.scope == "both" else [r.scope]

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from tensordict import TensorDictBase
 from torchrl.collectors import Collector
-from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.data import LazyMemmapStorage, LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.data.replay_buffers.samplers import RandomSampler
 
 from adarl.adapter import RankAdapter
@@ -35,6 +35,8 @@ from adarl.env_state import (
 )
 from adarl.envs import dynamics_state_dict, load_dynamics_state_dict, make_env, make_eval_env
 from adarl.errors import AdaRLError, CheckpointError
+from adarl.fast_sac import FusedSACUpdate, make_adam, wants_fused
+from adarl.lean_collector import LeanCollector, wants_lean
 from adarl.evaluation import EvalResult, evaluate_policy
 from adarl.guards import NonFiniteError, NonFiniteGuard, check_live_layers
 from adarl.lr_schedule import make_lr_scheduler
@@ -57,7 +59,7 @@ class Components:
     optimizers: dict[str, torch.optim.Optimizer]
     schedulers: dict[str, torch.optim.lr_scheduler.LRScheduler]
     replay_buffer: TensorDictReplayBuffer
-    collector: Collector
+    collector: Collector | LeanCollector
     adapter: RankAdapter | None
     warm_start: ReplayWarmStart | None
     total_updates: int
@@ -88,8 +90,14 @@ def _env_kwargs(recipe) -> dict:
     return dict(mode=p.mode, dynamics_key=p.key, device=recipe.device, max_episode_steps=e.max_episode_steps)
 
 
-def build_components(recipe, *, init_random_frames: int | None = None) -> Components:
-    """Build env, networks, SAC loss, optimisers, LR schedules, buffer, collector, rank adapter and warm start."""
+def build_components(recipe, *, init_random_frames: int | None = None,
+                     scratch_dir: str | os.PathLike | None = None) -> Components:
+    """Build env, networks, SAC loss, optimisers, LR schedules, buffer, collector, rank adapter and warm start.
+
+    With ``algorithm.fused`` the SAC step is a :class:`~adarl.fast_sac.FusedSACUpdate` in ``extras["fused_update"]``
+    (same parameters, losses and optimisers as the plain path). ``scratch_dir`` holds a memmap replay storage."""
+    if recipe.algorithm.num_threads is not None:
+        torch.set_num_threads(recipe.algorithm.num_threads)
     seed_everything(recipe.seed)
     e = recipe.env
     p = e.perturbation
@@ -104,12 +112,13 @@ def build_components(recipe, *, init_random_frames: int | None = None) -> Compon
 
     actor_params = list(loss.actor_network_params.flatten_keys().values())
     critic_params = list(loss.qvalue_network_params.flatten_keys().values())
+    fused = wants_fused(alg.fused, loss)
     optimizers = {
-        "actor": torch.optim.Adam(actor_params, lr=alg.lr),
-        "critic": torch.optim.Adam(critic_params, lr=alg.lr),
+        "actor": make_adam(actor_params, alg.lr, fused=fused),
+        "critic": make_adam(critic_params, alg.lr, fused=fused),
     }
     if not alg.fixed_alpha:
-        optimizers["alpha"] = torch.optim.Adam([loss.log_alpha], lr=alg.alpha_lr)
+        optimizers["alpha"] = make_adam([loss.log_alpha], alg.alpha_lr, fused=fused)
     total_updates = planned_updates(recipe)
     s = recipe.lr_schedule
     schedulers = {
@@ -124,20 +133,21 @@ def build_components(recipe, *, init_random_frames: int | None = None) -> Compon
 
     generator = torch.Generator().manual_seed(recipe.seed + 1)
     replay_buffer = TensorDictReplayBuffer(
-        storage=LazyTensorStorage(recipe.replay.size, device=recipe.device),
+        storage=(LazyMemmapStorage(recipe.replay.size, scratch_dir=scratch_dir, device=recipe.device)
+                 if recipe.replay.storage == "memmap" else LazyTensorStorage(recipe.replay.size, device=recipe.device)),
         sampler=RandomSampler(),
         batch_size=alg.batch_size,
         generator=generator,
     )
     c = recipe.collector
-    collector = Collector(
-        env,
-        modules.actor,
-        frames_per_batch=c.frames_per_batch,
-        total_frames=-1,
-        init_random_frames=c.init_random_frames if init_random_frames is None else init_random_frames,
-        device=recipe.device,
-    )
+    init_random = c.init_random_frames if init_random_frames is None else init_random_frames
+    lean = wants_lean(c.lean, env, modules.actor)
+    if lean:
+        collector = LeanCollector(env, modules.actor, frames_per_batch=c.frames_per_batch,
+                                  init_random_frames=init_random)
+    else:
+        collector = Collector(env, modules.actor, frames_per_batch=c.frames_per_batch, total_frames=-1,
+                              init_random_frames=init_random, device=recipe.device)
 
     adapter = warm_start = None
     r = recipe.rank
@@ -150,7 +160,9 @@ def build_components(recipe, *, init_random_frames: int | None = None) -> Compon
             rule = make_rule(r.rule, beta=r.beta)
         w = recipe.replay.warm_start
         if w.mode != "keep" and w.frames > 0:
-            warm_start = ReplayWarmStart(replay_buffer, collector, frames=w.frames, mode=w.mode)
+            # the lean collector is no torchrl Collector: the warm start rolls the same env and policy out itself
+            source = (env, modules.actor) if lean else collector
+            warm_start = ReplayWarmStart(replay_buffer, source, frames=w.frames, mode=w.mode)
         adapter = RankAdapter(
             loss,
             list(optimizers.values()),
@@ -162,8 +174,15 @@ def build_components(recipe, *, init_random_frames: int | None = None) -> Compon
             lr_schedulers=list(schedulers.values()),
             fit_data=replay_buffer if r.rule == "policy_fit" else None,
         )
+    extras = {"sampling_generator": generator}
+    if fused:
+        update = FusedSACUpdate(loss, list(optimizers.values()), tau=alg.tau, schedulers=list(schedulers.values()),
+                                max_grad_norm=alg.max_grad_norm, compile=alg.compile)
+        extras["fused_update"] = update
+        if adapter is not None:
+            adapter.on_truncate.insert(0, update.on_rank_event)
     return Components(recipe, env, eval_env, modules, optimizers, schedulers, replay_buffer, collector, adapter,
-                      warm_start, total_updates, extras={"sampling_generator": generator})
+                      warm_start, total_updates, extras=extras)
 
 
 def _rank_summary(adapter: RankAdapter | None) -> str:
@@ -200,9 +219,12 @@ class Trainer:
         if state is not None and state.get("collector") is None:
             # Checkpoints without the collector's state (older format): skip the random frames already done.
             init_random = max(0, self.recipe.collector.init_random_frames - int(state["counters"]["frames"]))
-        self.c = build_components(self.recipe, init_random_frames=init_random)
+        self.c = build_components(self.recipe, init_random_frames=init_random,
+                                  scratch_dir=self.run_dir.path / "replay_storage")
         if self.c.adapter is not None:
             self.c.adapter.on_truncate.append(self._on_truncate)
+            if isinstance(self.c.collector, LeanCollector):  # the warm start stepped the env under it
+                self.c.adapter.on_truncate.append(lambda event: self.c.collector.reset())
         loss = self.c.modules.loss
         named = {f"actor.{k}": v for k, v in loss.actor_network_params.flatten_keys(".").items()}
         named.update({f"critic.{k}": v for k, v in loss.qvalue_network_params.flatten_keys(".").items()})
@@ -353,6 +375,15 @@ class Trainer:
         """One SAC optimisation step, then the target update and (maybe) a rank event."""
         c, alg = self.c, self.recipe.algorithm
         sample = c.replay_buffer.sample()
+        fused = c.extras.get("fused_update")
+        if fused is not None:  # adarl.fast_sac: the same step without SACLoss's TensorDict overhead
+            out = fused(sample)
+            self.guard.check_losses({k: out[k] for k in ("loss_actor", "loss_qvalue", "loss_alpha")}, self.updates)
+            self.guard.check_params(self.updates)
+            self.updates += 1
+            if c.adapter is not None:
+                c.adapter.step()
+            return out
         td = c.modules.loss(sample)
         self.guard.check_losses({k: td[k] for k in ("loss_actor", "loss_qvalue", "loss_alpha")}, self.updates)
         loss = td["loss_actor"] + td["loss_qvalue"] + td["loss_alpha"]

@@ -1,0 +1,65 @@
+"""Updates/s of one SAC step alone (no env): stock SACLoss + Adam + SoftUpdate vs the fused update, eager and
+compiled, interleaved and repeated in one process (Hopper-v5 sizes, batch 256, one thread).
+
+    PYTHONPATH=. python benchmarks/update_speed.py [--width 64] [--repeats 3] [--steps 300] [--no-compile]
+"""
+
+import argparse
+import statistics
+import time
+
+import torch
+
+from adarl.config import load_recipe
+from adarl.fast_sac import FusedSACUpdate, make_adam
+from adarl.training import build_components
+
+p = argparse.ArgumentParser()
+p.add_argument("--width", type=int, default=64)
+p.add_argument("--repeats", type=int, default=3)
+p.add_argument("--steps", type=int, default=300)
+p.add_argument("--no-compile", action="store_true")
+a = p.parse_args()
+torch.set_num_threads(1)
+w = a.width
+c = build_components(load_recipe("quickstart", ["algorithm.fused=false", f"network.actor.num_cells=[{w},{w}]",
+                                                f"network.critic.num_cells=[{w},{w}]"]))
+c.replay_buffer.extend(c.env.rollout(1000, break_when_any_done=False).reshape(-1))
+loss = c.modules.loss
+
+
+def stock():
+    td = loss(c.replay_buffer.sample())
+    (td["loss_actor"] + td["loss_qvalue"] + td["loss_alpha"]).backward()
+    for opt in c.optimizers.values():
+        opt.step()
+        opt.zero_grad(set_to_none=True)
+    c.modules.target_updater.step()
+
+
+def adams(fused):
+    return [make_adam(o.param_groups[0]["params"], o.param_groups[0]["lr"], fused=fused) for o in c.optimizers.values()]
+
+
+variants = {"stock SACLoss + Adam + SoftUpdate": stock,
+            "fused update, for-loop Adam": (lambda f: lambda: f(c.replay_buffer.sample()))(FusedSACUpdate(loss, adams(False), tau=0.005)),
+            "fused update + fused Adam": (lambda f: lambda: f(c.replay_buffer.sample()))(FusedSACUpdate(loss, adams(True), tau=0.005))}
+if not a.no_compile:
+    comp = FusedSACUpdate(loss, adams(True), tau=0.005, compile=True)
+    t = time.perf_counter()
+    comp(c.replay_buffer.sample())
+    print(f"torch.compile of the fused update: {time.perf_counter() - t:.1f} s")
+    variants["fused update + fused Adam, torch.compile"] = lambda: comp(c.replay_buffer.sample())
+rates = {k: [] for k in variants}
+for rep in range(a.repeats):
+    for k, f in variants.items():
+        for _ in range(20):
+            f()
+        t = time.perf_counter()
+        for _ in range(a.steps):
+            f()
+        rates[k].append(a.steps / (time.perf_counter() - t))
+base = statistics.median(rates["stock SACLoss + Adam + SoftUpdate"])
+print(f"| update path, ({w}, {w}) | updates/s (median of {a.repeats}) | vs stock |\n|---|---|---|")
+for k, r in rates.items():
+    print(f"| {k} | {statistics.median(r):.1f} | {statistics.median(r) / base:.2f}x |")

@@ -1,0 +1,40 @@
+"""adarl bench: the CLI validates its options and the report/table hold what one measurement produced."""
+
+from __future__ import annotations
+
+import importlib.util
+
+import pytest
+
+from adarl.bench import format_table, measure
+from adarl.cli import main
+
+
+def test_bench_rejects_bad_options(tmp_path, capsys):
+    out = tmp_path / "b.json"
+    assert main(["bench", "--repeats", "0", "--output", str(out)]) == 2
+    assert "--repeats" in capsys.readouterr().err and not out.exists()
+    with pytest.raises(SystemExit):
+        main(["bench", "--variants", "nope"])
+
+
+def test_measure_adarl_times_updates_and_rank_events():
+    out = measure("adarl", "Hopper-v5", 16, warmup=50, steps=60, skip=10, batch=32, rank_interval=30)
+    assert out["updates_per_s"] > 0 and out["env_steps_per_s"] > 0 and out["peak_rss_mb"] > 0
+    assert out["rank_events"] >= 1 and all(t > 0 for t in out["rank_event_s"])
+
+
+@pytest.mark.skipif(importlib.util.find_spec("stable_baselines3") is None, reason="stable-baselines3 not installed")
+def test_measure_sb3():
+    out = measure("sb3", "Hopper-v5", 16, warmup=50, steps=30, skip=10, batch=32)
+    assert out["updates_per_s"] > 0
+
+
+def test_table_lists_variants_and_ratios():
+    v = {"updates_per_s": 100.0, "env_steps_per_s": 100.0, "peak_rss_mb": 400.0, "rank_event_ms": 4.0, "runs": []}
+    w = dict(v, updates_per_s=50.0, rank_event_ms=None)
+    report = {"results": [{"env": "Hopper-v5", "width": 64, "variants": {"adarl": v, "torchrl": w},
+                           "ratios": {"adarl/torchrl": 2.0}, "rank_overhead_at_paper_interval": 4e-7}],
+              "rank_event_ms_by_width": {"64": 3.0}, "skipped": ["sb3"]}
+    table = format_table(report)
+    assert "| Hopper-v5 | (64, 64) | adarl | 100.0 |" in table and "2.00x" in table and "sb3" in table

@@ -1,0 +1,179 @@
+"""The fused SAC update computes what TorchRL's SACLoss + Adam + SoftUpdate compute (fp tolerance)."""
+
+from __future__ import annotations
+
+import copy
+
+import pytest
+import torch
+
+from adarl.config import load_recipe
+from adarl.errors import AdaRLValueError
+from adarl.fast_sac import FusedSACUpdate, make_adam, wants_fused
+from adarl.training import build_components
+
+OVR = ["collector.total_frames=2000", "collector.init_random_frames=500", "replay.size=2000", "algorithm.batch_size=64"]
+
+
+@pytest.fixture(scope="module")
+def filled():
+    recipe = load_recipe("quickstart", OVR + ["algorithm.fused=false", "algorithm.max_grad_norm=1.0"])
+    c = build_components(recipe)
+    torch.manual_seed(3)
+    c.replay_buffer.extend(c.env.rollout(200, break_when_any_done=False).reshape(-1))
+    with torch.no_grad():
+        c.modules.loss.log_alpha.fill_(-0.7)  # a non-trivial alpha and alpha loss
+        for p in c.modules.loss.target_qvalue_network_params.flatten_keys().values():
+            p.add_(0.01 * torch.randn_like(p))  # targets differ from the online critics
+    batch = c.replay_buffer.sample()
+    return c, batch
+
+
+def _grads(params):
+    return [None if p.grad is None else p.grad.clone() for p in params]
+
+
+def _params(loss):
+    return ([loss.log_alpha] + list(loss.actor_network_params.flatten_keys().values())
+            + list(loss.qvalue_network_params.flatten_keys().values()))
+
+
+def test_losses_and_gradients_match_sacloss(filled):
+    c, batch = filled
+    loss = c.modules.loss
+    params = _params(loss)
+    for p in params:
+        p.grad = None
+    torch.manual_seed(11)
+    ref = loss(batch.clone())
+    (ref["loss_actor"] + ref["loss_qvalue"] + ref["loss_alpha"]).backward()
+    ref_grads = _grads(params)
+    for p in params:
+        p.grad = None
+
+    fu = FusedSACUpdate(loss, [], tau=0.005)
+    torch.manual_seed(11)
+    obs, act, rew, nobs, term = fu.batch_tensors(batch)
+    out = fu.losses(obs, act, rew, nobs, term.bool(), *fu.draw_noise(obs, act))
+    (out[0] + out[1] + out[2]).backward()
+    for name, value in zip(["loss_actor", "loss_qvalue", "loss_alpha", "alpha", "entropy"], out):
+        torch.testing.assert_close(value.detach(), ref[name].detach(), rtol=1e-5, atol=1e-6, msg=name)
+    assert float(ref["loss_alpha"].detach()) != 0.0
+    for g, r in zip(_grads(params), ref_grads):
+        assert g is not None and r is not None
+        torch.testing.assert_close(g, r, rtol=1e-4, atol=1e-6)
+    for p in params:
+        p.grad = None
+
+
+def _snapshot(loss):
+    keys = ["actor_network_params", "qvalue_network_params", "target_qvalue_network_params"]
+    return {k: getattr(loss, k).flatten_keys().clone() for k in keys} | {"log_alpha": loss.log_alpha.detach().clone()}
+
+
+def test_full_step_matches_plain_step(filled):
+    """Two steps: SACLoss + for-loop Adam + clipping + SoftUpdate vs fused update + fused Adam + foreach lerp."""
+    c, batch = filled
+    loss = c.modules.loss
+    start = _snapshot(loss)
+
+    def restore():
+        with torch.no_grad():
+            for k in ("actor_network_params", "qvalue_network_params", "target_qvalue_network_params"):
+                getattr(loss, k).flatten_keys().apply(lambda x: x).update_(start[k])
+            loss.log_alpha.copy_(start["log_alpha"])
+
+    def opts(fused):
+        return [make_adam(list(loss.actor_network_params.flatten_keys().values()), 3e-3, fused=fused),
+                make_adam(list(loss.qvalue_network_params.flatten_keys().values()), 3e-3, fused=fused),
+                make_adam([loss.log_alpha], 3e-4, fused=fused)]
+
+    plain_opts = opts(False)
+    torch.manual_seed(5)
+    for _ in range(2):
+        td = loss(batch.clone())
+        (td["loss_actor"] + td["loss_qvalue"] + td["loss_alpha"]).backward()
+        for o in plain_opts:
+            for g in o.param_groups:
+                torch.nn.utils.clip_grad_norm_(g["params"], 1.0)
+            o.step()
+            o.zero_grad(set_to_none=True)
+        c.modules.target_updater.step()
+    plain = _snapshot(loss)
+
+    restore()
+    fu = FusedSACUpdate(loss, opts(True), tau=0.005, max_grad_norm=1.0)
+    torch.manual_seed(5)
+    for _ in range(2):
+        fu(batch)
+    fused = _snapshot(loss)
+    restore()
+    for k in plain:
+        torch.testing.assert_close(fused[k], plain[k], rtol=1e-4, atol=1e-6, msg=k)
+    assert not torch.equal(plain["log_alpha"], start["log_alpha"])  # the step did move things
+
+
+def test_compiled_update_recompiles_once_per_rank_event(filled):
+    """Shapes change at each event: the rebuilt function compiles once, results stay equal to eager."""
+    c, batch = filled
+    loss = copy.deepcopy(c.modules.loss)
+    from torch._dynamo.utils import counters
+
+    eager = FusedSACUpdate(loss, [], tau=0.005)
+    compiled = FusedSACUpdate(loss, [], tau=0.005, compile=True, compile_backend="aot_eager")
+    obs, act, rew, nobs, term = eager.batch_tensors(batch)
+    noise = eager.draw_noise(obs, act)
+    args = (obs, act, rew, nobs, term.bool(), *noise)
+    layer = loss.qvalue_network.module[2]
+    key = "module.2"
+    frames_before = counters["stats"]["unique_graphs"]
+    for rank in (40, 30, 20, 12, 10, 9, 8, 7, 6, 5):  # more events than dynamo's default recompile limit (8)
+        with torch.no_grad():
+            for name in ("w1", "w2"):
+                p = loss.qvalue_network_params.flatten_keys()[f"{key}.{name}"]
+                t = loss.target_qvalue_network_params.flatten_keys()[f"{key}.{name}"]
+                new = p.data[:, :, :rank] if name == "w1" else p.data[:, :rank, :]
+                p.data = new.clone()
+                t.data = new.clone()
+        compiled.on_rank_event()
+        out_c = compiled._fn(*args)
+        out_e = eager.losses(*args)
+        for a, b in zip(out_c, out_e):
+            torch.testing.assert_close(a.detach(), b.detach(), rtol=1e-5, atol=1e-5)
+    assert layer is not None
+    assert compiled.compilations == 11  # the first build plus one per event
+    assert counters["stats"]["unique_graphs"] - frames_before >= 10  # every event compiled (no eager fall-back)
+
+
+def test_fused_setting_resolution(filled):
+    c, _ = filled
+    assert wants_fused("auto", c.modules.loss) is True
+    assert wants_fused(False, c.modules.loss) is False
+
+
+def test_discrete_sac_auto_uses_plain_path_and_true_is_an_error():
+    recipe = load_recipe("cartpole_adarl", ["collector.total_frames=1000", "collector.init_random_frames=250"])
+    c = build_components(recipe)
+    assert "fused_update" not in c.extras
+    with pytest.raises(AdaRLValueError, match="algorithm.fused"):
+        wants_fused(True, c.modules.loss)
+
+
+def test_compile_without_fused_is_a_recipe_error():
+    with pytest.raises(ValueError, match="algorithm.compile"):
+        load_recipe("quickstart", ["algorithm.fused=false", "algorithm.compile=true"])
+
+
+def test_memmap_storage_and_threads(tmp_path):
+    recipe = load_recipe("quickstart", OVR + ["replay.storage=memmap", "algorithm.num_threads=1"])
+    before = torch.get_num_threads()
+    try:
+        c = build_components(recipe, scratch_dir=tmp_path / "rb")
+        assert torch.get_num_threads() == 1
+        c.replay_buffer.extend(c.env.rollout(20, break_when_any_done=False).reshape(-1))
+        assert type(c.replay_buffer.storage).__name__ == "LazyMemmapStorage"
+        assert any((tmp_path / "rb").rglob("*.memmap"))
+        assert "fused_update" in c.extras
+        c.extras["fused_update"](c.replay_buffer.sample())
+    finally:
+        torch.set_num_threads(before)
