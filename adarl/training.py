@@ -152,8 +152,14 @@ def build_components(recipe, *, init_random_frames: int | None = None) -> Compon
             lr_schedulers=list(schedulers.values()),
             fit_data=replay_buffer if r.rule == "policy_fit" else None,
         )
+    extras = {"sampling_generator": generator}
+    if alg.parseval.enabled:  # Parseval baseline: a term added to the SAC loss (adarl.baselines.parseval)
+        from adarl.baselines.parseval import ParsevalRegularizer
+
+        pv = alg.parseval
+        extras["regularizer"] = ParsevalRegularizer(loss, lam=pv.lam, s=pv.s, base_width=pv.base_width)
     return Components(recipe, env, eval_env, modules, optimizers, schedulers, replay_buffer, collector, adapter,
-                      warm_start, total_updates, extras={"sampling_generator": generator})
+                      warm_start, total_updates, extras=extras)
 
 
 def _rank_summary(adapter: RankAdapter | None) -> str:
@@ -198,6 +204,10 @@ class Trainer:
 
         run_dir = RunDir.open(path)
         recipe = load_recipe(str(run_dir.recipe_path))
+        if recipe.algorithm.name == "ppo" and cls is Trainer:  # the baselines' PPO loop has its own trainer
+            from adarl.training_ppo import PPOTrainer
+
+            cls = PPOTrainer
         state = run_dir.load_latest_checkpoint()
         if truncate_metrics:
             run_dir.truncate_metrics(int(state["counters"]["frames"]))
@@ -258,6 +268,10 @@ class Trainer:
         sample = c.replay_buffer.sample()
         td = c.modules.loss(sample)
         loss = td["loss_actor"] + td["loss_qvalue"] + td["loss_alpha"]
+        regularizer = c.extras.get("regularizer")
+        if regularizer is not None:
+            td = regularizer.wrap_output(td)
+            loss = loss + td["loss_parseval"]
         loss.backward()
         if alg.max_grad_norm is not None:
             for opt in c.optimizers.values():
@@ -272,6 +286,8 @@ class Trainer:
         self.updates += 1
         out = {"loss_actor": td["loss_actor"].detach(), "loss_qvalue": td["loss_qvalue"].detach(),
                "loss_alpha": td["loss_alpha"].detach(), "alpha": td["alpha"].detach()}
+        if "loss_parseval" in td.keys():
+            out["loss_parseval"] = td["loss_parseval"].detach()
         if c.adapter is not None:
             c.adapter.step()
         return out
