@@ -45,9 +45,18 @@ def make_mlp(
     low_rank_layers: Sequence[int] = (0, 1),
     rank: int | None = None,
     device: torch.device | str = "cpu",
+    **variants,
 ) -> nn.Module:
-    """An MLP with the chosen hidden layers low-rank (empty ``low_rank_layers`` gives a plain TorchRL MLP)."""
+    """An MLP with the chosen hidden layers low-rank (empty ``low_rank_layers`` gives a plain TorchRL MLP).
+
+    ``variants`` (``sparse_layer``, ``sparse_width``, ``sparse_k``, ``diagonal_scale``, ``input_scale``) select the
+    baselines' network variants, built by :func:`adarl.baselines.mlp.make_baseline_mlp`."""
     act = _activation(activation)
+    if variants:
+        from adarl.baselines.mlp import make_baseline_mlp
+
+        return make_baseline_mlp(in_features, out_features, num_cells, act, low_rank_layers, rank, device=device,
+                                 **variants)
     if len(low_rank_layers) == 0:
         return MLP(in_features=in_features, out_features=out_features, num_cells=list(num_cells),
                    activation_class=act, device=device)
@@ -146,12 +155,19 @@ class SACModules:
 
 def make_sac_modules(recipe, env: EnvBase) -> SACModules:
     """Build actor, critic, loss and target updater from a recipe's ``network`` and ``algorithm`` sections."""
+    from adarl.baselines.mlp import variant_kwargs
+
     device = torch.device(recipe.device)
     a, c = recipe.network.actor, recipe.network.critic
+    spec = env.action_spec_unbatched if hasattr(env, "action_spec_unbatched") else env.action_spec
+    action_dim = spec.space.n if _is_discrete(spec) else spec.shape[-1]
+    pv = recipe.algorithm.parseval
     actor = make_sac_actor(env, num_cells=a.num_cells, activation=a.activation,
-                           low_rank_layers=a.low_rank_layers, rank=a.rank, device=device)
+                           low_rank_layers=a.low_rank_layers, rank=a.rank, device=device,
+                           **variant_kwargs(a, pv, action_dim))
     critic = make_sac_critic(env, num_cells=c.num_cells, activation=c.activation,
-                             low_rank_layers=c.low_rank_layers, rank=c.rank, device=device)
+                             low_rank_layers=c.low_rank_layers, rank=c.rank, device=device,
+                             **variant_kwargs(c, pv, action_dim))
     alg = recipe.algorithm
     loss = make_sac_loss(actor, critic, env, gamma=alg.gamma, num_qvalue_nets=alg.num_qvalue_nets,
                          loss_function=alg.loss_function, init_alpha=alg.init_alpha, fixed_alpha=alg.fixed_alpha,

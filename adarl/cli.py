@@ -41,7 +41,7 @@ def _run_folder(recipe, output: str | None) -> Path:
 def cmd_run(args) -> int:
     from adarl.config import load_recipe, save_resolved
     from adarl.run_dir import RunDir
-    from adarl.training import Trainer
+    from adarl.training_ppo import trainer_class
 
     recipe = load_recipe(args.recipe, args.overrides)  # validates everything before anything is written
     path = _run_folder(recipe, args.output)
@@ -49,7 +49,7 @@ def cmd_run(args) -> int:
     run_dir = RunDir.create(path, overwrite=args.overwrite)
     try:
         save_resolved(recipe, run_dir.recipe_path)
-        trainer = Trainer(recipe, run_dir, quiet=args.quiet)
+        trainer = trainer_class(recipe)(recipe, run_dir, quiet=args.quiet)
     except BaseException:
         # Nothing ran: leave no half-made run folder behind (and never remove one the user had).
         if not existed:

@@ -44,6 +44,10 @@ __all__ = [
     "NetworkConfig",
     "MLPConfig",
     "AlgorithmConfig",
+    "SparseLayerConfig",
+    "ParsevalConfig",
+    "PPOConfig",
+    "RNACConfig",
     "RankConfig",
     "LRScheduleConfig",
     "ReplayConfig",
@@ -231,6 +235,28 @@ class EnvConfig(_Section):
 # ---- networks
 
 
+class SparseLayerConfig(_Section):
+    layer: NonNegInt | None = Field(
+        None,
+        description="Hidden layer replaced by the sparsification layer of Tiwari et al. (2025): a wide linear layer "
+        "whose activations keep only the k largest units per input (docs/baselines/sparsification.md); null = none.",
+        json_schema_extra={"allowed": "null or a hidden-layer index 0 .. len(num_cells)-1 not in low_rank_layers"},
+    )
+    width: PosInt = Field(1024, description="Units of the sparsification layer (the paper: 1024).")
+    k: PosInt | None = Field(
+        None,
+        description="Active units per input; null = 2 * action_dim + 1, the paper's bound on the attainable-state "
+        "manifold dimension.",
+        json_schema_extra={"allowed": "null or an integer >= 1, <= width"},
+    )
+
+    @model_validator(mode="after")
+    def _check_k(self) -> SparseLayerConfig:
+        if self.k is not None and self.k > self.width:
+            raise _Problems([("k", self.k, f"must be <= width ({self.width})")])
+        return self
+
+
 class MLPConfig(_Section):
     num_cells: list[PosInt] = Field(
         default_factory=lambda: [64, 64],
@@ -250,6 +276,9 @@ class MLPConfig(_Section):
         None,
         description="Initial rank of the factorised layers; null = full rank (the rank controller then shrinks it).",
         json_schema_extra={"allowed": "null or an integer >= 1, <= the smallest width of the low-rank layers"},
+    )
+    sparse: SparseLayerConfig = Field(
+        default_factory=SparseLayerConfig, description="Optional sparsification layer (Tiwari et al. baseline)."
     )
 
     def layer_max_ranks(self) -> dict[int, int]:
@@ -304,6 +333,15 @@ class MLPConfig(_Section):
                         + ")",
                     )
                 )
+        sp = self.sparse.layer
+        if sp is not None:
+            if sp >= n:
+                problems.append(("sparse.layer", sp, f"must index a hidden layer, 0 .. {n - 1} (num_cells has {n} entries)"))
+            elif sp in self.low_rank_layers:
+                problems.append(
+                    ("sparse.layer", sp, f"is also in low_rank_layers {self.low_rank_layers}; a layer is either "
+                     "low-rank or the sparsification layer")
+                )
         if problems:
             raise _Problems(problems)
         return self
@@ -317,9 +355,47 @@ class NetworkConfig(_Section):
 # ---- algorithm
 
 
+class ParsevalConfig(_Section):
+    enabled: bool = Field(False, description="Add Parseval regularisation (Chung et al., 2024) to the loss.")
+    lam: Annotated[Float, Field(gt=0)] = Field(
+        1e-4, description="Weight lambda of lam * (base_width/width)^2 * sum ||W W^T - s I||_F^2 (tuned in {1e-3, 1e-4, 1e-5})."
+    )
+    s: PosFloat = Field(2.0, description="Target squared row norm s of the hidden weights (the paper: 2).")
+    base_width: PosInt = Field(64, description="Reference width of the (base_width/width)^2 scaling (the paper: 64).")
+    diagonal: bool = Field(False, description="Learnable per-unit gain after every hidden linear layer (optional layer).")
+    input_scale: bool = Field(False, description="Learnable scalar on the network input (optional layer).")
+
+
+class PPOConfig(_Section):
+    minibatch_size: PosInt = Field(64, description="PPO minibatch size (RNAC's trainer: 64 of each 2048-frame batch).")
+    epochs: PosInt = Field(10, description="Passes over each collected batch.")
+    clip_epsilon: Annotated[Float, Field(gt=0, lt=1)] = Field(0.2, description="PPO ratio clip.")
+    gae_lambda: Annotated[Float, Field(ge=0, le=1)] = Field(0.95, description="GAE lambda.")
+    entropy_coeff: Annotated[Float, Field(ge=0)] = Field(0.01, description="Entropy bonus weight.")
+    critic_coeff: PosFloat = Field(1.0, description="Weight of the value loss (actor and critic have separate Adams).")
+    adam_eps: PosFloat = Field(1e-5, description="Adam epsilon (the original: 1e-5).")
+    lr_decay: bool = Field(True, description="Decay the learning rate linearly to 0 over the run (the original does).")
+    normalize_advantage: bool = Field(True, description="Normalise advantages per minibatch.")
+    obs_norm: bool = Field(True, description="Running mean/std observation normalisation inside actor and critic.")
+    reward_scaling: bool = Field(True, description="Divide rewards by the running std of the discounted return.")
+
+
+class RNACConfig(_Section):
+    mode: Literal["none", "ipm", "ds"] = Field(
+        "none",
+        description="RNAC's robust critic (Zhou et al., 2023), PPO only: 'ipm' shifts the reward by kappa*||theta_critic|| "
+        "in GAE; 'ds' picks the worst of num_candidates noisy next states with probability 1/(m+1); 'none' = plain PPO.",
+    )
+    kappa: Annotated[Float, Field(ge=0)] = Field(1e-5, description="RNAC-IPM's radius: reward shift per unit of ||theta_critic||.")
+    num_candidates: PosInt = Field(2, description="RNAC-DS's m: noisy next states probed per step.")
+    noise: Annotated[Float, Field(ge=0)] = Field(5e-3, description="RNAC-DS's actuation noise half-width, U[-noise, noise].")
+
+
 class AlgorithmConfig(_Section):
-    name: Literal["sac"] = Field(
-        "sac", description="Base RL algorithm; SAC as in the paper (DiscreteSAC for discrete-action envs)."
+    name: Literal["sac", "ppo"] = Field(
+        "sac",
+        description="Base RL algorithm: 'sac' as in the paper (DiscreteSAC for discrete-action envs); 'ppo' = TorchRL's "
+        "ClipPPOLoss + GAE, the RNAC baselines' base (continuous actions; SAC-only keys are ignored).",
     )
     gamma: Annotated[Float, Field(gt=0, le=1)] = Field(0.99, description="Discount factor.")
     tau: Annotated[Float, Field(gt=0, le=1)] = Field(0.005, description="Polyak rate of the target critics.")
@@ -348,6 +424,9 @@ class AlgorithmConfig(_Section):
     num_threads: PosInt | None = Field(
         None, description="torch.set_num_threads for the run; null = leave torch's setting (1 is best at (64, 64) on CPU)."
     )
+    parseval: ParsevalConfig = Field(default_factory=ParsevalConfig, description="Parseval regularisation baseline.")
+    ppo: PPOConfig = Field(default_factory=PPOConfig, description="PPO hyperparameters (algorithm.name=ppo).")
+    rnac: RNACConfig = Field(default_factory=RNACConfig, description="RNAC's robust critic (algorithm.name=ppo).")
 
 
 class RankConfig(_Section):
@@ -537,7 +616,7 @@ class Recipe(_Section):
         if self.algorithm.batch_size > self.replay.size:
             p.append(("algorithm.batch_size", self.algorithm.batch_size, f"must be <= replay.size ({self.replay.size})"))
         w = self.replay.warm_start
-        if w.frames > self.replay.size:
+        if w.frames > self.replay.size and self.rank.enabled:  # warm starts only follow rank events
             p.append(("replay.warm_start.frames", w.frames, f"must be <= replay.size ({self.replay.size})"))
         c = self.collector
         if c.init_random_frames > c.total_frames:
@@ -550,6 +629,7 @@ class Recipe(_Section):
             )
         if self.algorithm.compile and self.algorithm.fused is False:
             p.append(("algorithm.compile", True, "needs algorithm.fused: true or 'auto' (it compiles the fused update)"))
+        p += self._algorithm_checks()
         r = self.rank
         if r.enabled:
             scoped = ["actor", "critic"] if r.scope == "both" else [r.scope]
@@ -575,6 +655,29 @@ class Recipe(_Section):
         if p:
             raise _Problems(p)
         return self
+
+
+    def _algorithm_checks(self) -> list[tuple[str, Any, str]]:
+        """PPO/RNAC combinations (the baselines' loop, adarl.training_ppo)."""
+        p: list[tuple[str, Any, str]] = []
+        alg, env = self.algorithm, self.env
+        if alg.name == "ppo":
+            if self.rank.enabled:
+                p.append(("rank.enabled", True, "must be false with algorithm.name='ppo': the PPO loop runs the RNAC "
+                          "baselines without rank adaptation (docs/custom-loss.md shows RankAdapter on another loss)"))
+            if env.id == "CartPole-v1":
+                p.append(("algorithm.name", "ppo", f"needs a continuous-action env; {env.id} is discrete (use 'sac')"))
+            if alg.ppo.minibatch_size > self.collector.frames_per_batch:
+                p.append(("algorithm.ppo.minibatch_size", alg.ppo.minibatch_size,
+                          f"must be <= collector.frames_per_batch ({self.collector.frames_per_batch})"))
+        elif alg.rnac.mode != "none":
+            p.append(("algorithm.rnac.mode", alg.rnac.mode, "needs algorithm.name='ppo' (RNAC is built on PPO)"))
+        if alg.rnac.mode == "ds":
+            if env.num_envs != 1:
+                p.append(("env.num_envs", env.num_envs, "must be 1 with algorithm.rnac.mode='ds' (it steps one MuJoCo env)"))
+            if env.id == "CartPole-v1":
+                p.append(("algorithm.rnac.mode", "ds", f"needs a MuJoCo env; {env.id} is not one"))
+        return p
 
 
 # ------------------------------------------------------------------------------------ env module (lazy import)

@@ -34,7 +34,7 @@ from adarl.env_state import (
     load_gym_rng_state_dict,
 )
 from adarl.envs import dynamics_state_dict, load_dynamics_state_dict, make_env, make_eval_env
-from adarl.errors import AdaRLError, CheckpointError
+from adarl.errors import AdaRLError, AdaRLValueError, CheckpointError
 from adarl.fast_sac import FusedSACUpdate, make_adam, wants_fused
 from adarl.lean_collector import LeanCollector, wants_lean
 from adarl.evaluation import EvalResult, evaluate_policy
@@ -113,6 +113,12 @@ def build_components(recipe, *, init_random_frames: int | None = None,
     actor_params = list(loss.actor_network_params.flatten_keys().values())
     critic_params = list(loss.qvalue_network_params.flatten_keys().values())
     fused = wants_fused(alg.fused, loss)
+    if alg.parseval.enabled and fused:
+        # The fused step computes SACLoss's terms only; the Parseval term needs the TorchRL path.
+        if alg.fused is True:
+            raise AdaRLValueError("algorithm.fused: true cannot add the Parseval term; allowed with "
+                                  "algorithm.parseval.enabled: 'auto' or false")
+        fused = False
     optimizers = {
         "actor": make_adam(actor_params, alg.lr, fused=fused),
         "critic": make_adam(critic_params, alg.lr, fused=fused),
@@ -175,12 +181,25 @@ def build_components(recipe, *, init_random_frames: int | None = None,
             fit_data=replay_buffer if r.rule == "policy_fit" else None,
         )
     extras = {"sampling_generator": generator}
+    update = None
     if fused:
-        update = FusedSACUpdate(loss, list(optimizers.values()), tau=alg.tau, schedulers=list(schedulers.values()),
-                                max_grad_norm=alg.max_grad_norm, compile=alg.compile)
+        try:
+            update = FusedSACUpdate(loss, list(optimizers.values()), tau=alg.tau,
+                                    schedulers=list(schedulers.values()), max_grad_norm=alg.max_grad_norm,
+                                    compile=alg.compile)
+        except AdaRLValueError:
+            if alg.fused is True:  # asked for explicitly: say why not
+                raise
+            # 'auto' with layers the fused step does not know (e.g. the sparsification layer): TorchRL's path.
+    if update is not None:
         extras["fused_update"] = update
         if adapter is not None:
             adapter.on_truncate.insert(0, update.on_rank_event)
+    if alg.parseval.enabled:  # Parseval baseline: a term added to the SAC loss (adarl.baselines.parseval)
+        from adarl.baselines.parseval import ParsevalRegularizer
+
+        pv = alg.parseval
+        extras["regularizer"] = ParsevalRegularizer(loss, lam=pv.lam, s=pv.s, base_width=pv.base_width)
     return Components(recipe, env, eval_env, modules, optimizers, schedulers, replay_buffer, collector, adapter,
                       warm_start, total_updates, extras=extras)
 
@@ -247,6 +266,10 @@ class Trainer:
 
         run_dir = RunDir.open(path)
         recipe = load_recipe(str(run_dir.recipe_path))
+        if recipe.algorithm.name == "ppo" and cls is Trainer:  # the baselines' PPO loop has its own trainer
+            from adarl.training_ppo import PPOTrainer
+
+            cls = PPOTrainer
         if checkpoint is None or checkpoint == "latest":
             state = run_dir.load_latest_checkpoint(quarantine=truncate_metrics)
         else:
@@ -387,6 +410,10 @@ class Trainer:
         td = c.modules.loss(sample)
         self.guard.check_losses({k: td[k] for k in ("loss_actor", "loss_qvalue", "loss_alpha")}, self.updates)
         loss = td["loss_actor"] + td["loss_qvalue"] + td["loss_alpha"]
+        regularizer = c.extras.get("regularizer")
+        if regularizer is not None:
+            td = regularizer.wrap_output(td)
+            loss = loss + td["loss_parseval"]
         loss.backward()
         self.guard.check_grads(self.updates)
         if alg.max_grad_norm is not None:
@@ -403,6 +430,8 @@ class Trainer:
         self.updates += 1
         out = {"loss_actor": td["loss_actor"].detach(), "loss_qvalue": td["loss_qvalue"].detach(),
                "loss_alpha": td["loss_alpha"].detach(), "alpha": td["alpha"].detach()}
+        if "loss_parseval" in td.keys():
+            out["loss_parseval"] = td["loss_parseval"].detach()
         if c.adapter is not None:
             c.adapter.step()
         return out

@@ -1,0 +1,22 @@
+"""The baselines of the AdaRL paper's Table 1 as composable TorchRL pieces (docs/baselines.md).
+
+* :mod:`adarl.baselines.parseval` - Parseval regularisation as a term added to any TorchRL loss;
+* :mod:`adarl.baselines.sparse` - the sparsification layer of Tiwari et al. (2025), as we interpret it;
+* :mod:`adarl.baselines.rnac` - RNAC-IPM (a GAE with a shifted reward) and RNAC-DS (a collection-time transform);
+* :mod:`adarl.baselines.normalization` - the PPO trainer's running observation normalisation and reward scaling;
+* :mod:`adarl.baselines.mlp` - one MLP builder for the network variants.
+
+Fixed- and full-rank SAC need no new code (``rank.enabled: false``); the PPO loop is :mod:`adarl.training_ppo`.
+"""
+
+from adarl.baselines.mlp import BaselineMLP, make_baseline_mlp
+from adarl.baselines.normalization import RewardScaler, RunningMeanStd, RunningObsNorm
+from adarl.baselines.parseval import DiagonalScale, InputScale, ParsevalRegularizer, parseval_penalty, parseval_weights
+from adarl.baselines.rnac import DoubleSamplingTransform, IPMAdvantage, critic_parameter_norm
+from adarl.baselines.sparse import KWinnersTakeAll, SparsificationLayer, intrinsic_rank
+
+__all__ = [
+    "BaselineMLP", "make_baseline_mlp", "RewardScaler", "RunningMeanStd", "RunningObsNorm", "DiagonalScale",
+    "InputScale", "ParsevalRegularizer", "parseval_penalty", "parseval_weights", "DoubleSamplingTransform",
+    "IPMAdvantage", "critic_parameter_norm", "KWinnersTakeAll", "SparsificationLayer", "intrinsic_rank",
+]

@@ -1,0 +1,184 @@
+"""Parseval regularisation (Chung et al., 2024) as a term added to any TorchRL loss.
+
+``lam * sum_W (base_width / width_W)^2 * ||W W^T - s I||_F^2`` over the *hidden* linear layers of every network a
+loss holds (the input layer included; output layers and biases excluded), which keeps the rows of each weight
+matrix close to orthogonal with squared norm ``s`` and so preserves plasticity under changing dynamics.
+
+Why a separate term rather than a wrapper loss: TorchRL losses keep their networks functionally (SACLoss stacks
+the critic ensemble into new ``[n, out, in]`` parameters), so the term must read the weights the loss trains,
+not the modules it was given. :func:`parseval_weights` finds them for any loss that follows TorchRL's
+``<name>_network`` / ``<name>_network_params`` convention (or holds plain modules), and
+:class:`ParsevalRegularizer` adds ``loss_parseval`` to the loss's output when used through :meth:`wrap_output`.
+:class:`~adarl.lowrank.LowRankLinear` layers count with their product ``W = W1 @ W2``.
+
+The optional layers of the paper, :class:`DiagonalScale` (a learnable per-unit gain after each hidden linear
+layer) and :class:`InputScale` (one learnable scalar on the input), are built into the networks by
+:func:`adarl.baselines.mlp.make_baseline_mlp`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDictBase
+from torch import nn
+
+from adarl.errors import AdaRLValueError
+from adarl.lowrank import LowRankLinear
+
+__all__ = ["ParsevalWeight", "parseval_weights", "parseval_penalty", "ParsevalRegularizer", "DiagonalScale", "InputScale"]
+
+
+@dataclass
+class ParsevalWeight:
+    """One hidden layer's weight as the loss trains it: a full matrix or the two low-rank factors.
+
+    Tensors may carry leading ensemble dimensions (``[n, out, in]`` for SACLoss's stacked critics)."""
+
+    path: str
+    weight: torch.Tensor | None = None
+    w1: torch.Tensor | None = None
+    w2: torch.Tensor | None = None
+
+    @property
+    def width(self) -> int:
+        """Output width of the layer (rows of ``W``), the ``width`` of the ``(64 / width)^2`` scaling."""
+        return int((self.weight if self.weight is not None else self.w1).shape[-2])
+
+    def gram(self) -> torch.Tensor:
+        """``W W^T`` (``w1 (w2 w2^T) w1^T`` for a low-rank layer, without forming ``W``)."""
+        if self.weight is not None:
+            return self.weight @ self.weight.transpose(-1, -2)
+        inner = self.w2 @ self.w2.transpose(-1, -2)
+        return self.w1 @ inner @ self.w1.transpose(-1, -2)
+
+
+def parseval_penalty(gram: torch.Tensor, s: float = 2.0) -> torch.Tensor:
+    """``||G - s I||_F^2`` summed over any leading (ensemble) dimensions of ``G = W W^T``."""
+    eye = torch.eye(gram.shape[-1], dtype=gram.dtype, device=gram.device)
+    return (gram - s * eye).pow(2).sum()
+
+
+def _linear_layers(network: nn.Module) -> list[tuple[str, nn.Module]]:
+    return [(p, m) for p, m in network.named_modules() if isinstance(m, (nn.Linear, LowRankLinear))]
+
+
+def _network_candidates(loss: nn.Module) -> list[tuple[str, nn.Module]]:
+    from adarl.adapter import _network_candidates as candidates  # same discovery as RankAdapter
+
+    return candidates(loss)
+
+
+def parseval_weights(loss: nn.Module, networks: Iterable[str] | None = None) -> list[ParsevalWeight]:
+    """The hidden-layer weights of every network of ``loss`` (or of the named ones), as the loss trains them.
+
+    The last linear layer of each network is its output layer and is left out. ``loss`` may also be a plain
+    ``nn.Module`` (a single network)."""
+    candidates = _network_candidates(loss) if not isinstance(loss, (nn.Sequential,)) else []
+    if not candidates or not any(_linear_layers(m) for _, m in candidates):
+        candidates = [("network", loss)]
+    if networks is not None:
+        wanted = set(networks)
+        names = [n for n, _ in candidates]
+        missing = wanted - set(names)
+        if missing:
+            raise AdaRLValueError(f"networks {sorted(missing)} not found in the loss; it has: {names}")
+        candidates = [(n, m) for n, m in candidates if n in wanted]
+    found: list[ParsevalWeight] = []
+    seen: set[int] = set()
+    for name, network in candidates:
+        params = getattr(loss, f"{name}_params", None) if network is not loss else None
+        if params is not None and not isinstance(params, TensorDictBase):
+            params = None
+        layers = _linear_layers(network)[:-1]  # the last linear layer is the output head
+        for module_path, layer in layers:
+            key = tuple(module_path.split(".")) if module_path else ()
+            names = ("w1", "w2") if isinstance(layer, LowRankLinear) else ("weight",)
+            tensors = []
+            for n in names:
+                t = params.get(key + (n,), None) if params is not None else None
+                tensors.append(t if t is not None else getattr(layer, n))
+            if id(tensors[0]) in seen:  # a network reachable under two names (shared parameters)
+                continue
+            seen.add(id(tensors[0]))
+            path = f"{name}.{module_path}"
+            if isinstance(layer, LowRankLinear):
+                found.append(ParsevalWeight(path, w1=tensors[0], w2=tensors[1]))
+            else:
+                found.append(ParsevalWeight(path, weight=tensors[0]))
+    if not found:
+        raise AdaRLValueError(
+            f"no hidden linear layers found in {type(loss).__name__}: Parseval regularisation needs networks with "
+            "at least two Linear/LowRankLinear layers (hidden + output)"
+        )
+    return found
+
+
+class ParsevalRegularizer(nn.Module):
+    """``lam * sum_W (base_width / width_W)^2 ||W W^T - s I||_F^2`` over the hidden layers of a loss's networks.
+
+    Call it (no arguments) for the scalar term, or pass a loss output to :meth:`wrap_output` to add it as
+    ``"loss_parseval"``. Shapes may change between calls (rank truncation replaces ``.data`` in place); the
+    parameter objects are re-read every call.
+
+    Example::
+
+        reg = ParsevalRegularizer(sac_loss, lam=1e-4)
+        td = reg.wrap_output(sac_loss(batch))          # adds td["loss_parseval"]
+        total = sum(v for k, v in td.items() if k.startswith("loss_"))
+    """
+
+    def __init__(self, loss: nn.Module, lam: float = 1e-4, s: float = 2.0, base_width: int = 64,
+                 networks: Iterable[str] | None = None) -> None:
+        super().__init__()
+        for name, value, ok in (("lam", lam, lam >= 0), ("s", s, s > 0), ("base_width", base_width, base_width >= 1)):
+            if isinstance(value, bool) or not ok:
+                raise AdaRLValueError(f"ParsevalRegularizer: {name} must be {'>= 0' if name == 'lam' else '> 0'}, got {value!r}")
+        self.lam, self.s, self.base_width = float(lam), float(s), int(base_width)
+        # not registered as submodules: the loss owns these tensors (and its state_dict saves them)
+        self._weights = parseval_weights(loss, networks)
+
+    @property
+    def layers(self) -> list[str]:
+        """Paths of the regularised layers (``<network>.<module path>``)."""
+        return [w.path for w in self._weights]
+
+    def forward(self) -> torch.Tensor:
+        total = None
+        for w in self._weights:
+            term = (self.base_width / w.width) ** 2 * parseval_penalty(w.gram(), self.s)
+            total = term if total is None else total + term
+        return self.lam * total
+
+    def wrap_output(self, loss_td: TensorDictBase) -> TensorDictBase:
+        """Add ``"loss_parseval"`` to a loss module's output TensorDict (in place) and return it."""
+        loss_td.set("loss_parseval", self())
+        return loss_td
+
+    def extra_repr(self) -> str:
+        return f"lam={self.lam:g}, s={self.s:g}, base_width={self.base_width}, layers={len(self._weights)}"
+
+
+class DiagonalScale(nn.Module):
+    """A learnable per-unit gain (initialised to 1): restores the per-unit scale that Parseval's constraint
+    removes from ``W`` (Chung et al.'s optional diagonal layer)."""
+
+    def __init__(self, width: int, device=None) -> None:
+        super().__init__()
+        self.scale = nn.Parameter(torch.ones(width, device=device))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x * self.scale
+
+
+class InputScale(nn.Module):
+    """One learnable scalar multiplying the network input (initialised to 1), Chung et al.'s input scale."""
+
+    def __init__(self, device=None) -> None:
+        super().__init__()
+        self.scale = nn.Parameter(torch.ones((), device=device))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x * self.scale

@@ -1,0 +1,306 @@
+"""Baselines: Parseval value, IPM reward shift, DS exact restore, sparsity, recipes and their validation."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from tensordict import TensorDict
+from torch import nn
+from torchrl.modules import ValueOperator
+from torchrl.objectives.value import GAE
+
+from adarl.baselines import (
+    DoubleSamplingTransform,
+    IPMAdvantage,
+    ParsevalRegularizer,
+    SparsificationLayer,
+    critic_parameter_norm,
+    make_baseline_mlp,
+    parseval_weights,
+)
+from adarl.baselines.normalization import RewardScaler, RunningObsNorm
+from adarl.baselines.rnac import mujoco_state
+from adarl.config import list_recipes, load_recipe
+from adarl.errors import AdaRLValueError, RecipeError
+from adarl.lowrank import LowRankLinear
+
+# ------------------------------------------------------------------------------------------------ Parseval
+
+
+def _net_with(hidden: torch.Tensor) -> nn.Sequential:
+    net = nn.Sequential(nn.Linear(hidden.shape[1], hidden.shape[0]), nn.ReLU(), nn.Linear(hidden.shape[0], 1))
+    with torch.no_grad():
+        net[0].weight.copy_(hidden)
+        net[2].weight.fill_(7.0)  # the output layer must not count
+    return net
+
+
+def test_parseval_value_on_a_known_matrix():
+    # W W^T - 2I = [[-1,0,1],[0,-1,1],[1,1,0]]: squared Frobenius norm 6
+    w = torch.tensor([[1.0, 0.0], [0.0, 1.0], [1.0, 1.0]])
+    net = _net_with(w)
+    reg = ParsevalRegularizer(net, lam=0.5, s=2.0, base_width=3)
+    assert reg.layers == ["network.0"]
+    assert reg().item() == pytest.approx(0.5 * 6.0)
+    # the (base_width / width)^2 scaling: width 3, base 64
+    assert ParsevalRegularizer(net, lam=1.0, s=2.0, base_width=64)().item() == pytest.approx((64 / 3) ** 2 * 6.0)
+    # orthogonal rows with squared norm s give exactly zero
+    assert ParsevalRegularizer(_net_with(torch.eye(3) * 2**0.5), lam=1.0)().item() == pytest.approx(0.0, abs=1e-10)
+
+
+def test_parseval_counts_low_rank_layers_by_their_product_and_has_gradients():
+    torch.manual_seed(0)
+    lr = LowRankLinear(5, 4, rank=2)
+    net = nn.Sequential(lr, nn.ReLU(), nn.Linear(4, 1))
+    dense = _net_with(lr.weight.detach().clone())
+    assert ParsevalRegularizer(net, lam=1.0)().item() == pytest.approx(ParsevalRegularizer(dense, lam=1.0)().item(), rel=1e-5)
+    ParsevalRegularizer(net, lam=1.0)().backward()
+    assert lr.w1.grad is not None and lr.w2.grad is not None and net[2].weight.grad is None
+
+
+def test_parseval_reads_the_stacked_critics_of_sacloss():
+    from adarl.builders import make_sac_modules
+    from adarl.envs import make_env
+
+    recipe = load_recipe("baselines/hopper_parseval", ["env.id=InvertedPendulum-v5"])
+    env = make_env("InvertedPendulum-v5", preset="none")
+    loss = make_sac_modules(recipe, env).loss
+    weights = parseval_weights(loss)
+    paths = [w.path for w in weights]
+    assert len(paths) == 4 and sum(p.startswith("qvalue_network") for p in paths) == 2, paths
+    q = [w for w in weights if w.path.startswith("qvalue_network")][0]
+    assert q.weight.shape[0] == 2  # the [num_qvalue_nets, out, in] parameter the loss trains
+    assert any(q.weight is p for p in loss.qvalue_network_params.values(True, True))
+    reg = ParsevalRegularizer(loss, lam=1e-4)
+    td = reg.wrap_output(loss(env.rollout(3).reshape(-1)))
+    assert td["loss_parseval"].item() > 0
+
+
+def test_parseval_bad_input():
+    with pytest.raises(AdaRLValueError, match="lam"):
+        ParsevalRegularizer(_net_with(torch.eye(2)), lam=-1.0)
+    with pytest.raises(AdaRLValueError, match="no hidden linear layers"):
+        ParsevalRegularizer(nn.Sequential(nn.Linear(2, 1)))
+
+
+# ---------------------------------------------------------------------------------------- sparsification
+
+
+def test_sparsification_layer_activations_are_k_sparse():
+    torch.manual_seed(0)
+    layer = SparsificationLayer(11, width=1024, k=7)
+    out = layer(torch.randn(256, 11))
+    nonzero = (out != 0).sum(-1)
+    assert out.shape == (256, 1024)
+    assert int(nonzero.max()) <= 7 and float(nonzero.float().mean()) > 6  # exactly k active (ReLU may zero a few)
+    assert (out >= 0).all()
+    # gradients reach only the winners' rows
+    layer(torch.randn(1, 11)).sum().backward()
+    rows_with_grad = (layer[0].weight.grad.abs().sum(1) > 0).sum()
+    assert int(rows_with_grad) <= 7
+    with pytest.raises(AdaRLValueError):
+        SparsificationLayer(11, width=8, k=9)
+
+
+def test_recipe_sparse_network_is_wide_and_sparse():
+    from adarl.builders import make_sac_modules
+    from adarl.envs import make_env
+
+    recipe = load_recipe("baselines/hopper_sparse")
+    env = make_env("Hopper-v5", preset="none")
+    modules = make_sac_modules(recipe, env)
+    layers = [m for m in modules.actor.modules() if isinstance(m, SparsificationLayer)]
+    assert len(layers) == 1 and layers[0].width == 1024 and layers[0].k == 7  # 2 * 3 + 1 for Hopper
+    x = torch.randn(32, 11)
+    body = layers[0]
+    h = body(torch.relu(torch.randn(32, 64)))
+    assert int((h != 0).sum(-1).max()) <= 7
+    # the critic (obs, action inputs) runs too
+    assert modules.loss(env.rollout(3, modules.actor).reshape(-1))["loss_qvalue"].isfinite()
+    del x
+
+
+def test_baseline_mlp_variants_layout():
+    net = make_baseline_mlp(4, 2, [8, 8], low_rank_layers=[0], rank=2, sparse_layer=1, sparse_width=32, sparse_k=4,
+                            diagonal_scale=True, input_scale=True)
+    assert net(torch.randn(3, 4)).shape == (3, 2)
+    assert net(torch.randn(3, 3), torch.randn(3, 1)).shape == (3, 2)  # inputs concatenated like torchrl's MLP
+    with pytest.raises(AdaRLValueError, match="both low-rank"):
+        make_baseline_mlp(4, 2, [8, 8], low_rank_layers=[1], sparse_layer=1)
+
+
+# --------------------------------------------------------------------------------------------- RNAC-IPM
+
+
+def test_critic_norm_excludes_only_the_output_bias():
+    critic = nn.Sequential(nn.Linear(2, 2), nn.Tanh(), nn.Linear(2, 1))
+    with torch.no_grad():
+        critic[0].weight.copy_(torch.tensor([[1.0, 2.0], [0.0, 2.0]]))
+        critic[0].bias.copy_(torch.tensor([1.0, 1.0]))
+        critic[2].weight.copy_(torch.tensor([[3.0, 0.0]]))
+        critic[2].bias.fill_(100.0)
+    # 1 + 4 + 0 + 4 + 1 + 1 + 9 = 20
+    assert critic_parameter_norm(critic).item() == pytest.approx(20**0.5)
+    assert critic_parameter_norm(ValueOperator(critic, in_keys=["observation"])).item() == pytest.approx(20**0.5)
+
+
+def test_ipm_advantage_matches_a_hand_computation():
+    lin = nn.Linear(2, 1)
+    with torch.no_grad():
+        lin.weight.copy_(torch.tensor([[3.0, 4.0]]))  # ||theta|| = 5 (output bias excluded)
+        lin.bias.fill_(0.5)
+    critic = ValueOperator(lin, in_keys=["observation"])
+    kappa, gamma = 0.1, 0.9
+    obs = torch.tensor([[1.0, 0.0], [0.0, 1.0], [1.0, 1.0]])
+    nxt = torch.tensor([[0.0, 1.0], [1.0, 1.0], [2.0, 0.0]])
+    reward = torch.tensor([[1.0], [2.0], [3.0]])
+    done = torch.tensor([[False], [False], [True]])
+    td = TensorDict({"observation": obs, "done": torch.zeros_like(done), "terminated": torch.zeros_like(done), "next": {"observation": nxt, "reward": reward, "done": done,
+                                                   "terminated": done}}, batch_size=[3])
+    ipm = IPMAdvantage(gamma=gamma, lmbda=0.0, value_network=critic, kappa=kappa)
+    ipm(td)
+    v = lambda o: o @ torch.tensor([3.0, 4.0]) + 0.5  # noqa: E731
+    expected = reward.squeeze(-1) - kappa * 5.0 + gamma * v(nxt) * (~done.squeeze(-1)) - v(obs)
+    torch.testing.assert_close(td["advantage"].squeeze(-1), expected)
+    assert ipm.last_shift == pytest.approx(0.5)
+    torch.testing.assert_close(td["next", "reward"], reward)  # the stored reward is untouched
+    # kappa = 0 is plain GAE
+    td2 = td.exclude("advantage", "value_target", "state_value")
+    IPMAdvantage(gamma=gamma, lmbda=0.95, value_network=critic, kappa=0.0)(td2)
+    td3 = td.exclude("advantage", "value_target", "state_value")
+    GAE(gamma=gamma, lmbda=0.95, value_network=critic)(td3)
+    torch.testing.assert_close(td2["advantage"], td3["advantage"])
+
+
+# ---------------------------------------------------------------------------------------------- RNAC-DS
+
+
+def _ds_env(seed=0):
+    from adarl.envs import make_env
+
+    env = make_env("Hopper-v5", preset="paper", seed=seed)
+    ds = DoubleSamplingTransform(num_candidates=2, noise=5e-3, seed=seed)
+    env.append_transform(ds)
+    return env, ds
+
+
+def test_double_sampling_restores_the_state_exactly():
+    env, ds = _ds_env()
+    env.reset()
+    gym = ds._gym_env()
+    before = mujoco_state(gym.model, gym.data)
+    actions, observations = ds.probe(torch.full((3,), 0.3))
+    assert np.array_equal(mujoco_state(gym.model, gym.data), before)  # restored bit for bit
+    assert not np.array_equal(observations[0], observations[1])  # the noise made the candidates differ
+    # the same noisy action from the restored state gives a bit-identical next observation
+    obs, *_ = gym.step(actions[1].numpy().astype(np.float64))
+    assert np.array_equal(obs, observations[1])
+
+
+def test_double_sampling_steps_into_a_candidate_and_keeps_the_policy_action():
+    env, ds = _ds_env()
+    critic = ValueOperator(nn.Sequential(nn.Linear(11, 16), nn.Tanh(), nn.Linear(16, 1)), in_keys=["observation"])
+    ds.set_value_network(critic)
+    td = env.reset()
+    gym = ds._gym_env()
+    for _ in range(20):
+        td["action"] = torch.full((3,), 0.2)
+        snapshot = mujoco_state(gym.model, gym.data)
+        state = ds.rng_state()
+        actions, observations = ds.probe(td["action"])
+        # replay the same draw inside env.step
+        from adarl.baselines.rnac import set_mujoco_state
+
+        set_mujoco_state(gym.model, gym.data, snapshot)
+        ds.set_rng_state(state)
+        out = env.step(td)
+        assert torch.equal(out["action"], torch.full((3,), 0.2))  # the stored action is the policy's
+        nxt = out["next", "observation"].double().numpy()
+        assert any(np.array_equal(nxt, o.astype(np.float32).astype(np.float64)) for o in observations)
+        td = out["next"].clone()
+        if out["next", "done"].item():
+            td = env.reset()
+    assert ds.steps == 20 and 0 < ds.worst_picks < 20
+    assert list(ds.state_dict().keys()) == []  # the critic is not part of the env's state
+
+
+def test_double_sampling_needs_a_single_mujoco_env():
+    from adarl.envs import make_env
+
+    env = make_env("CartPole-v1", preset="none")
+    with pytest.raises(AdaRLValueError, match="MuJoCo"):
+        env.append_transform(DoubleSamplingTransform())
+        env.rollout(2)
+
+
+# ------------------------------------------------------------------------------------- normalisation
+
+
+def test_running_obs_norm_and_reward_scaler():
+    norm = RunningObsNorm(2)
+    x = torch.tensor([[1.0, 10.0], [3.0, 30.0]])
+    assert torch.equal(norm(x), x)  # identity before any statistics
+    norm.update(x[:1])
+    norm.update(x[1:])
+    torch.testing.assert_close(norm.mean, torch.tensor([2.0, 20.0], dtype=torch.float64))
+    torch.testing.assert_close(norm.var, torch.tensor([1.0, 100.0], dtype=torch.float64))
+    scaler = RewardScaler(gamma=0.0)  # returns == rewards: scaled by their running std
+    out = scaler(torch.tensor([[1.0, 3.0]]), torch.tensor([[False, False]]))
+    assert out[0, 1].item() == pytest.approx(3.0 / 1.0, rel=1e-6)
+
+
+# ------------------------------------------------------------------------------------------------ recipes
+
+ENVS = ("hopper", "walker2d", "ant", "humanoid")
+BASELINES = ("sac_full", "sac_fixed", "parseval", "sparse", "rnac_ipm", "rnac_ds")
+ABLATIONS = ("scope_actor", "scope_critic", "ratio_rule", "no_warm_start", "softplus")
+
+
+def test_every_baseline_and_ablation_is_listed_for_every_env():
+    names = dict(list_recipes())
+    for env in ENVS:
+        for b in BASELINES:
+            assert names.get(f"baselines/{env}_{b}"), (env, b)
+        for a in ABLATIONS:
+            assert names.get(f"ablations/{env}_{a}"), (env, a)
+
+
+@pytest.mark.parametrize("env", ENVS)
+def test_baseline_recipes_say_what_they_run(env):
+    adarl = load_recipe(f"{env}_adarl")
+    full = load_recipe(f"baselines/{env}_sac_full")
+    assert not full.rank.enabled and full.network.actor.low_rank_layers == [] and full.env.id == adarl.env.id
+    fixed = load_recipe(f"baselines/{env}_sac_fixed")
+    assert not fixed.rank.enabled and fixed.network.actor.rank == fixed.network.critic.rank >= 7
+    assert load_recipe(f"baselines/{env}_parseval").algorithm.parseval.enabled
+    assert load_recipe(f"baselines/{env}_sparse").network.critic.sparse.width == 1024
+    for mode in ("ipm", "ds"):
+        r = load_recipe(f"baselines/{env}_rnac_{mode}")
+        assert r.algorithm.name == "ppo" and r.algorithm.rnac.mode == mode and r.env.id == adarl.env.id
+        assert r.collector.frames_per_batch == 2048 and r.algorithm.lr == 3e-4 and r.algorithm.max_grad_norm == 0.5
+    assert load_recipe(f"ablations/{env}_scope_actor").rank.scope == "actor"
+    assert load_recipe(f"ablations/{env}_ratio_rule").rank.rule == "ratio"
+    assert load_recipe(f"ablations/{env}_no_warm_start").replay.warm_start.mode == "keep"
+    assert load_recipe(f"ablations/{env}_softplus").network.actor.activation == "softplus"
+
+
+@pytest.mark.parametrize(
+    "recipe, overrides, expected",
+    [
+        ("quickstart", ["algorithm.rnac.mode=ipm"], "algorithm.rnac.mode = 'ipm': needs algorithm.name='ppo'"),
+        ("quickstart", ["algorithm.name=ppo"], "rank.enabled = true: must be false"),
+        ("baselines/hopper_rnac_ds", ["env.num_envs=2"], "env.num_envs = 2: must be 1"),
+        ("baselines/hopper_rnac_ipm", ["env.id=CartPole-v1"], "continuous-action env"),
+        ("baselines/hopper_rnac_ipm", ["algorithm.ppo.minibatch_size=4096"], "must be <= collector.frames_per_batch"),
+        ("baselines/hopper_rnac_ipm", ["algorithm.rnac.mode=worst"], "one of 'none', 'ipm', 'ds'"),
+        ("baselines/hopper_parseval", ["algorithm.parseval.lam=0"], "algorithm.parseval.lam"),
+        ("quickstart", ["network.actor.sparse.layer=1"], "low-rank or the sparsification layer"),
+        ("baselines/hopper_sparse", ["network.critic.sparse.layer=2"], "must index a hidden layer"),
+        ("baselines/hopper_sparse", ["network.critic.sparse.k=4096"], "must be <= width (1024)"),
+    ],
+)
+def test_bad_baseline_settings_are_recipe_errors(recipe, overrides, expected):
+    with pytest.raises(RecipeError) as err:
+        load_recipe(recipe, overrides)
+    assert expected in str(err.value)
