@@ -42,7 +42,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from adarl.errors import AdaRLError, RecipeError
 
 __all__ = ["ExperimentSpec", "PlannedRun", "load_experiment", "plan_runs", "run_experiment", "run_is_finished",
-           "EXPERIMENT_FILE"]
+           "shipped_experiments", "EXPERIMENT_FILE"]
 
 EXPERIMENT_FILE = "experiment.json"
 _NAME_CHARS = set("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789._-+")
@@ -209,7 +209,7 @@ def load_experiment(path: str | os.PathLike) -> ExperimentSpec:
     """Read and validate an experiment spec; :class:`RecipeError` names every bad key."""
     p = Path(path)
     if not p.is_file():
-        raise RecipeError(f"experiment spec {str(p)!r} not found")
+        p = _find_shipped(str(path))
     try:
         data = yaml.safe_load(p.read_text())
     except yaml.YAMLError as err:
@@ -223,6 +223,26 @@ def load_experiment(path: str | os.PathLike) -> ExperimentSpec:
         return ExperimentSpec.model_validate(data)
     except ValidationError as err:
         raise RecipeError(_format_validation(err, repr(str(p)))) from None
+
+
+def shipped_experiments() -> list[str]:
+    """Names of the experiment specs in the ``experiments/`` folder of each recipes folder."""
+    from adarl.config import EXPERIMENTS_DIR, recipes_dir
+
+    names = {f.stem for d in recipes_dir() for f in (d / EXPERIMENTS_DIR).glob("*.yaml")}
+    return sorted(names)
+
+
+def _find_shipped(name: str) -> Path:
+    from adarl.config import EXPERIMENTS_DIR, recipes_dir
+
+    if not name.endswith((".yaml", ".yml")) and "/" not in name and "\\" not in name:
+        for d in recipes_dir():
+            candidate = d / EXPERIMENTS_DIR / f"{name}.yaml"
+            if candidate.is_file():
+                return candidate
+    raise RecipeError(f"experiment spec {name!r} not found (a .yaml path, or a shipped spec name: "
+                      f"{', '.join(shipped_experiments())})")
 
 
 def _fill(template: str, values: dict[str, str], where: str) -> str:

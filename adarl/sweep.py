@@ -163,8 +163,17 @@ def _nominal_values(recipe) -> dict[str, float]:
 def sweep_run(run_dir: str | os.PathLike, axes: list[tuple[str, list[float]]], *, episodes: int | None = None,
               name: str | None = None) -> SweepResult:
     """Sweep the latest checkpoint of a run folder; writes ``sweeps/<name>.{csv,json,png}`` there."""
+    from adarl.config import load_recipe
+    from adarl.envs import env_parameters
+    from adarl.run_dir import RunDir
     from adarl.training import Trainer
 
+    # Check the grid against the run's env before loading anything heavy.
+    env_id = load_recipe(str(RunDir.open(run_dir).recipe_path)).env.id
+    allowed = env_parameters(env_id)
+    for n, _ in axes:
+        if n not in allowed:
+            raise AdaRLValueError(f"unknown sweep parameter {n!r} for {env_id}; allowed: {list(allowed)}")
     trainer = Trainer.resume(run_dir, quiet=True, truncate_metrics=False)
     try:
         recipe = trainer.recipe

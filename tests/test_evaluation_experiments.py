@@ -240,25 +240,35 @@ def test_experiment_end_to_end_two_seeds_two_algorithms(tmp_path):
     assert "Robustness sweep: pole" in md and "Rank trajectories" in md
     for png in ("learning_curves.png", "ranks.png", "sweep_pole.png"):
         assert (out / "report" / png).is_file()
-    # Resumable: a second call runs nothing new.
-    again = adarl("experiment", str(path), "-o", str(out), "--no-report")
-    assert again.returncode == 0 and "4 already finished, 0 to run" in again.stdout
+    # Resumable: a second call runs nothing new (in-process: it only plans, validates and skips).
+    from adarl.aggregate import write_aggregate_report
+    from adarl.experiment import run_experiment
+
+    said: list[str] = []
+    again = run_experiment(path, output=out, report=False, log=said.append)
+    assert sorted(r.status for r in again) == ["missing-recipe"] * 2 + ["skipped-finished"] * 4
+    assert "4 already finished, 0 to run" in said[-1]
     # Aggregating the run folders directly (no experiment.json) groups them by recipe name.
-    loose = adarl("report", *[r["path"] for r in state["runs"] if r["status"] == "finished"], "-o",
-                  str(tmp_path / "loose"))
-    assert loose.returncode == 0, loose.stderr[-2000:]
-    assert "(n=4)" in (tmp_path / "loose" / "report.md").read_text()
+    loose = write_aggregate_report([r["path"] for r in state["runs"] if r["status"] == "finished"],
+                                   tmp_path / "loose")
+    assert "(n=4)" in loose.read_text()
 
 
 @pytest.mark.slow
 def test_hopper_sweep_writes_fig8_plot_and_worst_case(tmp_path):
+    from adarl.config import load_recipe, save_resolved
+    from adarl.run_dir import RunDir
+    from adarl.sweep import parse_sweep, sweep_run
+    from adarl.training import Trainer
+
     run = tmp_path / "hopper"
     hopper_tiny = [o for o in TINY if not o.startswith("eval.max_steps")] + ["eval.max_steps=40"]
-    proc = adarl("run", "quickstart", *hopper_tiny, "-o", str(run), "--quiet")
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    proc = adarl("eval", str(run), "--sweep", "torso_length=0.25:0.55:3", "--episodes", "2")
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    assert "worst episode" in proc.stdout
+    recipe = load_recipe("quickstart", hopper_tiny)
+    run_dir = RunDir.create(run)
+    save_resolved(recipe, run_dir.recipe_path)
+    Trainer(recipe, run_dir, quiet=True).train()
+    result = sweep_run(run, [parse_sweep("torso_length=0.25:0.55:3")], episodes=2)
+    assert "worst episode" in result.describe()
     rows = list(csv.DictReader((run / "sweeps" / "torso_length.csv").open()))
     assert [float(r["torso_length"]) for r in rows] == pytest.approx([0.25, 0.4, 0.55])
     summary = json.loads((run / "sweeps" / "torso_length.json").read_text())
