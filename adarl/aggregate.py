@@ -153,7 +153,8 @@ def collect_runs(dirs: list[str | os.PathLike]) -> tuple[list[RunRecord], dict]:
         exp = p / "experiment.json"
         if exp.is_file():
             state = json.loads(exp.read_text())
-            info["experiments"].append({k: state.get(k) for k in ("name", "description", "budget", "axes", "report")})
+            info["experiments"].append({k: state.get(k) for k in ("name", "description", "budget", "command", "axes",
+                                                                  "report")})
             for r in state.get("runs", []):
                 rp = Path(r["path"])
                 if not rp.is_absolute() and not rp.exists():
@@ -517,8 +518,9 @@ def write_aggregate_report(dirs: list[str | os.PathLike], output: str | os.PathL
                         "from the run folders listed in runs.csv. Score of a run: its last evaluation on the nominal "
                         "dynamics (mean over its evaluation episodes); table cells: mean ± sample std of that score "
                         "across seeds, n = number of seeds; best mean of each row in bold."))
-    if command:
-        blocks += [("p", "Produced by:"), ("code", command)]
+    commands = [command] if command else [e["command"] for e in exps if e.get("command")]
+    if commands:
+        blocks += [("p", "Produced by:"), ("code", "\n".join(commands))]
     if agg.info["unfinished"]:
         blocks.append(("p", "Not finished (left out): " + "; ".join(agg.info["unfinished"])))
     if agg.info["missing"]:

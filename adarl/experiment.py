@@ -357,8 +357,9 @@ def _execute(run: PlannedRun, threads: int | None) -> PlannedRun:
     return run
 
 
-def _write_state(out: Path, spec: ExperimentSpec, budget: str | None, runs: list[PlannedRun]) -> None:
-    payload = {"name": spec.name, "description": spec.description, "budget": budget, "axes": list(spec.axes),
+def _write_state(out: Path, spec: ExperimentSpec, budget: str | None, runs: list[PlannedRun], command: str = "") -> None:
+    payload = {"name": spec.name, "description": spec.description, "budget": budget, "command": command,
+               "axes": list(spec.axes),
                "report": spec.report.model_dump(), "runs": [r.as_dict() for r in runs]}
     tmp = out / (EXPERIMENT_FILE + ".tmp")
     tmp.write_text(json.dumps(payload, indent=2) + "\n")
@@ -390,7 +391,8 @@ def run_experiment(spec_path: str | os.PathLike, *, budget: str | None = None, o
             log(f"  {r.status:<16} {r.run_id}: {r.recipe} {' '.join(r.overrides)}")
         return runs
     out.mkdir(parents=True, exist_ok=True)
-    _write_state(out, spec, budget, runs)
+    command = f"adarl experiment {spec_path}" + (f" --budget {budget}" if budget else "") + f" -o {out}"
+    _write_state(out, spec, budget, runs, command)
     n_workers = workers or spec.workers
     threads = 1 if n_workers > 1 else None
 
@@ -402,11 +404,11 @@ def run_experiment(spec_path: str | os.PathLike, *, budget: str | None = None, o
     if n_workers == 1:
         for r in todo:
             one(r)
-            _write_state(out, spec, budget, runs)
+            _write_state(out, spec, budget, runs, command)
     else:
         with ThreadPoolExecutor(max_workers=n_workers) as pool:
             for _ in pool.map(one, todo):
-                _write_state(out, spec, budget, runs)
+                _write_state(out, spec, budget, runs, command)
     if spec.sweeps:
         from adarl.sweep import parse_sweep, sweep_run
 
@@ -416,7 +418,7 @@ def run_experiment(spec_path: str | os.PathLike, *, budget: str | None = None, o
                     name = s.name or "__".join(p.split("=")[0] for p in s.params)
                     if not (Path(r.path) / "sweeps" / f"{name}.csv").is_file():
                         sweep_run(r.path, [parse_sweep(p) for p in s.params], episodes=s.episodes, name=name)
-    _write_state(out, spec, budget, runs)
+    _write_state(out, spec, budget, runs, command)
     failed = [r for r in runs if r.status == "failed"]
     if report:
         from adarl.aggregate import write_aggregate_report
