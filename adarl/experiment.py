@@ -383,6 +383,15 @@ def run_experiment(spec_path: str | os.PathLike, *, budget: str | None = None, o
             r.status, r.message = "skipped-finished", "already finished"
         else:
             todo.append(r)
+    previous = out / EXPERIMENT_FILE
+    if previous.is_file():  # keep the timings of runs finished in earlier sessions
+        try:
+            before = {r["run_id"]: r for r in json.loads(previous.read_text()).get("runs", [])}
+        except (json.JSONDecodeError, AttributeError, TypeError):
+            before = {}
+        for r in runs:
+            if r.status == "skipped-finished" and r.run_id in before:
+                r.wall_time_s = float(before[r.run_id].get("wall_time_s") or 0.0)
     n_done = sum(r.status == "skipped-finished" for r in runs)
     log(f"experiment {spec.name} (budget {budget or 'default'}): {len(runs)} runs, {n_done} already finished, "
         f"{len(todo)} to run, {sum(r.status == 'missing-recipe' for r in runs)} with a missing recipe -> {out}")
