@@ -100,6 +100,14 @@ def cmd_show(args) -> int:
 def cmd_eval(args) -> int:
     import json
 
+    if args.sweep:
+        from adarl.sweep import parse_sweep, sweep_run
+
+        result = sweep_run(args.run_dir, [parse_sweep(s) for s in args.sweep], episodes=args.episodes,
+                           name=args.name)
+        print(result.describe())
+        return 0
+
     from adarl.evaluation import evaluate_policy
     from adarl.training import Trainer
 
@@ -124,9 +132,27 @@ def cmd_bench(args) -> int:
 
 
 def cmd_report(args) -> int:
+    from adarl.aggregate import is_single_run, write_aggregate_report
     from adarl.report import write_report
 
-    print(write_report(args.run_dir))
+    dirs = args.run_dir
+    if len(dirs) == 1 and is_single_run(dirs[0]) and not args.output:
+        print(write_report(dirs[0]))  # one run folder: its own report, as before
+        return 0
+    print(write_aggregate_report(dirs, args.output))
+    return 0
+
+
+def cmd_experiment(args) -> int:
+    from adarl.experiment import run_experiment
+
+    runs = run_experiment(args.spec, budget=args.budget, output=args.output, workers=args.workers,
+                          dry_run=args.dry_run, report=not args.no_report)
+    if not args.dry_run:
+        counts: dict[str, int] = {}
+        for r in runs:
+            counts[r.status] = counts.get(r.status, 0) + 1
+        print("experiment done: " + ", ".join(f"{n} {k}" for k, n in sorted(counts.items())))
     return 0
 
 
@@ -166,11 +192,20 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--episodes", type=int, default=None, help="episodes (default: the recipe's eval.episodes)")
     ev.add_argument("--checkpoint", default="latest", metavar="latest|best|PATH",
                     help="which checkpoint: the latest (default), the best nominal evaluation, or a file")
+    ev.add_argument("--sweep", action="append", metavar="PARAM=LO:HI:N",
+                    help="robustness sweep instead: evaluate on a grid of PARAM (others at nominal); give it twice "
+                         "for a 2-D grid. Writes sweeps/<name>.csv, .json and .png in RUN_DIR")
+    ev.add_argument("--name", default=None, help="file stem of the sweep's outputs (default: the parameter names)")
     ev.set_defaults(func=cmd_eval)
 
-    rp = sub.add_parser("report", help="(re)write a run folder's report.md and plots",
-                        description="Write report.md and plots/*.png from the files in RUN_DIR.")
-    rp.add_argument("run_dir")
+    rp = sub.add_parser("report", help="write a run's report, or aggregate many runs into one report",
+                        description="One run folder: (re)write its report.md and plots/*.png. Several folders (run "
+                                    "folders, experiment folders, or folders holding runs), or --output: aggregate "
+                                    "them across seeds into report.md/report.html, PNG plots and CSV tables.")
+    rp.add_argument("run_dir", nargs="+", metavar="DIR")
+    rp.add_argument("--output", "-o", default=None,
+                    help="folder of the aggregate report (default: <DIR>/report for one experiment folder, else "
+                         "./report)")
     rp.set_defaults(func=cmd_report)
 
     from adarl.bench import add_arguments as bench_arguments
@@ -181,6 +216,18 @@ def build_parser() -> argparse.ArgumentParser:
                         "pip install 'adarl[bench]'). Prints a table and writes a JSON report.")
     bench_arguments(bn)
     bn.set_defaults(func=cmd_bench)
+    ex = sub.add_parser("experiment", help="run a multi-run experiment spec (axes x seeds), resumably",
+                        description="Run every run of the experiment SPEC (a YAML file with kind: experiment, see "
+                                    "recipes/experiments/) one after another or in worker processes; finished runs "
+                                    "are skipped, interrupted ones resumed; then write the aggregate report.")
+    ex.add_argument("spec")
+    ex.add_argument("--budget", "-b", default=None, help="a budget named in the spec (e.g. small)")
+    ex.add_argument("--output", "-o", default=None, help="output folder (default: the spec's, or "
+                                                         "runs/experiments/<name>-<budget>)")
+    ex.add_argument("--workers", "-j", type=int, default=None, help="runs at a time (default: the spec's workers)")
+    ex.add_argument("--dry-run", action="store_true", help="list the runs and their status; run nothing")
+    ex.add_argument("--no-report", action="store_true", help="do not write the aggregate report")
+    ex.set_defaults(func=cmd_experiment)
     return p
 
 

@@ -1127,6 +1127,10 @@ def validate_recipe(data: Mapping[str, Any], *, label: str = "<mapping>") -> Rec
 # ------------------------------------------------------------------------------------------ finding recipes
 
 
+#: Subfolder of a recipes folder holding experiment specs (``adarl experiment``), not recipes.
+EXPERIMENTS_DIR = "experiments"
+
+
 def _package_recipes_dir() -> Path:
     return Path(__file__).resolve().parent.parent / "recipes"
 
@@ -1513,8 +1517,8 @@ def _scan_recipes(with_descriptions: bool = True) -> list[tuple[str, str]]:
             continue
         for p in files:
             rel = p.relative_to(d)
-            if any(part.startswith(".") for part in rel.parts):
-                continue
+            if any(part.startswith(".") for part in rel.parts) or rel.parts[0] == EXPERIMENTS_DIR:
+                continue  # hidden files; experiment specs (adarl.experiment) are not recipes
             name = rel.with_suffix("").as_posix()
             if name in found:
                 continue  # shadowed by an earlier folder

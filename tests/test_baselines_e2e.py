@@ -14,7 +14,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def adarl(*args: str) -> subprocess.CompletedProcess:
-    env = {**os.environ, "PYTHONPATH": str(REPO), "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1", "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
     return subprocess.run([sys.executable, "-m", "adarl.cli", *args], cwd=REPO, env=env, capture_output=True,
                           text=True, timeout=600)
 

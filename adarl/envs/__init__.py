@@ -11,6 +11,7 @@ from adarl.envs.factory import (
     perturbation_transform,
     resolve_schedule,
 )
+from adarl.envs.linear_cartpole import LINEAR_CARTPOLE_ID, LinearCartPoleEnv, linear_cartpole_matrices
 from adarl.envs.parameters import (
     AIR_DENSITY,
     AIR_VISCOSITY,
@@ -20,6 +21,7 @@ from adarl.envs.parameters import (
     SUPPORTED_ENVS,
     CartPoleDynamics,
     DynamicsApplier,
+    LinearCartPoleDynamics,
     MujocoDynamics,
     ParameterInfo,
     check_env_id,
@@ -83,6 +85,11 @@ __all__ = [
     "DynamicsApplier",
     "MujocoDynamics",
     "CartPoleDynamics",
+    "LinearCartPoleDynamics",
+    # the linear CartPole of paper App. A.1
+    "LinearCartPoleEnv",
+    "LINEAR_CARTPOLE_ID",
+    "linear_cartpole_matrices",
     "make_applier",
     "quiet_mujoco",
 ]

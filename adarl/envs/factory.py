@@ -22,6 +22,7 @@ from torchrl.envs import Compose, DoubleToFloat, EnvBase, ParallelEnv, RewardSum
 from torchrl.envs.batched_envs import BatchedEnvBase
 from torchrl.envs.libs.gym import GymEnv
 
+from adarl.envs.linear_cartpole import LINEAR_CARTPOLE_ID, LinearCartPoleEnv
 from adarl.envs.parameters import (
     PRESETS,
     check_env_id,
@@ -75,8 +76,11 @@ def _worker_parts(
     num_workers: int,
 ) -> tuple[EnvBase, PerturbedDynamicsEnvTransform | None]:
     kwargs = {"max_episode_steps": max_episode_steps} if max_episode_steps is not None else {}
-    with quiet_mujoco():  # HalfCheetah's XML would otherwise write MUJOCO_LOG.TXT
-        base = GymEnv(env_id, device=device, **kwargs)
+    if env_id == LINEAR_CARTPOLE_ID:  # adarl's own TorchRL env, no gymnasium underneath
+        base = LinearCartPoleEnv(device=device, **kwargs)
+    else:
+        with quiet_mujoco():  # HalfCheetah's XML would otherwise write MUJOCO_LOG.TXT
+            base = GymEnv(env_id, device=device, **kwargs)
     if schedule is None:
         return base, None
     transform = PerturbedDynamicsEnvTransform(

@@ -59,6 +59,7 @@ __all__ = [
     "DynamicsApplier",
     "MujocoDynamics",
     "CartPoleDynamics",
+    "LinearCartPoleDynamics",
     "make_applier",
     "quiet_mujoco",
 ]
@@ -71,6 +72,7 @@ PAPER_ENVS: tuple[str, ...] = (
     "Humanoid-v5",
     "CartPole-v1",
     "InvertedPendulum-v5",
+    "LinearCartPole-v0",  # adarl.envs.linear_cartpole: the linear system of paper App. A.1 (Eq. 17)
 )
 
 # The gymnasium MuJoCo v5 environments and their default model files (gymnasium/envs/mujoco/assets).
@@ -194,6 +196,7 @@ _SPECIFIC: dict[str, tuple[ParameterInfo, ...]] = {
     "Ant-v5": (_GRAVITY, _WIND),
     "Humanoid-v5": (_GRAVITY, _WIND),
     "CartPole-v1": (_length("pole_length", 0.5, "half pole length l (CartPole's `length`)"),),
+    "LinearCartPole-v0": (_length("pole_length", 0.5, "half pole length l of the linear CartPole (Eq. 17)"),),
     "InvertedPendulum-v5": (_length("pole_length", 0.3, "pole half-length (the pole is scaled about its hinge)"),),
 }
 
@@ -383,6 +386,7 @@ def _presets() -> dict[str, dict[str, Schedule]]:
             SinusoidSchedule({"gravity": 14.715, "wind": 1.0}, {"gravity": 4.905, "wind": 0.5}, 0.5)
         ),
         "CartPole-v1": _pole(0.5),
+        "LinearCartPole-v0": _pole(0.5),
         "InvertedPendulum-v5": _pole(0.3),
     }
     for env_id in SUPPORTED_ENVS:
@@ -447,6 +451,21 @@ class CartPoleDynamics(DynamicsApplier):
         length = float(values.get("pole_length", self.default_length))
         self.env.length = length
         self.env.polemass_length = self.env.masspole * length
+
+
+class LinearCartPoleDynamics(DynamicsApplier):
+    """adarl's :class:`~adarl.envs.linear_cartpole.LinearCartPoleEnv`: ``pole_length`` via ``set_pole_length``."""
+
+    def __init__(self, env: Any, env_id: str = "LinearCartPole-v0") -> None:
+        if not hasattr(env, "set_pole_length"):
+            raise AdaRLValueError(f"{env_id}: the live environment {type(env).__name__} has no set_pole_length(); "
+                                  "expected adarl.envs.LinearCartPoleEnv")
+        self.env_id = env_id
+        self.env = env
+        self.params = ("pole_length",)
+
+    def apply(self, values: Mapping[str, float]) -> None:
+        self.env.set_pole_length(values.get("pole_length"))
 
 
 # Fields restored from the default snapshot before every application, and copied from a recompiled model in
@@ -728,6 +747,8 @@ def make_applier(env_id: str, unwrapped: Any, params: tuple[str, ...], mode: str
     check_mode(mode)
     if env_id == "CartPole-v1":
         return CartPoleDynamics(unwrapped, env_id)
+    if env_id == "LinearCartPole-v0":
+        return LinearCartPoleDynamics(unwrapped, env_id)
     model = getattr(unwrapped, "model", None)
     if model is None or not hasattr(model, "body_mass"):
         raise AdaRLValueError(

@@ -74,6 +74,8 @@ def find_gym_env(env: EnvBase) -> Any:
             "env (put it in the env factory passed to SerialEnv/ParallelEnv, as adarl.envs.make_env does)"
         )
     gym_env = getattr(base, "_env", None)
+    if gym_env is None and getattr(base, "adarl_native", False):
+        gym_env = base  # an adarl TorchRL env (LinearCartPoleEnv): its applier edits it directly
     if gym_env is None:
         raise AdaRLValueError(
             f"PerturbedDynamicsEnvTransform needs a torchrl GymEnv/GymWrapper underneath, got {type(base).__name__}"

@@ -1,0 +1,440 @@
+"""Experiments: many runs (axes x seeds) from one YAML spec, run locally and resumably, then aggregated.
+
+A spec names a base ``recipe`` and ``axes``; every combination of axis values times every seed is one run, whose
+recipe and overrides are templates filled with the axis values (``"{env}_adarl"``, ``"network.actor.rank={rank}"``).
+An axis value is a scalar or ``{name, recipe?, overrides?}``. ``budgets`` name smaller (or larger) versions of the
+same experiment: other seeds, extra overrides, fewer grid values. Example (``recipes/experiments/``)::
+
+    name: table2
+    recipe: "{env}_adarl"
+    seeds: [0, 1, 2, 3, 4]
+    axes:
+      env: [hopper, walker2d]
+      variant:
+        - {name: actor, overrides: [rank.scope=actor]}
+        - {name: both, overrides: [rank.scope=both]}
+    budgets:
+      small: {seeds: [0, 1], overrides: [collector.total_frames=20000]}
+
+:func:`run_experiment` runs each run with the ``adarl`` command in its own folder ``<output>/<run id>`` (one
+after another, or ``workers`` at a time), skips finished runs, resumes interrupted ones from their checkpoint, flags
+runs whose recipe does not exist (yet), then sweeps each finished run if the spec asks and writes the aggregate
+report (:mod:`adarl.aggregate`). ``experiment.json`` in the output folder records what ran.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from adarl.errors import AdaRLError, RecipeError
+
+__all__ = ["ExperimentSpec", "PlannedRun", "load_experiment", "plan_runs", "run_experiment", "run_is_finished",
+           "shipped_experiments", "EXPERIMENT_FILE"]
+
+EXPERIMENT_FILE = "experiment.json"
+_NAME_CHARS = set("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789._-+")
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+class AxisValue(_Model):
+    """One value of an axis: its name (in run ids, tables and templates), and what it changes."""
+
+    name: str = Field(description="Label of the value; `{axis}` in templates becomes it.")
+    recipe: str | None = Field(None, description="Recipe template for runs with this value (overrides the spec's).")
+    overrides: list[str] = Field(default_factory=list, description="Recipe overrides (templates) this value adds.")
+
+    @field_validator("name")
+    @classmethod
+    def _check_name(cls, v: str) -> str:
+        if not v or not set(v) <= _NAME_CHARS:
+            raise ValueError(f"axis value names may use letters, digits and . _ - + only, got {v!r}")
+        return v
+
+
+def _as_axis_value(v: Any) -> Any:
+    if isinstance(v, bool) or v is None:
+        raise ValueError(f"an axis value must be a number, a string or a mapping {{name, recipe, overrides}}, got {v!r}")
+    if isinstance(v, (int, float, str)):
+        return {"name": str(v)}
+    return v
+
+
+class SweepSpec(_Model):
+    """A robustness sweep to run on every finished run (see :mod:`adarl.sweep`)."""
+
+    params: list[str] = Field(description="One or two grid specs 'param=lo:hi:n' (others held at nominal).",
+                              min_length=1, max_length=2)
+    episodes: Annotated[int, Field(ge=1)] = Field(5, description="Episodes per grid point.")
+    name: str | None = Field(None, description="File stem under sweeps/ (default: the parameter names).")
+
+
+class Budget(_Model):
+    """A named size of the experiment (e.g. ``small``: finishes on 2 CPU cores in under an hour)."""
+
+    description: str = ""
+    seeds: list[int] | None = Field(None, description="Seeds for this budget (default: the spec's).")
+    overrides: list[str] = Field(default_factory=list, description="Overrides added to every run.")
+    axes: dict[str, list[str]] = Field(default_factory=dict,
+                                       description="Keep only these value names of an axis, e.g. {rank: ['1', '4']}.")
+
+    @field_validator("axes", mode="before")
+    @classmethod
+    def _stringify(cls, v: Any) -> Any:
+        if isinstance(v, dict):
+            return {k: [str(x) for x in vals] if isinstance(vals, list) else vals for k, vals in v.items()}
+        return v
+
+
+class ReportSpec(_Model):
+    """How the aggregate report lays out the runs."""
+
+    columns: str | None = Field(None, description="Axis shown as table columns (default: 'algorithm' if present).")
+    x_axis: str | None = Field(None, description="Numeric axis for a return-vs-value plot (e.g. 'rank', Fig. 1).")
+    intrinsic_rank: int | None = Field(None, description="Reference line in rank plots (default: 2*d_a+1 of the env).")
+
+
+class ExperimentSpec(_Model):
+    """A multi-run experiment: ``recipe`` x ``axes`` x ``seeds``."""
+
+    kind: Literal["experiment"] = Field(description="Marks the file as an experiment spec (not a recipe).")
+    name: str
+    description: str = ""
+    recipe: str | None = Field(None, description="Recipe template (name or path), e.g. '{env}_adarl'.")
+    overrides: list[str] = Field(default_factory=list, description="Overrides (templates) for every run.")
+    axes: dict[str, list[AxisValue]] = Field(default_factory=dict)
+    seeds: list[int] = Field(default_factory=lambda: [0], min_length=1)
+    budgets: dict[str, Budget] = Field(default_factory=dict)
+    default_budget: str | None = Field(None, description="Budget used when none is asked for (default: none).")
+    output: str | None = Field(None, description="Output folder (default: runs/experiments/<name>[-<budget>]).")
+    workers: Annotated[int, Field(ge=1)] = Field(1, description="Runs at a time (each in its own process).")
+    sweeps: list[SweepSpec] = Field(default_factory=list)
+    report: ReportSpec = Field(default_factory=ReportSpec)
+
+    @field_validator("axes", mode="before")
+    @classmethod
+    def _axis_values(cls, v: Any) -> Any:
+        if not isinstance(v, dict):
+            return v
+        out = {}
+        for axis, values in v.items():
+            if not isinstance(values, list) or not values:
+                raise ValueError(f"axis {axis!r} must be a non-empty list of values, got {values!r}")
+            out[axis] = [_as_axis_value(x) for x in values]
+        return out
+
+    @field_validator("seeds")
+    @classmethod
+    def _unique_seeds(cls, v: list[int]) -> list[int]:
+        if len(set(v)) != len(v):
+            raise ValueError(f"seeds must be distinct, got {v}")
+        return v
+
+    @model_validator(mode="after")
+    def _check(self) -> ExperimentSpec:
+        if not self.name or not set(self.name) <= _NAME_CHARS:
+            raise ValueError(f"name may use letters, digits and . _ - + only, got {self.name!r}")
+        for axis, values in self.axes.items():
+            if not axis.isidentifier() or axis == "seed":
+                raise ValueError(f"axis name {axis!r} must be an identifier other than 'seed'")
+            names = [v.name for v in values]
+            if len(set(names)) != len(names):
+                raise ValueError(f"axis {axis!r} has repeated value names {names}")
+        if self.recipe is None:
+            missing = [a for a, vals in self.axes.items() if not all(v.recipe for v in vals)]
+            if not any(all(v.recipe for v in vals) for vals in self.axes.values()):
+                raise ValueError("no recipe: set `recipe`, or a `recipe` on every value of one axis "
+                                 f"(axes without one on every value: {missing})")
+        for bname, budget in self.budgets.items():
+            for axis, keep in budget.axes.items():
+                if axis not in self.axes:
+                    raise ValueError(f"budget {bname!r} restricts unknown axis {axis!r}; axes: {list(self.axes)}")
+                known = [v.name for v in self.axes[axis]]
+                unknown = [k for k in keep if k not in known]
+                if unknown:
+                    raise ValueError(f"budget {bname!r}: axis {axis!r} has no value(s) {unknown}; values: {known}")
+        if self.default_budget is not None and self.default_budget not in self.budgets:
+            raise ValueError(f"default_budget {self.default_budget!r} is not one of the budgets {list(self.budgets)}")
+        for where, axis in (("report.columns", self.report.columns), ("report.x_axis", self.report.x_axis)):
+            if axis is not None and axis not in self.axes:
+                raise ValueError(f"{where} {axis!r} is not an axis; axes: {list(self.axes)}")
+        return self
+
+
+@dataclass
+class PlannedRun:
+    """One run of an experiment: where it lives and how to start it."""
+
+    run_id: str
+    axes: dict[str, str]
+    seed: int
+    recipe: str
+    overrides: list[str]
+    path: str
+    status: str = "pending"  # pending | finished | skipped-finished | missing-recipe | failed
+    message: str = ""
+    wall_time_s: float = 0.0
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def _format_validation(err: ValidationError, label: str) -> str:
+    lines = []
+    for e in err.errors():
+        loc = ".".join(str(p) for p in e["loc"]) or "(top level)"
+        msg = e["msg"].removeprefix("Value error, ")
+        given = e.get("input")
+        shown = "" if isinstance(given, dict) else f" (got {given!r})"
+        lines.append(f"  {loc}: {msg}{shown}")
+    return f"experiment spec {label} is invalid:\n" + "\n".join(lines)
+
+
+def load_experiment(path: str | os.PathLike) -> ExperimentSpec:
+    """Read and validate an experiment spec; :class:`RecipeError` names every bad key."""
+    p = Path(path)
+    if not p.is_file():
+        p = _find_shipped(str(path))
+    try:
+        data = yaml.safe_load(p.read_text())
+    except yaml.YAMLError as err:
+        raise RecipeError(f"experiment spec {str(p)!r} is not valid YAML: {err}") from None
+    if not isinstance(data, dict):
+        raise RecipeError(f"experiment spec {str(p)!r} must be a mapping, got {type(data).__name__}")
+    if data.get("kind") != "experiment":
+        raise RecipeError(f"{str(p)!r} is not an experiment spec (it needs `kind: experiment`); "
+                          "to train a single recipe use `adarl run`")
+    try:
+        return ExperimentSpec.model_validate(data)
+    except ValidationError as err:
+        raise RecipeError(_format_validation(err, repr(str(p)))) from None
+
+
+def shipped_experiments() -> list[str]:
+    """Names of the experiment specs in the ``experiments/`` folder of each recipes folder."""
+    from adarl.config import EXPERIMENTS_DIR, recipes_dir
+
+    names = {f.stem for d in recipes_dir() for f in (d / EXPERIMENTS_DIR).glob("*.yaml")}
+    return sorted(names)
+
+
+def _find_shipped(name: str) -> Path:
+    from adarl.config import EXPERIMENTS_DIR, recipes_dir
+
+    if not name.endswith((".yaml", ".yml")) and "/" not in name and "\\" not in name:
+        for d in recipes_dir():
+            candidate = d / EXPERIMENTS_DIR / f"{name}.yaml"
+            if candidate.is_file():
+                return candidate
+    raise RecipeError(f"experiment spec {name!r} not found (a .yaml path, or a shipped spec name: "
+                      f"{', '.join(shipped_experiments())})")
+
+
+def _fill(template: str, values: dict[str, str], where: str) -> str:
+    try:
+        return template.format(**values)
+    except KeyError as err:
+        raise RecipeError(f"{where}: template {template!r} uses {{{err.args[0]}}}, which is not an axis or 'seed'; "
+                          f"available: {sorted(values)}") from None
+    except (ValueError, IndexError) as err:
+        raise RecipeError(f"{where}: bad template {template!r}: {err}") from None
+
+
+def resolve_budget(spec: ExperimentSpec, budget: str | None) -> tuple[str | None, Budget]:
+    name = budget if budget is not None else spec.default_budget
+    if name is None:
+        return None, Budget()
+    if name not in spec.budgets:
+        raise RecipeError(f"experiment {spec.name!r} has no budget {name!r}; budgets: {sorted(spec.budgets) or '(none)'}")
+    return name, spec.budgets[name]
+
+
+def default_output(spec: ExperimentSpec, budget: str | None) -> Path:
+    if spec.output:
+        return Path(spec.output)
+    return Path("runs") / "experiments" / (spec.name + (f"-{budget}" if budget else ""))
+
+
+def plan_runs(spec: ExperimentSpec, output: str | os.PathLike, budget: str | None = None) -> list[PlannedRun]:
+    """Every run of the spec under ``budget``: axes product x seeds, recipe and overrides filled in."""
+    _, b = resolve_budget(spec, budget)
+    seeds = b.seeds if b.seeds is not None else spec.seeds
+    axes = {a: [v for v in vals if a not in b.axes or v.name in b.axes[a]] for a, vals in spec.axes.items()}
+    out = Path(output)
+    runs = []
+    for combo in itertools.product(*axes.values()) if axes else [()]:
+        named = dict(zip(axes, combo))
+        for seed in seeds:
+            values = {a: v.name for a, v in named.items()} | {"seed": str(seed)}
+            recipe_t = spec.recipe
+            overrides_t = list(spec.overrides)
+            for v in named.values():
+                if v.recipe:
+                    recipe_t = v.recipe
+                overrides_t += v.overrides
+            overrides_t += b.overrides
+            run_id = "__".join([f"{a}={v.name}" for a, v in named.items()] + [f"seed={seed}"])
+            recipe = _fill(recipe_t, values, f"run {run_id} recipe")
+            overrides = [_fill(o, values, f"run {run_id} override") for o in overrides_t] + [f"seed={seed}"]
+            runs.append(PlannedRun(run_id, {a: v.name for a, v in named.items()}, seed, recipe, overrides,
+                                   str(out / run_id)))
+    return runs
+
+
+def run_is_finished(path: str | os.PathLike) -> bool:
+    """A run folder whose summary shows its whole frame budget spent."""
+    p = Path(path)
+    summary, recipe = p / "summary.json", p / "recipe.yaml"
+    if not (summary.is_file() and recipe.is_file()):
+        return False
+    try:
+        frames = int(json.loads(summary.read_text()).get("frames", -1))
+        total = int(yaml.safe_load(recipe.read_text())["collector"]["total_frames"])
+    except (ValueError, KeyError, TypeError, yaml.YAMLError, json.JSONDecodeError):
+        return False
+    return frames >= total
+
+
+def _check_recipes(runs: list[PlannedRun]) -> None:
+    """Validate every run's recipe before anything runs: a missing recipe flags its runs, a bad one stops all."""
+    from adarl.config import load_recipe
+
+    problems = []
+    for run in runs:
+        try:
+            load_recipe(run.recipe, run.overrides)
+        except RecipeError as err:
+            if str(err).startswith(f"no recipe named {run.recipe!r}") or "not found" in str(err).split("\n")[0]:
+                run.status, run.message = "missing-recipe", str(err).split(";")[0]
+            else:
+                problems.append(f"{run.run_id}: {err}")
+    if problems:
+        raise RecipeError("experiment runs do not validate (nothing was run):\n" + "\n".join(problems[:10]))
+
+
+def _cli(*args: str) -> list[str]:
+    return [sys.executable, "-m", "adarl.cli", *args]
+
+
+def _execute(run: PlannedRun, threads: int | None) -> PlannedRun:
+    path = Path(run.path)
+    if (path / "checkpoints").is_dir() and any((path / "checkpoints").glob("ckpt-*.pt")):
+        cmd, action = _cli("resume", str(path), "--quiet"), "resumed"
+    else:
+        if path.exists():
+            shutil.rmtree(path)  # a start that never checkpointed: nothing to keep
+        cmd, action = _cli("run", run.recipe, *run.overrides, "-o", str(path), "--quiet"), "ran"
+    env = dict(os.environ)
+    if threads:
+        env.update(OMP_NUM_THREADS=str(threads), MKL_NUM_THREADS=str(threads))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    log = path.parent / f"{run.run_id}.log"
+    start = time.perf_counter()
+    with log.open("w") as fh:
+        proc = subprocess.run(cmd, stdout=fh, stderr=subprocess.STDOUT, env=env)
+    run.wall_time_s = time.perf_counter() - start
+    if proc.returncode == 0 and run_is_finished(path):
+        run.status, run.message = "finished", action
+        log.unlink(missing_ok=True)
+    else:
+        tail = log.read_text().strip().splitlines()[-1:] if log.is_file() else []
+        run.status, run.message = "failed", f"exit {proc.returncode}: {' '.join(tail)} (log: {log})"
+    return run
+
+
+def _write_state(out: Path, spec: ExperimentSpec, budget: str | None, runs: list[PlannedRun], command: str = "") -> None:
+    payload = {"name": spec.name, "description": spec.description, "budget": budget, "command": command,
+               "axes": list(spec.axes),
+               "report": spec.report.model_dump(), "runs": [r.as_dict() for r in runs]}
+    tmp = out / (EXPERIMENT_FILE + ".tmp")
+    tmp.write_text(json.dumps(payload, indent=2) + "\n")
+    os.replace(tmp, out / EXPERIMENT_FILE)
+
+
+def run_experiment(spec_path: str | os.PathLike, *, budget: str | None = None, output: str | os.PathLike | None = None,
+                   workers: int | None = None, dry_run: bool = False, report: bool = True,
+                   log=print) -> list[PlannedRun]:
+    """Run (or continue) the experiment in ``spec_path``; returns the runs with their status."""
+    spec = load_experiment(spec_path)
+    budget, _ = resolve_budget(spec, budget)
+    out = Path(output) if output is not None else default_output(spec, budget)
+    runs = plan_runs(spec, out, budget)
+    _check_recipes(runs)
+    todo = []
+    for r in runs:
+        if r.status == "missing-recipe":
+            log(f"[skip] {r.run_id}: {r.message}")
+        elif run_is_finished(r.path):
+            r.status, r.message = "skipped-finished", "already finished"
+        else:
+            todo.append(r)
+    previous = out / EXPERIMENT_FILE
+    if previous.is_file():  # keep the timings of runs finished in earlier sessions
+        try:
+            before = {r["run_id"]: r for r in json.loads(previous.read_text()).get("runs", [])}
+        except (json.JSONDecodeError, AttributeError, TypeError):
+            before = {}
+        for r in runs:
+            if r.status == "skipped-finished" and r.run_id in before:
+                r.wall_time_s = float(before[r.run_id].get("wall_time_s") or 0.0)
+    n_done = sum(r.status == "skipped-finished" for r in runs)
+    log(f"experiment {spec.name} (budget {budget or 'default'}): {len(runs)} runs, {n_done} already finished, "
+        f"{len(todo)} to run, {sum(r.status == 'missing-recipe' for r in runs)} with a missing recipe -> {out}")
+    if dry_run:
+        for r in runs:
+            log(f"  {r.status:<16} {r.run_id}: {r.recipe} {' '.join(r.overrides)}")
+        return runs
+    out.mkdir(parents=True, exist_ok=True)
+    command = f"adarl experiment {spec_path}" + (f" --budget {budget}" if budget else "") + f" -o {out}"
+    _write_state(out, spec, budget, runs, command)
+    n_workers = workers or spec.workers
+    threads = 1 if n_workers > 1 else None
+
+    def one(r: PlannedRun) -> PlannedRun:
+        _execute(r, threads)
+        log(f"[{r.status}] {r.run_id} ({r.wall_time_s:.0f} s){'' if r.status == 'finished' else ': ' + r.message}")
+        return r
+
+    if n_workers == 1:
+        for r in todo:
+            one(r)
+            _write_state(out, spec, budget, runs, command)
+    else:
+        with ThreadPoolExecutor(max_workers=n_workers) as pool:
+            for _ in pool.map(one, todo):
+                _write_state(out, spec, budget, runs, command)
+    if spec.sweeps:
+        from adarl.sweep import parse_sweep, sweep_run
+
+        for r in runs:
+            if r.status in ("finished", "skipped-finished"):
+                for s in spec.sweeps:
+                    name = s.name or "__".join(p.split("=")[0] for p in s.params)
+                    if not (Path(r.path) / "sweeps" / f"{name}.csv").is_file():
+                        sweep_run(r.path, [parse_sweep(p) for p in s.params], episodes=s.episodes, name=name)
+    _write_state(out, spec, budget, runs, command)
+    failed = [r for r in runs if r.status == "failed"]
+    if report:
+        from adarl.aggregate import write_aggregate_report
+
+        path = write_aggregate_report([out], out / "report")
+        log(f"report: {path}")
+    if failed:
+        raise AdaRLError(f"{len(failed)} of {len(runs)} runs failed: " + "; ".join(f"{r.run_id}: {r.message}"
+                                                                               for r in failed[:5]))
+    return runs
