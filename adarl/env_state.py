@@ -199,6 +199,10 @@ def load_gym_rng_state_dict(env: EnvBase, state: list | None) -> None:
 
 def collector_state_dict(collector) -> dict:
     """The collector's counters, trajectory-id pool and carrier (the TorchRL half of the live episode)."""
+    from adarl.lean_collector import LeanCollector
+
+    if isinstance(collector, LeanCollector):
+        return collector.state_dict()
     sd = collector.state_dict()
     return {
         "frames": int(sd.get("frames", collector._frames)),
@@ -210,6 +214,11 @@ def collector_state_dict(collector) -> dict:
 
 
 def load_collector_state_dict(collector, state: dict, *, carrier: bool = True) -> None:
+    from adarl.lean_collector import LeanCollector
+
+    if isinstance(collector, LeanCollector):
+        collector.load_state_dict(state, carrier=carrier)
+        return
     collector._frames = int(state["frames"])
     collector._iter = int(state["iter"])
     if state.get("traj_pool") is not None and getattr(collector, "track_traj_ids", False):

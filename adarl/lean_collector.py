@@ -98,6 +98,21 @@ class LeanCollector:
                 self.frames += 1
             yield torch.stack(steps).contiguous()
 
+    def state_dict(self) -> dict:
+        """Frame counter and the live step's TensorDict (the carrier), for exact resume."""
+        return {"frames": self.frames, "iter": 0, "traj_pool": None,
+                "carrier": None if self._td is None else self._td.to_dict(),
+                "carrier_batch_size": [] if self._td is None else list(self._td.batch_size)}
+
+    def load_state_dict(self, state: dict, *, carrier: bool = True) -> None:
+        from tensordict import TensorDict
+
+        self.frames = int(state["frames"])
+        if carrier and state.get("carrier") is not None:
+            self._td = TensorDict(state["carrier"], batch_size=state["carrier_batch_size"])
+        else:
+            self._td = None
+
     def shutdown(self) -> None:
         """Nothing runs in the background; provided for the Collector's interface."""
         self._td = None
