@@ -94,7 +94,18 @@ def _unplain(obj):
     return obj
 
 
+def _native(env: EnvBase):
+    """adarl's own TorchRL envs (e.g. the linear CartPole) snapshot themselves: ``snapshot()``/``restore()``."""
+    base = env
+    while isinstance(base, TransformedEnv):
+        base = base.base_env
+    return base if hasattr(base, "snapshot") and hasattr(base, "restore") else None
+
+
 def _worker_state(env: EnvBase) -> dict:
+    native = _native(env)
+    if native is not None:
+        return {"native": native.snapshot()}
     chain = _gym_chain(env)
     unwrapped = chain[-1]
     state: dict[str, Any] = {"elapsed_steps": None, "np_random": None, "sim": None}
@@ -121,6 +132,10 @@ def _worker_state(env: EnvBase) -> dict:
 
 
 def _load_worker_state(env: EnvBase, state: dict) -> None:
+    native = _native(env)
+    if native is not None:
+        native.restore(state["native"])
+        return
     chain = _gym_chain(env)
     unwrapped = chain[-1]
     transform = _perturbation(env)
@@ -183,6 +198,9 @@ def gym_rng_state_dict(env: EnvBase) -> list | None:
         return None
     out = []
     for e in envs:
+        if _native(e) is not None:
+            out.append({"native": _native(e).snapshot()})
+            continue
         g = getattr(_gym_chain(e)[-1], "_np_random", None)
         out.append(None if g is None else _rng_state(g))
     return out
@@ -193,7 +211,9 @@ def load_gym_rng_state_dict(env: EnvBase, state: list | None) -> None:
     if state is None or envs is None or len(state) != len(envs):
         return
     for e, s in zip(envs, state):
-        if s is not None:
+        if isinstance(s, dict) and "native" in s and _native(e) is not None:
+            _native(e).restore(s["native"])
+        elif s is not None:
             _gym_chain(e)[-1].np_random.bit_generator.state = _unplain(s)
 
 

@@ -166,7 +166,7 @@ def _inject_nan(trainer: Trainer, at_call: int, times: int = 1) -> dict:
 
 
 def test_nan_in_a_loss_stops_the_run_and_keeps_the_last_good_checkpoint(tmp_path):
-    trainer = _trainer(tmp_path / "run")
+    trainer = _trainer(tmp_path / "run", "algorithm.fused=false")  # the NaN is injected into SACLoss
     _inject_nan(trainer, at_call=120)  # updates start at 100 frames; this lands after the 200-frame checkpoint
     with pytest.raises(NonFiniteError) as info:
         trainer.train()
@@ -182,7 +182,7 @@ def test_nan_in_a_loss_stops_the_run_and_keeps_the_last_good_checkpoint(tmp_path
 
 
 def test_rollback_lowers_the_lr_and_finishes(tmp_path):
-    trainer = _trainer(tmp_path / "run", "guards.on_nonfinite=rollback", "guards.lr_factor=0.25")
+    trainer = _trainer(tmp_path / "run", "guards.on_nonfinite=rollback", "guards.lr_factor=0.25", "algorithm.fused=false")
     base = list(trainer.c.schedulers["actor"].base_lrs)
     calls = _inject_nan(trainer, at_call=120)
     summary = trainer.train()

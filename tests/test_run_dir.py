@@ -25,21 +25,22 @@ def test_create_refuses_existing_non_empty(tmp_path):
 def test_checkpoint_round_trip_and_rotation(tmp_path):
     run = RunDir.create(tmp_path / "run")
     for frames in (100, 200, 300, 400):
-        run.save_checkpoint({"x": torch.full((3,), float(frames)), "n": frames}, frames=frames, keep_last=2)
+        run.save_checkpoint({"counters": {"frames": frames}, "x": torch.full((3,), float(frames))},
+                            frames=frames, keep_last=2)
     assert [p.name for p in run.checkpoints()] == ["ckpt-000000000300.pt", "ckpt-000000000400.pt"]
     state = run.load_latest_checkpoint()
-    assert state["n"] == 400 and torch.equal(state["x"], torch.full((3,), 400.0))
+    assert state["counters"]["frames"] == 400 and torch.equal(state["x"], torch.full((3,), 400.0))
     assert not list(run.checkpoint_dir.glob("*.tmp"))
 
 
 def test_corrupt_latest_falls_back_to_previous(tmp_path):
     run = RunDir.create(tmp_path / "run")
-    run.save_checkpoint({"n": 1}, frames=1)
-    latest = run.save_checkpoint({"n": 2}, frames=2)
+    run.save_checkpoint({"counters": {"frames": 1}}, frames=1)
+    latest = run.save_checkpoint({"counters": {"frames": 2}}, frames=2)
     latest.write_bytes(latest.read_bytes()[:50])  # truncated by a crash or a full disk
     with pytest.raises(CheckpointError, match="cannot be loaded safely"):
         run.load_checkpoint(latest)
-    assert run.load_latest_checkpoint()["n"] == 1
+    assert run.load_latest_checkpoint()["counters"]["frames"] == 1
 
 
 class _Evil:

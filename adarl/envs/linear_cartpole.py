@@ -118,6 +118,18 @@ class LinearCartPoleEnv(EnvBase):
         self._length.fill_(self.default_length if length is None else float(length))
 
     # ------------------------------------------------------------------ EnvBase
+    def snapshot(self) -> dict:
+        """The live episode (state, pole lengths, step counts) and the generator, for exact resume."""
+        return {"state": self._state.clone(), "length": self._length.clone(), "steps": self._steps.clone(),
+                "rng": self._np_random.get_state(), "fixed_length": self._fixed_length,
+                "seed": getattr(self, "np_random_seed", None)}
+
+    def restore(self, snap: dict) -> None:
+        self._state, self._length, self._steps = snap["state"].clone(), snap["length"].clone(), snap["steps"].clone()
+        self._np_random.set_state(snap["rng"])
+        self._fixed_length = snap["fixed_length"]
+        self.np_random_seed = snap["seed"]
+
     def _set_seed(self, seed: int | None) -> None:
         # A new generator object per seeding (as gymnasium does) so the perturbation transform sees the reseed.
         self._np_random = torch.Generator(device=self.device)
