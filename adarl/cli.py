@@ -146,8 +146,17 @@ def cmd_report(args) -> int:
 def cmd_experiment(args) -> int:
     from adarl.experiment import run_experiment
 
+    options = {"max_retries": args.max_retries}
+    if args.launcher == "ray":
+        options["address"] = args.ray_address
+    if args.launcher == "submitit":
+        options["cluster"] = args.submitit_cluster
+    for key in ("cpus_per_run", "gpus_per_run"):
+        if getattr(args, key) is not None:
+            options[key] = getattr(args, key)
     runs = run_experiment(args.spec, budget=args.budget, output=args.output, workers=args.workers,
-                          dry_run=args.dry_run, report=not args.no_report)
+                          dry_run=args.dry_run, report=not args.no_report, launcher=args.launcher,
+                          launcher_options=options, progress_interval=args.progress)
     if not args.dry_run:
         counts: dict[str, int] = {}
         for r in runs:
@@ -227,6 +236,19 @@ def build_parser() -> argparse.ArgumentParser:
     ex.add_argument("--workers", "-j", type=int, default=None, help="runs at a time (default: the spec's workers)")
     ex.add_argument("--dry-run", action="store_true", help="list the runs and their status; run nothing")
     ex.add_argument("--no-report", action="store_true", help="do not write the aggregate report")
+    ex.add_argument("--launcher", choices=["local", "ray", "submitit"], default="local",
+                    help="where runs execute: local processes (default), Ray tasks (pip install 'adarl[ray]'), or "
+                         "SLURM jobs through submitit (pip install 'adarl[slurm]'); see docs/launchers.md")
+    ex.add_argument("--ray-address", default=None,
+                    help="Ray cluster to join (e.g. auto, ray://head:10001; default: start a local Ray)")
+    ex.add_argument("--submitit-cluster", default=None, choices=["slurm", "local", "debug"],
+                    help="submitit executor (default: slurm when sbatch is found, else local)")
+    ex.add_argument("--cpus-per-run", type=float, default=None, help="CPUs per run (default: the spec's resources)")
+    ex.add_argument("--gpus-per-run", type=float, default=None, help="GPUs per run (default: the spec's resources)")
+    ex.add_argument("--max-retries", type=int, default=3,
+                    help="times a run whose worker is lost is retried from its checkpoint (ray, submitit)")
+    ex.add_argument("--progress", type=float, default=30.0, metavar="SECONDS",
+                    help="print one line per run and an aggregate bar this often (0: only when runs end)")
     ex.set_defaults(func=cmd_experiment)
     return p
 

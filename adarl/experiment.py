@@ -28,10 +28,10 @@ import itertools
 import json
 import os
 import shutil
+import socket
 import subprocess
 import sys
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -42,9 +42,10 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from adarl.errors import AdaRLError, RecipeError
 
 __all__ = ["ExperimentSpec", "PlannedRun", "load_experiment", "plan_runs", "run_experiment", "run_is_finished",
-           "shipped_experiments", "EXPERIMENT_FILE"]
+           "execute_run", "read_attempts", "shipped_experiments", "EXPERIMENT_FILE", "ATTEMPTS_DIR"]
 
 EXPERIMENT_FILE = "experiment.json"
+ATTEMPTS_DIR = "attempts"  # <output>/attempts/<run id>.jsonl: one line per start and end of a run, by any launcher
 _NAME_CHARS = set("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789._-+")
 
 
@@ -109,6 +110,18 @@ class ReportSpec(_Model):
     intrinsic_rank: int | None = Field(None, description="Reference line in rank plots (default: 2*d_a+1 of the env).")
 
 
+class ResourcesSpec(_Model):
+    """What one run needs, for the ``ray`` and ``submitit`` launchers (the local launcher uses ``workers``)."""
+
+    cpus_per_run: Annotated[float, Field(gt=0)] = Field(1, description="CPUs per run (also its torch threads).")
+    gpus_per_run: Annotated[float, Field(ge=0)] = Field(0, description="GPUs per run (Ray may take fractions).")
+    timeout_min: Annotated[int, Field(ge=1)] = Field(24 * 60, description="SLURM time limit per job (minutes); "
+                                                     "a job that hits it is requeued from its checkpoint.")
+    slurm_partition: str | None = Field(None, description="SLURM partition (default: the cluster's).")
+    slurm_additional_parameters: dict[str, Any] = Field(default_factory=dict,
+                                                        description="Extra sbatch parameters, e.g. {account: x}.")
+
+
 class ExperimentSpec(_Model):
     """A multi-run experiment: ``recipe`` x ``axes`` x ``seeds``."""
 
@@ -123,6 +136,7 @@ class ExperimentSpec(_Model):
     default_budget: str | None = Field(None, description="Budget used when none is asked for (default: none).")
     output: str | None = Field(None, description="Output folder (default: runs/experiments/<name>[-<budget>]).")
     workers: Annotated[int, Field(ge=1)] = Field(1, description="Runs at a time (each in its own process).")
+    resources: ResourcesSpec = Field(default_factory=ResourcesSpec)
     sweeps: list[SweepSpec] = Field(default_factory=list)
     report: ReportSpec = Field(default_factory=ReportSpec)
 
@@ -331,8 +345,42 @@ def _cli(*args: str) -> list[str]:
     return [sys.executable, "-m", "adarl.cli", *args]
 
 
-def _execute(run: PlannedRun, threads: int | None) -> PlannedRun:
+def _die_with_parent() -> None:  # pragma: no cover - runs in the child between fork and exec
+    """Linux: the training process gets SIGKILL when its launcher process dies (a lost Ray worker, a killed job),
+    so a retried run never races an orphan writing the same folder."""
+    try:
+        import ctypes
+        import signal
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, int(signal.SIGKILL))  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
+def _record_attempt(run: PlannedRun, **event) -> None:
+    folder = Path(run.path).parent / ATTEMPTS_DIR
+    folder.mkdir(parents=True, exist_ok=True)
+    event = {"time": time.time(), "host": socket.gethostname(), "pid": os.getpid(), **event}
+    with (folder / f"{run.run_id}.jsonl").open("a") as fh:
+        fh.write(json.dumps(event) + "\n")
+
+
+def read_attempts(output: str | os.PathLike, run_id: str) -> list[dict]:
+    """The start/end events of a run, in order (``event``: start | end; ``action``: ran | resumed; ``pid``...)."""
+    f = Path(output) / ATTEMPTS_DIR / f"{run_id}.jsonl"
+    if not f.is_file():
+        return []
+    return [json.loads(line) for line in f.read_text().splitlines() if line.strip()]
+
+
+def execute_run(run: PlannedRun, threads: int | None) -> PlannedRun:
+    """Run (or resume, when its folder has a checkpoint) one run with the ``adarl`` command; sets its status.
+
+    What every launcher executes, wherever it runs; a finished run is left alone (``skipped-finished``)."""
     path = Path(run.path)
+    if run_is_finished(path):  # e.g. a retried task whose first try finished before its worker was lost
+        run.status, run.message = "skipped-finished", "already finished"
+        return run
     if (path / "checkpoints").is_dir() and any((path / "checkpoints").glob("ckpt-*.pt")):
         cmd, action = _cli("resume", str(path), "--quiet"), "resumed"
     else:
@@ -344,9 +392,11 @@ def _execute(run: PlannedRun, threads: int | None) -> PlannedRun:
         env.update(OMP_NUM_THREADS=str(threads), MKL_NUM_THREADS=str(threads))
     path.parent.mkdir(parents=True, exist_ok=True)
     log = path.parent / f"{run.run_id}.log"
+    _record_attempt(run, event="start", action=action)
     start = time.perf_counter()
     with log.open("w") as fh:
-        proc = subprocess.run(cmd, stdout=fh, stderr=subprocess.STDOUT, env=env)
+        proc = subprocess.run(cmd, stdout=fh, stderr=subprocess.STDOUT, env=env,
+                              preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None)
     run.wall_time_s = time.perf_counter() - start
     if proc.returncode == 0 and run_is_finished(path):
         run.status, run.message = "finished", action
@@ -354,7 +404,11 @@ def _execute(run: PlannedRun, threads: int | None) -> PlannedRun:
     else:
         tail = log.read_text().strip().splitlines()[-1:] if log.is_file() else []
         run.status, run.message = "failed", f"exit {proc.returncode}: {' '.join(tail)} (log: {log})"
+    _record_attempt(run, event="end", action=action, status=run.status)
     return run
+
+
+_execute = execute_run
 
 
 def _write_state(out: Path, spec: ExperimentSpec, budget: str | None, runs: list[PlannedRun], command: str = "") -> None:
@@ -368,8 +422,13 @@ def _write_state(out: Path, spec: ExperimentSpec, budget: str | None, runs: list
 
 def run_experiment(spec_path: str | os.PathLike, *, budget: str | None = None, output: str | os.PathLike | None = None,
                    workers: int | None = None, dry_run: bool = False, report: bool = True,
-                   log=print) -> list[PlannedRun]:
-    """Run (or continue) the experiment in ``spec_path``; returns the runs with their status."""
+                   log=print, launcher: str | Any = "local", launcher_options: dict | None = None,
+                   progress_interval: float = 0) -> list[PlannedRun]:
+    """Run (or continue) the experiment in ``spec_path``; returns the runs with their status.
+
+    ``launcher``: ``local`` (default), ``ray``, ``submitit`` (see :mod:`adarl.launchers`; ``launcher_options`` go to
+    :func:`~adarl.launchers.make_launcher`) or a :class:`~adarl.launchers.Launcher`. ``progress_interval`` > 0 logs
+    one line per run and an aggregate bar that often (seconds)."""
     spec = load_experiment(spec_path)
     budget, _ = resolve_budget(spec, budget)
     out = Path(output) if output is not None else default_output(spec, budget)
@@ -402,22 +461,27 @@ def run_experiment(spec_path: str | os.PathLike, *, budget: str | None = None, o
     out.mkdir(parents=True, exist_ok=True)
     command = f"adarl experiment {spec_path}" + (f" --budget {budget}" if budget else "") + f" -o {out}"
     _write_state(out, spec, budget, runs, command)
-    n_workers = workers or spec.workers
-    threads = 1 if n_workers > 1 else None
+    from adarl.launchers import Launcher, make_launcher
+    from adarl.progress import ProgressBoard
 
-    def one(r: PlannedRun) -> PlannedRun:
-        _execute(r, threads)
+    if not isinstance(launcher, Launcher):
+        launcher = make_launcher(launcher, workers=workers or spec.workers, output=out, resources=spec.resources,
+                                 **(launcher_options or {}))
+    board, last_tick = ProgressBoard(runs), [time.monotonic()]
+
+    def done(r: PlannedRun) -> None:
         log(f"[{r.status}] {r.run_id} ({r.wall_time_s:.0f} s){'' if r.status == 'finished' else ': ' + r.message}")
-        return r
+        _write_state(out, spec, budget, runs, command)
 
-    if n_workers == 1:
-        for r in todo:
-            one(r)
-            _write_state(out, spec, budget, runs, command)
-    else:
-        with ThreadPoolExecutor(max_workers=n_workers) as pool:
-            for _ in pool.map(one, todo):
-                _write_state(out, spec, budget, runs, command)
+    def tick(running: set) -> None:
+        board.running = running
+        if progress_interval > 0 and time.monotonic() - last_tick[0] >= progress_interval:
+            last_tick[0] = time.monotonic()
+            for line in board.render():
+                log(line)
+
+    if todo:
+        launcher.launch(todo, done, tick=tick)
     if spec.sweeps:
         from adarl.sweep import parse_sweep, sweep_run
 

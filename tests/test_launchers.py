@@ -1,0 +1,149 @@
+"""Launchers: a tiny 2-algorithm x 2-seed experiment through Ray (one worker killed mid-run) and through submitit's
+local executor gives every run finished exactly once and the same report as the local launcher."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+from adarl.errors import AdaRLValueError
+from adarl.experiment import plan_runs, load_experiment, read_attempts, run_experiment
+from adarl.launchers import make_launcher
+from adarl.progress import ProgressBoard
+
+REPO = Path(__file__).resolve().parents[1]
+# ~8 s per run on one core; a checkpoint every 50 frames so a killed run resumes from mid-run.
+TINY = ["collector.lean=false", "collector.total_frames=600", "collector.init_random_frames=100",
+        "collector.frames_per_batch=50", "algorithm.batch_size=32", "rank.interval=150", "replay.size=2000",
+        "replay.warm_start.frames=50", "lr_schedule.warmup_steps=20", "eval.interval=200", "eval.episodes=1",
+        "eval.max_steps=30", "checkpoint.interval=50", "checkpoint.keep_last=2"]
+
+
+def _spec(tmp_path: Path) -> Path:
+    spec = {"kind": "experiment", "name": "tiny", "recipe": "quickstart", "overrides": TINY,
+            "axes": {"algorithm": [{"name": "adarl"},
+                                   {"name": "fixed4", "overrides": ["rank.enabled=false", "network.actor.rank=4",
+                                                                    "network.critic.rank=4"]}]},
+            "seeds": [0, 1], "workers": 2}
+    path = tmp_path / "tiny.yaml"
+    path.write_text(yaml.safe_dump(spec))
+    return path
+
+
+@pytest.fixture(autouse=True)
+def _one_thread(monkeypatch):
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    monkeypatch.setenv("PYTHONPATH", str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+
+
+def _report_content(out: Path) -> dict[str, str]:
+    """The aggregate report's results (table, and every run's evaluations), without timings."""
+    with (out / "report" / "table.csv").open() as fh:
+        table = sorted(tuple(r.items()) for r in csv.DictReader(fh))
+    evals = {p.parent.name: p.read_text() for p in sorted(out.glob("*/eval.csv"))}
+    return {"table": repr(table), **evals}
+
+
+def _assert_each_finished_once(out: Path, runs) -> None:
+    for r in runs:
+        ends = [e for e in read_attempts(out, r.run_id) if e["event"] == "end" and e["status"] == "finished"]
+        assert len(ends) == 1, (r.run_id, read_attempts(out, r.run_id))
+
+
+@pytest.fixture(scope="module")
+def local_reference(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("local")
+    out = tmp / "exp"
+    runs = run_experiment(_spec(tmp), output=out, log=lambda *_: None)
+    assert sorted(r.status for r in runs) == ["finished"] * 4
+    return out, _report_content(out)
+
+
+def test_make_launcher_rejects_unknown_names_and_bad_sizes():
+    with pytest.raises(AdaRLValueError, match="unknown launcher 'slurmx'; choose one of local, ray, submitit"):
+        make_launcher("slurmx")
+    with pytest.raises(AdaRLValueError, match="workers must be >= 1"):
+        make_launcher("local", workers=0)
+
+
+def test_cli_rejects_an_unknown_launcher(tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "adarl.cli", "experiment", str(_spec(tmp_path)), "--launcher", "k8s",
+                           "-o", str(tmp_path / "o")], capture_output=True, text=True, cwd=REPO)
+    assert proc.returncode != 0 and "invalid choice: 'k8s'" in proc.stderr
+    assert not (tmp_path / "o").exists()
+
+
+def test_progress_board_lines_and_bar(tmp_path, local_reference):
+    out, _ = local_reference
+    runs = plan_runs(load_experiment(_spec(tmp_path)), out)
+    runs[0].status = "finished"
+    lines = ProgressBoard(runs).render()
+    assert len(lines) == 5
+    assert lines[0].split()[0] == "finished" and "frames 650/600" in lines[0] and "return" in lines[0]
+    assert lines[-1].startswith("[") and "1/4 runs done" in lines[-1]
+
+
+@pytest.mark.slow
+def test_ray_launcher_survives_a_killed_worker_and_matches_local(tmp_path, local_reference):
+    pytest.importorskip("ray")
+    ref_out, ref_report = local_reference
+    out = tmp_path / "exp"
+    spec = _spec(tmp_path)
+    killed: list[str] = []
+
+    def kill_one_worker_mid_run():
+        end = time.monotonic() + 240
+        while time.monotonic() < end and not killed:
+            for f in sorted((out / "attempts").glob("*.jsonl")) if (out / "attempts").is_dir() else []:
+                events = [json.loads(x) for x in f.read_text().splitlines()]
+                run = out / f.stem
+                ckpts = list((run / "checkpoints").glob("ckpt-*.pt")) if (run / "checkpoints").is_dir() else []
+                if len(events) == 1 and any(int(c.stem.split("-")[1]) > 0 for c in ckpts):
+                    os.kill(events[0]["pid"], signal.SIGKILL)  # the Ray worker process running this run
+                    killed.append(f.stem)
+                    return
+            time.sleep(0.05)
+
+    killer = threading.Thread(target=kill_one_worker_mid_run, daemon=True)
+    killer.start()
+    said: list[str] = []
+    runs = run_experiment(spec, output=out, launcher="ray", log=said.append,
+                          launcher_options={"max_retries": 2}, progress_interval=1)
+    killer.join()
+    assert killed, "no worker was killed mid-run"
+    assert sorted(r.status for r in runs) == ["finished"] * 4, said
+    _assert_each_finished_once(out, runs)
+    starts = [e["action"] for e in read_attempts(out, killed[0]) if e["event"] == "start"]
+    assert starts == ["ran", "resumed"], read_attempts(out, killed[0])
+    assert any("runs done" in line for line in said)
+    assert _report_content(out) == ref_report
+    # finished runs are never re-run
+    again = run_experiment(spec, output=out, launcher="ray", report=False, log=lambda *_: None)
+    assert sorted(r.status for r in again) == ["skipped-finished"] * 4
+    _assert_each_finished_once(out, runs)
+
+
+@pytest.mark.slow
+def test_submitit_local_executor_matches_local(tmp_path, local_reference):
+    pytest.importorskip("submitit")
+    _, ref_report = local_reference
+    out = tmp_path / "exp"
+    proc = subprocess.run([sys.executable, "-m", "adarl.cli", "experiment", str(_spec(tmp_path)), "-o", str(out),
+                           "--launcher", "submitit", "--submitit-cluster", "local", "--progress", "2"],
+                          capture_output=True, text=True, cwd=REPO, timeout=600)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
+    assert "4 finished" in proc.stdout
+    runs = plan_runs(load_experiment(_spec(tmp_path)), out)
+    _assert_each_finished_once(out, runs)
+    assert _report_content(out) == ref_report
+    assert (out / "submitit").is_dir()
