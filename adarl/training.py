@@ -90,6 +90,17 @@ def _env_kwargs(recipe) -> dict:
     return dict(mode=p.mode, dynamics_key=p.key, device=recipe.device, max_episode_steps=e.max_episode_steps)
 
 
+def make_envs(recipe) -> tuple:
+    """The training env (perturbed per episode) and the evaluation env (fixed at the nominal dynamics)."""
+    e, p = recipe.env, recipe.env.perturbation
+    env = make_env(e.id, preset=p.preset, schedule=p.schedule, num_envs=e.num_envs, parallel=e.parallel,
+                   seed=recipe.seed, **_env_kwargs(recipe))
+    # Evaluation runs on the nominal dynamics: the centre of the training schedule (or the plain env).
+    nominal = (p.schedule if p.schedule is not None else p.preset) if recipe.eval.nominal else "none"
+    eval_env = make_eval_env(e.id, nominal, seed=recipe.seed + 10_000, **_env_kwargs(recipe))
+    return env, eval_env
+
+
 def build_components(recipe, *, init_random_frames: int | None = None,
                      scratch_dir: str | os.PathLike | None = None) -> Components:
     """Build env, networks, SAC loss, optimisers, LR schedules, buffer, collector, rank adapter and warm start.
@@ -99,13 +110,7 @@ def build_components(recipe, *, init_random_frames: int | None = None,
     if recipe.algorithm.num_threads is not None:
         torch.set_num_threads(recipe.algorithm.num_threads)
     seed_everything(recipe.seed)
-    e = recipe.env
-    p = e.perturbation
-    env = make_env(e.id, preset=p.preset, schedule=p.schedule, num_envs=e.num_envs, parallel=e.parallel,
-                   seed=recipe.seed, **_env_kwargs(recipe))
-    # Evaluation runs on the nominal dynamics: the centre of the training schedule (or the plain env).
-    nominal = (p.schedule if p.schedule is not None else p.preset) if recipe.eval.nominal else "none"
-    eval_env = make_eval_env(e.id, nominal, seed=recipe.seed + 10_000, **_env_kwargs(recipe))
+    env, eval_env = make_envs(recipe)
     modules = make_sac_modules(recipe, env)
     loss = modules.loss
     alg = recipe.algorithm

@@ -31,9 +31,9 @@ from torchrl.objectives.value import GAE
 from adarl.baselines.normalization import RewardScaler, RunningObsNorm
 from adarl.baselines.rnac import DoubleSamplingTransform, IPMAdvantage
 from adarl.builders import make_mlp
-from adarl.envs import dynamics_state_dict, load_dynamics_state_dict, make_env, make_eval_env
+from adarl.envs import dynamics_state_dict, load_dynamics_state_dict
 from adarl.run_dir import RunDir
-from adarl.training import Trainer, _env_kwargs, _rng_state, _set_rng_state, seed_everything
+from adarl.training import Trainer, _rng_state, _set_rng_state, make_envs, seed_everything
 
 __all__ = ["PPOModules", "PPOComponents", "LinearDecay", "make_ppo_modules", "build_ppo_components", "PPOTrainer",
            "trainer_class"]
@@ -129,11 +129,7 @@ def make_ppo_modules(recipe, env) -> PPOModules:
 def build_ppo_components(recipe) -> PPOComponents:
     """Env (+ RNAC-DS), evaluation env, networks, loss, optimisers, LR decay and collector of a PPO recipe."""
     seed_everything(recipe.seed)
-    e, p = recipe.env, recipe.env.perturbation
-    env = make_env(e.id, preset=p.preset, schedule=p.schedule, num_envs=e.num_envs, parallel=e.parallel,
-                   seed=recipe.seed, **_env_kwargs(recipe))
-    nominal = (p.schedule if p.schedule is not None else p.preset) if recipe.eval.nominal else "none"
-    eval_env = make_eval_env(e.id, nominal, seed=recipe.seed + 10_000, **_env_kwargs(recipe))
+    env, eval_env = make_envs(recipe)
     modules = make_ppo_modules(recipe, env)
     alg, ppo = recipe.algorithm, recipe.algorithm.ppo
     ds = None
