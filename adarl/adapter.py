@@ -514,6 +514,9 @@ class RankAdapter(TrainerHookBase):
         fit_data: for :class:`~adarl.rank.PolicyFitRule`: a callable returning a TensorDict batch, or a TorchRL
             replay buffer (``.sample()`` is called; give it a ``batch_size``).
         logger: a TorchRL logger; the rank of each layer is logged as ``rank/<layer path>`` at every event.
+        num_threads: torch threads for the decompositions of an event (restored afterwards); ``None`` keeps the
+            process's setting. Training at (64, 64) is fastest on one thread, but an event on 1024-wide layers
+            is a few float64 eigendecompositions that scale with cores, and it pauses training anyway.
 
     Call :meth:`step` after every optimisation step, at a clean point (after the optimiser step and the target
     update, with no live autograd graph), or register the adapter on a ``torchrl.trainers.Trainer``
@@ -534,7 +537,11 @@ class RankAdapter(TrainerHookBase):
         on_truncate: Sequence[Callable] | Callable = (),
         fit_data: Callable[[], TensorDictBase] | Any = None,
         logger: Any = None,
+        num_threads: int | None = None,
     ) -> None:
+        if num_threads is not None and (isinstance(num_threads, bool) or not isinstance(num_threads, int)
+                                        or num_threads < 1):
+            raise AdaRLValueError(f"num_threads must be an integer >= 1 or None (keep the process's), got {num_threads!r}")
         if isinstance(interval, bool) or not isinstance(interval, int) or interval < 1:
             raise AdaRLValueError(f"interval must be an integer >= 1 (optimisation steps between events), got {interval!r}")
         if scope not in SCOPES:
@@ -584,6 +591,7 @@ class RankAdapter(TrainerHookBase):
         self.on_truncate = on_truncate
         self.fit_data = fit_data
         self.logger = logger
+        self.num_threads = num_threads
         self.sites, searched = find_low_rank_layers(loss_module, scope)
         if not self.sites:
             raise AdaRLValueError(
@@ -637,14 +645,20 @@ class RankAdapter(TrainerHookBase):
         """Run a rank event now: decide every layer's rank from the current network, then apply the changes."""
         event = RankEvent(step=self.step_count, index=len(self.history))
         batch = self._fit_batch() if self.rule.needs_fit else None
-        plans = []
-        for site in self.sites:
-            record, svd = self._decide(site, event.step, batch)
-            event.layers.append(record)
-            plans.append((site, record, svd))
-        for site, record, (u, s, vh) in plans:
-            if record.changed:
-                record.target = self._apply(site, record.new_rank, u, s, vh)
+        threads = torch.get_num_threads()
+        if self.num_threads is not None:
+            torch.set_num_threads(self.num_threads)
+        try:
+            plans = []
+            for site in self.sites:
+                record, svd = self._decide(site, event.step, batch)
+                event.layers.append(record)
+                plans.append((site, record, svd))
+            for site, record, (u, s, vh) in plans:
+                if record.changed:
+                    record.target = self._apply(site, record.new_rank, u, s, vh)
+        finally:
+            torch.set_num_threads(threads)
         self.history.append(event)
         if event.changed:
             _erase_loss_caches(self.loss_module)

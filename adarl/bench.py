@@ -24,7 +24,7 @@ from pathlib import Path
 
 __all__ = ["VARIANTS", "run_benchmark", "measure", "rank_event_seconds", "format_table", "main"]
 
-VARIANTS = ("adarl", "adarl_norank", "torchrl", "sb3")
+VARIANTS = ("adarl", "adarl_overlap", "adarl_norank", "torchrl", "sb3")
 
 
 def _sb3_available() -> bool:
@@ -33,21 +33,24 @@ def _sb3_available() -> bool:
     return importlib.util.find_spec("stable_baselines3") is not None
 
 
-def _recipe(env_id: str, width: int, variant: str, warmup: int, total: int, rank_interval: int, batch: int):
+def _recipe(env_id: str, width: int, variant: str, warmup: int, total: int, rank_interval: int, batch: int,
+            extra: tuple[str, ...] = ()):
     from adarl.config import load_recipe
 
     ov = [f"env.id={env_id}", "env.perturbation.preset=none", f"collector.total_frames={total}",
           f"collector.init_random_frames={warmup}", "collector.frames_per_batch=50", f"replay.size={max(total, batch)}",
           f"algorithm.batch_size={batch}", f"network.actor.num_cells=[{width},{width}]",
           f"network.critic.num_cells=[{width},{width}]", "replay.warm_start.frames=0"]
-    if variant == "adarl":
+    if variant in ("adarl", "adarl_overlap"):
         ov += [f"rank.interval={rank_interval}", "algorithm.fused=true"]
+        if variant == "adarl_overlap":  # collection in a background thread, one batch staler
+            ov += ["collector.overlap=true"]
     elif variant == "adarl_norank":
         ov += ["rank.enabled=false", "algorithm.fused=true"]
     else:  # stock TorchRL: plain MLPs, SACLoss, for-loop Adam, SoftUpdate (TorchRL's reference SAC recipe)
         ov += ["rank.enabled=false", "algorithm.fused=false", "network.actor.low_rank_layers=[]",
                "network.critic.low_rank_layers=[]"]
-    return load_recipe("base", ov)
+    return load_recipe("base", ov + list(extra))
 
 
 def _measure_torchrl(variant, env_id, width, warmup, steps, skip, batch, rank_interval) -> dict:
@@ -62,7 +65,7 @@ def _measure_torchrl(variant, env_id, width, warmup, steps, skip, batch, rank_in
 
     def update():
         if fused is not None:
-            fused(c.replay_buffer.sample())
+            fused.step(*c.extras["fused_sampler"]())
         else:
             td = loss(c.replay_buffer.sample())
             (td["loss_actor"] + td["loss_qvalue"] + td["loss_alpha"]).backward()
@@ -129,16 +132,19 @@ def measure(variant: str, env_id: str, width: int, *, warmup: int = 1000, steps:
     return out
 
 
-def rank_event_seconds(width: int, *, repeats: int = 3, threads: int = 1) -> float:
-    """Median wall time of one rank event on an actor and a twin critic with two ``width``-wide low-rank layers."""
+def rank_event_seconds(width: int, *, repeats: int = 3, threads: int = 1, event_threads: int | None = None) -> float:
+    """Median wall time of one rank event on an actor and a twin critic with two ``width``-wide low-rank layers.
+
+    ``threads`` is the loop's torch thread count, ``event_threads`` the recipe's ``rank.num_threads``."""
     import torch
 
     from adarl.training import build_components
 
     torch.set_num_threads(threads)
+    extra = () if event_threads is None else (f"rank.num_threads={event_threads}",)
     times = []
     for _ in range(repeats):
-        r = _recipe("Hopper-v5", width, "adarl", 10, 100, 10**9, 8)
+        r = _recipe("Hopper-v5", width, "adarl", 10, 100, 10**9, 8, extra)
         c = build_components(r)
         t = time.perf_counter()
         c.adapter.adapt()
@@ -202,9 +208,12 @@ def run_benchmark(a) -> dict:
                 # share of wall time at the paper's interval of 1e6 optimisation steps
                 row["rank_overhead_at_paper_interval"] = (ev / 1000) / (1e6 / ups["adarl"])
             results.append(row)
-    events = {str(w): 1000 * rank_event_seconds(w, threads=a.threads) for w in a.event_widths}
+    # one rank event stand-alone, at the loop's thread count and (rank.num_threads) with every core
+    thread_counts = sorted({a.threads, os.cpu_count() or 1})
+    events = [{"width": w, "threads": t, "ms": 1000 * rank_event_seconds(w, threads=a.threads, event_threads=t)}
+              for w in a.event_widths for t in thread_counts]
     return {"settings": {k: v for k, v in vars(a).items() if k not in ("func",)}, "skipped": skipped,
-            "results": results, "rank_event_ms_by_width": events,
+            "results": results, "rank_events_standalone": events,
             "machine": {"cpus": os.cpu_count(), "load_avg": os.getloadavg()}}
 
 
@@ -223,8 +232,8 @@ def format_table(report: dict) -> str:
         if "rank_overhead_at_paper_interval" in row:
             lines.append(f"| {row['env']} | ({row['width']}, {row['width']}) | rank-event share of wall time at "
                          f"interval 1e6 | {100 * row['rank_overhead_at_paper_interval']:.5f}% |")
-    lines += ["", "| layer width | one rank event, actor + 2 critics (ms) |", "|---|---|"]
-    lines += [f"| {w} | {ms:.1f} |" for w, ms in report["rank_event_ms_by_width"].items()]
+    lines += ["", "| layer width | torch threads | one rank event, actor + 2 critics (ms) |", "|---|---|---|"]
+    lines += [f"| {e['width']} | {e['threads']} | {e['ms']:.1f} |" for e in report["rank_events_standalone"]]
     if report["skipped"]:
         lines += ["", f"skipped (not installed): {', '.join(report['skipped'])}"]
     return "\n".join(lines)
@@ -234,7 +243,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--envs", nargs="+", default=["Hopper-v5"], help="gymnasium env ids (e.g. Hopper-v5 Humanoid-v5)")
     p.add_argument("--widths", nargs="+", type=int, default=[64, 256], help="hidden width w of (w, w) MLPs")
     p.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS,
-                   help="adarl (fused, rank adaptation on), adarl_norank, torchrl (stock SACLoss loop), sb3")
+                   help="adarl (fused, rank adaptation on), adarl_overlap (the same with collector.overlap), "
+                        "adarl_norank, torchrl (stock SACLoss loop), sb3")
     p.add_argument("--repeats", type=int, default=3, help="repeats per variant (the median is reported)")
     p.add_argument("--steps", type=int, default=1000, help="timed updates per measurement")
     p.add_argument("--warmup", type=int, default=1000, help="random-action frames before updates start")

@@ -454,6 +454,11 @@ class RankConfig(_Section):
         description="Target critics after a truncation: 'sync' copies the new online factors; 'project' applies "
         "the same change of basis to the target factors (keeps the Polyak lag).",
     )
+    num_threads: PosInt | None = Field(
+        None,
+        description="Torch threads during a rank event (restored afterwards); null = the run's own "
+        "(algorithm.num_threads). Events on wide layers are float64 eigendecompositions that scale with cores.",
+    )
 
     @model_validator(mode="after")
     def _check_rule(self) -> RankConfig:
@@ -504,6 +509,12 @@ class CollectorConfig(_Section):
         "auto",
         description="LeanCollector (adarl.lean_collector: same env, policy sampled straight from the actor network, "
         "no Collector overhead); 'auto' = on for one env with a TanhNormal actor; false = torchrl Collector.",
+    )
+    overlap: bool = Field(
+        False,
+        description="Collect the next batch in a background thread while the updates of the current one run "
+        "(needs the lean collector). The next batch then comes from the policy as it was one batch earlier, as "
+        "with TorchRL's asynchronous collectors; exact resume still holds.",
     )
 
 

@@ -67,19 +67,6 @@ def _mlp_layers(net: nn.Module, what: str) -> list[nn.Module]:
     return layers
 
 
-def low_rank_matmul(x: torch.Tensor, w1: torch.Tensor, w2: torch.Tensor) -> torch.Tensor:
-    """``x @ (w1 @ w2)^T`` by whichever order costs fewer flops (stacked ``[N, ...]`` factors allowed).
-
-    Factored, ``x @ w2^T @ w1^T`` costs ``B r (in + out)``; merged, ``w1 @ w2`` then one matmul costs
-    ``out r in + B in out``. Near full rank (every layer before its first rank event) merging is cheaper."""
-    out_f, r = w1.shape[-2], w1.shape[-1]
-    in_f = w2.shape[-1]
-    rows = x.shape[-2] if x.dim() > 1 else 1
-    if out_f * r * in_f + rows * in_f * out_f < rows * r * (in_f + out_f):
-        return torch.matmul(x, torch.matmul(w1, w2).transpose(-1, -2))
-    return torch.matmul(torch.matmul(x, w2.transpose(-1, -2)), w1.transpose(-1, -2))
-
-
 class _StackedMLP:
     """Forward of an ensemble MLP whose parameters are stacked ``[N, ...]`` tensors (the SACLoss layout)."""
 
@@ -98,23 +85,53 @@ class _StackedMLP:
         if missing:
             raise AdaRLValueError(f"fused SAC update: Q parameters {missing} not found in the loss's parameters")
 
-    def __call__(self, params: dict[str, torch.Tensor], x: torch.Tensor) -> torch.Tensor:
-        """``x`` is ``[B, in]`` (shared by all critics) or ``[N, B, in]``; returns ``[N, B, out]``."""
+    def prepare(self, params: dict[str, torch.Tensor], rows: int) -> list[tuple]:
+        """Per layer ``(kind, weight(s), bias)`` for :meth:`forward`; merges ``W1 W2`` once where that is cheaper.
+
+        Why: one update runs the same weights on several batches (the actor on the current and the next
+        states, the critics for the critic loss and, detached, for the actor loss). Merging a near-full-rank
+        product once per update instead of once per forward saves one ``out x r x in`` product per reuse."""
+        out = []
         for kind, spec in self.layers:
             if kind == "act":
-                x = spec(x)
+                out.append(("act", spec, None))
             elif kind == "linear":
-                w, b = params[spec[0]], params[spec[1]] if spec[1] is not None else None
-                x = torch.matmul(x, w.transpose(-1, -2))
-                if b is not None:
-                    x = x + b.unsqueeze(-2)
+                out.append(("linear", params[spec[0]], params[spec[1]] if spec[1] is not None else None))
             else:
                 w1, w2 = params[spec[0]], params[spec[1]]
                 b = params[spec[2]] if spec[2] is not None else None
-                x = low_rank_matmul(x, w1, w2)
-                if b is not None:
-                    x = x + b.unsqueeze(-2)
+                out_f, r, in_f = w1.shape[-2], w1.shape[-1], w2.shape[-1]
+                if out_f * r * in_f + rows * in_f * out_f < rows * r * (in_f + out_f):
+                    out.append(("linear", torch.matmul(w1, w2), b))
+                else:
+                    out.append(("lowrank", (w1, w2), b))
+        return out
+
+    @staticmethod
+    def detached(prepared: list[tuple]) -> list[tuple]:
+        """The same layers with every tensor detached (the critics inside the actor loss)."""
+        def d(t):
+            return None if t is None else tuple(x.detach() for x in t) if isinstance(t, tuple) else t.detach()
+        return [(k, w if k == "act" else d(w), d(b)) for k, w, b in prepared]
+
+    @staticmethod
+    def forward(prepared: list[tuple], x: torch.Tensor) -> torch.Tensor:
+        """``x`` is ``[B, in]`` (shared by all critics) or ``[N, B, in]``; returns ``[N, B, out]``."""
+        for kind, w, b in prepared:
+            if kind == "act":
+                x = w(x)
+                continue
+            if kind == "linear":
+                x = torch.matmul(x, w.transpose(-1, -2))
+            else:
+                x = torch.matmul(torch.matmul(x, w[1].transpose(-1, -2)), w[0].transpose(-1, -2))
+            if b is not None:
+                x = x + b.unsqueeze(-2)
         return x
+
+    def __call__(self, params: dict[str, torch.Tensor], x: torch.Tensor) -> torch.Tensor:
+        """``x`` is ``[B, in]`` (shared by all critics) or ``[N, B, in]``; returns ``[N, B, out]``."""
+        return self.forward(self.prepare(params, x.shape[-2] if x.dim() > 1 else 1), x)
 
 
 def _actor_net(loss) -> nn.Module:
@@ -193,11 +210,12 @@ class FusedSACUpdate:
         self._fn = self._build()
 
     # ------------------------------------------------------------------ the maths
-    def _sample(self, obs: torch.Tensor, noise: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def _sample(self, actor: list[tuple], obs: torch.Tensor,
+                noise: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Reparameterised TanhNormal sample and its log-probability, scored at the exact pre-tanh value."""
         from torchrl.modules.distributions.utils import safetanh_noeps
 
-        loc, scale = self._param_extractor(self.actor_mlp(self.actor_params, obs))
+        loc, scale = self._param_extractor(_StackedMLP.forward(actor, obs))
         pre = loc + noise * scale
         action = safetanh_noeps(pre)
         log_prob = (-0.5 * noise.pow(2) - scale.log() - 0.5 * math.log(2 * math.pi)).sum(-1)
@@ -218,16 +236,20 @@ class FusedSACUpdate:
         """SAC v2 losses ``(loss_actor, loss_qvalue, loss_alpha, alpha, entropy)``, as ``SACLoss.forward``."""
         log_alpha = self.loss.log_alpha
         alpha = log_alpha.detach().exp()
+        rows = obs.shape[-2]
+        actor = self.actor_mlp.prepare(self.actor_params, rows)  # shared by both actor passes
+        critic = self.q_net.prepare(self.q_params, rows)  # shared (detached) by the actor loss
         with torch.no_grad():
-            next_action, next_logp = self._sample(next_obs, noise_next)
-            q_next = self.q_net(self.target_q_params, torch.cat([next_obs, next_action], -1))  # [N, B, 1]
+            next_action, next_logp = self._sample(actor, next_obs, noise_next)
+            target_q = self.q_net.prepare(self.target_q_params, rows)
+            q_next = _StackedMLP.forward(target_q, torch.cat([next_obs, next_action], -1))  # [N, B, 1]
             next_value = (q_next - alpha * next_logp.unsqueeze(-1)).min(0)[0]
             target = (reward + self.gamma * (~terminated).to(reward.dtype) * next_value).squeeze(-1)
-        pred = self.q_net(self.q_params, torch.cat([obs, action], -1)).squeeze(-1)  # [N, B]
+        pred = _StackedMLP.forward(critic, torch.cat([obs, action], -1)).squeeze(-1)  # [N, B]
         loss_q = self._distance(pred, target.expand_as(pred)).sum(0).mean()
-        new_action, logp = self._sample(obs, noise_now)
-        detached = {k: v.detach() for k, v in self.q_params.items()}
-        q_new = self.q_net(detached, torch.cat([obs, new_action], -1)).min(0)[0].squeeze(-1)
+        new_action, logp = self._sample(actor, obs, noise_now)
+        q_new = _StackedMLP.forward(_StackedMLP.detached(critic), torch.cat([obs, new_action], -1))
+        q_new = q_new.min(0)[0].squeeze(-1)
         loss_actor = (alpha * logp - q_new).mean()
         logp_d = logp.detach()
         loss_alpha = (-log_alpha * (logp_d + self.target_entropy)).mean()
@@ -262,7 +284,12 @@ class FusedSACUpdate:
         return torch.randn(shape, dtype=obs.dtype), torch.randn(shape, dtype=obs.dtype)
 
     def __call__(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
-        obs, action, reward, next_obs, terminated = self.batch_tensors(batch)
+        return self.step(*self.batch_tensors(batch))
+
+    def step(self, obs: torch.Tensor, action: torch.Tensor, reward: torch.Tensor, next_obs: torch.Tensor,
+             terminated: torch.Tensor) -> dict[str, torch.Tensor]:
+        """One update from the five tensors of :meth:`batch_tensors` (e.g. from a
+        :class:`~adarl.fast_replay.UniformTensorSampler`)."""
         if self.min_log_alpha is not None or self.max_log_alpha is not None:
             self.loss.log_alpha.data.clamp_(self.min_log_alpha, self.max_log_alpha)
         noise_next, noise_now = self.draw_noise(obs, action)
@@ -282,3 +309,6 @@ class FusedSACUpdate:
             torch._foreach_lerp_(self._q_targets, self._q_sources, self.tau)
         return {"loss_actor": loss_actor.detach(), "loss_qvalue": loss_q.detach(),
                 "loss_alpha": loss_alpha.detach(), "alpha": alpha, "entropy": entropy}
+
+    #: keys of a replay sample that :meth:`step` reads, in its argument order
+    KEYS = ("observation", "action", ("next", "reward"), ("next", "observation"), ("next", "terminated"))

@@ -11,6 +11,8 @@ done flags and the env's own extra keys).
 
 from __future__ import annotations
 
+import copy
+import threading
 from collections.abc import Iterator
 
 import torch
@@ -49,10 +51,17 @@ class LeanCollector:
         frames_per_batch: transitions per yielded batch.
         init_random_frames: frames of uniform-random actions before the policy acts.
         total_frames: stop after this many frames; ``-1`` never stops (as the Trainer uses it).
+        overlap: collect the next batch in a background thread while the caller trains on the current one.
+            The thread acts with a copy of the actor network taken when the current batch is handed over, so
+            batch ``k + 1`` comes from the policy after the updates of batch ``k - 1`` (one batch staler than
+            without overlap, like TorchRL's asynchronous collectors); its action noise comes from its own
+            generator (``noise_seed``). The random phase is never overlapped. Deterministic: the result does not
+            depend on thread timing, and :meth:`state_dict` keeps a finished prefetched batch for exact resume.
+        noise_seed: seed of that generator (overlap only).
     """
 
     def __init__(self, env, policy, *, frames_per_batch: int, init_random_frames: int = 0,
-                 total_frames: int = -1) -> None:
+                 total_frames: int = -1, overlap: bool = False, noise_seed: int = 0) -> None:
         if tuple(env.batch_size) != ():
             raise AdaRLValueError(f"LeanCollector runs one env (batch_size []), got batch_size {tuple(env.batch_size)}; "
                                   "set collector.lean: false for vectorised envs")
@@ -72,47 +81,113 @@ class LeanCollector:
         self._affine = bool((low != -1).any() or (high != 1).any())
         self.frames = 0
         self._td: TensorDictBase | None = None
+        self.overlap = bool(overlap)
+        self._noise = torch.Generator().manual_seed(int(noise_seed)) if self.overlap else None
+        self._thread: threading.Thread | None = None
+        self._result: dict = {}
+        self._ready: TensorDictBase | None = None
 
     def reset(self) -> None:
-        """Start a fresh episode at the next step (call after anything else stepped or reset the env)."""
+        """Start a fresh episode at the next step (call after anything else stepped or reset the env).
+
+        A batch being prefetched is finished and dropped (its frames are not counted): it continued the
+        episode that is being abandoned."""
+        self.drain(keep=False)
         self._td = None
 
     @torch.no_grad()
-    def act(self, td: TensorDictBase) -> torch.Tensor:
+    def act(self, td: TensorDictBase, net=None, generator: torch.Generator | None = None) -> torch.Tensor:
         """One action: uniform-random during the random phase, else a TanhNormal sample from the policy."""
         if self.frames < self.init_random_frames:
             return self.env.action_spec.rand()
-        loc, scale = self.net(td.get("observation"))
-        action = torch.tanh(loc + scale * torch.randn_like(loc))
+        loc, scale = (net or self.net)(td.get("observation"))
+        eps = torch.randn_like(loc) if generator is None else torch.randn(loc.shape, generator=generator)
+        action = torch.tanh(loc + scale * eps)
         return action * self._half + self._mid if self._affine else action
 
+    def _collect(self, net=None, generator: torch.Generator | None = None) -> TensorDictBase:
+        steps = []
+        for _ in range(self.frames_per_batch):
+            if self._td is None:
+                self._td = self.env.reset()
+            self._td.set("action", self.act(self._td, net, generator))
+            out, self._td = self.env.step_and_maybe_reset(self._td)
+            steps.append(out)
+            self.frames += 1
+        return torch.stack(steps).contiguous()
+
+    def _prefetch(self) -> None:
+        """Start collecting the next batch in the background with a snapshot of the current policy."""
+        snapshot = copy.deepcopy(self.net)
+        self._result = {}
+
+        def work():
+            try:
+                self._result["batch"] = self._collect(snapshot, self._noise)
+            except BaseException as err:  # re-raised in the caller's thread by drain()
+                self._result["error"] = err
+
+        self._thread = threading.Thread(target=work, name="adarl-lean-collector", daemon=True)
+        self._thread.start()
+
+    def drain(self, keep: bool = True) -> None:
+        """Wait for a batch being prefetched; keep it for the next iteration, or drop it (``keep=False``)."""
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
+            if "error" in self._result:
+                raise self._result.pop("error")
+            self._ready = self._result.pop("batch")
+        if not keep and self._ready is not None:
+            self.frames -= self._ready.numel()
+            self._ready = None
+
     def __iter__(self) -> Iterator[TensorDictBase]:
-        while self.total_frames < 0 or self.frames < self.total_frames:
-            steps = []
-            for _ in range(self.frames_per_batch):
-                if self._td is None:
-                    self._td = self.env.reset()
-                self._td.set("action", self.act(self._td))
-                out, self._td = self.env.step_and_maybe_reset(self._td)
-                steps.append(out)
-                self.frames += 1
-            yield torch.stack(steps).contiguous()
+        while self.total_frames < 0 or self.frames < self.total_frames or self._ready is not None \
+                or self._thread is not None:
+            self.drain(keep=True)
+            if self._ready is not None:
+                batch, self._ready = self._ready, None
+            else:
+                batch = self._collect(None, self._noise)  # the overlap's generator is used from the start
+            more = self.total_frames < 0 or self.frames < self.total_frames
+            if self.overlap and more and self.frames >= self.init_random_frames:
+                self._prefetch()
+            yield batch
 
     def state_dict(self) -> dict:
-        """Frame counter and the live step's TensorDict (the carrier), for exact resume."""
-        return {"frames": self.frames, "iter": 0, "traj_pool": None,
-                "carrier": None if self._td is None else self._td.to_dict(),
-                "carrier_batch_size": [] if self._td is None else list(self._td.batch_size)}
+        """Frame counter and the live step's TensorDict (the carrier), for exact resume.
+
+        With ``overlap`` a batch being prefetched is finished first and saved with the noise generator's state,
+        so a resumed run hands out the same batch next."""
+        self.drain(keep=True)
+        state = {"frames": self.frames, "iter": 0, "traj_pool": None,
+                 "carrier": None if self._td is None else self._td.to_dict(),
+                 "carrier_batch_size": [] if self._td is None else list(self._td.batch_size)}
+        if self.overlap:
+            state["prefetched"] = None if self._ready is None else self._ready.to_dict()
+            state["prefetched_batch_size"] = None if self._ready is None else list(self._ready.batch_size)
+            state["noise_rng"] = self._noise.get_state()
+        return state
 
     def load_state_dict(self, state: dict, *, carrier: bool = True) -> None:
         from tensordict import TensorDict
 
+        self.drain(keep=False)
         self.frames = int(state["frames"])
         if carrier and state.get("carrier") is not None:
             self._td = TensorDict(state["carrier"], batch_size=state["carrier_batch_size"])
         else:
             self._td = None
+        if self.overlap:
+            if state.get("noise_rng") is not None:
+                self._noise.set_state(state["noise_rng"])
+            if carrier and state.get("prefetched") is not None:
+                self._ready = TensorDict(state["prefetched"], batch_size=state["prefetched_batch_size"])
+            elif state.get("prefetched") is not None:  # the episode is not restored: drop its continuation too
+                self.frames -= int(state["prefetched_batch_size"][0])
 
     def shutdown(self) -> None:
-        """Nothing runs in the background; provided for the Collector's interface."""
+        """Finish and drop a batch being prefetched; nothing else runs in the background."""
+        self.drain(keep=False)
         self._td = None

@@ -36,6 +36,7 @@ from adarl.env_state import (
 from adarl.envs import dynamics_state_dict, load_dynamics_state_dict, make_env, make_eval_env
 from adarl.errors import AdaRLError, AdaRLValueError, CheckpointError
 from adarl.fast_sac import FusedSACUpdate, make_adam, wants_fused
+from adarl.fast_replay import UniformTensorSampler
 from adarl.lean_collector import LeanCollector, wants_lean
 from adarl.evaluation import EvalResult, evaluate_policy
 from adarl.guards import NonFiniteError, NonFiniteGuard, check_live_layers
@@ -153,9 +154,12 @@ def build_components(recipe, *, init_random_frames: int | None = None,
     c = recipe.collector
     init_random = c.init_random_frames if init_random_frames is None else init_random_frames
     lean = wants_lean(c.lean, env, modules.actor)
+    if c.overlap and not lean:
+        raise AdaRLValueError("collector.overlap: true needs the lean collector (one env, a TanhNormal actor, "
+                              "collector.lean: 'auto' or true); allowed otherwise: collector.overlap: false")
     if lean:
         collector = LeanCollector(env, modules.actor, frames_per_batch=c.frames_per_batch,
-                                  init_random_frames=init_random)
+                                  init_random_frames=init_random, overlap=c.overlap, noise_seed=recipe.seed + 2)
     else:
         collector = Collector(env, modules.actor, frames_per_batch=c.frames_per_batch, total_frames=-1,
                               init_random_frames=init_random, device=recipe.device)
@@ -184,6 +188,7 @@ def build_components(recipe, *, init_random_frames: int | None = None,
             target_mode=r.target_mode,
             lr_schedulers=list(schedulers.values()),
             fit_data=replay_buffer if r.rule == "policy_fit" else None,
+            num_threads=r.num_threads,
         )
     extras = {"sampling_generator": generator}
     update = None
@@ -198,6 +203,8 @@ def build_components(recipe, *, init_random_frames: int | None = None,
             # 'auto' with layers the fused step does not know (e.g. the sparsification layer): TorchRL's path.
     if update is not None:
         extras["fused_update"] = update
+        # the same indices rb.sample() would draw, gathered straight into the update's five tensors
+        extras["fused_sampler"] = UniformTensorSampler(replay_buffer, FusedSACUpdate.KEYS, generator=generator)
         if adapter is not None:
             adapter.on_truncate.insert(0, update.on_rank_event)
     if alg.parseval.enabled:  # Parseval baseline: a term added to the SAC loss (adarl.baselines.parseval)
@@ -246,8 +253,11 @@ class Trainer:
         self.c = build_components(self.recipe, init_random_frames=init_random,
                                   scratch_dir=self.run_dir.path / "replay_storage")
         if self.c.adapter is not None:
+            lean = isinstance(self.c.collector, LeanCollector)
+            if lean:  # nothing may step the env under the warm start (a batch being prefetched is dropped)
+                self.c.adapter.on_truncate.append(lambda event: self.c.collector.reset())
             self.c.adapter.on_truncate.append(self._on_truncate)
-            if isinstance(self.c.collector, LeanCollector):  # the warm start stepped the env under it
+            if lean:  # the warm start stepped the env under it
                 self.c.adapter.on_truncate.append(lambda event: self.c.collector.reset())
         loss = self.c.modules.loss
         named = {f"actor.{k}": v for k, v in loss.actor_network_params.flatten_keys(".").items()}
@@ -402,17 +412,16 @@ class Trainer:
     def _update(self) -> dict[str, float]:
         """One SAC optimisation step, then the target update and (maybe) a rank event."""
         c, alg = self.c, self.recipe.algorithm
-        sample = c.replay_buffer.sample()
         fused = c.extras.get("fused_update")
         if fused is not None:  # adarl.fast_sac: the same step without SACLoss's TensorDict overhead
-            out = fused(sample)
+            out = fused.step(*c.extras["fused_sampler"]())
             self.guard.check_losses({k: out[k] for k in ("loss_actor", "loss_qvalue", "loss_alpha")}, self.updates)
             self.guard.check_params(self.updates)
             self.updates += 1
             if c.adapter is not None:
                 c.adapter.step()
             return out
-        td = c.modules.loss(sample)
+        td = c.modules.loss(c.replay_buffer.sample())
         self.guard.check_losses({k: td[k] for k in ("loss_actor", "loss_qvalue", "loss_alpha")}, self.updates)
         loss = td["loss_actor"] + td["loss_qvalue"] + td["loss_alpha"]
         regularizer = c.extras.get("regularizer")

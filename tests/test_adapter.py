@@ -547,3 +547,26 @@ def test_template_modules_stay_consistent():
     RankAdapter(loss, opt, FixedRank(3), interval=1).adapt()
     ranks = {name: m.rank for name, m in loss.qvalue_network.named_modules() if isinstance(m, LowRankLinear)}
     assert ranks == {"module.mlp.0": 3, "module.mlp.2": 3}
+
+
+def test_num_threads_applies_during_the_event_only(monkeypatch):
+    import adarl.adapter as adapter_mod
+
+    loss = make_sac()
+    opt = torch.optim.Adam(loss.parameters(), lr=1e-3)
+    seen = []
+    real = adapter_mod.factor_svd
+
+    def spy(w1, w2):
+        seen.append(torch.get_num_threads())
+        return real(w1, w2)
+
+    monkeypatch.setattr(adapter_mod, "factor_svd", spy)
+    before = torch.get_num_threads()
+    want = 2 if before == 1 else 1
+    adapter = RankAdapter(loss, opt, FixedRank(3), interval=1, num_threads=want)
+    adapter.adapt()
+    assert seen and set(seen) == {want}
+    assert torch.get_num_threads() == before
+    with pytest.raises(AdaRLValueError, match="num_threads"):
+        RankAdapter(loss, opt, FixedRank(3), interval=1, num_threads=0)

@@ -35,6 +35,8 @@ def test_table_lists_variants_and_ratios():
     w = dict(v, updates_per_s=50.0, rank_event_ms=None)
     report = {"results": [{"env": "Hopper-v5", "width": 64, "variants": {"adarl": v, "torchrl": w},
                            "ratios": {"adarl/torchrl": 2.0}, "rank_overhead_at_paper_interval": 4e-7}],
-              "rank_event_ms_by_width": {"64": 3.0}, "skipped": ["sb3"]}
+              "rank_events_standalone": [{"width": 64, "threads": 1, "ms": 3.0}],
+              "skipped": ["sb3"]}
     table = format_table(report)
     assert "| Hopper-v5 | (64, 64) | adarl | 100.0 |" in table and "2.00x" in table and "sb3" in table
+    assert "| 64 | 1 | 3.0 |" in table

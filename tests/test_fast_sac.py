@@ -177,3 +177,70 @@ def test_memmap_storage_and_threads(tmp_path):
         c.extras["fused_update"](c.replay_buffer.sample())
     finally:
         torch.set_num_threads(before)
+
+
+def test_prepared_layers_merge_near_full_rank_with_the_same_output_and_gradients():
+    # one update reuses a merged W1 W2 across passes; it must equal the factored product (values and grads)
+    from torch import nn
+
+    from adarl.fast_sac import _StackedMLP
+    from adarl.lowrank import low_rank_mlp
+
+    torch.manual_seed(0)
+    net = low_rank_mlp(5, 3, (32, 32), low_rank_layers=[0, 1])
+    params = {k: p.detach().clone().requires_grad_(True) for k, p in net.named_parameters(prefix="module")}
+    mlp = _StackedMLP(net, params, what="actor")
+    x = torch.randn(256, 5)
+    merged = mlp.prepare(params, rows=256)  # 32 x 32 at full rank, 256 rows: merged
+    factored = mlp.prepare(params, rows=1)  # one row: factored
+    assert [k for k, _, _ in merged if k != "act"] == ["linear", "linear", "linear"]  # both products merged
+    assert [k for k, _, _ in factored if k != "act"] == ["lowrank", "lowrank", "linear"]
+    outs, grads = [], []
+    for prepared in (merged, factored):
+        y = _StackedMLP.forward(prepared, x)
+        y.square().sum().backward()
+        outs.append(y.detach())
+        grads.append({k: p.grad.clone() for k, p in params.items()})
+        for p in params.values():
+            p.grad = None
+    torch.testing.assert_close(outs[0], outs[1], rtol=1e-5, atol=1e-5)
+    for k in params:
+        torch.testing.assert_close(grads[0][k], grads[1][k], rtol=1e-4, atol=1e-5, msg=k)
+    assert isinstance(net, nn.Sequential)
+    detached = _StackedMLP.detached(merged)
+    assert all(not (w.requires_grad if isinstance(w, torch.Tensor) else False) for k, w, _ in detached if k != "act")
+
+
+def test_uniform_tensor_sampler_draws_what_the_buffer_draws(filled):
+    from adarl.fast_replay import UniformTensorSampler
+
+    c, _ = filled
+    rb, gen = c.replay_buffer, c.extras["sampling_generator"]
+    sampler = UniformTensorSampler(rb, FusedSACUpdate.KEYS, generator=gen)
+    state = gen.get_state()
+    ref = rb.sample()
+    after = gen.get_state()
+    gen.set_state(state)
+    got = sampler()
+    assert torch.equal(gen.get_state(), after)  # the same RNG consumption: exact resume is unchanged
+    for key, t in zip(FusedSACUpdate.KEYS, got):
+        assert torch.equal(ref.get(key), t), key
+
+
+def test_uniform_tensor_sampler_rejects_buffers_it_cannot_reproduce():
+    from tensordict import TensorDict
+    from torchrl.data import LazyTensorStorage, SamplerWithoutReplacement, TensorDictReplayBuffer
+
+    from adarl.fast_replay import UniformTensorSampler
+
+    rb = TensorDictReplayBuffer(storage=LazyTensorStorage(10), sampler=SamplerWithoutReplacement(),
+                                batch_size=4)
+    with pytest.raises(AdaRLValueError, match="RandomSampler"):
+        UniformTensorSampler(rb, ["observation"])
+    rb = TensorDictReplayBuffer(storage=LazyTensorStorage(10), batch_size=4)
+    sampler = UniformTensorSampler(rb, ["observation", "nope"])
+    with pytest.raises(AdaRLValueError, match="empty"):
+        sampler()
+    rb.extend(TensorDict({"observation": torch.zeros(3, 2)}, [3]))
+    with pytest.raises(AdaRLValueError, match="nope"):
+        sampler()

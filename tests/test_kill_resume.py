@@ -77,14 +77,16 @@ def _results(run: Path) -> dict[str, str]:
 
 
 @pytest.mark.slow
-def test_kill_9_at_random_moments_then_resume_matches_an_uninterrupted_run(tmp_path):
+@pytest.mark.parametrize("extra", [[], ["collector.overlap=true"]], ids=["default", "overlap"])
+def test_kill_9_at_random_moments_then_resume_matches_an_uninterrupted_run(tmp_path, extra):
     seed = int(os.environ.get("ADARL_KILL_SEED", random.randrange(10**6)))
     rng = random.Random(seed)
     ref, killed = tmp_path / "reference", tmp_path / "killed"
-    reference = _start("run", "quickstart", *RUN, "-o", str(ref), "--quiet")  # runs beside the killed one
+    run = [*RUN, *extra]
+    reference = _start("run", "quickstart", *run, "-o", str(ref), "--quiet")  # runs beside the killed one
 
     kills = []
-    proc = _start("run", "quickstart", *RUN, "-o", str(killed), "--quiet")
+    proc = _start("run", "quickstart", *run, "-o", str(killed), "--quiet")
     for _ in range(5):
         seen = {p.name for p in (killed / "checkpoints").glob("ckpt-*.pt")} if (killed / "checkpoints").is_dir() else set()
         # Kill after a random delay once the process is past start-up (it has written a new checkpoint or a

@@ -58,3 +58,62 @@ def test_trainer_wiring_and_fallbacks():
     assert not isinstance(disc.collector, LeanCollector)
     with pytest.raises(AdaRLValueError, match="collector.lean"):
         wants_lean(True, disc.env, disc.modules.actor)
+
+
+def _env_and_actor(seed):
+    c = build_components(load_recipe("quickstart", OVR + [f"seed={seed}"]))
+    return c.env, c.modules.actor
+
+
+def test_overlap_collects_the_next_batch_with_the_policy_at_handover():
+    # X prefetches in a thread while the "updates" (in-place weight changes) run; Y replays the same schedule
+    # by hand, synchronously: batch k + 1 from the snapshot taken when batch k was handed over.
+    import copy
+
+    env_x, actor_x = _env_and_actor(5)
+    env_y, actor_y = _env_and_actor(5)
+    actor_y.load_state_dict(actor_x.state_dict())
+    x = LeanCollector(env_x, actor_x, frames_per_batch=25, init_random_frames=0, overlap=True, noise_seed=9)
+    y = LeanCollector(env_y, actor_y, frames_per_batch=25, init_random_frames=0)
+    noise_y = torch.Generator().manual_seed(9)
+    torch.manual_seed(0)
+    x_batches, y_batches = [], []
+    snapshot = copy.deepcopy(y.net)  # the policy for batch 0
+    for k, batch in enumerate(x):
+        handover = copy.deepcopy(y.net)  # the policy when batch k is handed over
+        with torch.no_grad():  # the "updates" of batch k, at once, while X's thread collects batch k + 1
+            for px, py in zip(actor_x.parameters(), actor_y.parameters()):
+                step = 0.05 * torch.randn_like(px)
+                px.add_(step)
+                py.add_(step)
+        x_batches.append(batch)
+        y_batches.append(y._collect(snapshot, noise_y))
+        snapshot = handover
+        if k == 4:
+            break
+    x.shutdown()
+    for k, (a, b) in enumerate(zip(x_batches, y_batches)):
+        for key in ("observation", "action", ("next", "observation"), ("next", "reward")):
+            assert torch.equal(a.get(key), b.get(key)), (k, key)
+
+
+def test_overlap_state_dict_keeps_the_prefetched_batch():
+    env, actor = _env_and_actor(6)
+    x = LeanCollector(env, actor, frames_per_batch=20, init_random_frames=0, overlap=True, noise_seed=1)
+    it = iter(x)
+    next(it)  # batch 1 handed over, batch 2 being prefetched
+    state = x.state_dict()
+    assert state["prefetched"] is not None and x.frames == 40
+    batch2 = next(it)
+    env2, actor2 = _env_and_actor(6)
+    y = LeanCollector(env2, actor2, frames_per_batch=20, init_random_frames=0, overlap=True, noise_seed=1)
+    y.load_state_dict(state)
+    assert torch.equal(next(iter(y)).get("action"), batch2.get("action"))
+    x.shutdown()
+    y.shutdown()
+    assert x._thread is None and y._thread is None
+
+
+def test_overlap_needs_the_lean_collector():
+    with pytest.raises(AdaRLValueError, match="collector.overlap"):
+        build_components(load_recipe("quickstart", OVR + ["collector.overlap=true", "collector.lean=false"]))

@@ -541,3 +541,36 @@ def test_low_rank_mlp_multi_dim_output_and_activation():
 def test_low_rank_mlp_errors(kwargs, match):
     with pytest.raises(AdaRLValueError, match=match):
         low_rank_mlp(5, 3, num_cells=(16, 16), **kwargs)
+
+
+@pytest.mark.parametrize("shape", [(48, 64), (64, 48), (40, 40)])
+def test_factor_svd_full_rank_uses_gram_route_and_matches_svd(shape, monkeypatch):
+    # near full rank the product is decomposed by eigh of its Gram matrix (no torch.linalg.svd call at all)
+    out_f, in_f = shape
+    r = min(shape)
+    w1, w2 = torch.randn(2, out_f, r), torch.randn(2, r, in_f)
+    dense = w1.double() @ w2.double()
+    ref = torch.linalg.svdvals(dense)
+
+    def no_svd(*args, **kwargs):
+        raise AssertionError("the well-conditioned full-rank case must not call torch.linalg.svd")
+
+    monkeypatch.setattr(torch.linalg, "svd", no_svd)
+    u, s, vh = factor_svd(w1, w2)
+    assert u.shape == (2, out_f, r) and s.shape == (2, r) and vh.shape == (2, r, in_f)
+    torch.testing.assert_close(s, ref, atol=1e-9, rtol=1e-9)
+    assert bool((s[..., :-1] >= s[..., 1:]).all())
+    torch.testing.assert_close(u @ torch.diag_embed(s) @ vh, dense, atol=1e-9, rtol=1e-9)
+    eye = torch.eye(r, dtype=torch.float64).expand(2, r, r)
+    torch.testing.assert_close(u.mT @ u, eye, atol=1e-9, rtol=0)
+    torch.testing.assert_close(vh @ vh.mT, eye, atol=1e-9, rtol=0)
+
+
+def test_factor_svd_ill_conditioned_product_falls_back_to_svd():
+    # s_r / s_1 = 1e-9 < 1e-6: the Gram matrix cannot resolve s_r, so the SVD of the product is taken
+    q1, _ = torch.linalg.qr(torch.randn(20, 16, dtype=torch.float64))
+    q2, _ = torch.linalg.qr(torch.randn(16, 16, dtype=torch.float64))
+    s_true = torch.logspace(0, -9, 16, dtype=torch.float64)
+    w1, w2 = q1 * s_true, q2.T
+    _, s, _ = factor_svd(w1, w2)
+    torch.testing.assert_close(s, s_true, atol=1e-14, rtol=1e-8)
