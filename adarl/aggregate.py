@@ -27,6 +27,7 @@ import yaml
 
 from adarl.errors import AdaRLError
 from adarl.experiment import run_is_finished
+from adarl.results import is_url
 from adarl.run_dir import RunDir
 
 __all__ = ["RunRecord", "Group", "Aggregate", "collect_runs", "aggregate_runs", "write_aggregate_report",
@@ -44,6 +45,10 @@ def intrinsic_rank(env_id: str) -> int | None:
 
 
 def is_single_run(path: str | os.PathLike) -> bool:
+    if is_url(path):
+        from adarl.results import exists, join
+
+        return exists(join(path, "recipe.yaml"))
     return (Path(path) / "recipe.yaml").is_file()
 
 
@@ -156,6 +161,8 @@ def collect_runs(dirs: list[str | os.PathLike]) -> tuple[list[RunRecord], dict]:
             info["experiments"].append({k: state.get(k) for k in ("name", "description", "budget", "command", "axes",
                                                                   "report")})
             for r in state.get("runs", []):
+                if is_url(r["path"]):  # an experiment at a URL, read from a local copy (write_aggregate_report)
+                    r = {**r, "path": str(p / r["path"].rstrip("/").rsplit("/", 1)[-1])}
                 rp = Path(r["path"])
                 if not rp.is_absolute() and not rp.exists():
                     rp = p / rp.name
@@ -499,8 +506,14 @@ def _markdown(blocks: list[tuple]) -> str:
 
 
 def write_aggregate_report(dirs: list[str | os.PathLike], output: str | os.PathLike | None = None,
-                           *, command: str | None = None) -> Path:
-    """Aggregate the runs in ``dirs`` and write the report folder; returns the path of its ``report.md``."""
+                           *, command: str | None = None) -> Path | str:
+    """Aggregate the runs in ``dirs`` and write the report folder; returns the path of its ``report.md``.
+
+    ``dirs`` and ``output`` may be fsspec URLs (:mod:`adarl.results`): the runs' files (not their checkpoints) are
+    copied to a temporary folder, the report is made there and uploaded (default output: ``<URL>/report`` for one
+    experiment at a URL); ``runs.csv`` names the runs by their URL, and the URL of ``report.md`` is returned."""
+    if any(is_url(d) for d in dirs) or is_url(output):
+        return _write_report_via_copy(dirs, output, command=command)
     agg = aggregate_runs(dirs)
     if output is None:
         only = Path(dirs[0]) if len(dirs) == 1 else None
@@ -566,3 +579,42 @@ def write_aggregate_report(dirs: list[str | os.PathLike], output: str | os.PathL
     (out / "report.md").write_text(_markdown(blocks))
     (out / "report.html").write_text(_html(blocks))
     return out / "report.md"
+
+
+def _write_report_via_copy(dirs: list, output, *, command: str | None) -> Path | str:
+    import tempfile
+
+    from adarl.results import download_results, exists, join, upload_tree
+
+    if output is None:
+        only = dirs[0] if len(dirs) == 1 else None
+        if only is not None and is_url(only) and exists(join(only, "experiment.json")):
+            output = join(only, "report")
+        elif only is not None and not is_url(only) and (Path(only) / "experiment.json").is_file():
+            output = Path(only) / "report"
+        else:
+            output = Path("report")
+    with tempfile.TemporaryDirectory(prefix="adarl-report-") as tmp:
+        local_dirs, names = [], {}
+        for i, d in enumerate(dirs):
+            if is_url(d):
+                copy = download_results(str(d), Path(tmp) / f"in{i}")
+                names[str(copy)] = str(d).rstrip("/")
+                local_dirs.append(copy)
+            else:
+                local_dirs.append(d)
+        local_out = Path(tmp) / "out" if is_url(output) else Path(output)
+        md = write_aggregate_report(local_dirs, local_out, command=command)
+        runs_csv = local_out / "runs.csv"
+        rows = list(csv.reader(io.StringIO(runs_csv.read_text())))
+        for row in rows[1:]:  # local copies -> the URLs they came from
+            for copy, url in names.items():
+                if row[0] == copy or row[0].startswith(copy + os.sep):
+                    row[0] = url + row[0][len(copy):].replace(os.sep, "/")
+        buf = io.StringIO()
+        csv.writer(buf).writerows(rows)
+        runs_csv.write_text(buf.getvalue())
+        if not is_url(output):
+            return md
+        upload_tree(local_out, str(output))
+    return join(str(output), "report.md")

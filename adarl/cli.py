@@ -144,19 +144,28 @@ def cmd_report(args) -> int:
 
 
 def cmd_experiment(args) -> int:
-    from adarl.experiment import run_experiment
+    from adarl.experiment import load_experiment, run_experiment
+    from adarl.progress import use_live
+    from adarl.results import is_url
 
     options = {"max_retries": args.max_retries}
     if args.launcher == "ray":
         options["address"] = args.ray_address
     if args.launcher == "submitit":
         options["cluster"] = args.submitit_cluster
+        if args.submitit_folder is not None:
+            options["submitit_folder"] = args.submitit_folder
     for key in ("cpus_per_run", "gpus_per_run"):
         if getattr(args, key) is not None:
             options[key] = getattr(args, key)
+    live = not args.no_live and use_live()
+    progress = args.progress
+    if progress is None:  # a live board redraws often; plain lines every 30 s; a URL costs requests per refresh
+        target = args.output if args.output is not None else load_experiment(args.spec).output
+        progress = (10.0 if is_url(target) else 2.0) if live else 30.0
     runs = run_experiment(args.spec, budget=args.budget, output=args.output, workers=args.workers,
                           dry_run=args.dry_run, report=not args.no_report, launcher=args.launcher,
-                          launcher_options=options, progress_interval=args.progress)
+                          launcher_options=options, progress_interval=progress, scratch=args.scratch, live=live)
     if not args.dry_run:
         counts: dict[str, int] = {}
         for r in runs:
@@ -211,10 +220,10 @@ def build_parser() -> argparse.ArgumentParser:
                         description="One run folder: (re)write its report.md and plots/*.png. Several folders (run "
                                     "folders, experiment folders, or folders holding runs), or --output: aggregate "
                                     "them across seeds into report.md/report.html, PNG plots and CSV tables.")
-    rp.add_argument("run_dir", nargs="+", metavar="DIR")
+    rp.add_argument("run_dir", nargs="+", metavar="DIR", help="a folder, or an fsspec URL (s3://bucket/exp, ...)")
     rp.add_argument("--output", "-o", default=None,
-                    help="folder of the aggregate report (default: <DIR>/report for one experiment folder, else "
-                         "./report)")
+                    help="folder (or fsspec URL) of the aggregate report (default: <DIR>/report for one experiment "
+                         "folder, else ./report)")
     rp.set_defaults(func=cmd_report)
 
     from adarl.bench import add_arguments as bench_arguments
@@ -231,8 +240,13 @@ def build_parser() -> argparse.ArgumentParser:
                                     "are skipped, interrupted ones resumed; then write the aggregate report.")
     ex.add_argument("spec")
     ex.add_argument("--budget", "-b", default=None, help="a budget named in the spec (e.g. small)")
-    ex.add_argument("--output", "-o", default=None, help="output folder (default: the spec's, or "
-                                                         "runs/experiments/<name>-<budget>)")
+    ex.add_argument("--output", "-o", default=None,
+                    help="output folder, or an fsspec URL (s3://bucket/exp, gs://..., file:///shared/exp; the "
+                         "backend package, e.g. s3fs, must be installed) that runs upload to (default: the spec's, or "
+                         "runs/experiments/<name>-<budget>)")
+    ex.add_argument("--scratch", default=None, metavar="DIR",
+                    help="with a URL output: local folder each run trains in before it is uploaded (default: "
+                         "$TMPDIR/adarl-scratch on the machine the run lands on)")
     ex.add_argument("--workers", "-j", type=int, default=None, help="runs at a time (default: the spec's workers)")
     ex.add_argument("--dry-run", action="store_true", help="list the runs and their status; run nothing")
     ex.add_argument("--no-report", action="store_true", help="do not write the aggregate report")
@@ -243,12 +257,18 @@ def build_parser() -> argparse.ArgumentParser:
                     help="Ray cluster to join (e.g. auto, ray://head:10001; default: start a local Ray)")
     ex.add_argument("--submitit-cluster", default=None, choices=["slurm", "local", "debug"],
                     help="submitit executor (default: slurm when sbatch is found, else local)")
+    ex.add_argument("--submitit-folder", default=None, metavar="DIR",
+                    help="submitit's job files (default: <output>/submitit; needed with a URL output)")
     ex.add_argument("--cpus-per-run", type=float, default=None, help="CPUs per run (default: the spec's resources)")
     ex.add_argument("--gpus-per-run", type=float, default=None, help="GPUs per run (default: the spec's resources)")
     ex.add_argument("--max-retries", type=int, default=3,
                     help="times a run whose worker is lost is retried from its checkpoint (ray, submitit)")
-    ex.add_argument("--progress", type=float, default=30.0, metavar="SECONDS",
-                    help="print one line per run and an aggregate bar this often (0: only when runs end)")
+    ex.add_argument("--progress", type=float, default=None, metavar="SECONDS",
+                    help="refresh the progress board (one row per run, an aggregate bar) this often; 0: only report "
+                         "runs as they end (default: 30 for plain lines, 2 for the live board, 10 for it with a URL)")
+    ex.add_argument("--no-live", action="store_true",
+                    help="plain progress lines even on a terminal (the live board is used only when stdout is a "
+                         "terminal and CI is not set)")
     ex.set_defaults(func=cmd_experiment)
     return p
 

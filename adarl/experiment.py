@@ -20,6 +20,10 @@ same experiment: other seeds, extra overrides, fewer grid values. Example (``rec
 after another, or ``workers`` at a time), skips finished runs, resumes interrupted ones from their checkpoint, flags
 runs whose recipe does not exist (yet), then sweeps each finished run if the spec asks and writes the aggregate
 report (:mod:`adarl.aggregate`). ``experiment.json`` in the output folder records what ran.
+
+The output may be an fsspec URL (``s3://bucket/exp``): runs then train in a local scratch folder and are copied to
+``<URL>/<run id>`` after each checkpoint (:mod:`adarl.results`); the finished-run check, ``experiment.json``, the
+attempt records, the progress board and the report read and write the URL.
 """
 
 from __future__ import annotations
@@ -32,6 +36,7 @@ import socket
 import subprocess
 import sys
 import time
+import uuid
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -39,7 +44,8 @@ from typing import Annotated, Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from adarl.errors import AdaRLError, RecipeError
+from adarl.errors import AdaRLError, AdaRLValueError, RecipeError
+from adarl.results import is_url
 
 __all__ = ["ExperimentSpec", "PlannedRun", "load_experiment", "plan_runs", "run_experiment", "run_is_finished",
            "execute_run", "read_attempts", "shipped_experiments", "EXPERIMENT_FILE", "ATTEMPTS_DIR"]
@@ -134,7 +140,8 @@ class ExperimentSpec(_Model):
     seeds: list[int] = Field(default_factory=lambda: [0], min_length=1)
     budgets: dict[str, Budget] = Field(default_factory=dict)
     default_budget: str | None = Field(None, description="Budget used when none is asked for (default: none).")
-    output: str | None = Field(None, description="Output folder (default: runs/experiments/<name>[-<budget>]).")
+    output: str | None = Field(None, description="Output folder or fsspec URL, e.g. s3://bucket/exp "
+                               "(default: runs/experiments/<name>[-<budget>]).")
     workers: Annotated[int, Field(ge=1)] = Field(1, description="Runs at a time (each in its own process).")
     resources: ResourcesSpec = Field(default_factory=ResourcesSpec)
     sweeps: list[SweepSpec] = Field(default_factory=list)
@@ -203,9 +210,13 @@ class PlannedRun:
     status: str = "pending"  # pending | finished | skipped-finished | missing-recipe | failed
     message: str = ""
     wall_time_s: float = 0.0
+    scratch: str | None = None  # URL runs: local folder to train in (None: $TMPDIR/adarl-scratch of the worker)
 
     def as_dict(self) -> dict:
-        return asdict(self)
+        d = asdict(self)
+        if d["scratch"] is None:
+            del d["scratch"]
+        return d
 
 
 def _format_validation(err: ValidationError, label: str) -> str:
@@ -278,9 +289,9 @@ def resolve_budget(spec: ExperimentSpec, budget: str | None) -> tuple[str | None
     return name, spec.budgets[name]
 
 
-def default_output(spec: ExperimentSpec, budget: str | None) -> Path:
+def default_output(spec: ExperimentSpec, budget: str | None) -> Path | str:
     if spec.output:
-        return Path(spec.output)
+        return spec.output if is_url(spec.output) else Path(spec.output)
     return Path("runs") / "experiments" / (spec.name + (f"-{budget}" if budget else ""))
 
 
@@ -289,7 +300,8 @@ def plan_runs(spec: ExperimentSpec, output: str | os.PathLike, budget: str | Non
     _, b = resolve_budget(spec, budget)
     seeds = b.seeds if b.seeds is not None else spec.seeds
     axes = {a: [v for v in vals if a not in b.axes or v.name in b.axes[a]] for a, vals in spec.axes.items()}
-    out = Path(output)
+    url = is_url(output)
+    out = str(output).rstrip("/") if url else Path(output)
     runs = []
     for combo in itertools.product(*axes.values()) if axes else [()]:
         named = dict(zip(axes, combo))
@@ -306,12 +318,23 @@ def plan_runs(spec: ExperimentSpec, output: str | os.PathLike, budget: str | Non
             recipe = _fill(recipe_t, values, f"run {run_id} recipe")
             overrides = [_fill(o, values, f"run {run_id} override") for o in overrides_t] + [f"seed={seed}"]
             runs.append(PlannedRun(run_id, {a: v.name for a, v in named.items()}, seed, recipe, overrides,
-                                   str(out / run_id)))
+                                   f"{out}/{run_id}" if url else str(out / run_id)))
     return runs
 
 
 def run_is_finished(path: str | os.PathLike) -> bool:
-    """A run folder whose summary shows its whole frame budget spent."""
+    """A run folder (or URL) whose summary shows its whole frame budget spent."""
+    if is_url(path):
+        from adarl.results import join, read_text
+
+        summary, recipe = read_text(join(path, "summary.json")), read_text(join(path, "recipe.yaml"))
+        if summary is None or recipe is None:
+            return False
+        try:
+            total = int(yaml.safe_load(recipe)["collector"]["total_frames"])
+            return int(json.loads(summary).get("frames", -1)) >= total
+        except (ValueError, KeyError, TypeError, AttributeError, yaml.YAMLError, json.JSONDecodeError):
+            return False
     p = Path(path)
     summary, recipe = p / "summary.json", p / "recipe.yaml"
     if not (summary.is_file() and recipe.is_file()):
@@ -358,6 +381,13 @@ def _die_with_parent() -> None:  # pragma: no cover - runs in the child between 
 
 
 def _record_attempt(run: PlannedRun, **event) -> None:
+    if is_url(run.path):  # object stores cannot append: one small file per event, named so that they sort in order
+        from adarl.results import join, write_atomic
+
+        event = {"time": time.time(), "host": socket.gethostname(), "pid": os.getpid(), **event}
+        name = f"{time.time_ns():020d}-{event['event']}-{uuid.uuid4().hex[:6]}.json"
+        write_atomic(join(run.path.rsplit("/", 1)[0], ATTEMPTS_DIR, run.run_id, name), json.dumps(event) + "\n")
+        return
     folder = Path(run.path).parent / ATTEMPTS_DIR
     folder.mkdir(parents=True, exist_ok=True)
     event = {"time": time.time(), "host": socket.gethostname(), "pid": os.getpid(), **event}
@@ -366,7 +396,24 @@ def _record_attempt(run: PlannedRun, **event) -> None:
 
 
 def read_attempts(output: str | os.PathLike, run_id: str) -> list[dict]:
-    """The start/end events of a run, in order (``event``: start | end; ``action``: ran | resumed; ``pid``...)."""
+    """The start/end events of a run, in order (``event``: start | end; ``action``: ran | resumed | uploaded;
+    ``pid``...). At a URL they are ``attempts/<run id>/*.json``, one file per event."""
+    if is_url(output):
+        from adarl.results import filesystem, join
+
+        fs, folder = filesystem(join(output, ATTEMPTS_DIR, run_id))
+        try:
+            names = sorted(fs.ls(folder, detail=False))
+        except FileNotFoundError:
+            return []
+        events = []
+        for name in names:
+            if name.endswith(".json"):
+                try:
+                    events.append(json.loads(fs.cat_file(name)))
+                except (FileNotFoundError, ValueError):  # being written (local-like filesystems)
+                    continue
+        return sorted(events, key=lambda e: e.get("time", 0))
     f = Path(output) / ATTEMPTS_DIR / f"{run_id}.jsonl"
     if not f.is_file():
         return []
@@ -376,7 +423,10 @@ def read_attempts(output: str | os.PathLike, run_id: str) -> list[dict]:
 def execute_run(run: PlannedRun, threads: int | None) -> PlannedRun:
     """Run (or resume, when its folder has a checkpoint) one run with the ``adarl`` command; sets its status.
 
-    What every launcher executes, wherever it runs; a finished run is left alone (``skipped-finished``)."""
+    What every launcher executes, wherever it runs; a finished run is left alone (``skipped-finished``). A run at a
+    URL trains in a local scratch folder copied to the URL (:func:`_execute_at_url`)."""
+    if is_url(run.path):
+        return _execute_at_url(run, threads)
     path = Path(run.path)
     if run_is_finished(path):  # e.g. a retried task whose first try finished before its worker was lost
         run.status, run.message = "skipped-finished", "already finished"
@@ -387,9 +437,7 @@ def execute_run(run: PlannedRun, threads: int | None) -> PlannedRun:
         if path.exists():
             shutil.rmtree(path)  # a start that never checkpointed: nothing to keep
         cmd, action = _cli("run", run.recipe, *run.overrides, "-o", str(path), "--quiet"), "ran"
-    env = dict(os.environ)
-    if threads:
-        env.update(OMP_NUM_THREADS=str(threads), MKL_NUM_THREADS=str(threads))
+    env = _train_env(threads)
     path.parent.mkdir(parents=True, exist_ok=True)
     log = path.parent / f"{run.run_id}.log"
     _record_attempt(run, event="start", action=action)
@@ -408,31 +456,178 @@ def execute_run(run: PlannedRun, threads: int | None) -> PlannedRun:
     return run
 
 
+def _train_env(threads: int | None) -> dict:
+    env = dict(os.environ)
+    if threads:
+        env.update(OMP_NUM_THREADS=str(threads), MKL_NUM_THREADS=str(threads))
+    return env
+
+
+_POLL_S = 1.0  # how often a URL run's scratch folder is checked for a new checkpoint to upload
+
+
+def _execute_at_url(run: PlannedRun, threads: int | None) -> PlannedRun:
+    """:func:`execute_run` for a run at a URL: train in the local scratch folder (downloaded from the URL first when
+    it lacks the URL's latest checkpoint), upload after each checkpoint and at the end (:class:`RunMirror`)."""
+    from adarl.results import SYNC_INTERVAL_S, RunMirror, filesystem, join, scratch_folder, write_atomic
+
+    if run_is_finished(run.path):
+        run.status, run.message = "skipped-finished", "already finished"
+        return run
+    local = scratch_folder(run.path, run.run_id, run.scratch)
+    local.parent.mkdir(parents=True, exist_ok=True)
+    mirror = RunMirror(local, run.path)
+    remote_log = join(run.path.rsplit("/", 1)[0], f"{run.run_id}.log")
+    log = local.with_name(f"{run.run_id}.log")
+    try:
+        state = mirror.prepare()
+    except Exception as err:  # noqa: BLE001 - e.g. the store does not answer: this attempt fails, others go on
+        run.status, run.message = "failed", f"could not read {run.path}: {type(err).__name__}: {err}"
+        return run
+    if state == "fresh":
+        cmd, action = _cli("run", run.recipe, *run.overrides, "-o", str(local), "--quiet"), "ran"
+    elif run_is_finished(local):  # finished here, but the worker was lost before the upload ended
+        cmd, action = None, "uploaded"
+    else:
+        cmd, action = _cli("resume", str(local), "--quiet"), "resumed"
+    _record_attempt(run, event="start", action=action, scratch=str(local))
+    start = time.perf_counter()
+    returncode, upload_error = 0, None
+    if cmd is not None:
+        with log.open("w") as fh:
+            proc = subprocess.Popen(cmd, stdout=fh, stderr=subprocess.STDOUT, env=_train_env(threads),
+                                    preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None)
+            try:
+                while True:
+                    try:
+                        returncode = proc.wait(timeout=_POLL_S)
+                        break
+                    except subprocess.TimeoutExpired:
+                        pass
+                    if mirror.has_new_checkpoint() or time.monotonic() - mirror.last_push >= SYNC_INTERVAL_S:
+                        try:
+                            mirror.push()
+                        except Exception as err:  # noqa: BLE001 - retried at the next checkpoint; the run goes on
+                            fh.write(f"adarl: upload to {run.path} failed (retrying later): {err}\n")
+                            fh.flush()
+            except BaseException:
+                proc.kill()
+                proc.wait()
+                raise
+    run.wall_time_s = time.perf_counter() - start
+    finished_here = returncode == 0 and run_is_finished(local)
+    try:
+        mirror.push(final=finished_here)
+        upload_error = None
+    except Exception as err:  # noqa: BLE001 - reported below; the scratch folder is kept for a retry
+        upload_error = err
+    if finished_here and upload_error is None and run_is_finished(run.path):
+        run.status, run.message = "finished", action
+        mirror.clean()
+        log.unlink(missing_ok=True)
+        fs, rpath = filesystem(remote_log)
+        if fs.exists(rpath):  # the log of an earlier failed attempt
+            fs.rm(rpath)
+    elif finished_here:
+        why = upload_error or "its summary.json is not readable there"
+        run.status, run.message = "failed", f"finished in {local} but the upload to {run.path} failed: {why}"
+    else:
+        tail = log.read_text().strip().splitlines()[-1:] if log.is_file() else []
+        try:
+            write_atomic(remote_log, log.read_text() if log.is_file() else "")
+            where = remote_log
+        except Exception:  # noqa: BLE001 - the local log is still there
+            where = str(log)
+        run.status, run.message = "failed", f"exit {returncode}: {' '.join(tail)} (log: {where})"
+    _record_attempt(run, event="end", action=action, status=run.status)
+    return run
+
+
 _execute = execute_run
 
 
-def _write_state(out: Path, spec: ExperimentSpec, budget: str | None, runs: list[PlannedRun], command: str = "") -> None:
+def _sweep(run: PlannedRun, sweeps: list[SweepSpec]) -> None:
+    """Run the spec's sweeps missing from a finished run; a URL run is swept in a local copy, then uploaded."""
+    from adarl.sweep import parse_sweep, sweep_run
+
+    names: dict[str, SweepSpec] = {}
+    for s in sweeps:
+        names.setdefault(s.name or "__".join(p.split("=")[0] for p in s.params), s)
+    if not is_url(run.path):
+        for name, s in names.items():
+            if not (Path(run.path) / "sweeps" / f"{name}.csv").is_file():
+                sweep_run(run.path, [parse_sweep(p) for p in s.params], episodes=s.episodes, name=name)
+        return
+    import tempfile
+
+    from adarl.results import RunMirror, exists, join, upload_tree
+
+    todo = {n: s for n, s in names.items() if not exists(join(run.path, "sweeps", f"{n}.csv"))}
+    if not todo:
+        return
+    with tempfile.TemporaryDirectory(prefix="adarl-sweep-") as tmp:
+        mirror = RunMirror(Path(tmp) / run.run_id, run.path)
+        latest = mirror.remote_latest()
+        if latest is None:
+            raise AdaRLError(f"cannot sweep {run.path}: it has no checkpoint (checkpoints/LATEST is missing)")
+        mirror.download(latest)
+        for name, s in todo.items():
+            sweep_run(mirror.local, [parse_sweep(p) for p in s.params], episodes=s.episodes, name=name)
+        upload_tree(mirror.local / "sweeps", join(run.path, "sweeps"))
+
+
+def _write_state(out: Path | str, spec: ExperimentSpec, budget: str | None, runs: list[PlannedRun],
+                 command: str = "") -> None:
     payload = {"name": spec.name, "description": spec.description, "budget": budget, "command": command,
                "axes": list(spec.axes),
                "report": spec.report.model_dump(), "runs": [r.as_dict() for r in runs]}
+    if is_url(out):
+        from adarl.results import join, write_atomic
+
+        write_atomic(join(out, EXPERIMENT_FILE), json.dumps(payload, indent=2) + "\n")
+        return
     tmp = out / (EXPERIMENT_FILE + ".tmp")
     tmp.write_text(json.dumps(payload, indent=2) + "\n")
     os.replace(tmp, out / EXPERIMENT_FILE)
 
 
+def _read_previous(out: Path | str) -> str | None:
+    if is_url(out):
+        from adarl.results import join, read_text
+
+        return read_text(join(out, EXPERIMENT_FILE))
+    previous = out / EXPERIMENT_FILE
+    return previous.read_text() if previous.is_file() else None
+
+
 def run_experiment(spec_path: str | os.PathLike, *, budget: str | None = None, output: str | os.PathLike | None = None,
                    workers: int | None = None, dry_run: bool = False, report: bool = True,
                    log=print, launcher: str | Any = "local", launcher_options: dict | None = None,
-                   progress_interval: float = 0) -> list[PlannedRun]:
+                   progress_interval: float = 0, scratch: str | os.PathLike | None = None,
+                   live: bool = False, console=None) -> list[PlannedRun]:
     """Run (or continue) the experiment in ``spec_path``; returns the runs with their status.
 
-    ``launcher``: ``local`` (default), ``ray``, ``submitit`` (see :mod:`adarl.launchers`; ``launcher_options`` go to
-    :func:`~adarl.launchers.make_launcher`) or a :class:`~adarl.launchers.Launcher`. ``progress_interval`` > 0 logs
-    one line per run and an aggregate bar that often (seconds)."""
+    ``output``: a folder, or an fsspec URL (``s3://bucket/exp``, ``file:///shared/exp``; see :mod:`adarl.results`),
+    where each run then trains in ``scratch`` (default: ``$TMPDIR/adarl-scratch`` of the machine it runs on) and is
+    uploaded after each checkpoint. ``launcher``: ``local`` (default), ``ray``, ``submitit`` (see
+    :mod:`adarl.launchers`; ``launcher_options`` go to :func:`~adarl.launchers.make_launcher`) or a
+    :class:`~adarl.launchers.Launcher`. ``progress_interval`` > 0 logs one line per run and an aggregate bar that
+    often (seconds); with ``live`` a table redrawn in place instead (rich, on ``console``: default stdout)."""
     spec = load_experiment(spec_path)
     budget, _ = resolve_budget(spec, budget)
-    out = Path(output) if output is not None else default_output(spec, budget)
+    out = output if output is not None else default_output(spec, budget)
+    out = str(out).rstrip("/") if is_url(out) else Path(out)
+    if is_url(out):
+        from adarl.results import filesystem
+
+        filesystem(out)  # an unknown protocol or a missing backend package fails here, before anything runs
     runs = plan_runs(spec, out, budget)
+    if scratch is not None:
+        if is_url(out):
+            for r in runs:
+                r.scratch = str(scratch)
+        else:
+            log(f"note: --scratch is ignored: results at a local path ({out}) are written in place")
     _check_recipes(runs)
     todo = []
     for r in runs:
@@ -442,10 +637,10 @@ def run_experiment(spec_path: str | os.PathLike, *, budget: str | None = None, o
             r.status, r.message = "skipped-finished", "already finished"
         else:
             todo.append(r)
-    previous = out / EXPERIMENT_FILE
-    if previous.is_file():  # keep the timings of runs finished in earlier sessions
+    previous = _read_previous(out)
+    if previous is not None:  # keep the timings of runs finished in earlier sessions
         try:
-            before = {r["run_id"]: r for r in json.loads(previous.read_text()).get("runs", [])}
+            before = {r["run_id"]: r for r in json.loads(previous).get("runs", [])}
         except (json.JSONDecodeError, AttributeError, TypeError):
             before = {}
         for r in runs:
@@ -458,45 +653,59 @@ def run_experiment(spec_path: str | os.PathLike, *, budget: str | None = None, o
         for r in runs:
             log(f"  {r.status:<16} {r.run_id}: {r.recipe} {' '.join(r.overrides)}")
         return runs
-    out.mkdir(parents=True, exist_ok=True)
+    if is_url(out):
+        from adarl.results import makedirs
+
+        makedirs(out)
+    else:
+        out.mkdir(parents=True, exist_ok=True)
     command = f"adarl experiment {spec_path}" + (f" --budget {budget}" if budget else "") + f" -o {out}"
     _write_state(out, spec, budget, runs, command)
     from adarl.launchers import Launcher, make_launcher
-    from adarl.progress import ProgressBoard
+    from adarl.progress import LiveBoard, ProgressBoard
 
     if not isinstance(launcher, Launcher):
         launcher = make_launcher(launcher, workers=workers or spec.workers, output=out, resources=spec.resources,
                                  **(launcher_options or {}))
+    if is_url(out) and out.startswith("memory://") and launcher.name != "local":
+        raise AdaRLValueError(f"output {out!r}: memory:// lives in one process, which the {launcher.name} launcher's "
+                              "workers cannot see; use a shared URL (s3://, gs://, file:///shared/...)")
     board, last_tick = ProgressBoard(runs), [time.monotonic()]
+    screen = LiveBoard(board, console=console) if live and progress_interval > 0 else None
+    say = screen.log if screen is not None else log
 
     def done(r: PlannedRun) -> None:
-        log(f"[{r.status}] {r.run_id} ({r.wall_time_s:.0f} s){'' if r.status == 'finished' else ': ' + r.message}")
+        say(f"[{r.status}] {r.run_id} ({r.wall_time_s:.0f} s){'' if r.status == 'finished' else ': ' + r.message}")
         _write_state(out, spec, budget, runs, command)
+        if screen is not None:
+            screen.update()
 
     def tick(running: set) -> None:
         board.running = running
         if progress_interval > 0 and time.monotonic() - last_tick[0] >= progress_interval:
             last_tick[0] = time.monotonic()
-            for line in board.render():
-                log(line)
+            if screen is not None:
+                screen.update()
+            else:
+                for line in board.render():
+                    log(line)
 
     if todo:
-        launcher.launch(todo, done, tick=tick)
+        if screen is not None:
+            with screen:
+                launcher.launch(todo, done, tick=tick)
+        else:
+            launcher.launch(todo, done, tick=tick)
     if spec.sweeps:
-        from adarl.sweep import parse_sweep, sweep_run
-
         for r in runs:
             if r.status in ("finished", "skipped-finished"):
-                for s in spec.sweeps:
-                    name = s.name or "__".join(p.split("=")[0] for p in s.params)
-                    if not (Path(r.path) / "sweeps" / f"{name}.csv").is_file():
-                        sweep_run(r.path, [parse_sweep(p) for p in s.params], episodes=s.episodes, name=name)
+                _sweep(r, spec.sweeps)
     _write_state(out, spec, budget, runs, command)
     failed = [r for r in runs if r.status == "failed"]
     if report:
         from adarl.aggregate import write_aggregate_report
 
-        path = write_aggregate_report([out], out / "report")
+        path = write_aggregate_report([out], f"{out}/report" if is_url(out) else out / "report")
         log(f"report: {path}")
     if failed:
         raise AdaRLError(f"{len(failed)} of {len(runs)} runs failed: " + "; ".join(f"{r.run_id}: {r.message}"

@@ -6,9 +6,10 @@ Every launcher runs the same thing: :func:`adarl.experiment.execute_run`, which 
 resume`` when the run folder has a checkpoint) in a child process that dies with its launcher process. So a worker
 that is lost mid-run is retried from the run's last checkpoint (Ray: ``max_retries``; submitit: resubmitted by the
 driver, and requeued from the checkpoint on preemption/timeout), and a finished run is never started again. Runs
-write into the experiment's output folder, which must be a filesystem path that every worker sees (NFS, Lustre,
-...). The launchers do not copy files, stage code or install packages on workers: each worker needs ``adarl``
-installed and the output folder mounted at the same path.
+write into the experiment's output: a filesystem path that every worker sees (NFS, Lustre, ...), or an fsspec URL
+(``s3://...``) that each run uploads to from a local scratch folder (:mod:`adarl.results`). The launchers do not
+stage code or install packages on workers: each worker needs ``adarl`` installed (and the URL's fsspec backend, e.g.
+``s3fs``, with its credentials), or the output folder mounted at the same path.
 """
 
 from __future__ import annotations
@@ -221,8 +222,14 @@ class _CheckpointableRun(_Checkpointable):
 
 def make_launcher(name: str, *, workers: int = 1, output: str | os.PathLike = ".", address: str | None = None,
                   cpus_per_run: float | None = None, gpus_per_run: float | None = None, max_retries: int = 3,
-                  resources=None, cluster: str | None = None) -> Launcher:
-    """A launcher by name (``local``, ``ray``, ``submitit``), sized from the spec's ``resources`` unless given."""
+                  resources=None, cluster: str | None = None, submitit_folder: str | os.PathLike | None = None
+                  ) -> Launcher:
+    """A launcher by name (``local``, ``ray``, ``submitit``), sized from the spec's ``resources`` unless given.
+
+    ``submitit_folder``: where submitit keeps its job files (default ``<output>/submitit``; required when the output
+    is a URL, since SLURM jobs read them from a shared filesystem)."""
+    from adarl.results import is_url
+
     if name not in LAUNCHERS:
         raise AdaRLValueError(f"unknown launcher {name!r}; choose one of {', '.join(LAUNCHERS)}")
     cpus = cpus_per_run if cpus_per_run is not None else (resources.cpus_per_run if resources else 1)
@@ -231,7 +238,11 @@ def make_launcher(name: str, *, workers: int = 1, output: str | os.PathLike = ".
         return LocalLauncher(workers)
     if name == "ray":
         return RayLauncher(address, cpus_per_run=cpus, gpus_per_run=gpus, max_retries=max_retries)
-    return SubmititLauncher(Path(output) / "submitit", cluster=cluster, cpus_per_run=int(cpus), gpus_per_run=int(gpus),
+    if submitit_folder is None and is_url(output):
+        raise AdaRLValueError(f"the submitit launcher keeps its job files in a folder every job can read; with an "
+                              f"fsspec URL as output ({output}) give one: --submitit-folder /shared/path")
+    folder = Path(submitit_folder) if submitit_folder is not None else Path(output) / "submitit"
+    return SubmititLauncher(folder, cluster=cluster, cpus_per_run=int(cpus), gpus_per_run=int(gpus),
                             timeout_min=resources.timeout_min if resources else 24 * 60,
                             slurm_partition=resources.slurm_partition if resources else None,
                             slurm_additional_parameters=resources.slurm_additional_parameters if resources else None,

@@ -90,8 +90,24 @@ def plot_ranks(run: RunDir, out: Path) -> Path | None:
     return out
 
 
-def write_report(path: str | os.PathLike) -> Path:
-    """Write ``report.md`` and ``plots/*.png`` for the run folder at ``path``; returns the report's path."""
+def write_report(path: str | os.PathLike) -> Path | str:
+    """Write ``report.md`` and ``plots/*.png`` for the run folder at ``path``; returns the report's path.
+
+    ``path`` may be an fsspec URL (:mod:`adarl.results`): the report is made in a local copy of the run's files and
+    uploaded beside them; the URL of ``report.md`` is returned."""
+    from adarl.results import is_url
+
+    if is_url(path):
+        import tempfile
+
+        from adarl.results import download_results, join, upload_tree, write_atomic
+
+        with tempfile.TemporaryDirectory(prefix="adarl-report-") as tmp:
+            local = download_results(str(path), Path(tmp) / "run")
+            md = write_report(local)
+            upload_tree(local / "plots", join(str(path), "plots"))
+            write_atomic(join(str(path), "report.md"), md.read_bytes())
+        return join(str(path), "report.md")
     run = RunDir(path)
     plots = run.path / "plots"
     plots.mkdir(exist_ok=True)

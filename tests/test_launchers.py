@@ -1,5 +1,6 @@
 """Launchers: a tiny 2-algorithm x 2-seed experiment through Ray (one worker killed mid-run) and through submitit's
-local executor gives every run finished exactly once and the same report as the local launcher."""
+local executor gives every run finished exactly once and the same report as the local launcher; so does the local
+launcher writing to an fsspec URL, with one run killed mid-run and resumed on a fresh scratch folder."""
 
 from __future__ import annotations
 
@@ -16,7 +17,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from adarl.errors import AdaRLValueError
+from adarl.errors import AdaRLError, AdaRLValueError
 from adarl.experiment import plan_runs, load_experiment, read_attempts, run_experiment
 from adarl.launchers import make_launcher
 from adarl.progress import ProgressBoard
@@ -147,3 +148,91 @@ def test_submitit_local_executor_matches_local(tmp_path, local_reference):
     _assert_each_finished_once(out, runs)
     assert _report_content(out) == ref_report
     assert (out / "submitit").is_dir()
+
+
+def _training_pids(marker: str) -> list[int]:
+    """Processes whose command line runs ``adarl.cli`` and contains ``marker`` (Linux /proc)."""
+    pids = []
+    for d in Path("/proc").iterdir():
+        try:
+            cmd = (d / "cmdline").read_bytes().replace(b"\0", b" ").decode()
+        except (OSError, ValueError):
+            continue
+        if "adarl.cli" in cmd and marker in cmd:
+            pids.append(int(d.name))
+    return pids
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not Path("/proc/self/cmdline").exists(), reason="finds the training process through /proc")
+def test_url_results_resume_on_a_fresh_scratch_and_match_local(tmp_path, local_reference, fake_s3):
+    """Runs at a ``fakes3://`` URL (object-store semantics): one run's training is killed mid-run; the next session,
+    on an empty scratch folder, downloads its latest checkpoint and finishes it, once; the report on the URL is the
+    local launcher's."""
+    _, ref_report = local_reference
+    bucket = tmp_path / "bucket"
+    url = f"fakes3://{bucket}/exp"
+    spec = _spec(tmp_path)
+    scratch_a, scratch_b = tmp_path / "scratch-a", tmp_path / "scratch-b"
+    killed: list[str] = []
+
+    def kill_one_training_mid_run():
+        end = time.monotonic() + 240
+        while time.monotonic() < end and not killed:
+            for latest in sorted(bucket.glob("exp/*/checkpoints/LATEST")):
+                try:
+                    frames = json.loads(latest.read_text())["frames"]
+                except (OSError, ValueError, KeyError):  # being written
+                    continue
+                run_id = latest.parent.parent.name
+                pids = _training_pids(f"{scratch_a}/")
+                pids = [p for p in pids if run_id in (Path(f"/proc/{p}/cmdline").read_bytes().decode(errors="replace"))]
+                if 0 < frames < 600 and pids:
+                    os.kill(pids[0], signal.SIGKILL)
+                    killed.append(run_id)
+                    return
+            time.sleep(0.05)
+
+    killer = threading.Thread(target=kill_one_training_mid_run, daemon=True)
+    killer.start()
+    said: list[str] = []
+    with pytest.raises(AdaRLError, match="1 of 4 runs failed"):
+        run_experiment(spec, output=url, scratch=scratch_a, report=False, log=said.append, progress_interval=1)
+    killer.join()
+    assert killed, "no training was killed mid-run"
+    assert any("runs done" in line for line in said)
+    assert not (bucket / "exp" / killed[0] / "summary.json").exists()
+    # the killed run's log went to the URL; finished runs left nothing in the scratch folder
+    assert (bucket / "exp" / f"{killed[0]}.log").is_file()
+    assert sorted(p.name for p in scratch_a.glob("*/*") if p.is_dir()) == [killed[0]]
+
+    runs = run_experiment(spec, output=url, scratch=scratch_b, log=said.append)  # e.g. another machine
+    assert sorted(r.status for r in runs) == ["finished"] + ["skipped-finished"] * 3
+    _assert_each_finished_once(url, runs)
+    attempts = read_attempts(url, killed[0])
+    assert [(e["event"], e["action"]) for e in attempts] == [("start", "ran"), ("end", "ran"), ("start", "resumed"),
+                                                             ("end", "resumed")]
+    assert attempts[2]["scratch"].startswith(str(scratch_b)) and attempts[1]["status"] == "failed"
+    assert not (bucket / "exp" / f"{killed[0]}.log").exists()
+    assert not [p for p in scratch_b.rglob("*") if p.is_file()]
+    # the URL holds each run's latest checkpoint only, never a temporary name
+    files = [p.relative_to(bucket).as_posix() for p in bucket.rglob("*") if p.is_file()]
+    assert not [f for f in files if ".part-" in f or f.endswith(".tmp")]
+    for r in runs:
+        ckpts = bucket / "exp" / r.run_id / "checkpoints"
+        frames = json.loads((ckpts / "LATEST").read_text())["frames"]
+        assert sorted(p.name for p in ckpts.iterdir()) == ["LATEST", "best.pt", f"ckpt-{frames:012d}.pt",
+                                                            f"rb-{frames:012d}"]
+    # exact resume from the downloaded checkpoint: the same evaluations and table as the local launcher
+    assert _report_content(bucket / "exp") == ref_report
+    # adarl report on the URL, while nothing runs (it reads the URL through fsspec, writes the report there)
+    from adarl.cli import main
+
+    assert main(["report", url, "-o", f"{url}/report2"]) == 0
+    with (bucket / "exp" / "report2" / "table.csv").open() as fh:
+        assert repr(sorted(tuple(r.items()) for r in csv.DictReader(fh))) == ref_report["table"]
+    with (bucket / "exp" / "report2" / "runs.csv").open() as fh:
+        assert all(r["path"].startswith(f"{url}/") for r in csv.DictReader(fh))
+    # finished runs are never re-run
+    again = run_experiment(spec, output=url, scratch=scratch_b, report=False, log=lambda *_: None)
+    assert sorted(r.status for r in again) == ["skipped-finished"] * 4
