@@ -574,3 +574,28 @@ def test_factor_svd_ill_conditioned_product_falls_back_to_svd():
     w1, w2 = q1 * s_true, q2.T
     _, s, _ = factor_svd(w1, w2)
     torch.testing.assert_close(s, s_true, atol=1e-14, rtol=1e-8)
+
+
+def test_sac_loss_ensemble_gets_low_rank_init_not_torchrl_uniform_resampling():
+    # TorchRL resamples each stacked parameter uniformly in [min, max]: for W1, W2 that gives a product ~5x too
+    # large at 64 wide. make_sac_loss redraws every member as a fresh (factorised nn.Linear) LowRankLinear.
+    from torchrl.envs import GymEnv
+
+    from adarl.builders import make_sac_actor, make_sac_critic, make_sac_loss, reinit_low_rank_ensemble
+
+    torch.manual_seed(0)
+    env = GymEnv("Hopper-v5")
+    kw = dict(num_cells=[64, 64], low_rank_layers=[0, 1])
+    loss = make_sac_loss(make_sac_actor(env, **kw), make_sac_critic(env, **kw), env)
+    online = dict(loss.qvalue_network_params.flatten_keys(".").items())
+    target = dict(loss.target_qvalue_network_params.flatten_keys(".").items())
+    for layer, fan_in in (("module.0", 14), ("module.2", 64)):
+        w = online[f"{layer}.w1"] @ online[f"{layer}.w2"]
+        linear_std = 1 / math.sqrt(3 * fan_in)  # kaiming_uniform(a=sqrt(5)): U(-1/sqrt(in), 1/sqrt(in))
+        assert w.shape[0] == 2 and not torch.equal(w[0], w[1])
+        assert abs(float(w.std()) / linear_std - 1) < 0.15, layer
+        s = torch.linalg.svdvals(w.double())
+        assert float((s[:, -1] / s[:, 0]).min()) > 1e-5  # not the squared condition number of two random factors
+        for p in ("w1", "w2", "bias"):
+            assert torch.equal(online[f"{layer}.{p}"], target[f"{layer}.{p}"])
+    assert reinit_low_rank_ensemble(loss) == 2
