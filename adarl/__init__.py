@@ -14,6 +14,7 @@ The public components, importable from here:
 
 from adarl.errors import AdaRLError, AdaRLValueError, CheckpointError, RecipeError
 from adarl.lowrank import LowRankLinear, factor_svd, iter_low_rank, low_rank_mlp, refactorize, truncation_error
+from adarl.builders import reinit_low_rank_ensemble
 from adarl.rank import (
     EnergyRule,
     FixedRank,
@@ -58,6 +59,7 @@ def __getattr__(name):
 __all__ = [
     "AdaRLError", "AdaRLValueError", "CheckpointError", "RecipeError",
     "LowRankLinear", "low_rank_mlp", "factor_svd", "refactorize", "truncation_error", "iter_low_rank",
+    "reinit_low_rank_ensemble",
     "RankRule", "RankDecision", "EnergyRule", "InclusiveEnergyRule", "RatioRule", "FixedRank", "PolicyFitRule",
     "make_rule",
     "WarmupCosine", "make_lr_scheduler", "restart_lr_scheduler",
