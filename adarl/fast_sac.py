@@ -129,10 +129,6 @@ class _StackedMLP:
                 x = x + b.unsqueeze(-2)
         return x
 
-    def __call__(self, params: dict[str, torch.Tensor], x: torch.Tensor) -> torch.Tensor:
-        """``x`` is ``[B, in]`` (shared by all critics) or ``[N, B, in]``; returns ``[N, B, out]``."""
-        return self.forward(self.prepare(params, x.shape[-2] if x.dim() > 1 else 1), x)
-
 
 def _actor_net(loss) -> nn.Module:
     """The module mapping observation -> (loc, scale) inside a TorchRL ``ProbabilisticActor``."""
