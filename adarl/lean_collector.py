@@ -100,7 +100,7 @@ class LeanCollector:
         """One action: uniform-random during the random phase, else a TanhNormal sample from the policy."""
         if self.frames < self.init_random_frames:
             return self.env.action_spec.rand()
-        loc, scale = (net or self.net)(td.get("observation"))
+        loc, scale = (self.net if net is None else net)(td.get("observation"))
         eps = torch.randn_like(loc) if generator is None else torch.randn(loc.shape, generator=generator)
         action = torch.tanh(loc + scale * eps)
         return action * self._half + self._mid if self._affine else action
