@@ -24,7 +24,8 @@ from pathlib import Path
 
 __all__ = ["VARIANTS", "run_benchmark", "measure", "rank_event_seconds", "format_table", "main"]
 
-VARIANTS = ("adarl", "adarl_overlap", "adarl_norank", "torchrl", "sb3")
+VARIANTS = ("adarl", "adarl_process", "adarl_thread", "adarl_norank", "torchrl", "sb3")
+BASELINES = ("torchrl", "sb3")
 
 
 def _sb3_available() -> bool:
@@ -41,10 +42,10 @@ def _recipe(env_id: str, width: int, variant: str, warmup: int, total: int, rank
           f"collector.init_random_frames={warmup}", "collector.frames_per_batch=50", f"replay.size={max(total, batch)}",
           f"algorithm.batch_size={batch}", f"network.actor.num_cells=[{width},{width}]",
           f"network.critic.num_cells=[{width},{width}]", "replay.warm_start.frames=0"]
-    if variant in ("adarl", "adarl_overlap"):
+    if variant in ("adarl", "adarl_process", "adarl_thread"):
         ov += [f"rank.interval={rank_interval}", "algorithm.fused=true"]
-        if variant == "adarl_overlap":  # collection in a background thread, one batch staler
-            ov += ["collector.overlap=true"]
+        if variant != "adarl":  # collection in a worker process / a background thread, one batch staler
+            ov += [f"collector.overlap={variant.removeprefix('adarl_')}"]
     elif variant == "adarl_norank":
         ov += ["rank.enabled=false", "algorithm.fused=true"]
     else:  # stock TorchRL: plain MLPs, SACLoss, for-loop Adam, SoftUpdate (TorchRL's reference SAC recipe)
@@ -97,7 +98,7 @@ def _measure_torchrl(variant, env_id, width, warmup, steps, skip, batch, rank_in
         if t0 is not None and updates >= skip + steps:
             break
     wall = time.perf_counter() - t0
-    c.collector.shutdown()
+    c.collector.shutdown()  # joins a collector worker process, so its peak memory is counted below
     del torch
     return {"updates_per_s": (updates - skip) / wall, "env_steps_per_s": (frames - f0) / wall,
             "rank_event_s": event_s, "rank_events": len(event_s)}
@@ -129,6 +130,9 @@ def measure(variant: str, env_id: str, width: int, *, warmup: int = 1000, steps:
     else:
         out = _measure_torchrl(variant, env_id, width, warmup, steps, skip, batch, rank_interval)
     out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    # a collector worker process (adarl_process): its own peak, reported beside the trainer's
+    out["worker_peak_rss_mb"] = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024 if \
+        variant == "adarl_process" else 0.0
     return out
 
 
@@ -198,11 +202,14 @@ def run_benchmark(a) -> dict:
                     "updates_per_s": statistics.median(r["updates_per_s"] for r in rs),
                     "env_steps_per_s": statistics.median(r["env_steps_per_s"] for r in rs),
                     "peak_rss_mb": statistics.median(r["peak_rss_mb"] for r in rs),
+                    "worker_peak_rss_mb": statistics.median(r.get("worker_peak_rss_mb", 0.0) for r in rs),
                     "rank_event_ms": 1000 * statistics.median(events) if events else None,
                     "runs": rs,
                 }
             ups = {v: d["updates_per_s"] for v, d in row["variants"].items()}
             row["ratios"] = {f"adarl/{v}": ups["adarl"] / ups[v] for v in ups if v != "adarl" and "adarl" in ups}
+            for ours in ("adarl_process", "adarl_thread"):  # the overlapped loops against the baselines too
+                row["ratios"].update({f"{ours}/{v}": ups[ours] / ups[v] for v in BASELINES if ours in ups and v in ups})
             ev = row["variants"].get("adarl", {}).get("rank_event_ms")
             if ev is not None:
                 # share of wall time at the paper's interval of 1e6 optimisation steps
@@ -223,8 +230,11 @@ def format_table(report: dict) -> str:
     for row in report["results"]:
         for v, d in row["variants"].items():
             ev = "-" if d["rank_event_ms"] is None else f"{d['rank_event_ms']:.1f}"
+            rss = f"{d['peak_rss_mb']:.0f}"
+            if d.get("worker_peak_rss_mb"):
+                rss += f" + {d['worker_peak_rss_mb']:.0f} (worker)"
             lines.append(f"| {row['env']} | ({row['width']}, {row['width']}) | {v} | {d['updates_per_s']:.1f} | "
-                         f"{d['env_steps_per_s']:.1f} | {d['peak_rss_mb']:.0f} | {ev} |")
+                         f"{d['env_steps_per_s']:.1f} | {rss} | {ev} |")
     lines += ["", "| env | size | ratio | value |", "|---|---|---|---|"]
     for row in report["results"]:
         for k, val in row["ratios"].items():
@@ -243,8 +253,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--envs", nargs="+", default=["Hopper-v5"], help="gymnasium env ids (e.g. Hopper-v5 Humanoid-v5)")
     p.add_argument("--widths", nargs="+", type=int, default=[64, 256], help="hidden width w of (w, w) MLPs")
     p.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS,
-                   help="adarl (fused, rank adaptation on), adarl_overlap (the same with collector.overlap), "
-                        "adarl_norank, torchrl (stock SACLoss loop), sb3")
+                   help="adarl (fused, rank adaptation on), adarl_process / adarl_thread (the same with "
+                        "collector.overlap: process / thread), adarl_norank, torchrl (stock SACLoss loop), sb3")
     p.add_argument("--repeats", type=int, default=3, help="repeats per variant (the median is reported)")
     p.add_argument("--steps", type=int, default=1000, help="timed updates per measurement")
     p.add_argument("--warmup", type=int, default=1000, help="random-action frames before updates start")

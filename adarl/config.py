@@ -510,11 +510,12 @@ class CollectorConfig(_Section):
         description="LeanCollector (adarl.lean_collector: same env, policy sampled straight from the actor network, "
         "no Collector overhead); 'auto' = on for one env with a TanhNormal actor; false = torchrl Collector.",
     )
-    overlap: bool = Field(
+    overlap: Literal["thread", "process"] | bool = Field(
         False,
-        description="Collect the next batch in a background thread while the updates of the current one run "
-        "(needs the lean collector). The next batch then comes from the policy as it was one batch earlier, as "
-        "with TorchRL's asynchronous collectors; exact resume still holds.",
+        description="Collect the next batch while the updates of the current one run (needs the lean collector): "
+        "'process' in a worker process (a second core), 'thread' (or true) in a background thread. The next batch "
+        "then comes from the policy as it was one batch earlier, as with TorchRL's asynchronous collectors; both "
+        "modes give the same batches, and exact resume still holds.",
     )
 
 

@@ -7,20 +7,33 @@ the action straight from the actor's network: ``tanh(loc + scale * eps)`` (then 
 the same distribution the ``ProbabilisticActor`` samples from in ``ExplorationType.RANDOM``. Batches carry the
 keys the replay buffer and the training loop read (``observation``, ``action``, ``("next", ...)`` with reward,
 done flags and the env's own extra keys).
+
+With ``overlap`` the next batch is collected while the caller trains on the current one, in a thread
+(``"thread"``) or in a worker process (``"process"``: a second core, no GIL shared with the updates). Both hand
+out bit-identical batches: the worker gets the policy snapshot, the noise generator and the env's full live
+state (simulator, gymnasium counters and RNG, perturbation state, TorchRL carrier; the exact-resume snapshot of
+:mod:`adarl.env_state`), steps its own copy of the env, and sends the same state back, which is loaded into the
+caller's env, so that env is always where a synchronous collector would have left it.
 """
 
 from __future__ import annotations
 
 import copy
+import multiprocessing
+import pickle
 import threading
-from collections.abc import Iterator
+import traceback
+import weakref
+from collections.abc import Callable, Iterator
 
 import torch
 from tensordict import TensorDictBase
 
 from adarl.errors import AdaRLValueError
 
-__all__ = ["LeanCollector", "wants_lean"]
+__all__ = ["LeanCollector", "wants_lean", "OVERLAP_MODES"]
+
+OVERLAP_MODES = (False, "thread", "process")
 
 
 def _is_tanh_normal_actor(policy) -> bool:
@@ -51,17 +64,24 @@ class LeanCollector:
         frames_per_batch: transitions per yielded batch.
         init_random_frames: frames of uniform-random actions before the policy acts.
         total_frames: stop after this many frames; ``-1`` never stops (as the Trainer uses it).
-        overlap: collect the next batch in a background thread while the caller trains on the current one.
-            The thread acts with a copy of the actor network taken when the current batch is handed over, so
-            batch ``k + 1`` comes from the policy after the updates of batch ``k - 1`` (one batch staler than
-            without overlap, like TorchRL's asynchronous collectors); its action noise comes from its own
-            generator (``noise_seed``). The random phase is never overlapped. Deterministic: the result does not
-            depend on thread timing, and :meth:`state_dict` keeps a finished prefetched batch for exact resume.
+        overlap: ``False``; ``"thread"`` (or ``True``) or ``"process"``: collect the next batch in the
+            background while the caller trains on the current one. The background collector acts with a copy of
+            the actor network taken when the current batch is handed over, so batch ``k + 1`` comes from the
+            policy after the updates of batch ``k - 1`` (one batch staler than without overlap, like TorchRL's
+            asynchronous collectors); its action noise comes from its own generator (``noise_seed``). The random
+            phase is never overlapped. Deterministic: the result does not depend on timing, both modes hand out
+            the same batches, and :meth:`state_dict` keeps a finished prefetched batch for exact resume.
         noise_seed: seed of that generator (overlap only).
+        env_factory: ``"process"`` only: a picklable callable that builds an env like ``env`` (its seed does
+            not matter: the worker's env is given ``env``'s live state before every batch), e.g.
+            ``functools.partial(adarl.envs.make_env, "Hopper-v5", preset="paper")``. The worker is a ``spawn``ed
+            process started at the first overlapped batch and stopped by :meth:`shutdown` (or when the collector
+            is garbage-collected, or when this process dies).
     """
 
     def __init__(self, env, policy, *, frames_per_batch: int, init_random_frames: int = 0,
-                 total_frames: int = -1, overlap: bool = False, noise_seed: int = 0) -> None:
+                 total_frames: int = -1, overlap: bool | str = False, noise_seed: int = 0,
+                 env_factory: Callable[[], object] | None = None) -> None:
         if tuple(env.batch_size) != ():
             raise AdaRLValueError(f"LeanCollector runs one env (batch_size []), got batch_size {tuple(env.batch_size)}; "
                                   "set collector.lean: false for vectorised envs")
@@ -81,11 +101,23 @@ class LeanCollector:
         self._affine = bool((low != -1).any() or (high != 1).any())
         self.frames = 0
         self._td: TensorDictBase | None = None
-        self.overlap = bool(overlap)
+        if overlap is True:
+            overlap = "thread"
+        if overlap not in OVERLAP_MODES:
+            raise AdaRLValueError(f"overlap must be one of {OVERLAP_MODES} (True means 'thread'), got {overlap!r}")
+        if overlap == "process" and not callable(env_factory):
+            raise AdaRLValueError("overlap='process' needs env_factory: a picklable callable that builds the same env "
+                                  "(e.g. functools.partial(adarl.envs.make_env, env_id, preset=...)); "
+                                  "or use overlap='thread'")
+        self.mode = overlap
+        self.overlap = overlap is not False
+        self.env_factory = env_factory
         self._noise = torch.Generator().manual_seed(int(noise_seed)) if self.overlap else None
         self._thread: threading.Thread | None = None
         self._result: dict = {}
         self._ready: TensorDictBase | None = None
+        self._worker: _Worker | None = None
+        self._pending = False  # a job was sent to the worker and its answer not yet read
 
     def reset(self) -> None:
         """Start a fresh episode at the next step (call after anything else stepped or reset the env).
@@ -118,6 +150,9 @@ class LeanCollector:
 
     def _prefetch(self) -> None:
         """Start collecting the next batch in the background with a snapshot of the current policy."""
+        if self.mode == "process":
+            self._prefetch_remote()
+            return
         snapshot = copy.deepcopy(self.net)
         self._result = {}
 
@@ -130,8 +165,43 @@ class LeanCollector:
         self._thread = threading.Thread(target=work, name="adarl-lean-collector", daemon=True)
         self._thread.start()
 
+    # ------------------------------------------------------------------ the worker process ("process" mode)
+    def _live_state(self) -> dict:
+        from adarl.env_state import env_state_dict
+        from adarl.envs import dynamics_state_dict
+
+        return {"dynamics": dynamics_state_dict(self.env), "env": env_state_dict(self.env),
+                "carrier": None if self._td is None else (self._td.to_dict(), list(self._td.batch_size))}
+
+    def _prefetch_remote(self) -> None:
+        if self._worker is None or not self._worker.alive():
+            self._worker = _Worker(self.env_factory)
+        job = {"net": self.net, "state": self._live_state(), "noise": self._noise.get_state(),
+               "n": self.frames_per_batch, "box": (self._mid, self._half, self._affine)}
+        self._worker.send(job)
+        self._pending = True
+
+    def _receive_remote(self) -> TensorDictBase:
+        from tensordict import TensorDict
+
+        from adarl.env_state import load_env_state_dict
+        from adarl.envs import load_dynamics_state_dict
+
+        self._pending = False
+        out = self._worker.receive()
+        state = out["state"]
+        load_dynamics_state_dict(self.env, state["dynamics"])
+        load_env_state_dict(self.env, state["env"])
+        carrier = state["carrier"]
+        self._td = None if carrier is None else TensorDict(carrier[0], batch_size=carrier[1])
+        self._noise.set_state(out["noise"])
+        self.frames += self.frames_per_batch
+        return TensorDict(out["batch"], batch_size=out["batch_size"])
+
     def drain(self, keep: bool = True) -> None:
         """Wait for a batch being prefetched; keep it for the next iteration, or drop it (``keep=False``)."""
+        if self._pending:
+            self._ready = self._receive_remote()
         if self._thread is not None:
             self._thread.join()
             self._thread = None
@@ -144,7 +214,7 @@ class LeanCollector:
 
     def __iter__(self) -> Iterator[TensorDictBase]:
         while self.total_frames < 0 or self.frames < self.total_frames or self._ready is not None \
-                or self._thread is not None:
+                or self._thread is not None or self._pending:
             self.drain(keep=True)
             if self._ready is not None:
                 batch, self._ready = self._ready, None
@@ -188,6 +258,113 @@ class LeanCollector:
                 self.frames -= int(state["prefetched_batch_size"][0])
 
     def shutdown(self) -> None:
-        """Finish and drop a batch being prefetched; nothing else runs in the background."""
-        self.drain(keep=False)
-        self._td = None
+        """Finish and drop a batch being prefetched and stop the worker process; nothing runs in the background.
+
+        The collector can still be iterated afterwards (a new worker is started when needed)."""
+        try:
+            self.drain(keep=False)
+        finally:
+            self._td = None
+            if self._worker is not None:
+                self._worker.close()
+                self._worker = None
+
+
+def _collect_remote(env, job: dict) -> dict:
+    """One batch in the worker: load the caller's live state, step ``job["n"]`` times, return the new state."""
+    from tensordict import TensorDict
+
+    from adarl.env_state import env_state_dict, load_env_state_dict
+    from adarl.envs import dynamics_state_dict, load_dynamics_state_dict
+
+    state = job["state"]
+    load_dynamics_state_dict(env, state["dynamics"])
+    load_env_state_dict(env, state["env"])
+    td = None if state["carrier"] is None else TensorDict(state["carrier"][0], batch_size=state["carrier"][1])
+    net, (mid, half, affine) = job["net"], job["box"]
+    noise = torch.Generator()
+    noise.set_state(job["noise"])
+    steps = []
+    with torch.no_grad():
+        for _ in range(job["n"]):
+            if td is None:
+                td = env.reset()
+            loc, scale = net(td.get("observation"))
+            action = torch.tanh(loc + scale * torch.randn(loc.shape, generator=noise))
+            td.set("action", action * half + mid if affine else action)
+            out, td = env.step_and_maybe_reset(td)
+            steps.append(out)
+    batch = torch.stack(steps).contiguous()
+    return {"batch": batch.to_dict(), "batch_size": list(batch.batch_size), "noise": noise.get_state(),
+            "state": {"dynamics": dynamics_state_dict(env), "env": env_state_dict(env),
+                      "carrier": None if td is None else (td.to_dict(), list(td.batch_size))}}
+
+
+def _worker_main(conn, env_factory) -> None:
+    """The worker process: build the env once, then answer one collection job per message until told to stop."""
+    torch.set_num_threads(1)
+    try:
+        env = env_factory()
+    except BaseException:
+        conn.send_bytes(pickle.dumps(("error", traceback.format_exc())))
+        return
+    while True:
+        try:
+            msg = conn.recv_bytes()
+        except (EOFError, OSError):  # the caller is gone
+            return
+        job = pickle.loads(msg)
+        if job is None:
+            return
+        try:
+            reply = ("ok", _collect_remote(env, job))
+        except BaseException:
+            reply = ("error", traceback.format_exc())
+        conn.send_bytes(pickle.dumps(reply, protocol=pickle.HIGHEST_PROTOCOL))
+
+
+class _Worker:
+    """A spawned collection process and its pipe (messages are pickled by hand: no shared-memory tensors)."""
+
+    def __init__(self, env_factory) -> None:
+        ctx = multiprocessing.get_context("spawn")
+        self.conn, child = ctx.Pipe()
+        self.proc = ctx.Process(target=_worker_main, args=(child, env_factory), name="adarl-lean-collector",
+                                daemon=not multiprocessing.current_process().daemon)
+        self.proc.start()
+        child.close()
+        self._finalizer = weakref.finalize(self, _stop_worker, self.conn, self.proc)
+
+    def alive(self) -> bool:
+        return self.proc.is_alive()
+
+    def send(self, job: dict) -> None:
+        self.conn.send_bytes(pickle.dumps(job, protocol=pickle.HIGHEST_PROTOCOL))
+
+    def receive(self) -> dict:
+        try:
+            status, payload = pickle.loads(self.conn.recv_bytes())
+        except (EOFError, OSError) as err:
+            self.proc.join(timeout=5)
+            raise RuntimeError(f"the collector worker process died (exit code {self.proc.exitcode}); its output is "
+                               "above. It is started with 'spawn', which imports your main script again: guard the "
+                               "script's code with `if __name__ == '__main__':`. Or set collector.overlap: 'thread' "
+                               "or false to collect in this process") from err
+        if status == "error":
+            raise RuntimeError(f"the collector worker process failed:\n{payload}")
+        return payload
+
+    def close(self) -> None:
+        self._finalizer()
+
+
+def _stop_worker(conn, proc) -> None:
+    try:
+        conn.send_bytes(pickle.dumps(None))
+    except (OSError, ValueError):
+        pass
+    proc.join(timeout=5)
+    if proc.is_alive():
+        proc.terminate()
+        proc.join(timeout=5)
+    conn.close()

@@ -7,6 +7,7 @@ checkpoints, report). The loop is CleanRL-style: readable top to bottom in :meth
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import os
@@ -22,6 +23,7 @@ from tensordict import TensorDictBase
 from torchrl.collectors import Collector
 from torchrl.data import LazyMemmapStorage, LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.data.replay_buffers.samplers import RandomSampler
+from torchrl.envs import TransformedEnv
 
 from adarl.adapter import RankAdapter
 from adarl.builders import SACModules, make_sac_modules
@@ -91,11 +93,17 @@ def _env_kwargs(recipe) -> dict:
     return dict(mode=p.mode, dynamics_key=p.key, device=recipe.device, max_episode_steps=e.max_episode_steps)
 
 
+def train_env_factory(recipe) -> Callable[[], TransformedEnv]:
+    """A picklable callable that builds the training env (a collector worker process builds its own copy)."""
+    e, p = recipe.env, recipe.env.perturbation
+    return functools.partial(make_env, e.id, preset=p.preset, schedule=p.schedule, num_envs=e.num_envs,
+                             parallel=e.parallel, seed=recipe.seed, **_env_kwargs(recipe))
+
+
 def make_envs(recipe) -> tuple:
     """The training env (perturbed per episode) and the evaluation env (fixed at the nominal dynamics)."""
     e, p = recipe.env, recipe.env.perturbation
-    env = make_env(e.id, preset=p.preset, schedule=p.schedule, num_envs=e.num_envs, parallel=e.parallel,
-                   seed=recipe.seed, **_env_kwargs(recipe))
+    env = train_env_factory(recipe)()
     # Evaluation runs on the nominal dynamics: the centre of the training schedule (or the plain env).
     nominal = (p.schedule if p.schedule is not None else p.preset) if recipe.eval.nominal else "none"
     eval_env = make_eval_env(e.id, nominal, seed=recipe.seed + 10_000, **_env_kwargs(recipe))
@@ -155,11 +163,12 @@ def build_components(recipe, *, init_random_frames: int | None = None,
     init_random = c.init_random_frames if init_random_frames is None else init_random_frames
     lean = wants_lean(c.lean, env, modules.actor)
     if c.overlap and not lean:
-        raise AdaRLValueError("collector.overlap: true needs the lean collector (one env, a TanhNormal actor, "
-                              "collector.lean: 'auto' or true); allowed otherwise: collector.overlap: false")
+        raise AdaRLValueError(f"collector.overlap: {c.overlap!r} needs the lean collector (one env, a TanhNormal "
+                              "actor, collector.lean: 'auto' or true); allowed otherwise: collector.overlap: false")
     if lean:
         collector = LeanCollector(env, modules.actor, frames_per_batch=c.frames_per_batch,
-                                  init_random_frames=init_random, overlap=c.overlap, noise_seed=recipe.seed + 2)
+                                  init_random_frames=init_random, overlap=c.overlap, noise_seed=recipe.seed + 2,
+                                  env_factory=train_env_factory(recipe) if c.overlap == "process" else None)
     else:
         collector = Collector(env, modules.actor, frames_per_batch=c.frames_per_batch, total_frames=-1,
                               init_random_frames=init_random, device=recipe.device)
