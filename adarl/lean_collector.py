@@ -320,7 +320,10 @@ def _worker_main(conn, env_factory) -> None:
             reply = ("ok", _collect_remote(env, job))
         except BaseException:
             reply = ("error", traceback.format_exc())
-        conn.send_bytes(pickle.dumps(reply, protocol=pickle.HIGHEST_PROTOCOL))
+        try:
+            conn.send_bytes(pickle.dumps(reply, protocol=pickle.HIGHEST_PROTOCOL))
+        except (BrokenPipeError, OSError):  # the caller died while this batch was collected
+            return
 
 
 class _Worker:
@@ -339,7 +342,10 @@ class _Worker:
         return self.proc.is_alive()
 
     def send(self, job: dict) -> None:
-        self.conn.send_bytes(pickle.dumps(job, protocol=pickle.HIGHEST_PROTOCOL))
+        try:
+            self.conn.send_bytes(pickle.dumps(job, protocol=pickle.HIGHEST_PROTOCOL))
+        except (BrokenPipeError, OSError) as err:
+            raise RuntimeError(f"the collector worker process is gone (exit code {self.proc.exitcode})") from err
 
     def receive(self) -> dict:
         try:

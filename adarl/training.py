@@ -512,6 +512,8 @@ class Trainer:
     def state_dict(self) -> dict:
         """Everything needed to continue this run (the replay buffer is dumped beside it when configured)."""
         c = self.c
+        if isinstance(c.collector, LeanCollector):  # a batch being prefetched moves the env: snapshot after it
+            c.collector.drain(keep=True)
         return {
             "counters": {"frames": self.frames, "updates": self.updates, "episodes": self.episodes,
                          "last_eval_frames": self.last_eval_frames, "pending_updates": self._pending_updates,

@@ -244,3 +244,39 @@ def test_uniform_tensor_sampler_rejects_buffers_it_cannot_reproduce():
     rb.extend(TensorDict({"observation": torch.zeros(3, 2)}, [3]))
     with pytest.raises(AdaRLValueError, match="nope"):
         sampler()
+
+
+def test_direct_adam_step_is_bit_identical_to_fused_adam_and_falls_back():
+    from adarl.fast_sac import DirectAdamStep
+
+    torch.manual_seed(0)
+    ref = [torch.nn.Parameter(torch.randn(5, 3)), torch.nn.Parameter(torch.randn(3))]
+    new = [torch.nn.Parameter(p.detach().clone()) for p in ref]
+    opt_ref = torch.optim.Adam(ref, lr=1e-2, fused=True, weight_decay=0.01)
+    opt_new = torch.optim.Adam(new, lr=1e-2, fused=True, weight_decay=0.01)
+    direct = DirectAdamStep(opt_new)
+    for k in range(8):
+        grads = [torch.randn_like(p) for p in ref]
+        for p, q, g in zip(ref, new, grads):
+            p.grad, q.grad = g.clone(), g.clone()
+        if k == 3:  # an LR schedule moves the rate; a rank event pops one factor's state
+            opt_ref.param_groups[0]["lr"] = opt_new.param_groups[0]["lr"] = 3e-3
+            opt_ref.state.pop(ref[0])
+            opt_new.state.pop(new[0])
+        opt_ref.step()
+        opt_ref.zero_grad(set_to_none=True)
+        direct.step()
+        for p, q in zip(ref, new):
+            assert torch.equal(p, q), k
+            assert q.grad is None
+    assert 0 < direct.fast_steps < 8  # the first step and the one after the pop went through opt.step()
+    for p, q in zip(ref, new):
+        for key in ("exp_avg", "exp_avg_sq", "step"):
+            assert torch.equal(opt_ref.state[p][key], opt_new.state[q][key])
+    # a hook is honoured by falling back to opt.step()
+    calls = []
+    opt_new.register_step_post_hook(lambda *a: calls.append(1))
+    for q in new:
+        q.grad = torch.ones_like(q)
+    direct.step()
+    assert calls == [1]

@@ -77,13 +77,16 @@ def _results(run: Path) -> dict[str, str]:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("extra", [[], ["collector.overlap=true"]], ids=["default", "overlap"])
-def test_kill_9_at_random_moments_then_resume_matches_an_uninterrupted_run(tmp_path, extra):
+@pytest.mark.parametrize("extra, ref_extra", [([], []), (["collector.overlap=process"], ["collector.overlap=thread"])],
+                         ids=["default", "overlap"])
+def test_kill_9_at_random_moments_then_resume_matches_an_uninterrupted_run(tmp_path, extra, ref_extra):
+    # "overlap": the killed run collects in a worker process (killed with it), the reference in a thread; both
+    # overlap modes must give the very same run.
     seed = int(os.environ.get("ADARL_KILL_SEED", random.randrange(10**6)))
     rng = random.Random(seed)
     ref, killed = tmp_path / "reference", tmp_path / "killed"
     run = [*RUN, *extra]
-    reference = _start("run", "quickstart", *run, "-o", str(ref), "--quiet")  # runs beside the killed one
+    reference = _start("run", "quickstart", *RUN, *ref_extra, "-o", str(ref), "--quiet")  # beside the killed one
 
     kills = []
     proc = _start("run", "quickstart", *run, "-o", str(killed), "--quiet")

@@ -117,3 +117,158 @@ def test_overlap_state_dict_keeps_the_prefetched_batch():
 def test_overlap_needs_the_lean_collector():
     with pytest.raises(AdaRLValueError, match="collector.overlap"):
         build_components(load_recipe("quickstart", OVR + ["collector.overlap=true", "collector.lean=false"]))
+
+
+# ---------------------------------------------------------------------------------------- overlap: "process"
+def _parts(seed):
+    from adarl.training import train_env_factory
+
+    recipe = load_recipe("quickstart", OVR + [f"seed={seed}"])
+    c = build_components(recipe)
+    return c.env, c.modules.actor, train_env_factory(recipe)
+
+
+def _run_overlapped(mode, seed=5, batches=12, state_at=None):
+    """Batches of an overlapped collector while the 'updates' change the actor in place between batches."""
+    from adarl.env_state import env_state_dict
+
+    env, actor, factory = _parts(seed)
+    torch.manual_seed(0)
+    # a short episode cap: several episode ends (and perturbation redraws) inside the batches
+    x = LeanCollector(env, actor, frames_per_batch=30, init_random_frames=20, overlap=mode, noise_seed=9,
+                      env_factory=factory)
+    out, state = [], None
+    for k, batch in enumerate(x):
+        with torch.no_grad():
+            for p in actor.parameters():
+                p.add_(0.05 * torch.randn_like(p))
+        out.append(batch)
+        if k == state_at:
+            state = x.state_dict()
+        if k == batches - 1:
+            break
+    x.drain(keep=True)  # the caller's env is where the last prefetched batch left it
+    live = env_state_dict(env)
+    x.shutdown()
+    return out, live, state, x
+
+
+def test_process_overlap_hands_out_the_thread_modes_batches_and_env_state():
+    thread, live_t, state_t, _ = _run_overlapped("thread", state_at=6)
+    proc, live_p, state_p, x = _run_overlapped("process", state_at=6)
+    assert x._worker is None  # shutdown stopped the worker
+    assert len(thread) == len(proc) == 12
+    done = torch.cat([b.get(("next", "done")) for b in proc]).sum()
+    assert done >= 1  # the batches cross episode ends
+    for k, (a, b) in enumerate(zip(thread, proc)):
+        assert set(a.keys(True, True)) == set(b.keys(True, True))
+        for key in a.keys(True, True):
+            assert torch.equal(a.get(key), b.get(key)), (k, key)
+    # the caller's env was given the worker's final state: bit-identical simulator and gymnasium state
+    assert torch.equal(live_t["workers"][0]["sim"]["state"], live_p["workers"][0]["sim"]["state"])
+    assert live_t["workers"][0]["np_random"] == live_p["workers"][0]["np_random"]
+    # a checkpoint taken while the worker collects holds the finished prefetched batch, as in the thread mode
+    assert torch.equal(state_t["prefetched"]["action"], state_p["prefetched"]["action"])
+    assert torch.equal(state_t["noise_rng"], state_p["noise_rng"])
+
+
+def test_process_overlap_resumes_from_a_state_dict():
+    # what the Trainer checkpoints: the collector's state (which finishes the prefetched batch first), then the
+    # env's live state, which the worker's final state was loaded into
+    from adarl.env_state import env_state_dict, load_env_state_dict
+    from adarl.envs import dynamics_state_dict, load_dynamics_state_dict
+
+    env, actor, factory = _parts(6)
+    x = LeanCollector(env, actor, frames_per_batch=20, init_random_frames=0, overlap="process", noise_seed=1,
+                      env_factory=factory)
+    it = iter(x)
+    next(it)  # batch 1 handed over, batch 2 being collected by the worker
+    state = x.state_dict()
+    assert state["prefetched"] is not None and x.frames == 40
+    dynamics, live = dynamics_state_dict(env), env_state_dict(env)
+    batch2, batch3 = next(it), next(it)
+    x.shutdown()
+    env2, actor2, factory2 = _parts(6)
+    actor2.load_state_dict(actor.state_dict())  # the policy batch 3 was collected with (after batch 2's prefetch)
+    load_dynamics_state_dict(env2, dynamics)
+    load_env_state_dict(env2, live)
+    y = LeanCollector(env2, actor2, frames_per_batch=20, init_random_frames=0, overlap="process", noise_seed=1,
+                      env_factory=factory2)
+    y.load_state_dict(state)
+    it = iter(y)
+    assert torch.equal(next(it).get("action"), batch2.get("action"))
+    b3 = next(it)
+    for key in ("observation", "action", ("next", "reward")):
+        assert torch.equal(b3.get(key), batch3.get(key)), key
+    y.shutdown()
+
+
+def test_overlap_rejects_bad_values_and_a_missing_env_factory(comps):
+    with pytest.raises(AdaRLValueError, match="overlap must be one of .*'thread', 'process'"):
+        LeanCollector(comps.env, comps.modules.actor, frames_per_batch=10, overlap="threads")
+    with pytest.raises(AdaRLValueError, match="env_factory"):
+        LeanCollector(comps.env, comps.modules.actor, frames_per_batch=10, overlap="process")
+    from adarl.errors import RecipeError
+
+    with pytest.raises(RecipeError, match="collector.overlap"):
+        load_recipe("quickstart", OVR + ["collector.overlap=processes"])
+    assert load_recipe("quickstart", OVR + ["collector.overlap=process"]).collector.overlap == "process"
+    assert load_recipe("quickstart", OVR + ["collector.overlap=true"]).collector.overlap is True
+
+
+def test_a_failing_worker_raises_with_its_traceback(comps):
+    import functools
+
+    from adarl.envs import make_env
+
+    x = LeanCollector(comps.env, comps.modules.actor, frames_per_batch=10, init_random_frames=0, overlap="process",
+                      env_factory=functools.partial(make_env, "NoSuchEnv-v9"))
+    it = iter(x)
+    next(it)  # collected here; the worker (which cannot build its env) gets the next batch
+    with pytest.raises(RuntimeError, match="collector worker process failed(.|\n)*NoSuchEnv-v9"):
+        next(it)
+    x.shutdown()
+
+
+_ORPHAN = """
+import os, sys, time
+from adarl.config import load_recipe
+from adarl.training import build_components
+
+if __name__ == "__main__":
+    c = build_components(load_recipe("quickstart", sys.argv[1:] + ["collector.overlap=process",
+                                                                   "collector.init_random_frames=0"]))
+    it = iter(c.collector)
+    next(it)
+    print(c.collector._worker.proc.pid, flush=True)
+    time.sleep(600)
+"""
+
+
+def test_the_worker_exits_when_its_trainer_is_killed(tmp_path):
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    script = tmp_path / "orphan.py"
+    script.write_text(_ORPHAN)
+    proc = subprocess.Popen([sys.executable, str(script), *OVR], stdout=subprocess.PIPE, text=True)
+    pid = int(proc.stdout.readline())
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    end = time.monotonic() + 30
+    while time.monotonic() < end:
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return  # gone (and reaped by init)
+        try:  # a zombie that init has not reaped yet counts as gone
+            if open(f"/proc/{pid}/stat").read().split()[2] == "Z":
+                return
+        except FileNotFoundError:
+            return
+        time.sleep(0.2)
+    os.kill(pid, signal.SIGKILL)
+    raise AssertionError("the collector worker outlived its killed trainer")
