@@ -13,7 +13,8 @@ With ``overlap`` the next batch is collected while the caller trains on the curr
 out bit-identical batches: the worker gets the policy snapshot, the noise generator and the env's full live
 state (simulator, gymnasium counters and RNG, perturbation state, TorchRL carrier; the exact-resume snapshot of
 :mod:`adarl.env_state`), steps its own copy of the env, and sends the same state back, which is loaded into the
-caller's env, so that env is always where a synchronous collector would have left it.
+caller's env when something needs it (``drain``, ``reset``, ``state_dict``), so that env is then where a
+synchronous collector would have left it.
 """
 
 from __future__ import annotations
@@ -73,7 +74,7 @@ class LeanCollector:
             the same batches, and :meth:`state_dict` keeps a finished prefetched batch for exact resume.
         noise_seed: seed of that generator (overlap only).
         env_factory: ``"process"`` only: a picklable callable that builds an env like ``env`` (its seed does
-            not matter: the worker's env is given ``env``'s live state before every batch), e.g.
+            not matter: the worker's env is given ``env``'s live state whenever it is not already in it), e.g.
             ``functools.partial(adarl.envs.make_env, "Hopper-v5", preset="paper")``. The worker is a ``spawn``ed
             process started at the first overlapped batch and stopped by :meth:`shutdown` (or when the collector
             is garbage-collected, or when this process dies).
@@ -133,10 +134,8 @@ class LeanCollector:
         """One action: uniform-random during the random phase, else a TanhNormal sample from the policy."""
         if self.frames < self.init_random_frames:
             return self.env.action_spec.rand()
-        loc, scale = (self.net if net is None else net)(td.get("observation"))
-        eps = torch.randn_like(loc) if generator is None else torch.randn(loc.shape, generator=generator)
-        action = torch.tanh(loc + scale * eps)
-        return action * self._half + self._mid if self._affine else action
+        return _tanh_normal_action(self.net if net is None else net, td.get("observation"), generator,
+                                   (self._mid, self._half, self._affine))
 
     def _collect(self, net=None, generator: torch.Generator | None = None) -> TensorDictBase:
         steps = []
@@ -180,8 +179,8 @@ class LeanCollector:
             self._worker = _Worker(self.env_factory)
         w = self._worker
         job = {"noise": self._noise.get_state(), "n": self.frames_per_batch, "box": (self._mid, self._half, self._affine)}
-        # The env: the worker's own final state when nothing touched the caller's env since (a token), else the
-        # caller's live state.
+        # The env: None when the caller's env was not synced since the last reply (the worker's env is still
+        # where that batch left it), else the caller's live state.
         job["state"] = None if self._unsynced is not None else self._live_state()
         # The policy: the whole module when its layout changed (a rank event), else its parameters only.
         layout = tuple((k, tuple(v.shape), v.dtype) for k, v in self.net.state_dict().items())
@@ -297,8 +296,17 @@ class LeanCollector:
                 self._worker = None
 
 
-def _collect_remote(env, net, job: dict) -> dict:
-    """One batch in the worker: (load the caller's live state,) step ``job["n"]`` times, return the new state."""
+def _tanh_normal_action(net, obs: torch.Tensor, generator: torch.Generator | None, box: tuple) -> torch.Tensor:
+    """``tanh(loc + scale * eps)`` scaled to the action box ``(mid, half, affine)``: the policy's random action."""
+    mid, half, affine = box
+    loc, scale = net(obs)
+    eps = torch.randn_like(loc) if generator is None else torch.randn(loc.shape, generator=generator)
+    action = torch.tanh(loc + scale * eps)
+    return action * half + mid if affine else action
+
+
+def _collect_remote(env, net, job: dict) -> tuple[dict, TensorDictBase | None]:
+    """One batch in the worker: (load the caller's live state,) step ``job["n"]`` times; the reply and the carrier."""
     from tensordict import TensorDict
 
     from adarl.env_state import env_state_dict, load_env_state_dict
@@ -311,7 +319,6 @@ def _collect_remote(env, net, job: dict) -> dict:
         td = None if state["carrier"] is None else TensorDict(state["carrier"][0], batch_size=state["carrier"][1])
     else:  # the env is still where this worker's previous batch left it
         td = job["_carrier"]
-    mid, half, affine = job["box"]
     noise = torch.Generator()
     noise.set_state(job["noise"])
     steps = []
@@ -319,9 +326,7 @@ def _collect_remote(env, net, job: dict) -> dict:
         for _ in range(job["n"]):
             if td is None:
                 td = env.reset()
-            loc, scale = net(td.get("observation"))
-            action = torch.tanh(loc + scale * torch.randn(loc.shape, generator=noise))
-            td.set("action", action * half + mid if affine else action)
+            td.set("action", _tanh_normal_action(net, td.get("observation"), noise, job["box"]))
             out, td = env.step_and_maybe_reset(td)
             steps.append(out)
     batch = torch.stack(steps).contiguous()
