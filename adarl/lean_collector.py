@@ -166,13 +166,6 @@ class LeanCollector:
         self._thread.start()
 
     # ------------------------------------------------------------------ the worker process ("process" mode)
-    def _live_state(self) -> dict:
-        from adarl.env_state import env_state_dict
-        from adarl.envs import dynamics_state_dict
-
-        return {"dynamics": dynamics_state_dict(self.env), "env": env_state_dict(self.env),
-                "carrier": None if self._td is None else (self._td.to_dict(), list(self._td.batch_size))}
-
     def _prefetch_remote(self) -> None:
         if self._worker is None or not self._worker.alive():
             self._sync_env()  # a new worker knows no state: it gets the caller's
@@ -181,7 +174,7 @@ class LeanCollector:
         job = {"noise": self._noise.get_state(), "n": self.frames_per_batch, "box": (self._mid, self._half, self._affine)}
         # The env: None when the caller's env was not synced since the last reply (the worker's env is still
         # where that batch left it), else the caller's live state.
-        job["state"] = None if self._unsynced is not None else self._live_state()
+        job["state"] = None if self._unsynced is not None else _snapshot(self.env, self._td)
         # The policy: the whole module when its layout changed (a rank event), else its parameters only.
         layout = tuple((k, tuple(v.shape), v.dtype) for k, v in self.net.state_dict().items())
         if layout != w.layout:
@@ -205,16 +198,8 @@ class LeanCollector:
         """Put the worker's final env state into the caller's env (where a synchronous collector leaves it)."""
         if self._unsynced is None:
             return
-        from tensordict import TensorDict
-
-        from adarl.env_state import load_env_state_dict
-        from adarl.envs import load_dynamics_state_dict
-
         state, self._unsynced = self._unsynced, None
-        load_dynamics_state_dict(self.env, state["dynamics"])
-        load_env_state_dict(self.env, state["env"])
-        carrier = state["carrier"]
-        self._td = None if carrier is None else TensorDict(carrier[0], batch_size=carrier[1])
+        self._td = _restore(self.env, state)
 
     def _finish_prefetch(self, keep: bool) -> None:
         if self._pending:
@@ -296,6 +281,28 @@ class LeanCollector:
                 self._worker = None
 
 
+def _snapshot(env, td: TensorDictBase | None) -> dict:
+    """The env's live state (perturbation, simulator and gymnasium state, TorchRL carrier), as a checkpoint has it."""
+    from adarl.env_state import env_state_dict
+    from adarl.envs import dynamics_state_dict
+
+    return {"dynamics": dynamics_state_dict(env), "env": env_state_dict(env),
+            "carrier": None if td is None else (td.to_dict(), list(td.batch_size))}
+
+
+def _restore(env, state: dict) -> TensorDictBase | None:
+    """Put a :func:`_snapshot` back into ``env``; returns the carrier TensorDict (None: the next step resets)."""
+    from tensordict import TensorDict
+
+    from adarl.env_state import load_env_state_dict
+    from adarl.envs import load_dynamics_state_dict
+
+    load_dynamics_state_dict(env, state["dynamics"])
+    load_env_state_dict(env, state["env"])
+    carrier = state["carrier"]
+    return None if carrier is None else TensorDict(carrier[0], batch_size=carrier[1])
+
+
 def _tanh_normal_action(net, obs: torch.Tensor, generator: torch.Generator | None, box: tuple) -> torch.Tensor:
     """``tanh(loc + scale * eps)`` scaled to the action box ``(mid, half, affine)``: the policy's random action."""
     mid, half, affine = box
@@ -307,18 +314,8 @@ def _tanh_normal_action(net, obs: torch.Tensor, generator: torch.Generator | Non
 
 def _collect_remote(env, net, job: dict) -> tuple[dict, TensorDictBase | None]:
     """One batch in the worker: (load the caller's live state,) step ``job["n"]`` times; the reply and the carrier."""
-    from tensordict import TensorDict
-
-    from adarl.env_state import env_state_dict, load_env_state_dict
-    from adarl.envs import dynamics_state_dict, load_dynamics_state_dict
-
-    state = job["state"]
-    if state is not None:
-        load_dynamics_state_dict(env, state["dynamics"])
-        load_env_state_dict(env, state["env"])
-        td = None if state["carrier"] is None else TensorDict(state["carrier"][0], batch_size=state["carrier"][1])
-    else:  # the env is still where this worker's previous batch left it
-        td = job["_carrier"]
+    # the env is still where this worker's previous batch left it when the job carries no state
+    td = job["_carrier"] if job["state"] is None else _restore(env, job["state"])
     noise = torch.Generator()
     noise.set_state(job["noise"])
     steps = []
@@ -331,8 +328,7 @@ def _collect_remote(env, net, job: dict) -> tuple[dict, TensorDictBase | None]:
             steps.append(out)
     batch = torch.stack(steps).contiguous()
     return {"batch": batch.to_dict(), "batch_size": list(batch.batch_size), "noise": noise.get_state(),
-            "state": {"dynamics": dynamics_state_dict(env), "env": env_state_dict(env),
-                      "carrier": None if td is None else (td.to_dict(), list(td.batch_size))}}, td
+            "state": _snapshot(env, td)}, td
 
 
 def _worker_main(conn, env_factory) -> None:
@@ -371,7 +367,8 @@ def _worker_main(conn, env_factory) -> None:
 
 
 def _tensor_as_numpy(t: torch.Tensor):
-    """Pickle a CPU tensor as a numpy array: ~20x cheaper than torch's own reduction (a torch.save per storage)."""
+    """Pickle a CPU tensor as a numpy array. Why: torch's own reduction runs a ``torch.save`` per storage; a
+    50-frame Hopper batch plus the actor took 5.6 ms to pickle and unpickle that way, 0.7 ms this way."""
     if t.device.type != "cpu" or t.dtype not in _NUMPY_DTYPES or type(t) not in (torch.Tensor, torch.nn.Parameter):
         return t.__reduce_ex__(pickle.HIGHEST_PROTOCOL)
     array = t.detach().contiguous().numpy()
