@@ -421,6 +421,11 @@ class AlgorithmConfig(_Section):
     compile: bool = Field(
         False, description="torch.compile the fused SAC update (needs fused; one recompilation per rank event)."
     )
+    backward: Literal["auto", "manual", "autograd"] = Field(
+        "auto",
+        description="Backward of the fused update: 'manual' (adarl.manual_backward: the gradients written out by "
+        "hand, no autograd graph), 'autograd' (loss.backward()); 'auto' = manual where the networks allow it.",
+    )
     num_threads: PosInt | None = Field(
         None, description="torch.set_num_threads for the run; null = leave torch's setting (1 is best at (64, 64) on CPU)."
     )
@@ -641,6 +646,10 @@ class Recipe(_Section):
             )
         if self.algorithm.compile and self.algorithm.fused is False:
             p.append(("algorithm.compile", True, "needs algorithm.fused: true or 'auto' (it compiles the fused update)"))
+        if self.algorithm.backward != "auto" and self.algorithm.fused is False:
+            p.append(("algorithm.backward", self.algorithm.backward,
+                      "needs algorithm.fused: true or 'auto' (it is the fused update's backward); allowed with "
+                      "fused: false: 'auto'"))
         p += self._algorithm_checks()
         r = self.rank
         if r.enabled:

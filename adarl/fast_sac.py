@@ -27,7 +27,10 @@ from torch.nn import functional as F
 from adarl.errors import AdaRLValueError
 from adarl.lowrank import LowRankLinear
 
-__all__ = ["FusedSACUpdate", "make_adam", "supported_activation", "wants_fused"]
+__all__ = ["BACKWARDS", "FusedSACUpdate", "make_adam", "supported_activation", "wants_fused"]
+
+#: values of ``FusedSACUpdate(backward=...)`` / ``algorithm.backward``
+BACKWARDS = ("auto", "manual", "autograd")
 
 _ACTIVATIONS = (nn.ReLU, nn.Tanh, nn.Softplus, nn.ELU, nn.GELU, nn.SiLU, nn.LeakyReLU)
 
@@ -253,11 +256,15 @@ class FusedSACUpdate:
         max_grad_norm: per-optimiser gradient clipping as in the plain loop; ``None`` = none.
         compile: ``torch.compile`` the loss computation (forward and backward); one recompilation per rank event.
         compile_backend: backend passed to ``torch.compile`` (``"inductor"``; ``"aot_eager"`` for tests).
+        backward: ``"manual"``: the losses and gradients written out by hand (:mod:`adarl.manual_backward`:
+            about half the operations, no autograd graph); ``"autograd"``: the losses as plain tensor code and
+            ``loss.backward()``; ``"auto"``: manual unless a network the manual backward does not know (see
+            :func:`adarl.manual_backward.unsupported_reason`). ``compile`` compiles whichever is used.
     """
 
     def __init__(self, loss, optimizers: Sequence[torch.optim.Optimizer], *, tau: float,
                  schedulers: Sequence = (), max_grad_norm: float | None = None, compile: bool = False,
-                 compile_backend: str = "inductor") -> None:
+                 compile_backend: str = "inductor", backward: str = "auto") -> None:
         from torchrl.objectives import SACLoss
 
         if type(loss) is not SACLoss:
@@ -299,8 +306,34 @@ class FusedSACUpdate:
         self._q_targets = [self.target_q_params[k] for k in keys]
         self.compile = compile
         self.compile_backend = compile_backend
-        self.compilations = 0
-        self._fn = self._build()
+        self._compilations = 0
+        self.backward = self._resolve_backward(backward)
+        self._manual = None
+        if self.backward == "manual":
+            from adarl.manual_backward import ManualSACStep
+
+            self._manual = ManualSACStep(self, compile=compile, compile_backend=compile_backend)
+            self._fn = None
+        else:
+            self._fn = self._build()
+
+    @property
+    def compilations(self) -> int:
+        """How many times the update was compiled (the first build plus one per rank event)."""
+        return self._manual.compilations if self._manual is not None else self._compilations
+
+    def _resolve_backward(self, setting: str) -> str:
+        from adarl.manual_backward import unsupported_reason
+
+        if setting not in BACKWARDS:
+            raise AdaRLValueError(f"backward must be one of {BACKWARDS}, got {setting!r}")
+        reason = unsupported_reason(self)
+        if setting == "manual" and reason is not None:
+            raise AdaRLValueError(f"backward='manual' does not support the {reason}; allowed here: 'auto' or "
+                                  "'autograd'")
+        if setting == "auto":
+            return "autograd" if reason is not None else "manual"
+        return setting
 
     # ------------------------------------------------------------------ the maths
     def _sample(self, actor: list[tuple], obs: torch.Tensor,
@@ -355,13 +388,15 @@ class FusedSACUpdate:
         # the recompile limit (8 by default) is never reached, so there is no silent fall-back to eager.
         code = FusedSACUpdate.losses.__code__.replace()
         fresh = types.FunctionType(code, FusedSACUpdate.losses.__globals__, "fused_sac_losses")
-        self.compilations += 1
+        self._compilations += 1
         return torch.compile(types.MethodType(fresh, self), backend=self.compile_backend, fullgraph=True,
                              dynamic=False)
 
     def on_rank_event(self, event=None) -> None:
         """Re-bind after a rank event (the adapter resized ``.data`` in place): rebuild the compiled function."""
-        if self.compile:
+        if self._manual is not None:
+            self._manual.on_rank_event(event)
+        elif self.compile:
             self._fn = self._build()
 
     # ------------------------------------------------------------------ one step
@@ -386,9 +421,12 @@ class FusedSACUpdate:
         if self.min_log_alpha is not None or self.max_log_alpha is not None:
             self.loss.log_alpha.data.clamp_(self.min_log_alpha, self.max_log_alpha)
         noise_next, noise_now = self.draw_noise(obs, action)
-        loss_actor, loss_q, loss_alpha, alpha, entropy = self._fn(obs, action, reward, next_obs, terminated.bool(),
-                                                                  noise_next, noise_now)
-        (loss_actor + loss_q + loss_alpha).backward()
+        args = (obs, action, reward, next_obs, terminated.bool(), noise_next, noise_now)
+        if self._manual is not None:  # fills the parameters' .grad itself
+            loss_actor, loss_q, loss_alpha, alpha, entropy = self._manual(*args)
+        else:
+            loss_actor, loss_q, loss_alpha, alpha, entropy = self._fn(*args)
+            (loss_actor + loss_q + loss_alpha).backward()
         if self.max_grad_norm is not None:
             for opt in self.optimizers:
                 for group in opt.param_groups:

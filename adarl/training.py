@@ -205,9 +205,9 @@ def build_components(recipe, *, init_random_frames: int | None = None,
         try:
             update = FusedSACUpdate(loss, list(optimizers.values()), tau=alg.tau,
                                     schedulers=list(schedulers.values()), max_grad_norm=alg.max_grad_norm,
-                                    compile=alg.compile)
+                                    compile=alg.compile, backward=alg.backward)
         except AdaRLValueError:
-            if alg.fused is True:  # asked for explicitly: say why not
+            if alg.fused is True or alg.backward == "manual":  # asked for explicitly: say why not
                 raise
             # 'auto' with layers the fused step does not know (e.g. the sparsification layer): TorchRL's path.
     if update is not None:

@@ -38,7 +38,19 @@ def _params(loss):
             + list(loss.qvalue_network_params.flatten_keys().values()))
 
 
-def test_losses_and_gradients_match_sacloss(filled):
+def _fused_losses(fu, batch):
+    """The five outputs of one fused step's losses, with the gradients left in ``.grad`` (either backward)."""
+    obs, act, rew, nobs, term = fu.batch_tensors(batch)
+    args = (obs, act, rew, nobs, term.bool(), *fu.draw_noise(obs, act))
+    if fu.backward == "manual":
+        return fu._manual(*args)
+    out = fu.losses(*args)
+    (out[0] + out[1] + out[2]).backward()
+    return out
+
+
+@pytest.mark.parametrize("backward", ["manual", "autograd"])
+def test_losses_and_gradients_match_sacloss(filled, backward):
     c, batch = filled
     loss = c.modules.loss
     params = _params(loss)
@@ -51,11 +63,10 @@ def test_losses_and_gradients_match_sacloss(filled):
     for p in params:
         p.grad = None
 
-    fu = FusedSACUpdate(loss, [], tau=0.005)
+    fu = FusedSACUpdate(loss, [], tau=0.005, backward=backward)
+    assert fu.backward == backward
     torch.manual_seed(11)
-    obs, act, rew, nobs, term = fu.batch_tensors(batch)
-    out = fu.losses(obs, act, rew, nobs, term.bool(), *fu.draw_noise(obs, act))
-    (out[0] + out[1] + out[2]).backward()
+    out = _fused_losses(fu, batch)
     for name, value in zip(["loss_actor", "loss_qvalue", "loss_alpha", "alpha", "entropy"], out):
         torch.testing.assert_close(value.detach(), ref[name].detach(), rtol=1e-5, atol=1e-6, msg=name)
     assert float(ref["loss_alpha"].detach()) != 0.0
@@ -71,7 +82,8 @@ def _snapshot(loss):
     return {k: getattr(loss, k).flatten_keys().clone() for k in keys} | {"log_alpha": loss.log_alpha.detach().clone()}
 
 
-def test_full_step_matches_plain_step(filled):
+@pytest.mark.parametrize("backward", ["manual", "autograd"])
+def test_full_step_matches_plain_step(filled, backward):
     """Two steps: SACLoss + for-loop Adam + clipping + SoftUpdate vs fused update + fused Adam + foreach lerp."""
     c, batch = filled
     loss = c.modules.loss
@@ -102,7 +114,7 @@ def test_full_step_matches_plain_step(filled):
     plain = _snapshot(loss)
 
     restore()
-    fu = FusedSACUpdate(loss, opts(True), tau=0.005, max_grad_norm=1.0)
+    fu = FusedSACUpdate(loss, opts(True), tau=0.005, max_grad_norm=1.0, backward=backward)
     torch.manual_seed(5)
     for _ in range(2):
         fu(batch)
@@ -113,17 +125,26 @@ def test_full_step_matches_plain_step(filled):
     assert not torch.equal(plain["log_alpha"], start["log_alpha"])  # the step did move things
 
 
-def test_compiled_update_recompiles_once_per_rank_event(filled):
+@pytest.mark.parametrize("backward", ["manual", "autograd"])
+def test_compiled_update_recompiles_once_per_rank_event(filled, backward):
     """Shapes change at each event: the rebuilt function compiles once, results stay equal to eager."""
     c, batch = filled
     loss = copy.deepcopy(c.modules.loss)
     from torch._dynamo.utils import counters
 
-    eager = FusedSACUpdate(loss, [], tau=0.005)
-    compiled = FusedSACUpdate(loss, [], tau=0.005, compile=True, compile_backend="aot_eager")
+    eager = FusedSACUpdate(loss, [], tau=0.005, backward=backward)
+    compiled = FusedSACUpdate(loss, [], tau=0.005, compile=True, compile_backend="aot_eager", backward=backward)
     obs, act, rew, nobs, term = eager.batch_tensors(batch)
     noise = eager.draw_noise(obs, act)
     args = (obs, act, rew, nobs, term.bool(), *noise)
+
+    def outputs(fu, fn):
+        if backward == "autograd":
+            return [t.detach() for t in fn(*args)]
+        with torch.no_grad():  # the manual step's outputs and gradients (by parameter key)
+            *out, grads = fn(*args)
+        return out + [grads[k] for k in sorted(grads)]
+
     layer = loss.qvalue_network.module[2]
     key = "module.2"
     frames_before = counters["stats"]["unique_graphs"]
@@ -136,10 +157,13 @@ def test_compiled_update_recompiles_once_per_rank_event(filled):
                 p.data = new.clone()
                 t.data = new.clone()
         compiled.on_rank_event()
-        out_c = compiled._fn(*args)
-        out_e = eager.losses(*args)
+        if backward == "manual":
+            out_c, out_e = outputs(compiled, compiled._manual._fn), outputs(eager, eager._manual.compute)
+        else:
+            out_c, out_e = outputs(compiled, compiled._fn), outputs(eager, eager.losses)
+        assert len(out_c) == len(out_e) > 4
         for a, b in zip(out_c, out_e):
-            torch.testing.assert_close(a.detach(), b.detach(), rtol=1e-5, atol=1e-5)
+            torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)
     assert layer is not None
     assert compiled.compilations == 11  # the first build plus one per event
     assert counters["stats"]["unique_graphs"] - frames_before >= 10  # every event compiled (no eager fall-back)
@@ -280,3 +304,63 @@ def test_direct_adam_step_is_bit_identical_to_fused_adam_and_falls_back():
         q.grad = torch.ones_like(q)
     direct.step()
     assert calls == [1]
+
+
+@pytest.mark.parametrize("overrides", [
+    # truncated ranks: the low-rank layers stay factored (x W2^T W1^T) instead of merged
+    ["network.actor.rank=4", "network.critic.rank=3"],
+    # other activations and critic losses
+    ["network.actor.activation=tanh", "network.critic.activation=elu", "algorithm.loss_function=smooth_l1"],
+    ["network.actor.activation=gelu", "network.critic.activation=softplus", "algorithm.loss_function=l1"],
+    # an action box other than [-1, 1] (InvertedPendulum: [-3, 3]): the affine squashing
+    ["env.id=InvertedPendulum-v5", "env.perturbation.preset=none", "network.actor.rank=1"],
+])
+def test_manual_backward_matches_autograd(overrides):
+    """The hand-written gradients equal autograd's on networks and settings the quickstart does not cover."""
+    c = build_components(load_recipe("quickstart", OVR + ["algorithm.fused=false"] + overrides))
+    torch.manual_seed(3)
+    c.replay_buffer.extend(c.env.rollout(120, break_when_any_done=False).reshape(-1))
+    loss = c.modules.loss
+    with torch.no_grad():
+        loss.log_alpha.fill_(-1.3)
+        for p in loss.target_qvalue_network_params.flatten_keys().values():
+            p.add_(0.01 * torch.randn_like(p))
+    batch = c.replay_buffer.sample()
+    params = _params(loss)
+    results = {}
+    for backward in ("autograd", "manual"):
+        fu = FusedSACUpdate(loss, [], tau=0.005, backward=backward)
+        for p in params:
+            p.grad = None
+        torch.manual_seed(17)
+        out = [t.detach() for t in _fused_losses(fu, batch)]
+        results[backward] = out, _grads(params)
+    if any("rank=" in o for o in overrides):
+        assert any(k == "factored" for k, *_ in (layer for layer in fu._manual.actor.prepare(128, 64, 64)))
+    (out_a, grads_a), (out_m, grads_m) = results["autograd"], results["manual"]
+    for a, m in zip(out_a, out_m):
+        torch.testing.assert_close(m, a, rtol=1e-5, atol=1e-6)
+    for a, m in zip(grads_a, grads_m):
+        assert a is not None and m is not None
+        torch.testing.assert_close(m, a, rtol=1e-4, atol=1e-6)
+    for p in params:
+        p.grad = None
+
+
+def test_backward_setting_is_validated(filled):
+    from torch import nn
+
+    c, _ = filled
+    loss = copy.deepcopy(c.modules.loss)
+    assert FusedSACUpdate(loss, [], tau=0.005).backward == "manual"  # auto: the quickstart's networks qualify
+    with pytest.raises(AdaRLValueError, match="backward must be one of"):
+        FusedSACUpdate(loss, [], tau=0.005, backward="numerical")
+    # a network the manual backward does not know: auto falls back to autograd, 'manual' says why not
+    loss.actor_network.module[0].module[0][1] = nn.ReLU(inplace=True)
+    assert FusedSACUpdate(loss, [], tau=0.005).backward == "autograd"
+    with pytest.raises(AdaRLValueError, match="activation ReLU.*not in place"):
+        FusedSACUpdate(loss, [], tau=0.005, backward="manual")
+    with pytest.raises(ValueError, match="algorithm.backward"):
+        load_recipe("quickstart", ["algorithm.fused=false", "algorithm.backward=manual"])
+    with pytest.raises(ValueError, match="algorithm.backward"):
+        load_recipe("quickstart", ["algorithm.backward=numeric"])
