@@ -91,27 +91,33 @@ class _Net:
     """One MLP (the actor, or a stacked ``[N, ...]`` critic ensemble) whose passes are written out by hand."""
 
     def __init__(self, name: str, mlp, params: dict[str, torch.Tensor]) -> None:
-        self.name, self.params, self.layers = name, params, mlp.layers
+        self.name, self.params = name, params
+        # per layer: (kind, activation module or parameter names, gradient keys), fixed for the update's life
+        self.layers = []
+        for kind, spec in mlp.layers:
+            if kind == "act":
+                self.layers.append((kind, spec, _activation_backward(spec)))
+            else:
+                keys = tuple(None if k is None else f"{name}:{k}" for k in spec)
+                self.layers.append((kind, spec, keys))
 
     def prepare(self, rows: int, grad_rows: int, back_rows: int) -> list[_Layer]:
         """The layers for one update; a low-rank product is merged once where that is cheaper (see
         :func:`_merge_is_cheaper`), else kept factored."""
         p, out = self.params, []
-        for kind, spec in self.layers:
+        for kind, spec, extra in self.layers:
             if kind == "act":
-                out.append(_Layer("act", spec, None, (), act_backward=_activation_backward(spec)))
+                out.append(_Layer("act", spec, None, (), act_backward=extra))
                 continue
-            *weights, bias = spec
-            keys = tuple(f"{self.name}:{k}" for k in weights) + (None if bias is None else f"{self.name}:{bias}",)
-            b = None if bias is None else p[bias]
+            b = None if spec[-1] is None else p[spec[-1]]
             if kind == "linear":
-                out.append(_Layer("dense", p[weights[0]], b, keys))
+                out.append(_Layer("dense", p[spec[0]], b, extra))
                 continue
-            w1, w2 = p[weights[0]], p[weights[1]]
+            w1, w2 = p[spec[0]], p[spec[1]]
             if _merge_is_cheaper(w1.shape[-2], w1.shape[-1], w2.shape[-1], rows, grad_rows, back_rows):
-                out.append(_Layer("merged", torch.matmul(w1, w2), b, keys, (w1, w2)))
+                out.append(_Layer("merged", torch.matmul(w1, w2), b, extra, (w1, w2)))
             else:
-                out.append(_Layer("factored", (w1, w2), b, keys))
+                out.append(_Layer("factored", (w1, w2), b, extra))
         return out
 
 

@@ -1,5 +1,6 @@
-"""Updates/s of one SAC step alone (no env): stock SACLoss + Adam + SoftUpdate vs the fused update, eager and
-compiled, interleaved and repeated in one process (Hopper-v5 sizes, batch 256, one thread).
+"""Updates/s of one SAC step alone (no env): stock SACLoss + Adam + SoftUpdate vs the fused update (autograd or
+hand-written backward), eager and compiled, interleaved and repeated in one process (Hopper-v5 sizes, batch 256,
+one thread).
 
     PYTHONPATH=. python benchmarks/update_speed.py [--width 64] [--repeats 3] [--steps 300] [--no-compile]
 """
@@ -41,15 +42,22 @@ def adams(fused):
     return [make_adam(o.param_groups[0]["params"], o.param_groups[0]["lr"], fused=fused) for o in c.optimizers.values()]
 
 
+def fused(**kw):
+    f = FusedSACUpdate(loss, adams(kw.pop("fused_adam", True)), tau=0.005, **kw)
+    return lambda: f(c.replay_buffer.sample())
+
+
 variants = {"stock SACLoss + Adam + SoftUpdate": stock,
-            "fused update, for-loop Adam": (lambda f: lambda: f(c.replay_buffer.sample()))(FusedSACUpdate(loss, adams(False), tau=0.005)),
-            "fused update + fused Adam": (lambda f: lambda: f(c.replay_buffer.sample()))(FusedSACUpdate(loss, adams(True), tau=0.005))}
+            "fused update (autograd), for-loop Adam": fused(fused_adam=False, backward="autograd"),
+            "fused update (autograd) + fused Adam": fused(backward="autograd"),
+            "fused update (manual backward) + fused Adam": fused(backward="manual")}
 if not a.no_compile:
-    comp = FusedSACUpdate(loss, adams(True), tau=0.005, compile=True)
-    t = time.perf_counter()
-    comp(c.replay_buffer.sample())
-    print(f"torch.compile of the fused update: {time.perf_counter() - t:.1f} s")
-    variants["fused update + fused Adam, torch.compile"] = lambda: comp(c.replay_buffer.sample())
+    for backward in ("autograd", "manual"):
+        comp = FusedSACUpdate(loss, adams(True), tau=0.005, compile=True, backward=backward)
+        t = time.perf_counter()
+        comp(c.replay_buffer.sample())
+        print(f"torch.compile of the fused update ({backward}): {time.perf_counter() - t:.1f} s")
+        variants[f"fused update ({backward}) + fused Adam, torch.compile"] = (lambda f: lambda: f(c.replay_buffer.sample()))(comp)
 rates = {k: [] for k in variants}
 for rep in range(a.repeats):
     for k, f in variants.items():
