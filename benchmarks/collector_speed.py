@@ -1,27 +1,45 @@
-"""Frames/s of collection alone on Hopper-v5: TorchRL's Collector vs adarl's LeanCollector (same env, same policy).
+"""ms per frame of collection alone on Hopper-v5 (paper perturbation, policy actions, 1 torch thread), side by side:
+TorchRL's ``Collector``, and adarl's ``LeanCollector`` stepping TorchRL's env (``direct=False``) or the gymnasium env
+directly (``direct=True``, :mod:`adarl.direct_env`; the same batches bit for bit). Same env layout and policy for
+all; the variants take turns for ``--rounds`` rounds and the median round is reported.
 
-    PYTHONPATH=. python benchmarks/collector_speed.py [--frames 2000]
+    PYTHONPATH=. python benchmarks/collector_speed.py [--frames 3000] [--rounds 3] [--skip-torchrl]
 """
 
 import argparse
+import statistics
 import time
 
 import torch
 
 from adarl.config import load_recipe
+from adarl.lean_collector import LeanCollector
 from adarl.training import build_components
 
 p = argparse.ArgumentParser()
-p.add_argument("--frames", type=int, default=2000)
+p.add_argument("--frames", type=int, default=3000, help="frames per variant per round")
+p.add_argument("--rounds", type=int, default=3)
+p.add_argument("--frames-per-batch", type=int, default=250)
+p.add_argument("--skip-torchrl", action="store_true", help="leave TorchRL's Collector out")
 a = p.parse_args()
 torch.set_num_threads(1)
-for lean in ("false", "true", "false", "true"):
-    c = build_components(load_recipe("quickstart", [f"collector.lean={lean}", "collector.frames_per_batch=250"]),
-                         init_random_frames=0)
-    n, t = 0, time.perf_counter()
-    for batch in c.collector:
-        n += batch.numel()
-        if n >= a.frames:
-            break
-    print(f"{'LeanCollector' if lean == 'true' else 'torchrl Collector'}: {n / (time.perf_counter() - t):.0f} frames/s")
-    c.collector.shutdown()
+overrides = [f"collector.frames_per_batch={a.frames_per_batch}"]
+variants = {}
+if not a.skip_torchrl:
+    variants["torchrl Collector"] = iter(build_components(load_recipe("quickstart", overrides + ["collector.lean=false"]),
+                                                          init_random_frames=0).collector)
+for direct in (False, True):
+    c = build_components(load_recipe("quickstart", overrides), init_random_frames=0)
+    lean = LeanCollector(c.env, c.modules.actor, frames_per_batch=a.frames_per_batch, direct=direct)
+    variants[f"LeanCollector(direct={direct})"] = iter(lean)
+for it in variants.values():  # warm-up: the first batch builds TorchRL's caches
+    next(it)
+times = {name: [] for name in variants}
+for _ in range(a.rounds):
+    for name, it in variants.items():
+        n, t = 0, time.perf_counter()
+        while n < a.frames:
+            n += next(it).numel()
+        times[name].append((time.perf_counter() - t) * 1e3 / n)
+for name, ms in times.items():
+    print(f"{name:28s} {statistics.median(ms):.3f} ms/frame (rounds: {', '.join(f'{x:.3f}' for x in ms)})")

@@ -8,7 +8,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from adarl.config import load_recipe
 from adarl.errors import AdaRLValueError
-from adarl.lean_collector import LeanCollector, wants_lean
+from adarl.lean_collector import LeanCollector, _layer_chain, wants_lean
 from adarl.training import build_components
 
 OVR = ["collector.total_frames=2000", "collector.init_random_frames=10", "collector.frames_per_batch=40",
@@ -34,6 +34,21 @@ def test_policy_action_equals_probabilistic_actor_sample(comps):
         torch.manual_seed(7)
         b = comps.modules.actor(td.clone())["action"]
     torch.testing.assert_close(a, b)
+
+
+def test_the_layer_chain_computes_the_network_bit_for_bit(comps):
+    net = comps.modules.actor.module[0].module
+    chain = _layer_chain(net)
+    assert chain is not net
+    obs = torch.randn(500, 11)
+    with torch.no_grad():
+        for x in obs:
+            loc, scale = net(x.clone())
+            loc_c, scale_c = chain(x.clone())
+            assert torch.equal(loc, loc_c) and torch.equal(scale, scale_c)
+    handle = net[0][2].register_forward_hook(lambda module, args, out: out)
+    assert _layer_chain(net) is net  # a hook would be skipped: the network is called as a module
+    handle.remove()
 
 
 def test_batches_are_consistent_transitions(comps):
@@ -128,7 +143,7 @@ def _parts(seed):
     return c.env, c.modules.actor, train_env_factory(recipe)
 
 
-def _run_overlapped(mode, seed=5, batches=12, state_at=None):
+def _run_overlapped(mode, seed=5, batches=12, state_at=None, direct="auto"):
     """Batches of an overlapped collector while the 'updates' change the actor in place between batches."""
     from adarl.env_state import env_state_dict
 
@@ -136,7 +151,8 @@ def _run_overlapped(mode, seed=5, batches=12, state_at=None):
     torch.manual_seed(0)
     # a short episode cap: several episode ends (and perturbation redraws) inside the batches
     x = LeanCollector(env, actor, frames_per_batch=30, init_random_frames=20, overlap=mode, noise_seed=9,
-                      env_factory=factory)
+                      env_factory=factory, direct=direct)
+    assert x.direct == (direct == "auto")
     out, state = [], None
     for k, batch in enumerate(x):
         with torch.no_grad():
@@ -154,14 +170,15 @@ def _run_overlapped(mode, seed=5, batches=12, state_at=None):
 
 
 def test_process_overlap_hands_out_the_thread_modes_batches_and_env_state():
-    thread, live_t, state_t, _ = _run_overlapped("thread", state_at=6)
+    # the thread steps through TorchRL (direct=False), the worker process directly (adarl.direct_env)
+    thread, live_t, state_t, _ = _run_overlapped("thread", state_at=6, direct=False)
     proc, live_p, state_p, x = _run_overlapped("process", state_at=6)
     assert x._worker is None  # shutdown stopped the worker
     assert len(thread) == len(proc) == 12
     done = torch.cat([b.get(("next", "done")) for b in proc]).sum()
     assert done >= 1  # the batches cross episode ends
     for k, (a, b) in enumerate(zip(thread, proc)):
-        assert set(a.keys(True, True)) == set(b.keys(True, True))
+        assert list(a.keys(True, True)) == list(b.keys(True, True))
         for key in a.keys(True, True):
             assert torch.equal(a.get(key), b.get(key)), (k, key)
     # the caller's env was given the worker's final state: bit-identical simulator and gymnasium state
