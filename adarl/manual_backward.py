@@ -115,7 +115,7 @@ class _Net:
                 continue
             w1, w2 = p[spec[0]], p[spec[1]]
             if _merge_is_cheaper(w1.shape[-2], w1.shape[-1], w2.shape[-1], rows, grad_rows, back_rows):
-                out.append(_Layer("merged", torch.matmul(w1, w2), b, extra, (w1, w2)))
+                out.append(_Layer("merged", _mm(w1, w2), b, extra, (w1, w2)))
             else:
                 out.append(_Layer("factored", (w1, w2), b, extra))
         return out
@@ -130,7 +130,7 @@ def forward(layers: list[_Layer], x: torch.Tensor) -> tuple[torch.Tensor, list]:
             saved.append((x, y))
             x = y
         elif layer.kind == "factored":
-            h = torch.matmul(x, layer.weight[1].transpose(-1, -2))
+            h = _mm(x, layer.weight[1].transpose(-1, -2))
             saved.append((x, h))
             x = _affine(h, layer.weight[0].transpose(-1, -2), layer.bias)
         else:
@@ -139,13 +139,34 @@ def forward(layers: list[_Layer], x: torch.Tensor) -> tuple[torch.Tensor, list]:
     return x, saved
 
 
+def _mm(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """``a @ b`` as one ``mm``/``bmm`` call (``torch.matmul`` adds several view and reshape operations per call, and
+    at (64, 64) the step is bound by the number of operations); a shared 2-D operand is expanded over the batch."""
+    if a.dim() == b.dim() == 2:
+        return torch.mm(a, b)
+    if a.dim() == b.dim() == 3:
+        return torch.bmm(a, b)
+    if a.dim() == 2 and b.dim() == 3:
+        return torch.bmm(a.expand(b.shape[0], *a.shape), b)
+    if a.dim() == 3 and b.dim() == 2:
+        return torch.bmm(a, b.expand(a.shape[0], *b.shape))
+    return torch.matmul(a, b)
+
+
+def _rows(t: torch.Tensor, rows: slice) -> torch.Tensor:
+    """Rows ``rows`` (a ``slice(start, stop)`` or ``slice(None)``) of ``t`` along its second-to-last dimension."""
+    if rows.start is None and rows.stop is None:
+        return t
+    return t.narrow(-2, rows.start, rows.stop - rows.start)
+
+
 def _add(grads: dict[str, torch.Tensor], key: str, g: torch.Tensor) -> None:
     grads[key] = g if key not in grads else grads[key] + g
 
 
 def _param_grad(dy: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     """``sum_rows dy^T x`` for ``dy`` ``[(N,) R, out]`` and ``x`` ``[(N,) R, in]`` (``x`` may be shared ``[R, in]``)."""
-    return torch.matmul(dy.transpose(-1, -2), x)
+    return _mm(dy.transpose(-1, -2), x)
 
 
 def backward(grads: dict[str, torch.Tensor], layers: list[_Layer], saved: list, dy: torch.Tensor, *, rows: slice,
@@ -158,13 +179,13 @@ def backward(grads: dict[str, torch.Tensor], layers: list[_Layer], saved: list, 
     ``input_cols`` (summed over a critic ensemble that shares its input), or None."""
     for i in range(len(layers) - 1, -1, -1):
         layer = layers[i]
-        x, h = (None if t is None else t[..., rows, :] for t in saved[i])
+        x, h = (None if t is None else _rows(t, rows) for t in saved[i])
         if layer.kind == "act":
             dy = layer.act_backward(dy, x, h)
             continue
         w = layer.weight
         if grad_rows is not None:
-            dyg, xg = dy[..., grad_rows, :], x[..., grad_rows, :]
+            dyg, xg = _rows(dy, grad_rows), _rows(x, grad_rows)
             if layer.bias is not None:
                 _add(grads, layer.keys[-1], dyg.sum(-2))
             if layer.kind == "dense":
@@ -172,20 +193,20 @@ def backward(grads: dict[str, torch.Tensor], layers: list[_Layer], saved: list, 
             elif layer.kind == "merged":
                 gw = _param_grad(dyg, xg)
                 w1, w2 = layer.factors
-                _add(grads, layer.keys[0], torch.matmul(gw, w2.transpose(-1, -2)))
-                _add(grads, layer.keys[1], torch.matmul(w1.transpose(-1, -2), gw))
+                _add(grads, layer.keys[0], _mm(gw, w2.transpose(-1, -2)))
+                _add(grads, layer.keys[1], _mm(w1.transpose(-1, -2), gw))
             else:
-                _add(grads, layer.keys[0], _param_grad(dyg, h[..., grad_rows, :]))
+                _add(grads, layer.keys[0], _param_grad(dyg, _rows(h, grad_rows)))
         if layer.kind == "factored":
-            dy = torch.matmul(dy, w[0])  # the gradient at the bottleneck
+            dy = _mm(dy, w[0])  # the gradient at the bottleneck
             if grad_rows is not None:
-                _add(grads, layer.keys[1], _param_grad(dy[..., grad_rows, :], xg))
+                _add(grads, layer.keys[1], _param_grad(_rows(dy, grad_rows), xg))
             w = w[1]
         if i == 0:
             if input_rows is None:
                 return None
-            dy, w = dy[..., input_rows, :], (w if input_cols is None else w[..., input_cols])
-        dy = torch.matmul(dy, w)
+            dy, w = _rows(dy, input_rows), (w if input_cols is None else w[..., input_cols])
+        dy = _mm(dy, w)
     if dy.dim() == 3 and saved[0][0].dim() == 2:  # an ensemble that shares its input: the gradients add up
         dy = dy.sum(0)
     return dy
@@ -257,7 +278,7 @@ class ManualSACStep:
     def _sample_backward(self, saved: tuple, rows: slice, d_action: torch.Tensor, d_logp: torch.Tensor) -> torch.Tensor:
         """Gradient at the actor network's output (``loc``, raw scale) for the rows ``rows`` of a :meth:`_sample`."""
         aten = torch.ops.aten
-        z, s0, scale, a, m2pre, noise = (t[..., rows, :] for t in saved)
+        z, s0, scale, a, m2pre, noise = (_rows(t, rows) for t in saved)
         if self.u._affine:
             d_action = d_action * self.u._half
         d_pre = d_action * (1 - a.pow(2))  # safetanh's backward
