@@ -40,3 +40,8 @@ def test_table_lists_variants_and_ratios():
     table = format_table(report)
     assert "| Hopper-v5 | (64, 64) | adarl | 100.0 |" in table and "2.00x" in table and "sb3" in table
     assert "| 64 | 1 | 3.0 |" in table
+
+
+def test_measure_compiled_times_each_recompiling_event_after_the_window():
+    out = measure("adarl_compiled", "Hopper-v5", 16, warmup=50, steps=30, skip=10, batch=32, rank_interval=30)
+    assert out["updates_per_s"] > 0 and out["rank_events"] == 2 and all(t > 0 for t in out["rank_event_s"])
