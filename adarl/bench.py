@@ -19,6 +19,7 @@ import resource
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -58,13 +59,14 @@ def _recipe(env_id: str, width: int, variant: str, warmup: int, total: int, rank
     return load_recipe("base", ov + list(extra))
 
 
-def _measure_torchrl(variant, env_id, width, warmup, steps, skip, batch, rank_interval) -> dict:
+def _measure_torchrl(variant, env_id, width, warmup, steps, skip, batch, rank_interval, overrides=()) -> dict:
     import torch
 
     from adarl.training import build_components
 
     total = warmup + skip + steps
-    c = build_components(_recipe(env_id, width, variant, warmup, total, rank_interval, batch))
+    extra = tuple(overrides) if variant.startswith("adarl") else ()  # --set applies to our loops only
+    c = build_components(_recipe(env_id, width, variant, warmup, total, rank_interval, batch, extra))
     loss, fused = c.modules.loss, c.extras.get("fused_update")
     event_s: list[float] = []
 
@@ -133,15 +135,17 @@ def _measure_sb3(env_id, width, warmup, steps, skip, batch) -> dict:
 
 
 def measure(variant: str, env_id: str, width: int, *, warmup: int = 1000, steps: int = 1000, skip: int = 100,
-            batch: int = 256, threads: int = 1, rank_interval: int = 400) -> dict:
-    """One measurement in this process: updates/s and env steps/s over ``steps`` updates after warm-up."""
+            batch: int = 256, threads: int = 1, rank_interval: int = 400, overrides: tuple[str, ...] = ()) -> dict:
+    """One measurement in this process: updates/s and env steps/s over ``steps`` updates after warm-up.
+
+    ``overrides`` are recipe overrides for the adarl variants (e.g. ``network.actor.rank=64``)."""
     import torch
 
     torch.set_num_threads(threads)
     if variant == "sb3":
         out = _measure_sb3(env_id, width, warmup, steps, skip, batch)
     else:
-        out = _measure_torchrl(variant, env_id, width, warmup, steps, skip, batch, rank_interval)
+        out = _measure_torchrl(variant, env_id, width, warmup, steps, skip, batch, rank_interval, overrides)
     out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     # a collector worker process (adarl_process): its own peak, reported beside the trainer's
     out["worker_peak_rss_mb"] = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024 if \
@@ -176,7 +180,7 @@ def _worker(args) -> int:
 
     warnings.filterwarnings("ignore")
     out = measure(args.variant, args.env, args.width, warmup=args.warmup, steps=args.steps, skip=args.skip,
-                  batch=args.batch, threads=args.threads, rank_interval=args.rank_interval)
+                  batch=args.batch, threads=args.threads, rank_interval=args.rank_interval, overrides=tuple(args.set))
     print("ADARL_BENCH " + json.dumps(out))
     return 0
 
@@ -184,9 +188,13 @@ def _worker(args) -> int:
 def _spawn(variant, env_id, width, a) -> dict:
     cmd = [sys.executable, "-m", "adarl.bench", "--worker", "--variant", variant, "--env", env_id,
            "--width", str(width), "--warmup", str(a.warmup), "--steps", str(a.steps), "--skip", str(a.skip),
-           "--batch", str(a.batch), "--threads", str(a.threads), "--rank-interval", str(a.rank_interval)]
-    env = dict(os.environ, OMP_NUM_THREADS=str(a.threads), MKL_NUM_THREADS=str(a.threads))
-    proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
+           "--batch", str(a.batch), "--threads", str(a.threads), "--rank-interval", str(a.rank_interval),
+           "--set", *a.set]
+    with tempfile.TemporaryDirectory(prefix="adarl-bench-inductor-") as cache:
+        # a fresh inductor cache: every compilation is cold, as each rank event's new shapes are in a real run
+        env = dict(os.environ, OMP_NUM_THREADS=str(a.threads), MKL_NUM_THREADS=str(a.threads),
+                   TORCHINDUCTOR_CACHE_DIR=cache)
+        proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
     for line in proc.stdout.splitlines():
         if line.startswith("ADARL_BENCH "):
             return json.loads(line[len("ADARL_BENCH "):])
@@ -284,6 +292,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="adarl variant: updates between rank events (to time events inside the window)")
     p.add_argument("--event-widths", nargs="*", type=int, default=[64, 1024],
                    help="layer widths for the stand-alone rank-event timing")
+    p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
+                   help="recipe overrides for the adarl variants, e.g. network.actor.rank=64 network.critic.rank=64 "
+                        "to time the loop at the ranks a truncation leaves")
     p.add_argument("--output", default="bench.json", help="JSON report path")
     p.add_argument("--quiet", action="store_true")
 
@@ -294,6 +305,10 @@ def cli(a) -> int:
             from adarl.errors import AdaRLValueError
 
             raise AdaRLValueError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(a, name)}")
+    if a.set:  # a bad override fails here, with the recipe's own error, before any measurement
+        from adarl.config import load_recipe
+
+        load_recipe("base", list(a.set))
     report = run_benchmark(a)
     Path(a.output).write_text(json.dumps(report, indent=2) + "\n")
     print(format_table(report))

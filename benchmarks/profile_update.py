@@ -1,6 +1,6 @@
 """Where the time of one fused AdaRL-SAC update goes (Hopper-v5, (w, w) networks, batch 256, one thread).
 
-    PYTHONPATH=. python benchmarks/profile_update.py [--width 64] [--updates 300] [--torch-profiler]
+    PYTHONPATH=. python benchmarks/profile_update.py [--env Hopper-v5] [--width 64] [--updates 300] [--torch-profiler]
 
 By default it times the parts of the update by wall clock: the manual step's passes (each network's forward and
 backward, the TanhNormal sample and its backward, merging low-rank products), Adam, the rest. Why not only
@@ -21,13 +21,15 @@ from adarl.config import load_recipe
 from adarl.training import build_components
 
 p = argparse.ArgumentParser()
+p.add_argument("--env", default="Hopper-v5")
 p.add_argument("--width", type=int, default=64)
 p.add_argument("--updates", type=int, default=300)
 p.add_argument("--torch-profiler", action="store_true")
 a = p.parse_args()
 torch.set_num_threads(1)
 w = a.width
-c = build_components(load_recipe("quickstart", [f"network.actor.num_cells=[{w},{w}]",
+c = build_components(load_recipe("quickstart", [f"env.id={a.env}", "env.perturbation.preset=none",
+                                                f"network.actor.num_cells=[{w},{w}]",
                                                 f"network.critic.num_cells=[{w},{w}]"]))
 c.replay_buffer.extend(c.env.rollout(1000, break_when_any_done=False).reshape(-1))
 update, sample = c.extras["fused_update"], c.extras["fused_sampler"]
@@ -68,7 +70,7 @@ total = time.perf_counter()
 for b in batches:
     update.step(*b)
 total = time.perf_counter() - total
-print(f"| part of one update, ({w}, {w}) | ms | share |\n|---|---|---|")
+print(f"| part of one update, {a.env} ({w}, {w}) | ms | share |\n|---|---|---|")
 for k, v in sorted(spent.items(), key=lambda kv: -kv[1]):
     print(f"| {k} | {1000 * v / a.updates:.3f} | {100 * v / total:.0f}% |")
 rest = total - sum(spent.values())

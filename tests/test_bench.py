@@ -16,6 +16,18 @@ def test_bench_rejects_bad_options(tmp_path, capsys):
     assert "--repeats" in capsys.readouterr().err and not out.exists()
     with pytest.raises(SystemExit):
         main(["bench", "--variants", "nope"])
+    assert main(["bench", "--set", "rank.beta=3", "--output", str(out)]) == 2  # checked before measuring
+    assert "rank.beta" in capsys.readouterr().err and not out.exists()
+
+
+def test_overrides_apply_to_our_loops_only():
+    out = measure("adarl_norank", "Hopper-v5", 16, warmup=50, steps=20, skip=5, batch=32,
+                  overrides=("network.actor.rank=3", "network.critic.rank=2"))
+    assert out["updates_per_s"] > 0
+    from adarl.bench import _recipe
+
+    r = _recipe("Hopper-v5", 16, "adarl", 10, 100, 30, 8, ("network.actor.rank=3",))
+    assert r.network.actor.rank == 3
 
 
 def test_measure_adarl_times_updates_and_rank_events():
