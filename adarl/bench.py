@@ -305,10 +305,10 @@ def cli(a) -> int:
             from adarl.errors import AdaRLValueError
 
             raise AdaRLValueError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(a, name)}")
-    if a.set:  # a bad override fails here, with the recipe's own error, before any measurement
-        from adarl.config import load_recipe
-
-        load_recipe("base", list(a.set))
+    for env_id in a.envs if a.set else ():  # a bad override fails here, with the recipe's error, before measuring
+        for width in a.widths:
+            _recipe(env_id, width, "adarl", a.warmup, a.warmup + a.skip + a.steps, a.rank_interval, a.batch,
+                    tuple(a.set))
     report = run_benchmark(a)
     Path(a.output).write_text(json.dumps(report, indent=2) + "\n")
     print(format_table(report))

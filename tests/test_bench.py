@@ -18,6 +18,9 @@ def test_bench_rejects_bad_options(tmp_path, capsys):
         main(["bench", "--variants", "nope"])
     assert main(["bench", "--set", "rank.beta=3", "--output", str(out)]) == 2  # checked before measuring
     assert "rank.beta" in capsys.readouterr().err and not out.exists()
+    # checked against each width's own recipe: rank 128 fits a 256-wide layer, not a 64-wide one
+    assert main(["bench", "--widths", "64", "--set", "network.actor.rank=128", "--output", str(out)]) == 2
+    assert "network.actor.rank" in capsys.readouterr().err and not out.exists()
 
 
 def test_overrides_apply_to_our_loops_only():
