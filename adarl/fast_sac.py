@@ -127,6 +127,15 @@ class DirectAdamStep:
         self.fast_steps += 1
 
 
+def compile_fresh(function, owner, name: str, backend: str):
+    """``torch.compile`` of ``function`` bound to ``owner``, from a fresh copy of its code object.
+
+    Why: a fresh code object has a fresh dynamo cache, so rebuilding at each rank event compiles exactly once per
+    event and dynamo's recompile limit (8 by default) is never reached: no silent fall-back to eager."""
+    fresh = types.FunctionType(function.__code__.replace(), function.__globals__, name)
+    return torch.compile(types.MethodType(fresh, owner), backend=backend, fullgraph=True, dynamic=False)
+
+
 def wants_fused(setting, loss) -> bool:
     """Resolve ``algorithm.fused``: ``'auto'`` is on for a continuous ``SACLoss``; ``True`` insists (clear error)."""
     from torchrl.objectives import SACLoss
@@ -254,10 +263,11 @@ class FusedSACUpdate:
         schedulers: LR schedulers stepped after the optimisers.
         tau: Polyak rate of the target critics (``SoftUpdate(loss, tau=tau)`` does the same).
         max_grad_norm: per-optimiser gradient clipping as in the plain loop; ``None`` = none.
-        compile: ``torch.compile`` the loss computation (forward and backward); one recompilation per rank event.
+        compile: ``torch.compile`` the update's computation (the manual step, or the autograd path's losses); one
+            recompilation per rank event.
         compile_backend: backend passed to ``torch.compile`` (``"inductor"``; ``"aot_eager"`` for tests).
         backward: ``"manual"``: the losses and gradients written out by hand (:mod:`adarl.manual_backward`:
-            about half the operations, no autograd graph); ``"autograd"``: the losses as plain tensor code and
+            fewer operations, no autograd graph); ``"autograd"``: the losses as plain tensor code and
             ``loss.backward()``; ``"auto"``: manual unless a network the manual backward does not know (see
             :func:`adarl.manual_backward.unsupported_reason`). ``compile`` compiles whichever is used.
     """
@@ -384,13 +394,8 @@ class FusedSACUpdate:
     def _build(self):
         if not self.compile:
             return self.losses
-        # A fresh code object per build gives a fresh dynamo cache: each rank event compiles exactly once and
-        # the recompile limit (8 by default) is never reached, so there is no silent fall-back to eager.
-        code = FusedSACUpdate.losses.__code__.replace()
-        fresh = types.FunctionType(code, FusedSACUpdate.losses.__globals__, "fused_sac_losses")
         self._compilations += 1
-        return torch.compile(types.MethodType(fresh, self), backend=self.compile_backend, fullgraph=True,
-                             dynamic=False)
+        return compile_fresh(FusedSACUpdate.losses, self, "fused_sac_losses", self.compile_backend)
 
     def on_rank_event(self, event=None) -> None:
         """Re-bind after a rank event (the adapter resized ``.data`` in place): rebuild the compiled function."""

@@ -2,7 +2,8 @@
 
 Why: at the paper's (64, 64) sizes the fused update is bound by the number of operations, not by arithmetic
 (docs/performance.md): autograd records one node per operation and walks them one by one, and each of the four
-network passes of an update runs on its own. Written out by hand, the step needs about half the operations:
+network passes of an update runs on its own. Written out by hand, the step needs fewer operations (698 ATen calls
+per (64, 64) update against 914 with autograd, measured) and builds no graph:
 
 - the actor runs once on the next and the current states stacked (``2B`` rows); only the current rows are
   back-propagated (the next-state sample is detached in ``SACLoss`` too);
@@ -20,7 +21,6 @@ tolerance (tests/test_fast_sac.py). Used by :class:`~adarl.fast_sac.FusedSACUpda
 from __future__ import annotations
 
 import math
-import types
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
@@ -28,7 +28,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from adarl.fast_sac import _affine
+from adarl.fast_sac import _affine, compile_fresh
 
 __all__ = ["ManualSACStep", "unsupported_reason"]
 
@@ -242,13 +242,8 @@ class ManualSACStep:
     def _build(self):
         if not self.compile:
             return self.compute
-        # a fresh code object per build: a fresh dynamo cache, so each rank event compiles exactly once and the
-        # recompile limit is never reached (no silent fall-back to eager)
-        code = ManualSACStep.compute.__code__.replace()
-        fresh = types.FunctionType(code, ManualSACStep.compute.__globals__, "manual_sac_step")
-        self.compilations += 1
-        return torch.compile(types.MethodType(fresh, self), backend=self.compile_backend, fullgraph=True,
-                             dynamic=False)
+        self.compilations += 1  # one per build: the first and one per rank event (see compile_fresh)
+        return compile_fresh(ManualSACStep.compute, self, "manual_sac_step", self.compile_backend)
 
     def on_rank_event(self, event=None) -> None:
         """Shapes changed (the adapter resized ``.data`` in place): rebuild the compiled function."""
