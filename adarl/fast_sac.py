@@ -27,7 +27,7 @@ from torch.nn import functional as F
 from adarl.errors import AdaRLValueError
 from adarl.lowrank import LowRankLinear
 
-__all__ = ["BACKWARDS", "FusedSACUpdate", "make_adam", "supported_activation", "wants_fused"]
+__all__ = ["BACKWARDS", "FusedSACUpdate", "compile_fresh", "make_adam", "supported_activation", "wants_fused"]
 
 #: values of ``FusedSACUpdate(backward=...)`` / ``algorithm.backward``
 BACKWARDS = ("auto", "manual", "autograd")

@@ -28,6 +28,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from adarl.errors import AdaRLValueError
 from adarl.fast_sac import _affine, compile_fresh
 
 __all__ = ["ManualSACStep", "unsupported_reason"]
@@ -224,8 +225,6 @@ class ManualSACStep:
     def __init__(self, update, *, compile: bool = False, compile_backend: str = "inductor") -> None:
         reason = unsupported_reason(update)
         if reason is not None:
-            from adarl.errors import AdaRLValueError
-
             raise AdaRLValueError(f"the manual backward does not support the {reason}; use backward='autograd'")
         self.u = update
         self.actor = _Net("actor", update.actor_mlp, update.actor_params)
