@@ -6,6 +6,8 @@ The public components, importable from here:
 - Rank rules (:mod:`adarl.rank`): :class:`EnergyRule` (paper Eq. 10), :class:`InclusiveEnergyRule`,
   :class:`RatioRule` (Eq. 33), :class:`FixedRank`, :class:`PolicyFitRule` (upper level of Eq. 8).
 - :class:`RankAdapter`: Algorithm 1's rank-adaptation step on any TorchRL loss module (a ``TrainerHookBase``).
+- :class:`ProjectionAcceptance` / :class:`RecentTransitions`: Algorithm 1's acceptance step (a lower rank only if
+  the truncated network still fits recent data, else ``r_new = r_old``).
 - :class:`WarmupCosine` / :func:`make_lr_scheduler`: the restartable warm-up + cosine LR schedule.
 - :class:`ReplayWarmStart`: the warm-start replay buffer, an ``on_truncate`` callback.
 - :class:`PerturbedDynamicsEnvTransform` / :func:`make_env`: per-episode MuJoCo dynamics, a TorchRL ``Transform``.
@@ -25,6 +27,7 @@ from adarl.rank import (
     RatioRule,
     make_rule,
 )
+from adarl.acceptance import ProjectionAcceptance, RecentTransitions, recent_transitions
 from adarl.lr_schedule import WarmupCosine, make_lr_scheduler, restart_lr_scheduler
 from adarl.adapter import LayerRecord, RankAdapter, RankEvent, find_low_rank_layers, resize_to_ranks
 from adarl.warmstart import ReplayWarmStart, WarmStartRecord
@@ -63,6 +66,7 @@ __all__ = [
     "RankRule", "RankDecision", "EnergyRule", "InclusiveEnergyRule", "RatioRule", "FixedRank", "PolicyFitRule",
     "make_rule",
     "WarmupCosine", "make_lr_scheduler", "restart_lr_scheduler",
+    "ProjectionAcceptance", "RecentTransitions", "recent_transitions",
     "RankAdapter", "RankEvent", "LayerRecord", "find_low_rank_layers", "resize_to_ranks",
     "ReplayWarmStart", "WarmStartRecord",
     "PerturbedDynamicsEnvTransform", "make_env", "make_eval_env", "make_schedule", "env_parameters",

@@ -36,6 +36,7 @@ from tensordict import TensorDictBase
 from torch import nn
 from torchrl.trainers.trainers import TrainerHookBase
 
+from adarl.acceptance import ProjectionAcceptance, relative_output_error
 from adarl.errors import AdaRLValueError, CheckpointError
 from adarl.lowrank import LowRankLinear, factor_svd, refactorize, truncation_error
 from adarl.lr_schedule import restart_lr_scheduler, warmup_cosine_lambdas
@@ -203,6 +204,13 @@ class LayerRecord:
     ``retained_energy`` and ``truncation_error`` (``||W - Pi_r(W)||_F``) are at the applied ``new_rank``.
     ``skipped`` is ``None`` when the layer changed, otherwise why not. ``target`` says how the target factors were
     given the new shape (``"sync"``, ``"project"``, ``"sync (fallback: ...)"``) or ``None`` (no target / no change).
+
+    The acceptance step (:mod:`adarl.acceptance`) fills the rest: ``candidate`` is the rule's proposal (the
+    largest member's), ``candidate_error`` and ``error`` the relative output error of the layer's network with the
+    layer at the candidate and at ``new_rank`` (the truncations already accepted for earlier layers of the same
+    network in place; ``None`` when nothing was measured, ``0`` when the rank is kept), ``tolerance`` the bound
+    (``None`` without an acceptance step: every candidate is applied), ``tried`` every ``[rank, error]``
+    measured and ``note`` why a refused candidate led to another rank.
     """
 
     step: int
@@ -216,6 +224,12 @@ class LayerRecord:
     skipped: str | None = None
     member_ranks: list[int] | None = None
     target: str | None = None
+    candidate: int | None = None
+    candidate_error: float | None = None
+    error: float | None = None
+    tolerance: float | None = None
+    tried: list | None = None
+    note: str | None = None
 
     @property
     def changed(self) -> bool:
@@ -434,23 +448,30 @@ def _float_keys(td: TensorDictBase, keys) -> list:
     return [k for k in keys if k in td.keys(True) and torch.is_floating_point(td.get(k))]
 
 
-class _FitProbe:
-    """Runs one network (one ensemble member) with a layer projected to rank r; measures the output distance."""
+class _NetworkProbe:
+    """Runs one network (one ensemble member) on a fixed batch with some factors replaced; compares its outputs.
 
-    def __init__(self, site: LowRankSite, member: tuple, batch: TensorDictBase) -> None:
+    Used by the acceptance step and :class:`~adarl.rank.PolicyFitRule`. The network runs on a detached copy of its
+    parameters, so nothing the loss trains is touched. Replacement factors keep the current width (ranks beyond
+    the projected one are zero columns/rows), so no shape changes during the measurement. :meth:`commit` makes a
+    replacement permanent for the later measurements of this probe: the layers of one network are decided in
+    order, each with the earlier layers' accepted truncations in place.
+    """
+
+    def __init__(self, network_name: str, network: nn.Module, params: TensorDictBase | None, member: tuple,
+                 batch: TensorDictBase) -> None:
         from tensordict import TensorDict
 
-        self.site = site
-        self.network = site.network
-        if site.params is not None:
-            base = site.params.detach().clone()
+        self.network_name = network_name
+        self.network = network
+        if params is not None:
+            base = params.detach().clone()
         else:
-            base = TensorDict.from_module(site.network, as_module=False).detach().clone()
+            base = TensorDict.from_module(network, as_module=False).detach().clone()
         if member:
             base = base[member] if len(base.batch_size) >= len(member) else base.apply(lambda t: t[member])
         self.base = base
         self.batch = batch
-        self.k1, self.k2 = site.key + ("w1",), site.key + ("w2",)
         self.reference = self._run()
 
     def _run(self) -> torch.Tensor:
@@ -468,20 +489,33 @@ class _FitProbe:
                 keys = list(getattr(net, "out_keys", []))
         keys = _float_keys(out, keys)
         if not keys:
-            raise AdaRLValueError(f"PolicyFitRule: network {self.site.network_name!r} produced no float outputs to compare")
+            raise AdaRLValueError(f"network {self.network_name!r} produced no float outputs to compare (out keys "
+                                  f"{list(getattr(net, 'out_keys', []))})")
         n = out.batch_size.numel()
         return torch.cat([out.get(k).reshape(n, -1).to(torch.float64) for k in keys], -1)
 
-    def distance(self, w1: torch.Tensor, w2: torch.Tensor) -> float:
-        old1, old2 = self.base.get(self.k1), self.base.get(self.k2)
-        self.base.set(self.k1, w1)
-        self.base.set(self.k2, w2)
+    def outputs(self, replace: Mapping[tuple, torch.Tensor]) -> torch.Tensor:
+        """The network's outputs with the factors in ``replace`` (``{key: tensor}``) swapped in."""
+        old = {k: self.base.get(k) for k in replace}
+        for k, v in replace.items():
+            self.base.set(k, v)
         try:
-            out = self._run()
+            return self._run()
         finally:
-            self.base.set(self.k1, old1)
-            self.base.set(self.k2, old2)
-        return float((out - self.reference).norm(dim=-1).mean())
+            for k, v in old.items():
+                self.base.set(k, v)
+
+    def distance(self, replace: Mapping[tuple, torch.Tensor]) -> float:
+        """Mean L2 distance between the outputs with ``replace`` and the reference (PolicyFitRule's fit)."""
+        return float((self.outputs(replace) - self.reference).norm(dim=-1).mean())
+
+    def relative_error(self, replace: Mapping[tuple, torch.Tensor]) -> float:
+        """:func:`adarl.acceptance.relative_output_error` of the outputs with ``replace`` against the reference."""
+        return relative_output_error(self.outputs(replace), self.reference)
+
+    def commit(self, replace: Mapping[tuple, torch.Tensor]) -> None:
+        for k, v in replace.items():
+            self.base.set(k, v)
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -497,8 +531,13 @@ class RankAdapter(TrainerHookBase):
             actor and/or critic contain :class:`~adarl.lowrank.LowRankLinear` layers.
         optimizers: the optimiser(s) training the loss's parameters; the state of truncated parameters is dropped
             in each (plain, ``foreach`` and ``fused`` Adam alike).
-        rule: a :class:`~adarl.rank.RankRule` (``EnergyRule(0.98)`` is the paper's Eq. 10). A
-            :class:`~adarl.rank.PolicyFitRule` needs ``fit_data``.
+        rule: a :class:`~adarl.rank.RankRule` (``EnergyRule(0.98)`` is the paper's Eq. 10): it proposes each
+            layer's candidate rank. A :class:`~adarl.rank.PolicyFitRule` needs ``fit_data``.
+        acceptance: Algorithm 1's acceptance step (:class:`~adarl.acceptance.ProjectionAcceptance`): a candidate
+            is applied only if the truncated network's outputs on ``fit_data`` stay within a tolerance of the
+            current ones, otherwise the layer keeps its rank (paper Sec. 4.2, "r_new = r_old"). ``None`` applies
+            every candidate (with ``EnergyRule``: Eq. 10 alone, which lowers every rank at every event). Needs
+            ``fit_data``.
         interval: run an event every ``interval`` calls of :meth:`step` (paper: 0.7e6 or 1e6 optimisation steps).
         scope: ``"actor"``, ``"critic"`` or ``"both"`` (paper Table 2): which networks are adapted. The actor is
             the loss's ``actor_network``; every other network attribute is a critic.
@@ -511,8 +550,12 @@ class RankAdapter(TrainerHookBase):
             (learning rate to 0, then warm-up) after every event that changed a rank.
         on_truncate: callables ``fn(event)`` run after every event that changed a rank (e.g.
             :class:`~adarl.warmstart.ReplayWarmStart`).
-        fit_data: for :class:`~adarl.rank.PolicyFitRule`: a callable returning a TensorDict batch, or a TorchRL
-            replay buffer (``.sample()`` is called; give it a ``batch_size``).
+        on_event: callables ``fn(event)`` run after every event, whether or not a rank changed (after the
+            ``on_truncate`` ones): records, logs.
+        fit_data: the batch the outputs are measured on (acceptance, :class:`~adarl.rank.PolicyFitRule`, and the
+            error recorded for every truncation when given): a callable returning a TensorDict batch (e.g.
+            :class:`~adarl.acceptance.RecentTransitions`, the recent transitions of a replay buffer, as recipes
+            use; for an on-policy loss, the last batch), or a TorchRL replay buffer (``.sample()`` is called).
         logger: a TorchRL logger; the rank of each layer is logged as ``rank/<layer path>`` at every event.
         num_threads: torch threads for the decompositions of an event (restored afterwards); ``None`` keeps the
             process's setting. Training at (64, 64) is fastest on one thread, but an event on 1024-wide layers
@@ -538,6 +581,8 @@ class RankAdapter(TrainerHookBase):
         fit_data: Callable[[], TensorDictBase] | Any = None,
         logger: Any = None,
         num_threads: int | None = None,
+        acceptance: ProjectionAcceptance | None = None,
+        on_event: Sequence[Callable] | Callable = (),
     ) -> None:
         if num_threads is not None and (isinstance(num_threads, bool) or not isinstance(num_threads, int)
                                         or num_threads < 1):
@@ -571,14 +616,24 @@ class RankAdapter(TrainerHookBase):
         for cb in on_truncate:
             if not callable(cb):
                 raise AdaRLValueError(f"on_truncate entries must be callables fn(event), got {type(cb).__name__}")
-        if rule.needs_fit:
-            if fit_data is None:
+        if callable(on_event):
+            on_event = [on_event]
+        on_event = list(on_event)
+        for cb in on_event:
+            if not callable(cb):
+                raise AdaRLValueError(f"on_event entries must be callables fn(event), got {type(cb).__name__}")
+        if acceptance is not None and not isinstance(acceptance, ProjectionAcceptance):
+            raise AdaRLValueError(f"acceptance must be an adarl.ProjectionAcceptance or None (apply every candidate), "
+                                  f"got {type(acceptance).__name__}")
+        for needs, what in ((rule.needs_fit, f"{type(rule).__name__} measures"),
+                            (acceptance is not None, "the acceptance step measures")):
+            if needs and fit_data is None:
                 raise AdaRLValueError(
-                    f"{type(rule).__name__} measures the network's outputs: pass fit_data (a callable returning a "
-                    f"TensorDict batch, or a replay buffer)"
+                    f"{what} the network's outputs: pass fit_data (a callable returning a TensorDict batch, e.g. "
+                    f"adarl.RecentTransitions(replay_buffer, 2048), or a replay buffer)"
                 )
-            if not callable(fit_data) and not callable(getattr(fit_data, "sample", None)):
-                raise AdaRLValueError(f"fit_data must be a callable or a replay buffer, got {type(fit_data).__name__}")
+        if fit_data is not None and not callable(fit_data) and not callable(getattr(fit_data, "sample", None)):
+            raise AdaRLValueError(f"fit_data must be a callable or a replay buffer, got {type(fit_data).__name__}")
 
         self.loss_module = loss_module
         self.optimizers = optimizers
@@ -589,6 +644,8 @@ class RankAdapter(TrainerHookBase):
         self.target_mode = target_mode
         self.lr_schedulers = lr_schedulers
         self.on_truncate = on_truncate
+        self.on_event = on_event
+        self.acceptance = acceptance
         self.fit_data = fit_data
         self.logger = logger
         self.num_threads = num_threads
@@ -642,21 +699,26 @@ class RankAdapter(TrainerHookBase):
 
     @torch.no_grad()
     def adapt(self) -> RankEvent:
-        """Run a rank event now: decide every layer's rank from the current network, then apply the changes."""
+        """Run a rank event now: decide every layer's rank from the current network, then apply the changes.
+
+        Decisions are made on the network as it is before the event; with an acceptance step, the layers of one
+        network are decided in order, each measured with the earlier layers' accepted truncations in place.
+        """
         event = RankEvent(step=self.step_count, index=len(self.history))
-        batch = self._fit_batch() if self.rule.needs_fit else None
+        batch = self._fit_batch() if self.fit_data is not None else None
         threads = torch.get_num_threads()
         if self.num_threads is not None:
             torch.set_num_threads(self.num_threads)
         try:
             plans = []
+            probes: dict[tuple, _NetworkProbe] = {}
             for site in self.sites:
-                record, svd = self._decide(site, event.step, batch)
+                record, svd = self._decide(site, event.step, batch, probes)
                 event.layers.append(record)
                 plans.append((site, record, svd))
-            for site, record, (u, s, vh) in plans:
+            for site, record, svd in plans:
                 if record.changed:
-                    record.target = self._apply(site, record.new_rank, u, s, vh)
+                    record.target = self._apply(site, record.new_rank, *svd)
         finally:
             torch.set_num_threads(threads)
         self.history.append(event)
@@ -673,12 +735,30 @@ class RankAdapter(TrainerHookBase):
         if event.changed:
             for cb in self.on_truncate:
                 cb(event)
+        for cb in self.on_event:
+            cb(event)
         return event
 
-    def _decide(self, site: LowRankSite, step: int, batch) -> tuple[LayerRecord, tuple]:
-        u, s, vh = factor_svd(site.w1, site.w2)
+    def _member_probes(self, site: LowRankSite, batch, probes: dict) -> list[_NetworkProbe]:
+        """One probe per ensemble member of the site's network, shared by the layers of that network."""
+        out = []
+        for m in itertools.product(*[range(n) for n in site.batch_shape]):
+            key = (site.network_name, tuple(m))
+            if key not in probes:
+                probes[key] = _NetworkProbe(site.network_name, site.network, site.params, tuple(m), batch)
+            out.append(probes[key])
+        return out
+
+    def _decide(self, site: LowRankSite, step: int, batch, probes: dict) -> tuple[LayerRecord, tuple | None]:
         current = site.rank
         lead = site.batch_shape
+        nonfinite = [name for name, t in (("w1", site.w1), ("w2", site.w2)) if not bool(torch.isfinite(t).all())]
+        if nonfinite:  # the SVD would raise; the event must not act on a diverged layer
+            reason = f"non-finite values in {' and '.join(nonfinite)} (training diverged?); rank kept"
+            return LayerRecord(step=step, layer=site.path, network=site.role, old_rank=current, new_rank=current,
+                               singular_values=[], retained_energy=float("nan"), truncation_error=float("nan"),
+                               skipped=reason), None
+        u, s, vh = factor_svd(site.w1, site.w2)
         members = list(itertools.product(*[range(n) for n in lead]))  # [()] for a single network
         choices, reasons = [], []
         for m in members:
@@ -690,13 +770,46 @@ class RankAdapter(TrainerHookBase):
             choices.append(int(d.rank))
             if d.skipped:
                 reasons.append(d.skipped if not lead else f"member {idx}: {d.skipped}")
-        new = max(choices)
+        candidate = max(choices)
+        new = candidate
+        measured = batch is not None and not reasons and candidate < current
+        cand_err = err_new = tol = tried = note = None
+        if measured:
+            member_probes = self._member_probes(site, batch, probes)
+            key1, key2 = site.key + ("w1",), site.key + ("w2",)
+
+            def replacement(rank: int) -> list[dict]:
+                w1, w2 = _padded_factors(u, s, vh, int(rank), current, site.w1.dtype)
+                w1, w2 = w1.to(site.w1.device), w2.to(site.w1.device)
+                return [{key1: w1[m], key2: w2[m]} for m in members]
+
+            def error_at(rank: int) -> float:
+                errs = [p.relative_error(r) for p, r in zip(member_probes, replacement(rank))]
+                return math.nan if any(math.isnan(e) for e in errs) else max(errs)
+
+            if self.acceptance is not None:
+                result = self.acceptance.resolve(candidate, current, error_at, site.role)
+                new, cand_err, err_new = result.rank, result.candidate_error, result.error
+                tol, tried, note = result.tolerance, [list(t) for t in result.tried], result.reason
+            else:
+                cand_err = err_new = error_at(candidate)
+                tried = [[candidate, cand_err]]
+            if new < current:  # later layers of this network are measured with this truncation in place
+                for p, r in zip(member_probes, replacement(new)):
+                    p.commit(r)
+        elif batch is not None and not reasons:
+            cand_err = err_new = 0.0
         flat_s = s.reshape(-1, s.shape[-1])
         energies = [energy_share(row, new) for row in flat_s]
         errors = [float(truncation_error(row, new)) for row in flat_s]
         skipped = None
         if new == current:
-            skipped = "; ".join(reasons) if reasons else f"rule kept rank {current}"
+            if reasons:
+                skipped = "; ".join(reasons)
+            elif candidate < current:
+                skipped = note
+            else:
+                skipped = f"rule kept rank {current}"
         record = LayerRecord(
             step=step,
             layer=site.path,
@@ -708,18 +821,25 @@ class RankAdapter(TrainerHookBase):
             truncation_error=errors if lead else errors[0],
             skipped=skipped,
             member_ranks=choices if lead else None,
+            candidate=candidate,
+            candidate_error=cand_err,
+            error=err_new,
+            tolerance=tol,
+            tried=tried,
+            note=note if new != current else None,
         )
         return record, (u, s, vh)
 
     def _make_fit(self, site, member, u, s, vh, batch) -> Callable[[int], float]:
-        probe = _FitProbe(site, member, batch)
+        probe = _NetworkProbe(site.network_name, site.network, site.params, member, batch)
         width = site.rank
         dtype = site.w1.dtype
         device = site.w1.device
+        key1, key2 = site.key + ("w1",), site.key + ("w2",)
 
         def fit(rank: int) -> float:
             w1, w2 = _padded_factors(u, s, vh, int(rank), width, dtype)
-            return probe.distance(w1.to(device), w2.to(device))
+            return probe.distance({key1: w1.to(device), key2: w2.to(device)})
 
         return fit
 

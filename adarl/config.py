@@ -49,6 +49,7 @@ __all__ = [
     "PPOConfig",
     "RNACConfig",
     "RankConfig",
+    "AcceptConfig",
     "LRScheduleConfig",
     "ReplayConfig",
     "WarmStartConfig",
@@ -434,6 +435,30 @@ class AlgorithmConfig(_Section):
     rnac: RNACConfig = Field(default_factory=RNACConfig, description="RNAC's robust critic (algorithm.name=ppo).")
 
 
+class AcceptConfig(_Section):
+    mode: Literal["projection", "always"] = Field(
+        "projection",
+        description="Algorithm 1's acceptance step (Sec. 4.2): 'projection' applies the rule's candidate only if the "
+        "truncated network's outputs on recent transitions change by at most the tolerance (else the layer keeps "
+        "its rank, r_new = r_old); 'always' applies every candidate (with rule 'energy': Eq. 10 alone, the literal "
+        "ratchet that lowers every rank at every event).",
+    )
+    actor_tol: Annotated[Float, Field(ge=0)] = Field(
+        0.05, description="Largest relative change of the actor's outputs (distribution parameters) accepted at an event."
+    )
+    critic_tol: Annotated[Float, Field(ge=0)] = Field(
+        0.05, description="Largest relative change of each critic's Q-values on recent (state, action) pairs accepted."
+    )
+    search: bool = Field(
+        True,
+        description="When the candidate is refused, search the ranks between it and the current rank - 1 for the "
+        "smallest within the tolerance (false: keep the rank at once).",
+    )
+    samples: PosInt = Field(
+        2048, description="Most recent replay transitions the outputs are compared on (also recorded with 'always')."
+    )
+
+
 class RankConfig(_Section):
     enabled: bool = Field(True, description="Run the adaptive rank controller (false = plain or fixed-rank SAC).")
     rule: Literal["energy", "energy_inclusive", "ratio", "fixed", "policy_fit"] = Field(
@@ -464,9 +489,16 @@ class RankConfig(_Section):
         description="Torch threads during a rank event (restored afterwards); null = the run's own "
         "(algorithm.num_threads). Events on wide layers are float64 eigendecompositions that scale with cores.",
     )
+    accept: AcceptConfig = Field(
+        default_factory=AcceptConfig,
+        description="Acceptance step: whether the rule's candidate rank is applied (docs/rank-rules.md).",
+    )
 
     @model_validator(mode="after")
     def _check_rule(self) -> RankConfig:
+        if self.rule == "fixed" and self.accept.mode == "projection":
+            raise _Problems([("accept.mode", "projection", "rule 'fixed' sets a rank regardless of fit: use "
+                              "rank.accept.mode=always with it (the acceptance step could refuse the target rank)")])
         if self.rule == "fixed":
             if self.target_rank is None:
                 raise _Problems([("target_rank", None, "rule 'fixed' needs target_rank: an integer >= 1")])

@@ -142,17 +142,25 @@ def write_report(path: str | os.PathLike) -> Path | str:
                   for r in evals]
         lines.append("")
     if history:
-        lines += ["## Rank events", "", "| step | network | layer | old rank | new rank | retained energy | error |",
-                  "|---:|---|---|---:|---:|---:|---:|"]
+        lines += ["## Rank events", "",
+                  "The rule proposes a candidate; the acceptance step applies it only if the network's outputs on "
+                  "recent transitions change by at most the tolerance (relative output error), otherwise the layer "
+                  "keeps its rank. Energy and weight error are at the new rank (worst ensemble member).", "",
+                  "| step | network | layer | old rank | candidate | new rank | output error (candidate) | "
+                  "output error (new) | tolerance | retained energy | weight error | note |",
+                  "|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
         for ev in history:
             for layer in ev.get("layers", []):
                 err = layer.get("truncation_error")
                 err = max(err) if isinstance(err, list) else err
                 energy = layer.get("retained_energy")
                 energy = min(energy) if isinstance(energy, list) else energy
+                note = layer.get("note") or layer.get("skipped") or ""
                 lines.append(
                     f"| {ev.get('step')} | {layer.get('network', '')} | {layer.get('layer', '')} | {layer.get('old_rank')} "
-                    f"| {layer.get('new_rank')} | {_fmt(energy)} | {_fmt(err)} |"
+                    f"| {_int(layer.get('candidate'))} | {layer.get('new_rank')} | {_fmt(layer.get('candidate_error'))} "
+                    f"| {_fmt(layer.get('error'))} | {_fmt(layer.get('tolerance'))} | {_fmt(energy)} | {_fmt(err)} "
+                    f"| {note.replace('|', '/')} |"
                 )
         lines.append("")
     lines += ["## Plots", ""]
@@ -163,6 +171,10 @@ def write_report(path: str | os.PathLike) -> Path | str:
     out = run.path / "report.md"
     out.write_text("\n".join(lines) + "\n")
     return out
+
+
+def _int(x) -> str:
+    return "-" if x is None else str(int(x))
 
 
 def _fmt(x) -> str:

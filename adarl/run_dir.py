@@ -204,14 +204,34 @@ class RunDir:
                 "ci95": float(r["ci95"]), "episodes": int(r["episodes"])}
 
     def write_rank_history(self, history: list, frames: int | None = None) -> None:
-        """Rank events as JSON (with spectra) and a flat CSV, one row per event and layer."""
+        """Rank events as JSON (with spectra) and a flat CSV, one row per event and layer.
+
+        The CSV holds one value per cell: for a stacked critic ensemble, ``retained_energy`` is the smallest
+        member's and ``truncation_error`` the largest member's, ``member_ranks`` and ``tried`` (the ranks the
+        acceptance step measured, ``rank:error``) are ``;``-separated; spectra are in the JSON only.
+        """
         records = [h if isinstance(h, dict) else h.as_dict() if hasattr(h, "as_dict") else vars(h) for h in history]
         self.write_json("ranks.json", records)
         flat = []
         for rec in records:
             for layer in rec.get("layers", [rec]):
-                flat.append({k: v for k, v in {**{k: rec.get(k) for k in ("step",)}, **layer}.items()
-                             if not isinstance(v, (list, dict))})
+                row = {"step": rec.get("step")}
+                for k, v in layer.items():
+                    if k == "singular_values":
+                        continue
+                    if isinstance(v, list):
+                        if k == "retained_energy":
+                            v = min(v) if v else None
+                        elif k == "truncation_error":
+                            v = max(v) if v else None
+                        elif k == "tried":
+                            v = ";".join(f"{int(r)}:{float(e):.6g}" for r, e in v)
+                        else:
+                            v = ";".join(str(x) for x in v)
+                    elif isinstance(v, dict):
+                        continue
+                    row[k] = v
+                flat.append(row)
         if flat:
             import io
 

@@ -25,6 +25,7 @@ from torchrl.data import LazyMemmapStorage, LazyTensorStorage, TensorDictReplayB
 from torchrl.data.replay_buffers.samplers import RandomSampler
 from torchrl.envs import TransformedEnv
 
+from adarl.acceptance import ProjectionAcceptance, RecentTransitions
 from adarl.adapter import RankAdapter
 from adarl.builders import SACModules, make_sac_modules
 from adarl.env_state import (
@@ -187,6 +188,9 @@ def build_components(recipe, *, init_random_frames: int | None = None,
             # the lean collector is no torchrl Collector: the warm start rolls the same env and policy out itself
             source = (env, modules.actor) if lean else collector
             warm_start = ReplayWarmStart(replay_buffer, source, frames=w.frames, mode=w.mode)
+        a = r.accept
+        acceptance = (ProjectionAcceptance(a.actor_tol, a.critic_tol, search=a.search)
+                      if a.mode == "projection" else None)
         adapter = RankAdapter(
             loss,
             list(optimizers.values()),
@@ -196,8 +200,10 @@ def build_components(recipe, *, init_random_frames: int | None = None,
             min_rank=r.min_rank,
             target_mode=r.target_mode,
             lr_schedulers=list(schedulers.values()),
-            fit_data=replay_buffer if r.rule == "policy_fit" else None,
+            # the acceptance step (and, with 'always', the recorded error) compares outputs on recent transitions
+            fit_data=RecentTransitions(replay_buffer, a.samples),
             num_threads=r.num_threads,
+            acceptance=acceptance,
         )
     extras = {"sampling_generator": generator}
     update = None
@@ -268,6 +274,7 @@ class Trainer:
             self.c.adapter.on_truncate.append(self._on_truncate)
             if lean:  # the warm start stepped the env under it
                 self.c.adapter.on_truncate.append(lambda event: self.c.collector.reset())
+            self.c.adapter.on_event.append(self._on_rank_event)
         loss = self.c.modules.loss
         named = {f"actor.{k}": v for k, v in loss.actor_network_params.flatten_keys(".").items()}
         named.update({f"critic.{k}": v for k, v in loss.qvalue_network_params.flatten_keys(".").items()})
@@ -467,9 +474,16 @@ class Trainer:
         if c.warm_start is not None:
             added = int(c.warm_start(event).frames_added)
             self.frames += added
+        self.logger.log_scalar("rank.warm_start_frames", added, step=self.frames)
+
+    def _on_rank_event(self, event) -> None:
+        """After every rank event, changed or not (a refused candidate is a result too): ranks and history."""
+        c = self.c
         for path, rank in c.adapter.ranks.items():
             self.logger.log_scalar(f"rank.{path}", rank, step=self.frames)
-        self.logger.log_scalar("rank.warm_start_frames", added, step=self.frames)
+        for record in event.layers:
+            if record.error is not None:
+                self.logger.log_scalar(f"rank.{record.layer}.error", float(record.error), step=self.frames)
         self.run_dir.write_rank_history(c.adapter.history, frames=self.frames)
 
     # ------------------------------------------------------------------ logging and evaluation
