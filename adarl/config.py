@@ -404,6 +404,11 @@ class AlgorithmConfig(_Section):
     alpha_lr: PosFloat = Field(3e-4, description="Adam learning rate of the entropy temperature.")
     batch_size: PosInt = Field(256, description="Transitions per optimisation step.")
     utd_ratio: PosFloat = Field(1.0, description="Optimisation steps per collected frame (update-to-data ratio).")
+    update_after: NonNegInt | None = Field(
+        None,
+        description="Frames collected before the first optimisation step (spinningup's update_after: 1000, while "
+        "actions stay random for collector.init_random_frames); null = collector.init_random_frames.",
+    )
     num_qvalue_nets: PosInt = Field(2, description="Critics in the ensemble (clipped double-Q with 2).")
     loss_function: Literal["l2", "smooth_l1", "l1"] = Field(
         "l2", description="Critic regression loss; l2 like the reference SAC (TorchRL's default is smooth_l1)."
@@ -441,7 +446,7 @@ class AcceptConfig(_Section):
         description="Algorithm 1's acceptance step (Sec. 4.2): 'projection' applies the rule's candidate only if the "
         "truncated network's outputs on recent transitions change by at most the tolerance (else the layer keeps "
         "its rank, r_new = r_old); 'always' applies every candidate (with rule 'energy': Eq. 10 alone, the literal "
-        "ratchet that lowers every rank at every event).",
+        "ratchet that lowers every rank at every event). Rule 'fixed' is an instruction, not a proposal: always applied.",
     )
     actor_tol: Annotated[Float, Field(ge=0)] = Field(
         0.05, description="Largest relative change of the actor's outputs (distribution parameters) accepted at an event."
@@ -496,9 +501,6 @@ class RankConfig(_Section):
 
     @model_validator(mode="after")
     def _check_rule(self) -> RankConfig:
-        if self.rule == "fixed" and self.accept.mode == "projection":
-            raise _Problems([("accept.mode", "projection", "rule 'fixed' sets a rank regardless of fit: use "
-                              "rank.accept.mode=always with it (the acceptance step could refuse the target rank)")])
         if self.rule == "fixed":
             if self.target_rank is None:
                 raise _Problems([("target_rank", None, "rule 'fixed' needs target_rank: an integer >= 1")])
@@ -518,12 +520,19 @@ class LRScheduleConfig(_Section):
 
 
 class WarmStartConfig(_Section):
-    mode: Literal["refill", "prefill", "keep"] = Field(
+    mode: Literal["refill", "prefill", "reset", "keep"] = Field(
         "refill",
         description="Replay buffer after a rank event (App. D.5.3): 'refill' empties it and collects `frames` with "
-        "the truncated policy; 'prefill' adds `frames` fresh ones to the old data; 'keep' leaves it.",
+        "the truncated policy; 'prefill' adds `frames` fresh ones to the old data; 'reset' empties it and optimisation "
+        "resumes on the few new samples (Fig. 9's control); 'keep' leaves it.",
     )
     frames: NonNegInt = Field(10_000, description="Frames collected before optimisation resumes after a rank event.")
+    count_frames: bool = Field(
+        True,
+        description="Warm-start frames count towards collector.total_frames (true), or not (false: every arm of a "
+        "comparison then trains on the same frames and takes the same optimisation steps; summary.json reports the "
+        "warm-start frames either way).",
+    )
 
 
 class ReplayConfig(_Section):

@@ -82,10 +82,16 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
+def update_after(recipe) -> int:
+    """Frames collected before the first optimisation step (``algorithm.update_after``, else the random phase)."""
+    a = recipe.algorithm.update_after
+    return recipe.collector.init_random_frames if a is None else a
+
+
 def planned_updates(recipe) -> int:
-    """Optimisation steps the recipe's budget allows (frames after the random phase times the UTD ratio)."""
+    """Optimisation steps the recipe's budget allows (frames after the first update times the UTD ratio)."""
     c = recipe.collector
-    return max(1, int((c.total_frames - min(c.init_random_frames, c.total_frames)) * recipe.algorithm.utd_ratio))
+    return max(1, int((c.total_frames - min(update_after(recipe), c.total_frames)) * recipe.algorithm.utd_ratio))
 
 
 def _env_kwargs(recipe) -> dict:
@@ -184,13 +190,14 @@ def build_components(recipe, *, init_random_frames: int | None = None,
         else:
             rule = make_rule(r.rule, beta=r.beta)
         w = recipe.replay.warm_start
-        if w.mode != "keep" and w.frames > 0:
+        if w.mode == "reset" or (w.mode != "keep" and w.frames > 0):
             # the lean collector is no torchrl Collector: the warm start rolls the same env and policy out itself
             source = (env, modules.actor) if lean else collector
             warm_start = ReplayWarmStart(replay_buffer, source, frames=w.frames, mode=w.mode)
         a = r.accept
+        # 'fixed' is an instruction (the fixed-rank projection), not a candidate: nothing to accept or refuse
         acceptance = (ProjectionAcceptance(a.actor_tol, a.critic_tol, search=a.search)
-                      if a.mode == "projection" else None)
+                      if a.mode == "projection" and r.rule != "fixed" else None)
         adapter = RankAdapter(
             loss,
             list(optimizers.values()),
@@ -255,6 +262,7 @@ class Trainer:
         self.best_eval = -math.inf
         self.last_return = float("nan")
         self.rollbacks = 0
+        self.warm_start_frames = 0  # env frames collected by warm starts (also counted in `frames` by default)
         self._pending_updates = 0.0
         self.logger = run_dir.make_logger(recipe)
         self._build(_resume_state)
@@ -360,11 +368,15 @@ class Trainer:
             bar.update(batch.numel())
             self._log_episodes(batch)
 
-            if self.frames >= rc.collector.init_random_frames and len(c.replay_buffer) >= rc.algorithm.batch_size:
+            if self.frames >= update_after(rc) and len(c.replay_buffer) >= rc.algorithm.batch_size:
                 self._pending_updates += batch.numel() * rc.algorithm.utd_ratio
                 n_updates = int(self._pending_updates)
                 self._pending_updates -= n_updates
-                losses = [self._update() for _ in range(n_updates)]
+                losses = []
+                for _ in range(n_updates):
+                    if len(c.replay_buffer) < rc.algorithm.batch_size:
+                        break  # a rank event emptied the buffer ('reset'): resume once a batch of new data is in
+                    losses.append(self._update())
                 if losses:
                     self._log_losses(losses)
 
@@ -467,13 +479,16 @@ class Trainer:
         return out
 
     def _on_truncate(self, event) -> None:
-        """After a rank event: warm-start the buffer (its frames count towards the budget) and record ranks."""
+        """After a rank event: warm-start the buffer (its frames count towards the budget unless
+        ``replay.warm_start.count_frames`` is false)."""
         c = self.c
         check_live_layers(self._factors, event_step=getattr(event, "step", None))
         added = 0
         if c.warm_start is not None:
             added = int(c.warm_start(event).frames_added)
-            self.frames += added
+            self.warm_start_frames += added
+            if self.recipe.replay.warm_start.count_frames:
+                self.frames += added
         self.logger.log_scalar("rank.warm_start_frames", added, step=self.frames)
 
     def _on_rank_event(self, event) -> None:
@@ -532,7 +547,7 @@ class Trainer:
             "counters": {"frames": self.frames, "updates": self.updates, "episodes": self.episodes,
                          "last_eval_frames": self.last_eval_frames, "pending_updates": self._pending_updates,
                          "best_eval": self.best_eval, "last_ckpt_frames": self.last_ckpt_frames,
-                         "rollbacks": self.rollbacks},
+                         "rollbacks": self.rollbacks, "warm_start_frames": self.warm_start_frames},
             "loss": c.modules.loss.state_dict(),
             "optimizers": {k: o.state_dict() for k, o in c.optimizers.items()},
             "schedulers": {k: s.state_dict() for k, s in c.schedulers.items()},
@@ -582,6 +597,7 @@ class Trainer:
         self._pending_updates = float(cnt["pending_updates"])
         self.best_eval = float(cnt["best_eval"])
         self.rollbacks = int(cnt.get("rollbacks", 0))
+        self.warm_start_frames = int(cnt.get("warm_start_frames", 0))
         if c.warm_start is not None and state.get("warm_start") is not None:
             c.warm_start.load_state_dict(state["warm_start"])
         load_dynamics_state_dict(c.env, state["dynamics"])
@@ -603,6 +619,8 @@ class Trainer:
         summary = {
             "name": self.recipe.name,
             "frames": self.frames,
+            "warm_start_frames": self.warm_start_frames,
+            "env_frames": self.frames + (0 if self.recipe.replay.warm_start.count_frames else self.warm_start_frames),
             "updates": self.updates,
             "episodes": self.episodes,
             "wall_time_s": elapsed,

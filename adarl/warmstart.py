@@ -7,7 +7,10 @@ resumes, so that SAC does not over-fit the first few samples of the newly pertur
 * ``mode="refill"``: empty the buffer, reset the environment (so a dynamics-perturbation transform draws new
   dynamics) and fill it with ``frames`` frames collected by the current policy;
 * ``mode="prefill"``: the same without emptying (new frames are added to the old ones);
-* ``mode="keep"``: do nothing (the ablation baseline).
+* ``mode="reset"``: empty the buffer and add nothing: optimisation resumes on the few transitions collected after
+  the event, what the paper's first experiments did (App. D.5.3: "the replay buffer is effectively reset after each
+  rank update"; the control of Fig. 9);
+* ``mode="keep"``: do nothing (the old data stays; no warm start).
 
 ``source`` is a :class:`torchrl.collectors.Collector` (its :meth:`~torchrl.collectors.Collector.reset` and
 :meth:`~torchrl.collectors.Collector.rollout` are used: one ``rollout()`` is one batch of ``frames_per_batch`` env
@@ -30,7 +33,7 @@ from adarl.errors import AdaRLValueError
 
 __all__ = ["ReplayWarmStart", "WarmStartRecord", "WARM_START_MODES"]
 
-WARM_START_MODES = ("refill", "prefill", "keep")
+WARM_START_MODES = ("refill", "prefill", "reset", "keep")
 
 
 @dataclass
@@ -56,7 +59,7 @@ class ReplayWarmStart:
         source: a ``torchrl.collectors.Collector`` or an ``(env, policy)`` pair.
         frames: frames to add (exactly this many: a collector's last batch is trimmed when the buffer is extended
             here; a collector that writes into the buffer itself adds whole batches of ``frames_per_batch``).
-        mode: ``"refill"`` (default, paper D.5.3), ``"prefill"`` or ``"keep"``.
+        mode: ``"refill"`` (default, paper D.5.3), ``"prefill"``, ``"reset"`` (empty only) or ``"keep"``.
         exploration_type: exploration used by the ``(env, policy)`` rollout (default: random sampling, as a
             collector does). Ignored for collectors (they use their own).
 
@@ -67,7 +70,7 @@ class ReplayWarmStart:
     def __init__(self, replay_buffer, source, frames: int, mode: str = "refill", *, exploration_type=None) -> None:
         if mode not in WARM_START_MODES:
             raise AdaRLValueError(f"ReplayWarmStart: mode must be one of {list(WARM_START_MODES)}, got {mode!r}")
-        minimum = 0 if mode == "keep" else 1
+        minimum = 0 if mode in ("keep", "reset") else 1
         if isinstance(frames, bool) or not isinstance(frames, int) or frames < minimum:
             raise AdaRLValueError(f"ReplayWarmStart: frames must be an integer >= {minimum} for mode {mode!r}, got {frames!r}")
         for attr in ("extend", "empty", "__len__"):
@@ -96,8 +99,10 @@ class ReplayWarmStart:
         rb = self.replay_buffer
         before = len(rb)
         step = getattr(event, "step", None)
-        if self.mode == "keep":
-            record = WarmStartRecord(step, self.mode, 0, before, before, False)
+        if self.mode in ("keep", "reset"):
+            if self.mode == "reset":
+                rb.empty()
+            record = WarmStartRecord(step, self.mode, 0, before, len(rb), self.mode == "reset")
             self.records.append(record)
             return record
         emptied = self.mode == "refill"

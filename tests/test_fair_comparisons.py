@@ -1,0 +1,117 @@
+"""Comparisons as the paper defines them: the Fig. 9 control (reset), equal optimisation steps, spinningup's start."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+
+from adarl.config import load_recipe, save_resolved
+from adarl.errors import AdaRLValueError
+from adarl.run_dir import RunDir
+from adarl.training import Trainer, planned_updates, update_after
+from adarl.warmstart import ReplayWarmStart
+
+SMALL = [
+    "collector.total_frames=600",
+    "collector.init_random_frames=100",
+    "collector.frames_per_batch=50",
+    "algorithm.batch_size=32",
+    "rank.interval=150",
+    "rank.accept.mode=always",  # every event changes the ranks, so every event warm-starts
+    "replay.size=2000",
+    "replay.warm_start.frames=100",
+    "lr_schedule.warmup_steps=20",
+    "eval.interval=600",
+    "eval.episodes=1",
+    "eval.max_steps=20",
+    "checkpoint.interval=600",
+]
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def _run(path: Path, *extra: str) -> tuple[Trainer, dict]:
+    recipe = load_recipe("quickstart", [*SMALL, *extra])
+    run = RunDir.create(path)
+    save_resolved(recipe, run.recipe_path)
+    trainer = Trainer(recipe, run, quiet=True)
+    return trainer, trainer.train()
+
+
+def test_reset_mode_empties_the_buffer_and_adds_nothing():
+    rb = TensorDictReplayBuffer(storage=LazyTensorStorage(100), batch_size=4)
+    rb.extend(TensorDict({"x": torch.arange(30)}, [30]))
+    ws = ReplayWarmStart(rb, _NoSource(), frames=0, mode="reset")
+    rec = ws()
+    assert len(rb) == 0 and rec.emptied and rec.frames_added == 0 and rec.size_before == 30
+    with pytest.raises(AdaRLValueError, match="refill"):
+        ReplayWarmStart(rb, _NoSource(), frames=10, mode="restart")
+
+
+class _NoSource:
+    """A collector stand-in that must never be asked for frames."""
+
+    def rollout(self):
+        raise AssertionError("reset mode collected frames")
+
+    def reset(self):
+        raise AssertionError("reset mode reset the collector")
+
+
+@pytest.mark.slow
+def test_reset_keeps_optimising_on_the_new_samples_and_refill_pays_frames(tmp_path):
+    reset, s_reset = _run(tmp_path / "reset", "replay.warm_start.mode=reset")
+    refill, s_refill = _run(tmp_path / "refill", "replay.warm_start.mode=refill")
+    assert s_reset["rank_events"] >= 2 and s_refill["rank_events"] >= 2
+    # reset: the buffer was emptied at each event (records), no warm-start frame, and optimisation went on as soon
+    # as a batch of new transitions was in (events fall at the end of a 50-frame batch here: no update is lost)
+    assert all(r.emptied and r.frames_added == 0 for r in reset.c.warm_start.records)
+    assert s_reset["warm_start_frames"] == 0 and s_reset["frames"] == 600
+    assert s_reset["updates"] == 600 - 50  # one update per frame from the batch that ends the random phase on
+    # refill with warm-start frames counted (the default): they come out of the frame budget, so fewer updates
+    assert s_refill["warm_start_frames"] == 100 * len(refill.c.warm_start.records) > 0
+    assert s_refill["updates"] < s_reset["updates"]
+
+
+@pytest.mark.slow
+def test_uncounted_warm_start_frames_give_equal_optimisation_steps(tmp_path):
+    _, off = _run(tmp_path / "off", "rank.enabled=false")
+    _, refill = _run(tmp_path / "refill", "replay.warm_start.count_frames=false")
+    assert refill["warm_start_frames"] > 0
+    assert refill["frames"] == off["frames"] == 600 and refill["updates"] == off["updates"]
+    assert refill["env_frames"] == 600 + refill["warm_start_frames"]
+    summary = json.loads((tmp_path / "refill" / "summary.json").read_text())
+    assert summary["env_frames"] == refill["env_frames"]
+
+
+def test_update_after_starts_updates_before_the_random_phase_ends():
+    r = load_recipe("quickstart", ["collector.init_random_frames=10000", "algorithm.update_after=1000",
+                                   "collector.total_frames=30000"])
+    assert update_after(r) == 1000 and planned_updates(r) == 29000
+    r = load_recipe("quickstart", ["collector.init_random_frames=10000", "collector.total_frames=30000"])
+    assert update_after(r) == 10000 and planned_updates(r) == 20000
+
+
+@pytest.mark.slow
+def test_reset_mid_batch_waits_for_new_data(tmp_path):
+    # an event in the middle of a batch's updates empties the buffer: the rest of that batch's updates are
+    # skipped (nothing to sample) and optimisation resumes after the next batch
+    _, s = _run(tmp_path / "mid", "replay.warm_start.mode=reset", "rank.interval=130")
+    assert s["rank_events"] >= 2 and s["updates"] < 600 - 50
+
+
+@pytest.mark.slow
+def test_update_after_in_a_run(tmp_path):
+    _, s = _run(tmp_path / "ua", "rank.enabled=false", "collector.init_random_frames=300", "algorithm.update_after=50")
+    assert s["updates"] == 600  # from the first batch on (it ends at update_after), not from frame 300
