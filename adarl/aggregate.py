@@ -66,6 +66,14 @@ class RunRecord:
     rank_history: list[dict]
     updates: int
     sweeps: dict = field(default_factory=dict)  # name -> adarl.sweep.SweepResult
+    eval_updates: list[int] = field(default_factory=list)  # optimisation steps at each evaluation
+
+    def score_at_updates(self, updates: int) -> float | None:
+        """The first evaluation at or after ``updates`` optimisation steps (an iteration's end), else None."""
+        for (_, mean), u in zip(self.evals, self.eval_updates):
+            if u >= updates:
+                return mean
+        return None
 
     @property
     def final(self) -> float | None:
@@ -84,8 +92,24 @@ class Group:
         return ", ".join(f"{a}={v}" for a, v in self.key) or "all"
 
     @property
+    def scored(self) -> list[RunRecord]:
+        """The runs with a score, one per seed (a seed found twice, e.g. in two experiment folders, counts once:
+        the first found)."""
+        out, seen = [], set()
+        for r in self.runs:
+            if r.final is not None and r.seed not in seen:
+                seen.add(r.seed)
+                out.append(r)
+        return out
+
+    @property
+    def duplicate_seeds(self) -> list[int]:
+        seeds = [r.seed for r in self.runs if r.final is not None]
+        return sorted({s for s in seeds if seeds.count(s) > 1})
+
+    @property
     def finals(self) -> list[float]:
-        return [r.final for r in self.runs if r.final is not None]
+        return [r.final for r in self.scored]
 
     @property
     def mean(self) -> float:
@@ -99,7 +123,7 @@ class Group:
 
     @property
     def seeds(self) -> list[int]:
-        return sorted(r.seed for r in self.runs if r.final is not None)
+        return sorted(r.seed for r in self.scored)
 
 
 @dataclass
@@ -122,7 +146,9 @@ def _load_run(path: Path, axes: dict[str, str] | None) -> RunRecord | None:
         return None
     run = RunDir(path)
     recipe = yaml.safe_load((path / "recipe.yaml").read_text()) or {}
-    evals = [(int(r["frames"]), float(r["mean"])) for r in run.read_eval()]
+    rows = run.read_eval()
+    evals = [(int(r["frames"]), float(r["mean"])) for r in rows]
+    eval_updates = [int(r["updates"]) for r in rows]
     events = sorted({step for step, _ in run.scalars().get("rank.warm_start_frames", [])})
     summary_path = path / "summary.json"
     summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
@@ -136,7 +162,7 @@ def _load_run(path: Path, axes: dict[str, str] | None) -> RunRecord | None:
     if axes is None:
         axes = {"recipe": str(recipe.get("name", path.name))}
     return RunRecord(path, axes, int(recipe.get("seed", 0)), str(recipe.get("env", {}).get("id", "?")), recipe,
-                     evals, events, run.read_rank_history(), int(summary.get("updates", 0)), sweeps)
+                     evals, events, run.read_rank_history(), int(summary.get("updates", 0)), sweeps, eval_updates)
 
 
 def collect_runs(dirs: list[str | os.PathLike]) -> tuple[list[RunRecord], dict]:
@@ -549,6 +575,8 @@ def write_aggregate_report(dirs: list[str | os.PathLike], output: str | os.PathL
           else None, r.updates] for g in agg.groups for r in g.runs],
         ["path", *agg.axes, "seed", "env", "final_return", "frames", "updates"]))
 
+    blocks += _statistics_blocks(agg, out)
+
     x_axis = agg.report.get("x_axis") or ("rank" if "rank" in agg.axes else None)
     if x_axis:
         p = plot_return_vs(agg, x_axis, out)
@@ -579,6 +607,85 @@ def write_aggregate_report(dirs: list[str | os.PathLike], output: str | os.PathL
     (out / "report.md").write_text(_markdown(blocks))
     (out / "report.html").write_text(_html(blocks))
     return out / "report.md"
+
+
+def _ci(point: float, lo: float, hi: float) -> str:
+    if math.isnan(point):
+        return "–"
+    return f"{point:.1f} [{lo:.1f}, {hi:.1f}]" if not math.isnan(lo) else f"{point:.1f}"
+
+
+def _statistics_blocks(agg: Aggregate, out: Path) -> list[tuple]:
+    """IQM and mean with stratified bootstrap intervals, probability of improvement over the reference column,
+    and scores at the optimisation steps the spec names (adarl.stats); writes statistics.csv."""
+    from adarl.stats import interval_estimate, poi_estimate
+
+    col_axis = agg.report.get("columns") or ("algorithm" if "algorithm" in agg.axes else None)
+    ref = agg.report.get("reference")
+    groups = sorted(agg.groups, key=lambda g: [_num_key(v) for _, v in g.key])
+
+    def partner(g: Group) -> Group | None:
+        if ref is None or col_axis is None or dict(g.key).get(col_axis) == ref:
+            return None
+        want = {**dict(g.key), col_axis: ref}
+        return next((h for h in agg.groups if dict(h.key) == want), None)
+
+    header = ["setting", "n", "mean ± std", "mean [95% CI]", "IQM [95% CI]"]
+    if ref is not None:
+        header.append(f"P({ref} > setting) [95% CI]")
+    rows, csv_rows = [], []
+    for g in groups:
+        f = g.finals
+        m = interval_estimate(f, "mean")
+        q = interval_estimate(f, "iqm")
+        row = [g.label, str(len(f)), f"{g.mean:.1f} ± {g.std:.1f}" if f else "–", _ci(*m), _ci(*q)]
+        p = (math.nan,) * 3
+        h = partner(g)
+        if ref is not None:
+            if h is not None and h.finals and f:
+                p = poi_estimate(h.finals, f)
+                row.append(f"{p[0]:.2f} [{p[1]:.2f}, {p[2]:.2f}]")
+            else:
+                row.append("–")
+        rows.append(row)
+        csv_rows.append([*[v for _, v in g.key], len(f), g.mean, g.std, *m, *q, *p])
+    names = [*agg.axes, "n_seeds", "mean", "std", "mean_pt", "mean_lo", "mean_hi", "iqm", "iqm_lo", "iqm_hi",
+             "poi_ref", "poi_lo", "poi_hi"]
+    (out / "statistics.csv").write_text(_csv(csv_rows, names))
+    blocks: list[tuple] = [
+        ("h", 2, "Statistics across seeds"),
+        ("p", "Each seed counted once. Mean and interquartile mean (IQM: the mean of the middle 50% of the seeds' "
+              "scores) with 95% stratified-bootstrap percentile intervals (2000 resamples of the seeds within each "
+              "env, fixed seed), computed by adarl.stats as the rliable library defines them"
+              + (f"; P({ref} > setting): the probability that a run of {ref} scores above a run of the setting "
+                 "(ties count half), with its bootstrap interval" if ref is not None else "")
+              + ". With 5 seeds the intervals are wide. Data in statistics.csv."),
+        ("table", header, rows, []),
+    ]
+    dups = [f"{g.label}: seeds {g.duplicate_seeds}" for g in groups if g.duplicate_seeds]
+    if dups:
+        blocks.append(("p", "Seeds found more than once (counted once, the first run found): " + "; ".join(dups)))
+    at = list(agg.report.get("at_updates") or [])
+    if at:
+        head = ["setting"] + [f"at {u:,} steps" for u in at]
+        trows, crow = [], []
+        for g in groups:
+            cells = []
+            for u in at:
+                vals = [v for v in (r.score_at_updates(u) for r in g.scored) if v is not None]
+                q = interval_estimate(vals, "iqm")
+                mean = statistics.fmean(vals) if vals else math.nan
+                sd = statistics.stdev(vals) if len(vals) > 1 else 0.0
+                cells.append(f"{mean:.1f} ± {sd:.1f}; IQM {_ci(*q)} (n={len(vals)})" if vals else "–")
+                crow.append([*[v for _, v in g.key], u, len(vals), mean, sd, *q])
+            trows.append([g.label, *cells])
+        (out / "at_updates.csv").write_text(_csv(crow, [*agg.axes, "updates", "n_seeds", "mean", "std", "iqm",
+                                                        "iqm_lo", "iqm_hi"]))
+        blocks += [("h", 2, "Score at the end of each iteration"),
+                   ("p", "Each run's first nominal-dynamics evaluation at or after the given number of optimisation "
+                         "steps: mean ± std across seeds; IQM [95% CI]. Data in at_updates.csv."),
+                   ("table", head, trows, [])]
+    return blocks
 
 
 def _write_report_via_copy(dirs: list, output, *, command: str | None) -> Path | str:

@@ -114,6 +114,11 @@ class ReportSpec(_Model):
     columns: str | None = Field(None, description="Axis shown as table columns (default: 'algorithm' if present).")
     x_axis: str | None = Field(None, description="Numeric axis for a return-vs-value plot (e.g. 'rank', Fig. 1).")
     intrinsic_rank: int | None = Field(None, description="Reference line in rank plots (default: 2*d_a+1 of the env).")
+    reference: str | None = Field(None, description="A value of the column axis (e.g. 'adarl'): the statistics table "
+                                  "gives the probability that it improves on each other column.")
+    at_updates: list[Annotated[int, Field(ge=1)]] = Field(
+        default_factory=list, description="Optimisation steps at which to report each run's score as well (e.g. the "
+        "ends of the paper's iterations 1, 3 and 5 in Table 2): the first evaluation at or after each.")
 
 
 class ResourcesSpec(_Model):
@@ -194,6 +199,12 @@ class ExperimentSpec(_Model):
         for where, axis in (("report.columns", self.report.columns), ("report.x_axis", self.report.x_axis)):
             if axis is not None and axis not in self.axes:
                 raise ValueError(f"{where} {axis!r} is not an axis; axes: {list(self.axes)}")
+        if self.report.reference is not None:
+            col = self.report.columns or ("algorithm" if "algorithm" in self.axes else None)
+            known = [v.name for v in self.axes.get(col, [])] if col else []
+            if self.report.reference not in known:
+                raise ValueError(f"report.reference {self.report.reference!r} must be a value of the column axis "
+                                 f"{col!r}: {known}")
         return self
 
 

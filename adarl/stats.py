@@ -1,0 +1,106 @@
+"""Statistics a careful reader of an RL table trusts: IQM, stratified bootstrap intervals, probability of improvement.
+
+The estimators of Agarwal et al. (2021), "Deep RL at the edge of the statistical precipice", as the ``rliable``
+library computes them, written with numpy and scipy. Why not ``rliable`` itself: version 1.2.0 needs ``arch<8``,
+and ``arch`` 7.2 fails to import with the pandas 3 this project pins (``deprecate_kwarg`` changed signature), so
+``import rliable`` raises. The formulas are short:
+
+* **IQM**: the mean of the middle 50% of the scores (``scipy.stats.trim_mean(x, 0.25)``), robust to one outlying
+  seed and more efficient than the median;
+* **stratified bootstrap**: runs are resampled with replacement *within each task* (env), never across, and the
+  statistic is recomputed on each resample; the interval is the percentile interval of the resamples (rliable's
+  default), 2000 resamples, a fixed seed so that a report is reproducible;
+* **probability of improvement** ``P(X > Y)``: the chance that a run of X scores above a run of Y on the same
+  task (ties count half; the Mann-Whitney U statistic over ``n m``), averaged over tasks.
+
+With five seeds the intervals are wide, and they should be: they say how little five seeds pin down.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import numpy as np
+from scipy import stats as _st
+
+__all__ = ["iqm", "stratified_bootstrap", "probability_of_improvement", "interval_estimate", "poi_estimate"]
+
+REPS = 2000
+CONFIDENCE = 0.95
+
+
+def iqm(scores: Sequence[float] | np.ndarray) -> float:
+    """Interquartile mean: the mean of the scores between the 25th and 75th percentiles (rliable's definition)."""
+    x = np.asarray(scores, dtype=float).ravel()
+    if x.size == 0:
+        return float("nan")
+    return float(_st.trim_mean(x, 0.25))
+
+
+def _tasks(scores) -> list[np.ndarray]:
+    """One array of run scores per task: a flat sequence is one task."""
+    if len(scores) and np.ndim(scores[0]) == 0:
+        return [np.asarray(scores, dtype=float)]
+    return [np.asarray(t, dtype=float).ravel() for t in scores]
+
+
+def stratified_bootstrap(tasks: Sequence[np.ndarray], statistic: Callable[[list[np.ndarray]], float], *,
+                         reps: int = REPS, seed: int = 0) -> np.ndarray:
+    """``reps`` values of ``statistic`` on resamples that draw each task's runs with replacement within the task."""
+    rng = np.random.default_rng(seed)
+    out = np.empty(reps)
+    for i in range(reps):
+        out[i] = statistic([t[rng.integers(0, len(t), len(t))] for t in tasks])
+    return out
+
+
+def interval_estimate(scores, statistic: str = "iqm", *, reps: int = REPS, confidence: float = CONFIDENCE,
+                      seed: int = 0) -> tuple[float, float, float]:
+    """``(point, low, high)`` of the IQM (or ``"mean"``) of the runs' scores, pooled over tasks, with a stratified
+    bootstrap percentile interval. ``scores``: a flat list (one task) or a list of per-task lists."""
+    tasks = [t for t in _tasks(scores) if t.size]
+    if not tasks:
+        return (float("nan"),) * 3
+    fn = iqm if statistic == "iqm" else (lambda x: float(np.mean(x)))
+    if statistic not in ("iqm", "mean"):
+        raise ValueError(f"statistic must be 'iqm' or 'mean', got {statistic!r}")
+
+    def pooled(ts: list[np.ndarray]) -> float:
+        return fn(np.concatenate(ts))
+
+    point = pooled(tasks)
+    if sum(t.size for t in tasks) < 2:
+        return point, float("nan"), float("nan")
+    boot = stratified_bootstrap(tasks, pooled, reps=reps, seed=seed)
+    a = (1 - confidence) / 2
+    return point, float(np.quantile(boot, a)), float(np.quantile(boot, 1 - a))
+
+
+def probability_of_improvement(x: Sequence[float], y: Sequence[float]) -> float:
+    """``P(X > Y) + P(X = Y) / 2`` for one task: the Mann-Whitney U statistic of x over y divided by ``n m``."""
+    x, y = np.asarray(x, dtype=float).ravel(), np.asarray(y, dtype=float).ravel()
+    if x.size == 0 or y.size == 0:
+        return float("nan")
+    greater = (x[:, None] > y[None, :]).sum()
+    ties = (x[:, None] == y[None, :]).sum()
+    return float((greater + 0.5 * ties) / (x.size * y.size))
+
+
+def poi_estimate(x, y, *, reps: int = REPS, confidence: float = CONFIDENCE, seed: int = 0) -> tuple[float, float, float]:
+    """``(point, low, high)`` of the probability that X improves on Y, averaged over tasks; both sides' runs are
+    resampled within each task (stratified bootstrap, percentile interval). ``x``, ``y``: flat lists (one task) or
+    per-task lists in the same task order."""
+    xs, ys = _tasks(x), _tasks(y)
+    if len(xs) != len(ys):
+        raise ValueError(f"x and y must cover the same tasks, got {len(xs)} and {len(ys)}")
+    pairs = [(a, b) for a, b in zip(xs, ys) if a.size and b.size]
+    if not pairs:
+        return (float("nan"),) * 3
+    point = float(np.mean([probability_of_improvement(a, b) for a, b in pairs]))
+    rng = np.random.default_rng(seed)
+    boot = np.empty(reps)
+    for i in range(reps):
+        boot[i] = np.mean([probability_of_improvement(a[rng.integers(0, a.size, a.size)],
+                                                      b[rng.integers(0, b.size, b.size)]) for a, b in pairs])
+    lo = (1 - confidence) / 2
+    return point, float(np.quantile(boot, lo)), float(np.quantile(boot, 1 - lo))

@@ -1,0 +1,75 @@
+"""adarl.stats (IQM, stratified bootstrap, probability of improvement) and the aggregate report's statistics."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import numpy as np
+import pytest
+
+from adarl.stats import interval_estimate, iqm, poi_estimate, probability_of_improvement, stratified_bootstrap
+from test_evaluation_experiments import _fake_run
+
+
+def test_iqm_is_the_mean_of_the_middle_half():
+    assert iqm([1, 2, 3, 4]) == pytest.approx(2.5)
+    assert iqm([0, 10, 20, 30, 1000, 40, 50, 60]) == pytest.approx(np.mean([20, 30, 40, 50]))  # outliers out
+    assert np.isnan(iqm([]))
+
+
+def test_probability_of_improvement_counts_pairs_and_ties_half():
+    assert probability_of_improvement([3, 4], [1, 2]) == 1.0
+    assert probability_of_improvement([1, 2], [3, 4]) == 0.0
+    assert probability_of_improvement([1, 2], [1, 2]) == 0.5
+    assert probability_of_improvement([2, 5], [1, 3, 6]) == pytest.approx(3 / 6)
+
+
+def test_bootstrap_is_stratified_reproducible_and_covers_the_point():
+    rng = np.random.default_rng(0)
+    a, b = rng.normal(100, 10, 5), rng.normal(1000, 10, 5)
+    # within-task resampling never mixes tasks: each resample keeps 5 runs of each
+    seen = stratified_bootstrap([a, b], lambda ts: float(len(ts[0]) == 5 and len(ts[1]) == 5
+                                                          and ts[0].max() < 500 < ts[1].min()), reps=200)
+    assert seen.min() == 1.0
+    p1 = interval_estimate(a, "iqm", seed=3)
+    assert p1 == interval_estimate(a, "iqm", seed=3)  # fixed seed: the same report every time
+    assert p1[1] <= p1[0] <= p1[2]
+    narrow = interval_estimate(rng.normal(100, 10, 200), "mean")
+    assert narrow[2] - narrow[1] < p1[2] - p1[1]
+    assert np.isnan(interval_estimate([5.0], "mean")[1])  # one seed: no interval
+    pt, lo, hi = poi_estimate([10, 11, 12, 13, 14], [0, 1, 2, 3, 4])
+    assert pt == lo == hi == 1.0
+    with pytest.raises(ValueError):
+        interval_estimate(a, "median")
+
+
+def test_aggregate_report_statistics_reference_duplicates_and_iterations(tmp_path):
+    from adarl.aggregate import write_aggregate_report
+
+    exp = tmp_path / "exp"
+    runs = []
+    finals = {"adarl": [300.0, 320.0, 310.0], "sac": [100.0, 150.0, 120.0]}
+    for algo, vals in finals.items():
+        for seed, v in enumerate(vals):
+            rid = f"algorithm={algo}__seed={seed}"
+            _fake_run(exp, rid, seed, 0, [(100, v / 3), (200, v / 2), (300, v)])
+            runs.append({"run_id": rid, "axes": {"algorithm": algo}, "seed": seed, "recipe": "fake",
+                         "path": str(exp / rid), "status": "finished"})
+    # the same seed again (e.g. copied in from another experiment): counted once
+    _fake_run(exp, "dup", 0, 0, [(100, 1.0), (300, 9999.0)])
+    runs.append({"run_id": "dup", "axes": {"algorithm": "sac"}, "seed": 0, "recipe": "fake",
+                 "path": str(exp / "dup"), "status": "finished"})
+    (exp / "experiment.json").write_text(json.dumps({
+        "name": "fake", "axes": ["algorithm"], "runs": runs,
+        "report": {"columns": "algorithm", "reference": "adarl", "at_updates": [200, 300]}}))
+    md = write_aggregate_report([exp]).read_text()
+    out = exp / "report"
+    stats = {r["algorithm"]: r for r in csv.DictReader((out / "statistics.csv").open())}
+    assert stats["sac"]["n_seeds"] == "3" and float(stats["sac"]["mean"]) == pytest.approx(np.mean(finals["sac"]))
+    assert float(stats["sac"]["iqm"]) == pytest.approx(iqm(finals["sac"]))
+    assert float(stats["sac"]["poi_ref"]) == 1.0  # every adarl seed above every sac seed
+    assert "Seeds found more than once" in md and "seeds [0]" in md
+    assert "P(adarl > setting)" in md and "Score at the end of each iteration" in md
+    at = [r for r in csv.DictReader((out / "at_updates.csv").open()) if r["algorithm"] == "adarl"]
+    assert {int(r["updates"]): float(r["mean"]) for r in at} == {200: pytest.approx(155.0), 300: pytest.approx(310.0)}
