@@ -263,6 +263,10 @@ class Trainer:
         self.last_return = float("nan")
         self.rollbacks = 0
         self.warm_start_frames = 0  # env frames collected by warm starts (also counted in `frames` by default)
+        # training losses are averaged over logging.log_interval frames (sums kept in checkpoints: exact resume)
+        self._loss_sums: dict[str, float] = {}
+        self._loss_count = 0
+        self._last_log_frames = 0
         self._pending_updates = 0.0
         self.logger = run_dir.make_logger(recipe)
         self._build(_resume_state)
@@ -343,6 +347,7 @@ class Trainer:
                         self._on_nonfinite(err)
                         bar.reset(total=total)
                         bar.update(self.frames)
+                self._log_losses([], flush=True)  # the last partial logging interval
                 if self.last_eval_frames != self.frames:
                     self._evaluate()
                 self.save_checkpoint()
@@ -377,8 +382,7 @@ class Trainer:
                     if len(c.replay_buffer) < rc.algorithm.batch_size:
                         break  # a rank event emptied the buffer ('reset'): resume once a batch of new data is in
                     losses.append(self._update())
-                if losses:
-                    self._log_losses(losses)
+                self._log_losses(losses)
 
             if self.frames - self.last_eval_frames >= rc.eval.interval:
                 self._evaluate()
@@ -518,11 +522,21 @@ class Trainer:
                     self.logger.log_scalar(f"dynamics.{name}", float(value.reshape(-1)[done].float().mean()),
                                            step=self.frames)
 
-    def _log_losses(self, losses: list[dict[str, torch.Tensor]]) -> None:
-        for k in losses[0]:
-            self.logger.log_scalar(f"train.{k}", float(torch.stack([d[k] for d in losses]).mean()), step=self.frames)
-        self.logger.log_scalar("train.updates", self.updates, step=self.frames)
-        self.logger.log_scalar("train.lr", self.c.optimizers["actor"].param_groups[0]["lr"], step=self.frames)
+    def _log_losses(self, losses: list[dict[str, torch.Tensor]], *, flush: bool = False) -> None:
+        """Accumulate the batch's losses; every ``logging.log_interval`` frames log their means (and at the end)."""
+        if losses:
+            for k in losses[0]:
+                self._loss_sums[k] = self._loss_sums.get(k, 0.0) + float(torch.stack([d[k] for d in losses]).sum())
+            self._loss_count += len(losses)
+        if not flush and self.frames - self._last_log_frames < self.recipe.logging.log_interval:
+            return
+        self._last_log_frames = self.frames
+        if self._loss_count:
+            for k, total in self._loss_sums.items():
+                self.logger.log_scalar(f"train.{k}", total / self._loss_count, step=self.frames)
+            self.logger.log_scalar("train.updates", self.updates, step=self.frames)
+            self.logger.log_scalar("train.lr", self.c.optimizers["actor"].param_groups[0]["lr"], step=self.frames)
+        self._loss_sums, self._loss_count = {}, 0
 
     def _evaluate(self) -> EvalResult:
         e = self.recipe.eval
@@ -547,7 +561,9 @@ class Trainer:
             "counters": {"frames": self.frames, "updates": self.updates, "episodes": self.episodes,
                          "last_eval_frames": self.last_eval_frames, "pending_updates": self._pending_updates,
                          "best_eval": self.best_eval, "last_ckpt_frames": self.last_ckpt_frames,
-                         "rollbacks": self.rollbacks, "warm_start_frames": self.warm_start_frames},
+                         "rollbacks": self.rollbacks, "warm_start_frames": self.warm_start_frames,
+                         "loss_sums": dict(self._loss_sums), "loss_count": self._loss_count,
+                         "last_log_frames": self._last_log_frames},
             "loss": c.modules.loss.state_dict(),
             "optimizers": {k: o.state_dict() for k, o in c.optimizers.items()},
             "schedulers": {k: s.state_dict() for k, s in c.schedulers.items()},
@@ -598,6 +614,9 @@ class Trainer:
         self.best_eval = float(cnt["best_eval"])
         self.rollbacks = int(cnt.get("rollbacks", 0))
         self.warm_start_frames = int(cnt.get("warm_start_frames", 0))
+        self._loss_sums = {k: float(v) for k, v in cnt.get("loss_sums", {}).items()}
+        self._loss_count = int(cnt.get("loss_count", 0))
+        self._last_log_frames = int(cnt.get("last_log_frames", self.frames))
         if c.warm_start is not None and state.get("warm_start") is not None:
             c.warm_start.load_state_dict(state["warm_start"])
         load_dynamics_state_dict(c.env, state["dynamics"])

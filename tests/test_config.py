@@ -86,10 +86,22 @@ def test_base_holds_the_paper_hyperparameters():
     for net in (r.network.actor, r.network.critic):
         assert net.num_cells == [64, 64] and net.activation == "relu" and net.low_rank_layers == [0, 1]
     a = r.algorithm
-    assert (a.name, a.lr, a.batch_size, a.gamma, a.tau) == ("sac", 3e-3, 256, 0.99, 0.005)
-    assert (r.rank.rule, r.rank.beta, r.rank.scope) == ("energy", 0.98, "both")
+    # App. D.1: spinningup's SAC with lr 3e-3; spinningup's defaults where the paper is silent
+    assert (a.name, a.lr, a.batch_size, a.gamma, a.tau) == ("sac", 3e-3, 100, 0.99, 0.005)
+    assert (a.fixed_alpha, a.init_alpha, a.update_after, a.utd_ratio) == (True, 0.2, 1000, 1.0)
+    assert (r.collector.frames_per_batch, r.collector.init_random_frames) == (50, 10_000)
+    assert (r.rank.rule, r.rank.beta, r.rank.scope, r.rank.accept.mode) == ("energy", 0.98, "both", "projection")
     assert (r.lr_schedule.warmup_steps, r.lr_schedule.cosine) == (2000, True)
     assert r.replay.warm_start.mode == "refill"
+
+
+@pytest.mark.parametrize("env", ["hopper", "walker2d", "ant", "humanoid"])
+@pytest.mark.parametrize("baseline", ["sac_full", "sac_fixed", "parseval", "sparse"])
+def test_sac_baselines_share_the_paper_sac_with_a_constant_learning_rate(env, baseline):
+    r, adarl = load_recipe(f"baselines/{env}_{baseline}"), load_recipe(f"{env}_adarl")
+    assert r.algorithm.model_dump(exclude={"parseval"}) == adarl.algorithm.model_dump(exclude={"parseval"})
+    assert r.collector == adarl.collector and not r.rank.enabled
+    assert (r.lr_schedule.warmup_steps, r.lr_schedule.cosine) == (0, False)  # spinningup: constant
 
 
 @pytest.mark.parametrize("name", PAPER_RECIPES)
