@@ -665,6 +665,9 @@ def _statistics_blocks(agg: Aggregate, out: Path) -> list[tuple]:
     dups = [f"{g.label}: seeds {g.duplicate_seeds}" for g in groups if g.duplicate_seeds]
     if dups:
         blocks.append(("p", "Seeds found more than once (counted once, the first run found): " + "; ".join(dups)))
+    window = agg.report.get("event_window")
+    if window:
+        blocks += _event_window_blocks(groups, int(window), out)
     at = list(agg.report.get("at_updates") or [])
     if at:
         head = ["setting"] + [f"at {u:,} steps" for u in at]
@@ -686,6 +689,45 @@ def _statistics_blocks(agg: Aggregate, out: Path) -> list[tuple]:
                          "steps: mean ± std across seeds; IQM [95% CI]. Data in at_updates.csv."),
                    ("table", head, trows, [])]
     return blocks
+
+
+def event_dips(run: RunRecord, window: int) -> list[tuple[int, float, float]]:
+    """``(event frame, mean training return in the window before, mean in the window after)`` per rank event
+    that changed a rank, from the run's ``train.episode_return`` log (events without episodes on both sides are
+    left out)."""
+    returns = RunDir(run.path).scalars().get("train.episode_return", [])
+    out = []
+    for e in run.events:
+        before = [v for f, v in returns if e - window < f <= e]
+        after = [v for f, v in returns if e < f <= e + window]
+        if before and after:
+            out.append((e, statistics.fmean(before), statistics.fmean(after)))
+    return out
+
+
+def _event_window_blocks(groups: list[Group], window: int, out: Path) -> list[tuple]:
+    rows, crow = [], []
+    for g in groups:
+        changes, afters = [], []
+        for r in g.scored:
+            for e, before, after in event_dips(r, window):
+                changes.append(after - before)
+                afters.append(after / before if before else math.nan)
+                crow.append([*[v for _, v in g.key], r.seed, e, before, after])
+        if not changes:
+            continue
+        rows.append([g.label, str(len(changes)), f"{statistics.fmean(changes):+.1f}",
+                     f"{min(changes):+.1f}", f"{statistics.fmean(a for a in afters if not math.isnan(a)):.2f}"])
+    if not rows:
+        return []
+    (out / "event_window.csv").write_text(_csv(crow, [*[a for a, _ in groups[0].key], "seed", "event_frames",
+                                                      "return_before", "return_after"]))
+    return [("h", 2, "Training return around rank events"),
+            ("p", f"For every rank event that changed a rank, in every seed: the mean training episode return in "
+                  f"the {window:,} frames after the event minus the mean in the {window:,} frames before it (the "
+                  "transient dip of Fig. 9; training episodes run under the perturbed dynamics, so single values are "
+                  "noisy). Data in event_window.csv."),
+            ("table", ["setting", "events", "mean change", "worst change", "mean after / before"], rows, [])]
 
 
 def _write_report_via_copy(dirs: list, output, *, command: str | None) -> Path | str:

@@ -99,6 +99,8 @@ class Budget(_Model):
     overrides: list[str] = Field(default_factory=list, description="Overrides added to every run.")
     axes: dict[str, list[str]] = Field(default_factory=dict,
                                        description="Keep only these value names of an axis, e.g. {rank: ['1', '4']}.")
+    sweeps: list[SweepSpec] | None = Field(None, description="Robustness sweeps for this budget (default: the "
+                                           "spec's); [] runs none.")
 
     @field_validator("axes", mode="before")
     @classmethod
@@ -116,6 +118,9 @@ class ReportSpec(_Model):
     intrinsic_rank: int | None = Field(None, description="Reference line in rank plots (default: 2*d_a+1 of the env).")
     reference: str | None = Field(None, description="A value of the column axis (e.g. 'adarl'): the statistics table "
                                   "gives the probability that it improves on each other column.")
+    event_window: Annotated[int, Field(ge=1)] | None = Field(
+        None, description="Frames before and after each rank event over which the report compares the training "
+        "episode return (the transient dip after a truncation, Fig. 9).")
     at_updates: list[Annotated[int, Field(ge=1)]] = Field(
         default_factory=list, description="Optimisation steps at which to report each run's score as well (e.g. the "
         "ends of the paper's iterations 1, 3 and 5 in Table 2): the first evaluation at or after each.")
@@ -707,10 +712,12 @@ def run_experiment(spec_path: str | os.PathLike, *, budget: str | None = None, o
                 launcher.launch(todo, done, tick=tick)
         else:
             launcher.launch(todo, done, tick=tick)
-    if spec.sweeps:
+    _, b = resolve_budget(spec, budget)
+    sweeps = spec.sweeps if b.sweeps is None else b.sweeps
+    if sweeps:
         for r in runs:
             if r.status in ("finished", "skipped-finished"):
-                _sweep(r, spec.sweeps)
+                _sweep(r, sweeps)
     _write_state(out, spec, budget, runs, command)
     failed = [r for r in runs if r.status == "failed"]
     if report:

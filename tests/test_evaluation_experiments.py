@@ -131,7 +131,8 @@ def test_shipped_experiment_specs_validate_and_are_not_recipes():
     for p in specs:
         spec = load_experiment(p)
         assert "small" in spec.budgets and spec.budgets["small"].description
-        for run in plan_runs(spec, "/nonexistent", "small"):
+        assert "laptop" in spec.budgets and spec.budgets["laptop"].description, p.stem  # the 2-core reproduction
+        for run in plan_runs(spec, "/nonexistent", "small") + plan_runs(spec, "/nonexistent", "laptop"):
             try:
                 load_recipe(run.recipe, run.overrides)
             except RecipeError as err:  # only a recipe from another branch may be missing
