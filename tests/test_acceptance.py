@@ -191,3 +191,48 @@ def test_recent_transitions_are_the_last_written_in_order():
         recent_transitions(other, 2)
     with pytest.raises(AdaRLValueError, match="n must"):
         RecentTransitions(rb, 0)
+
+
+@pytest.mark.parametrize("functional", [True, False])
+def test_on_policy_loss_measures_on_the_last_batch(functional):
+    """ClipPPOLoss: no replay buffer; the acceptance step compares outputs on the batch just trained on."""
+    from test_adapter_losses import make_ppo, ppo_batch_fn, run
+
+    loss, actor, critic = make_ppo(functional)
+    opt = torch.optim.Adam(loss.parameters(), lr=1e-3)
+    batches = ppo_batch_fn(loss)
+    last = {"batch": batches(0)}
+    adapter = RankAdapter(loss, opt, EnergyRule(0.98), interval=2, acceptance=ProjectionAcceptance(0.05, 0.05),
+                          fit_data=lambda: last["batch"])
+    def batch_fn(i):
+        last["batch"] = batches(i)
+        return last["batch"]
+
+    events = run(loss, opt, adapter, 6, batch_fn)
+    assert len(events) == 3
+    for e in events:
+        for r in e.layers:
+            assert r.tolerance == 0.05 and r.candidate is not None and r.new_rank <= r.old_rank
+            assert r.error is None or r.error <= 0.05
+    assert critic.module[0].w1.shape[-1] == adapter.ranks["critic_network.module.0"]
+
+
+def test_td3_critic_outputs_are_compared():
+    from test_adapter_losses import QNet, transition_batch
+    from torchrl.modules import Actor, ValueOperator
+    from torchrl.objectives import TD3Loss, ValueEstimators
+
+    from adarl.lowrank import low_rank_mlp
+
+    torch.manual_seed(0)
+    actor = Actor(low_rank_mlp(5, 2, (16, 16)), in_keys=["observation"])
+    loss = TD3Loss(actor, ValueOperator(QNet(), in_keys=["observation", "action"]), bounds=(-1.0, 1.0))
+    loss.make_value_estimator(ValueEstimators.TD0, gamma=0.99)
+    opt = torch.optim.Adam(loss.parameters(), lr=1e-3)
+    batch = transition_batch(3)
+    adapter = RankAdapter(loss, opt, EnergyRule(0.9), interval=1, acceptance=ProjectionAcceptance(0.02, 0.02),
+                          fit_data=lambda: batch)
+    event = adapter.adapt()
+    roles = {r.network for r in event.layers}
+    assert roles == {"actor", "critic"}
+    assert all(r.candidate_error is not None for r in event.layers if r.candidate < r.old_rank)
