@@ -452,7 +452,7 @@ class AcceptConfig(_Section):
         0.05, description="Largest relative change of the actor's outputs (distribution parameters) accepted at an event."
     )
     critic_tol: Annotated[Float, Field(ge=0)] = Field(
-        0.05, description="Largest relative change of each critic's Q-values on recent (state, action) pairs accepted."
+        0.02, description="Largest relative change of each critic's Q-values on recent (state, action) pairs accepted."
     )
     search: bool = Field(
         True,

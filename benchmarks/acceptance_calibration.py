@@ -91,21 +91,25 @@ def calibrate(run: Path, episodes: int, rows: list[dict]) -> None:
         trainer.close()
 
 
-def plot(rows: list[dict], out: Path) -> None:
+def plot(rows: list[dict], out: Path, tolerances: tuple[float, float] | None = None) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-    for ax, role, key, label in ((axes[0], "actor", "return_ratio", "nominal return / untruncated"),
-                                 (axes[1], "critic", "critic_loss_ratio", "critic TD loss / untruncated")):
+    for i, (ax, role, key, label) in enumerate(((axes[0], "actor", "return_ratio", "nominal return / untruncated"),
+                                                (axes[1], "critic", "critic_loss_ratio", "critic TD loss / untruncated"))):
         for layer in sorted({r["layer"].split(".", 1)[1] for r in rows if r["network"] == role}):
-            pts = [(r["relative_error"], r[key]) for r in rows if r["network"] == role and r["layer"].endswith(layer)
-                   and r["relative_error"] > 0]
+            pts = [(float(r["relative_error"]), float(r[key])) for r in rows
+                   if r["network"] == role and r["layer"].endswith(layer) and float(r["relative_error"]) > 1e-4]
             if pts:
                 ax.scatter([p[0] for p in pts], [p[1] for p in pts], s=12, label=f"{role} {layer}")
+        if tolerances is not None:
+            ax.axvline(tolerances[i], color="red", ls="--", lw=1, label=f"default tolerance {tolerances[i]:g}")
         ax.set_xscale("log")
+        if role == "critic":
+            ax.set_yscale("log")
         ax.set_xlabel("relative output error of the truncation")
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
@@ -116,10 +120,19 @@ def plot(rows: list[dict], out: Path) -> None:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("runs", nargs="+", type=Path)
+    p.add_argument("runs", nargs="*", type=Path)
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--episodes", type=int, default=5)
+    p.add_argument("--replot", action="store_true", help="only redraw calibration.png from --out's CSV")
     a = p.parse_args()
+    from adarl.config import load_recipe
+
+    accept = load_recipe("base").rank.accept
+    tolerances = (accept.actor_tol, accept.critic_tol)
+    if a.replot:
+        with open(a.out / "calibration.csv") as fh:
+            plot(list(csv.DictReader(fh)), a.out / "calibration.png", tolerances)
+        return
     torch.set_num_threads(1)
     rows: list[dict] = []
     for run in a.runs:
@@ -130,7 +143,7 @@ def main() -> None:
         w = csv.DictWriter(fh, fieldnames=keys)
         w.writeheader()
         w.writerows(rows)
-    plot(rows, a.out / "calibration.png")
+    plot(rows, a.out / "calibration.png", tolerances)
     print(f"wrote {a.out / 'calibration.csv'} and calibration.png")
 
 
