@@ -45,6 +45,7 @@ __all__ = [
     "MLPConfig",
     "AlgorithmConfig",
     "SparseLayerConfig",
+    "InitConfig",
     "ParsevalConfig",
     "PPOConfig",
     "RNACConfig",
@@ -258,6 +259,27 @@ class SparseLayerConfig(_Section):
         return self
 
 
+class InitConfig(_Section):
+    scheme: Literal["default", "orthogonal"] = Field(
+        "default",
+        description="Initial weights: 'default' = each layer's own (PyTorch's nn.Linear, LowRankLinear's factorised "
+        "nn.Linear init); 'orthogonal' = torch.nn.init.orthogonal_ with gain on the hidden layers and head_gain on the "
+        "output layer, zero biases, every critic of an ensemble drawn apart (the RNAC and Parseval originals; "
+        "adarl.baselines.init).",
+    )
+    gain: PosFloat = Field(
+        1.0,
+        description="Gain of the hidden layers' orthogonal init: singular values = gain, so W W^T starts at gain^2 I "
+        "where rows <= columns (RNAC's trainer: 1; Parseval's code: sqrt(2) = 1.4142135623730951, i.e. s = 2). "
+        "Ignored with scheme 'default'.",
+    )
+    head_gain: PosFloat = Field(
+        1.0,
+        description="Gain of the output layer's orthogonal init (both originals: 0.01 for the policy head, 1 for the "
+        "value head). Ignored with scheme 'default'.",
+    )
+
+
 class MLPConfig(_Section):
     num_cells: list[PosInt] = Field(
         default_factory=lambda: [64, 64],
@@ -280,6 +302,9 @@ class MLPConfig(_Section):
     )
     sparse: SparseLayerConfig = Field(
         default_factory=SparseLayerConfig, description="Optional sparsification layer (Tiwari et al. baseline)."
+    )
+    init: InitConfig = Field(
+        default_factory=InitConfig, description="Initial weights (orthogonal for the RNAC and Parseval baselines)."
     )
 
     def layer_max_ranks(self) -> dict[int, int]:

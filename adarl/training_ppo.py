@@ -28,7 +28,9 @@ from torchrl.modules import ProbabilisticActor, TanhNormal, ValueOperator
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
+from adarl.baselines.init import orthogonal_init_
 from adarl.baselines.normalization import RewardScaler, RunningObsNorm
+from adarl.baselines.policy import BoxTanh, ClippedNormal
 from adarl.baselines.rnac import DoubleSamplingTransform, IPMAdvantage
 from adarl.builders import make_mlp
 from adarl.envs import dynamics_state_dict, load_dynamics_state_dict
@@ -90,6 +92,8 @@ def _net(in_dim: int, out_dim: int, mlp, parseval, action_dim: int, obs_norm: Ru
     body = make_mlp(in_dim, out_dim, num_cells=mlp.num_cells, activation=mlp.activation,
                     low_rank_layers=mlp.low_rank_layers, rank=mlp.rank, device=device,
                     **variant_kwargs(mlp, parseval, action_dim))
+    if mlp.init.scheme == "orthogonal":
+        orthogonal_init_(body, gain=mlp.init.gain, head_gain=mlp.init.head_gain)
     return nn.Sequential(obs_norm, body) if obs_norm is not None else body
 
 

@@ -84,6 +84,87 @@ def test_parseval_bad_input():
         ParsevalRegularizer(nn.Sequential(nn.Linear(2, 1)))
 
 
+def _original_hidden_layer(in_features: int, out_features: int, gain: float) -> nn.Linear:
+    """A hidden layer as the originals build it (re-implemented): nn.Linear, torch's orthogonal_ with ``gain``,
+    zero bias (wechu/parseval_reg agent.py orthogonal_layer_init; tliu1997/RNAC ppo_continuous.py orthogonal_init)."""
+    layer = nn.Linear(in_features, out_features)
+    nn.init.orthogonal_(layer.weight, gain)
+    nn.init.zeros_(layer.bias)
+    return layer
+
+
+def _init_stats(w: torch.Tensor) -> tuple[float, torch.Tensor]:
+    """mean diag(W W^T) and the sorted singular values of one weight matrix."""
+    w = w.detach().double()
+    return float(torch.diagonal(w @ w.T).mean()), torch.linalg.svdvals(w)
+
+
+@pytest.mark.parametrize("env", ["hopper", "walker2d", "ant", "humanoid"])
+def test_parseval_recipes_use_the_originals_orthogonal_init(env):
+    r = load_recipe(f"baselines/{env}_parseval")
+    for net, head in (("actor", 0.01), ("critic", 1.0)):
+        init = getattr(r.network, net).init
+        assert (init.scheme, init.gain, init.head_gain) == ("orthogonal", pytest.approx(2**0.5), head)
+    assert r.algorithm.parseval.s == pytest.approx(r.network.critic.init.gain ** 2)  # W W^T starts at s I
+
+
+def test_parseval_sac_networks_start_where_the_originals_do():
+    """Every hidden layer of actor and of each critic has the original's init statistics (mean diag(W W^T) = 2 for
+    the 64x64 layers, all singular values sqrt(2)); the heads have gain 0.01 (policy) and 1 (value)."""
+    from adarl.builders import make_sac_modules
+    from adarl.envs import make_env
+
+    torch.manual_seed(0)
+    recipe = load_recipe("baselines/hopper_parseval")
+    env = make_env("Hopper-v5", preset="none")
+    loss = make_sac_modules(recipe, env).loss
+    gain = 2**0.5
+    checked = 0
+    for w in parseval_weights(loss):  # the hidden layers, as the loss trains them (critics stacked [2, out, in])
+        members = w.weight if w.weight.dim() == 3 else w.weight.unsqueeze(0)
+        for m in members:
+            out_f, in_f = m.shape
+            mean_diag, sv = _init_stats(m)
+            ref_diag, ref_sv = _init_stats(_original_hidden_layer(in_f, out_f, gain).weight)
+            assert mean_diag == pytest.approx(ref_diag, rel=1e-4), (w.path, mean_diag, ref_diag)
+            torch.testing.assert_close(sv, ref_sv, rtol=1e-4, atol=1e-5)
+            if out_f == in_f == 64:
+                assert mean_diag == pytest.approx(2.0, rel=1e-4)  # s I with s = 2 (PyTorch's default: ~0.33)
+            checked += 1
+    assert checked == 2 + 2 * 2  # actor's two hidden layers, two per critic
+    q = loss.qvalue_network_params.flatten_keys(".")
+    assert not torch.equal(q["module.2.weight"][0], q["module.2.weight"][1])  # each critic drawn apart
+    for k, v in loss.target_qvalue_network_params.flatten_keys(".").items():
+        assert torch.equal(v, q[k].data), k  # the targets start equal to the critics
+    assert all(float(v.detach().abs().max()) == 0 for k, v in q.items() if k.endswith("bias"))
+    torch.testing.assert_close(torch.linalg.svdvals(q["module.4.weight"][0].detach()), torch.ones(1))
+    actor_head = [v for k, v in loss.actor_network_params.flatten_keys(".").items() if k.endswith("weight")][-1]
+    torch.testing.assert_close(torch.linalg.svdvals(actor_head.detach()), torch.full((6,), 0.01))
+    # the penalty starts at the input layers' share only: the 64x64 layers are already s-orthogonal
+    reg = ParsevalRegularizer(loss, lam=1.0)
+    with torch.no_grad():
+        wide = sum(float(((w.gram() - 2 * torch.eye(64)) ** 2).sum()) for w in reg._weights if w.weight.shape[-1] == 64)
+    assert wide < 1e-6
+
+
+def test_orthogonal_init_of_low_rank_and_plain_networks():
+    from adarl.baselines import orthogonal_init_
+
+    torch.manual_seed(0)
+    net = nn.Sequential(LowRankLinear(8, 6), nn.Tanh(), LowRankLinear(6, 6, rank=2), nn.Tanh(), nn.Linear(6, 2))
+    assert orthogonal_init_(net, gain=1.5, head_gain=0.01) == 3
+    torch.testing.assert_close(torch.linalg.svdvals(net[0].weight.detach()), torch.full((6,), 1.5))
+    sv = torch.linalg.svdvals(net[2].weight.detach())  # rank 2: the best rank-2 part of an orthogonal draw
+    torch.testing.assert_close(sv[:2], torch.full((2,), 1.5))
+    assert float(sv[2:].abs().max()) < 1e-5
+    torch.testing.assert_close(torch.linalg.svdvals(net[4].weight.detach()), torch.full((2,), 0.01))
+    assert all(float(b.abs().max()) == 0 for n, b in net.named_parameters() if n.endswith("bias"))
+    with pytest.raises(AdaRLValueError, match="gain"):
+        orthogonal_init_(net, gain=0.0)
+    with pytest.raises(AdaRLValueError, match="no Linear"):
+        orthogonal_init_(nn.Tanh())
+
+
 # ---------------------------------------------------------------------------------------- sparsification
 
 
