@@ -92,6 +92,13 @@ def _not_bool(v: Any) -> Any:
     return v
 
 
+def _advantage_norm(v: Any) -> Any:
+    # algorithm.ppo.normalize_advantage was a boolean (true = per minibatch) before 'batch' existed
+    if isinstance(v, bool):
+        return "minibatch" if v else "none"
+    return v
+
+
 Int = Annotated[int, BeforeValidator(_not_bool)]
 Float = Annotated[float, BeforeValidator(_not_bool)]
 PosInt = Annotated[Int, Field(ge=1)]
@@ -401,9 +408,22 @@ class PPOConfig(_Section):
     critic_coeff: PosFloat = Field(1.0, description="Weight of the value loss (actor and critic have separate Adams).")
     adam_eps: PosFloat = Field(1e-5, description="Adam epsilon (the original: 1e-5).")
     lr_decay: bool = Field(True, description="Decay the learning rate linearly to 0 over the run (the original does).")
-    normalize_advantage: bool = Field(True, description="Normalise advantages per minibatch.")
+    normalize_advantage: Annotated[Literal["batch", "minibatch", "none"], BeforeValidator(_advantage_norm)] = Field(
+        "batch",
+        description="Standardise the advantages (mean 0, std 1): 'batch' = over each whole collected batch, once, "
+        "before the epochs (RNAC's trainer: (A - mean) / (std + 1e-5) over its 2048 frames); 'minibatch' = in each "
+        "minibatch inside ClipPPOLoss (TorchRL's normalize_advantage); 'none'. true/false read as 'minibatch'/'none', "
+        "their meaning before 'batch' existed.",
+    )
     obs_norm: bool = Field(True, description="Running mean/std observation normalisation inside actor and critic.")
     reward_scaling: bool = Field(True, description="Divide rewards by the running std of the discounted return.")
+    policy: Literal["clipped_gaussian", "tanh_gaussian"] = Field(
+        "clipped_gaussian",
+        description="PPO policy: 'clipped_gaussian' = RNAC's original, a Gaussian with mean = tanh of the head scaled "
+        "to the action box, a state-independent log-std, samples clipped to the box, log-probability and entropy of "
+        "the unclipped Gaussian (adarl.baselines.ClippedNormal); 'tanh_gaussian' = TorchRL's TanhNormal (samples "
+        "squashed into the box; its entropy is estimated from one sample).",
+    )
 
 
 class RNACConfig(_Section):

@@ -6,11 +6,13 @@ envs, evaluation, run folder, logging and checkpoints as AdaRL-SAC.
 runs a recipe with ``algorithm.name: ppo``. ``algorithm.rnac.mode`` picks plain PPO, RNAC-IPM
 (:class:`~adarl.baselines.rnac.IPMAdvantage`) or RNAC-DS (:class:`~adarl.baselines.rnac.DoubleSamplingTransform`).
 
-Defaults follow the original RNAC trainer: 64-64 tanh networks, state-independent log-std, Adam (eps 1e-5) with
+Defaults follow the original RNAC trainer (tliu1997/RNAC): 64-64 tanh networks with its orthogonal init
+(``network.<net>.init`` in the recipes), its Gaussian policy (mean ``tanh`` into the box, state-independent
+log-std, samples clipped to the action box: :class:`~adarl.baselines.policy.ClippedNormal`), Adam (eps 1e-5) with
 a linear learning-rate decay, 2048-frame batches, 10 epochs of 64-sample minibatches, clip 0.2, GAE(0.99, 0.95),
 entropy 0.01, gradient clipping 0.5, running observation normalisation, reward scaling and advantage
-normalisation. One deliberate difference: the policy is TorchRL's tanh-squashed Gaussian (as TorchRL's reference
-PPO) instead of a Gaussian whose samples are clipped to the action box.
+normalisation over the whole batch. ``algorithm.ppo.policy: tanh_gaussian`` gives TorchRL's tanh-squashed Gaussian
+instead; docs/baselines/rnac.md lists what still differs from the original.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
+from tensordict import TensorDictBase
 from tensordict.nn import AddStateIndependentNormalScale, TensorDictModule
 from torch import nn
 from torchrl.collectors import Collector
@@ -38,7 +41,7 @@ from adarl.run_dir import RunDir
 from adarl.training import Trainer, _rng_state, _set_rng_state, make_envs, seed_everything
 
 __all__ = ["PPOModules", "PPOComponents", "LinearDecay", "make_ppo_modules", "build_ppo_components", "PPOTrainer",
-           "trainer_class"]
+           "trainer_class", "normalize_advantage_", "simulator_steps_per_frame"]
 
 
 @dataclass
@@ -98,8 +101,9 @@ def _net(in_dim: int, out_dim: int, mlp, parseval, action_dim: int, obs_norm: Ru
 
 
 def make_ppo_modules(recipe, env) -> PPOModules:
-    """Tanh-Gaussian actor with a state-independent log-std, state-value critic, ``ClipPPOLoss`` and GAE (or
-    RNAC-IPM's shifted GAE) from a recipe's ``network`` and ``algorithm`` sections."""
+    """Actor (``algorithm.ppo.policy``: RNAC's clipped Gaussian or TorchRL's tanh-Gaussian, both with a
+    state-independent log-std), state-value critic, ``ClipPPOLoss`` and GAE (or RNAC-IPM's shifted GAE) from a
+    recipe's ``network`` and ``algorithm`` sections."""
     device = torch.device(recipe.device)
     alg, ppo = recipe.algorithm, recipe.algorithm.ppo
     obs_dim = env.observation_spec["observation"].shape[-1]
@@ -108,19 +112,25 @@ def make_ppo_modules(recipe, env) -> PPOModules:
     norms = [RunningObsNorm(obs_dim).to(device), RunningObsNorm(obs_dim).to(device)] if ppo.obs_norm else []
     a, c = recipe.network.actor, recipe.network.critic
     actor_body = _net(obs_dim, act_dim, a, alg.parseval, act_dim, norms[0] if norms else None, device)
+    low, high = spec.space.low, spec.space.high
+    if ppo.policy == "clipped_gaussian":  # RNAC's: mean = tanh into the box, samples clipped to it
+        head, dist_class = [BoxTanh(low, high).to(device)], ClippedNormal
+    else:  # TorchRL's tanh-squashed Gaussian
+        head, dist_class = [], TanhNormal
     policy = TensorDictModule(
-        nn.Sequential(actor_body, AddStateIndependentNormalScale(act_dim, scale_lb=1e-8).to(device)),
+        nn.Sequential(actor_body, *head, AddStateIndependentNormalScale(act_dim, scale_lb=1e-8).to(device)),
         in_keys=["observation"], out_keys=["loc", "scale"],
     )
     actor = ProbabilisticActor(
-        policy, in_keys=["loc", "scale"], spec=spec, distribution_class=TanhNormal,
-        distribution_kwargs={"low": spec.space.low, "high": spec.space.high}, return_log_prob=True,
+        policy, in_keys=["loc", "scale"], spec=spec, distribution_class=dist_class,
+        distribution_kwargs={"low": low, "high": high}, return_log_prob=True,
     )
     critic = ValueOperator(_net(obs_dim, 1, c, alg.parseval, act_dim, norms[1] if norms else None, device),
                            in_keys=["observation"])
+    # 'batch' standardises once per collected batch in PPOTrainer._iteration; 'minibatch' inside the loss
     loss = ClipPPOLoss(actor, critic, clip_epsilon=ppo.clip_epsilon, entropy_bonus=ppo.entropy_coeff > 0,
                        entropy_coeff=ppo.entropy_coeff, critic_coeff=ppo.critic_coeff, loss_critic_type="l2",
-                       normalize_advantage=ppo.normalize_advantage, functional=False)
+                       normalize_advantage=ppo.normalize_advantage == "minibatch", functional=False)
     rn = alg.rnac
     if rn.mode == "ipm":
         advantage = IPMAdvantage(gamma=alg.gamma, lmbda=ppo.gae_lambda, value_network=critic, kappa=rn.kappa,
@@ -161,6 +171,23 @@ def build_ppo_components(recipe) -> PPOComponents:
     generator = torch.Generator().manual_seed(recipe.seed + 1)
     return PPOComponents(recipe, env, eval_env, modules, optimizers, schedulers, collector, scaler, ds, iterations,
                          regularizer, extras={"sampling_generator": generator})
+
+
+@torch.no_grad()
+def normalize_advantage_(batch: TensorDictBase, key: str = "advantage", eps: float = 1e-5) -> TensorDictBase:
+    """Standardise ``batch[key]`` in place over the whole batch, ``(A - mean) / (std + eps)`` with the unbiased
+    std, as RNAC's trainer does once per 2048-frame batch before its epochs (TorchRL's ``ClipPPOLoss`` would do it
+    per minibatch). The value target, computed from the raw advantage, is left alone."""
+    adv = batch.get(key)
+    batch.set(key, (adv - adv.mean()) / (adv.std() + eps))
+    return batch
+
+
+def simulator_steps_per_frame(recipe) -> int:
+    """Environment steps the simulator takes per collected frame: ``m + 1`` for RNAC-DS (it probes ``m`` noisy
+    candidates before the real step), 1 otherwise."""
+    rn = recipe.algorithm.rnac
+    return rn.num_candidates + 1 if recipe.algorithm.name == "ppo" and rn.mode == "ds" else 1
 
 
 def trainer_class(recipe) -> type[Trainer]:
@@ -228,6 +255,8 @@ class PPOTrainer(Trainer):
             batch.set(("next", "reward"), c.reward_scaler(batch.get(("next", "reward")), batch.get(("next", "done"))))
         with torch.no_grad():
             m.advantage(batch)
+        if ppo.normalize_advantage == "batch":
+            normalize_advantage_(batch)
         flat = batch.reshape(-1)
         n, mb = flat.numel(), ppo.minibatch_size
         gen = c.extras["sampling_generator"]

@@ -254,6 +254,148 @@ def test_ipm_advantage_matches_a_hand_computation():
     torch.testing.assert_close(td2["advantage"], td3["advantage"])
 
 
+# ------------------------------------------------------------------------------ RNAC's original trainer
+
+
+@pytest.mark.parametrize("env", ["hopper", "walker2d", "ant", "humanoid"])
+@pytest.mark.parametrize("mode", ["ipm", "ds"])
+def test_rnac_recipes_resolve_to_the_original_trainer(env, mode):
+    r = load_recipe(f"baselines/{env}_rnac_{mode}")
+    ppo = r.algorithm.ppo
+    assert ppo.policy == "clipped_gaussian" and ppo.normalize_advantage == "batch"
+    a, c = r.network.actor.init, r.network.critic.init
+    assert (a.scheme, a.gain, a.head_gain) == ("orthogonal", 1.0, 0.01)  # ppo_continuous.py: orthogonal_init gain 1
+    assert (c.scheme, c.gain, c.head_gain) == ("orthogonal", 1.0, 1.0)
+    assert r.network.actor.activation == r.network.critic.activation == "tanh"
+    # the tanh policy stays available, and old boolean values keep their meaning
+    assert load_recipe(f"baselines/{env}_rnac_{mode}", ["algorithm.ppo.policy=tanh_gaussian"]).algorithm.ppo.policy \
+        == "tanh_gaussian"
+    assert load_recipe("baselines/hopper_rnac_ipm", ["algorithm.ppo.normalize_advantage=true"]) \
+        .algorithm.ppo.normalize_advantage == "minibatch"
+
+
+def _ppo_components(*overrides):
+    from adarl.training_ppo import build_ppo_components
+
+    recipe = load_recipe("baselines/hopper_rnac_ipm", ["collector.total_frames=256", "collector.frames_per_batch=128",
+                                                       "algorithm.ppo.epochs=1", *overrides])
+    return recipe, build_ppo_components(recipe)
+
+
+def test_rnac_networks_and_policy_start_as_the_original():
+    from adarl.baselines import BoxTanh, ClippedNormal
+
+    torch.manual_seed(0)
+    _, c = _ppo_components()
+    actor, critic = c.modules.actor, c.modules.critic
+    weights = {f"actor.{n}": p for n, p in actor.named_parameters()} | {f"critic.{n}": p for n, p in critic.named_parameters()}
+    mats = [(n, p) for n, p in weights.items() if n.endswith("weight")]
+    assert len(mats) == 6
+    for n, p in mats:
+        expected = 0.01 if n.startswith("actor") and p.shape[0] == 3 else 1.0  # policy head 0.01, others gain 1
+        torch.testing.assert_close(torch.linalg.svdvals(p.detach()), torch.full((min(p.shape),), expected), msg=n)
+    assert all(float(p.abs().max()) == 0 for n, p in weights.items() if n.endswith("bias"))
+    scale = [p for n, p in weights.items() if n.endswith("state_independent_scale")]
+    assert len(scale) == 1 and float(scale[0].abs().max()) == 0  # log_std = 0: std 1, as the original
+    assert any(isinstance(m, BoxTanh) for m in actor.modules())
+    batch = next(iter(c.collector))
+    dist = actor.get_dist(batch)
+    assert isinstance(dist, ClippedNormal)
+    act = batch["action"]
+    assert float(act.abs().max()) <= 1.0 and float((act.abs() == 1.0).float().mean()) > 0.05  # clipped, not squashed
+    # the stored log-probability is the unclipped Gaussian's density at the clipped action (the original's)
+    gauss = torch.distributions.Normal(batch["loc"], batch["scale"])
+    torch.testing.assert_close(batch["action_log_prob"], gauss.log_prob(act).sum(-1))
+    # the loss's entropy bonus is the Gaussian's closed form, not a one-sample estimate
+    from adarl.training_ppo import normalize_advantage_
+
+    with torch.no_grad():
+        c.modules.advantage(batch)
+    normalize_advantage_(batch)
+    out = c.modules.loss(batch)
+    torch.testing.assert_close(out["loss_entropy"], -0.01 * gauss.entropy().sum(-1).mean())
+
+
+def test_clipped_normal_and_box_tanh():
+    from adarl.baselines import BoxTanh, ClippedNormal
+
+    torch.manual_seed(0)
+    low, high = torch.full((2,), -0.4), torch.full((2,), 0.4)  # Humanoid's box
+    x = torch.randn(5, 2) * 3
+    torch.testing.assert_close(BoxTanh(low, high)(x), 0.4 * torch.tanh(x))  # max_action * tanh(mean_layer(s))
+    torch.testing.assert_close(BoxTanh(torch.tensor([0.0]), torch.tensor([2.0]))(torch.zeros(1)), torch.ones(1))
+    loc, scale = torch.zeros(4000, 2), torch.ones(4000, 2)
+    d = ClippedNormal(loc, scale, low=low, high=high)
+    a = d.sample()
+    assert float(a.abs().max()) == pytest.approx(0.4) and float((a.abs() == 0.4).float().mean()) > 0.6
+    assert bool((d.rsample().abs() <= high).all())
+    torch.testing.assert_close(d.log_prob(a), torch.distributions.Normal(loc, scale).log_prob(a).sum(-1))
+    torch.testing.assert_close(d.entropy(), torch.distributions.Normal(loc, scale).entropy().sum(-1))
+    torch.testing.assert_close(ClippedNormal(torch.full((2,), 3.0), torch.ones(2), low, high).deterministic_sample,
+                               high)
+    with pytest.raises(ValueError, match="low <= high"):
+        ClippedNormal(loc, scale, low=high, high=low)
+
+
+def _advantage_seen_by_the_loss(tmp_path, how: str) -> tuple[torch.Tensor, torch.Tensor, float]:
+    """Run one PPO iteration on a batch whose advantages are 0 .. 127, and return the raw advantages of the first
+    minibatch, all raw advantages, and the first update's loss_objective (ratio 1 there, so it is -mean(A_used))."""
+    from adarl.run_dir import RunDir
+    from adarl.training_ppo import PPOTrainer
+
+    torch.manual_seed(0)
+    recipe = load_recipe("baselines/hopper_rnac_ipm", [
+        "collector.total_frames=256", "collector.frames_per_batch=128", "algorithm.ppo.epochs=1",
+        f"algorithm.ppo.normalize_advantage={how}", "algorithm.rnac.mode=none"])
+    trainer = PPOTrainer(recipe, RunDir.create(tmp_path / how), quiet=True)
+    m = trainer.c.modules
+    raw = torch.arange(128, dtype=torch.float32).reshape(1, 128, 1)
+    real = m.advantage
+
+    def designed(td):
+        real(td)
+        td.set("advantage", raw.clone())
+        td.set("raw_advantage", raw.clone())
+        return td
+
+    m.advantage = designed
+    seen = []
+    forward = m.loss.forward
+
+    def spy(td):
+        out = forward(td)
+        seen.append((td["raw_advantage"].clone(), float(out["loss_objective"])))
+        return out
+
+    m.loss.forward = spy
+    batch = next(iter(trainer.c.collector)).unsqueeze(0)
+    trainer._iteration(batch)
+    trainer.close()
+    assert len(seen) == 2  # 128 frames, minibatches of 64
+    return seen[0][0], raw, seen[0][1]
+
+
+def test_ppo_advantage_normalisation_spans_the_whole_batch(tmp_path):
+    first, raw, objective = _advantage_seen_by_the_loss(tmp_path, "batch")
+    batch_wide = (first - raw.mean()) / (raw.std() + 1e-5)  # RNAC's trainer, over its whole batch
+    per_minibatch = (first - first.mean()) / first.std()
+    assert abs(float(batch_wide.mean())) > 0.05  # the two normalisations differ on this minibatch
+    assert objective == pytest.approx(-float(batch_wide.mean()), abs=1e-5)
+    assert objective != pytest.approx(-float(per_minibatch.mean()), abs=1e-3)
+    # TorchRL's per-minibatch standardisation stays available: each minibatch then has mean advantage 0
+    _, _, objective_mb = _advantage_seen_by_the_loss(tmp_path, "minibatch")
+    assert objective_mb == pytest.approx(0.0, abs=1e-5)
+
+
+def test_simulator_steps_per_frame():
+    from adarl.training_ppo import simulator_steps_per_frame
+
+    assert simulator_steps_per_frame(load_recipe("baselines/hopper_rnac_ds")) == 3  # m = 2 probes + the real step
+    assert simulator_steps_per_frame(load_recipe("baselines/hopper_rnac_ds", ["algorithm.rnac.num_candidates=4"])) == 5
+    assert simulator_steps_per_frame(load_recipe("baselines/hopper_rnac_ipm")) == 1
+    assert simulator_steps_per_frame(load_recipe("hopper_adarl")) == 1
+
+
 # ---------------------------------------------------------------------------------------------- RNAC-DS
 
 
@@ -379,6 +521,10 @@ def test_baseline_recipes_say_what_they_run(env):
         ("quickstart", ["network.actor.sparse.layer=1"], "low-rank or the sparsification layer"),
         ("baselines/hopper_sparse", ["network.critic.sparse.layer=2"], "must index a hidden layer"),
         ("baselines/hopper_sparse", ["network.critic.sparse.k=4096"], "must be <= width (1024)"),
+        ("baselines/hopper_rnac_ipm", ["algorithm.ppo.policy=gaussian"], "one of 'clipped_gaussian', 'tanh_gaussian'"),
+        ("baselines/hopper_rnac_ipm", ["algorithm.ppo.normalize_advantage=global"], "one of 'batch', 'minibatch', 'none'"),
+        ("baselines/hopper_parseval", ["network.critic.init.scheme=xavier"], "one of 'default', 'orthogonal'"),
+        ("baselines/hopper_parseval", ["network.actor.init.gain=-1"], "network.actor.init.gain = -1: must be a number > 0"),
     ],
 )
 def test_bad_baseline_settings_are_recipe_errors(recipe, overrides, expected):
