@@ -303,6 +303,16 @@ class PPOTrainer(Trainer):
         return {k: td[k].detach() for k in ("loss_objective", "loss_critic", "loss_entropy", "loss_parseval")
                 if k in td.keys()}
 
+    def _write_summary(self, elapsed: float) -> dict:
+        """The SAC Trainer's summary plus the simulator's cost: RNAC-DS takes ``m + 1`` env steps per frame, so a
+        comparison at equal frames gives it ``m + 1`` times the simulator steps of the other methods."""
+        summary = super()._write_summary(elapsed)
+        per_frame = simulator_steps_per_frame(self.recipe)
+        summary["simulator_steps_per_frame"] = per_frame
+        summary["simulator_steps"] = self.frames * per_frame
+        self.run_dir.write_json("summary.json", summary)
+        return summary
+
     # ------------------------------------------------------------------ checkpoints
     def state_dict(self) -> dict:
         c = self.c

@@ -49,6 +49,9 @@ def test_rnac_runs_from_the_cli_and_resumes(mode, tmp_path):
     out = tmp_path / mode
     summary = _run(f"baselines/hopper_rnac_{mode}", PPO_TINY, out)
     assert summary["frames"] == 256 and summary["updates"] == 4  # 2 batches x 1 epoch x 2 minibatches
+    per_frame = 3 if mode == "ds" else 1  # DS probes m = 2 candidates before each real step
+    assert summary["simulator_steps_per_frame"] == per_frame and summary["simulator_steps"] == 256 * per_frame
+    assert f"simulator steps: {per_frame} per frame, {256 * per_frame} in all" in (out / "report.md").read_text()
     metric = "train.ipm_reward_shift" if mode == "ipm" else "train.ds_worst_fraction"
     assert (out / "metrics" / "scalars" / f"{metric}.csv").is_file()
     proc = adarl("eval", str(out), "--episodes", "1")  # rebuilds the PPO trainer from the checkpoint
