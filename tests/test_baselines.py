@@ -209,6 +209,15 @@ def test_baseline_mlp_variants_layout():
     assert net(torch.randn(3, 3), torch.randn(3, 1)).shape == (3, 2)  # inputs concatenated like torchrl's MLP
     with pytest.raises(AdaRLValueError, match="both low-rank"):
         make_baseline_mlp(4, 2, [8, 8], low_rank_layers=[1], sparse_layer=1)
+    # Parseval's diagonal layer is the original's DiagLinear: x * c + b, c = 1 and b = 0 at the start
+    from adarl.baselines import DiagonalScale
+
+    diag = [m for m in net.modules() if isinstance(m, DiagonalScale)]
+    assert len(diag) == 2 and all(torch.equal(d.scale, torch.ones_like(d.scale)) and torch.equal(d.bias, torch.zeros_like(d.bias)) for d in diag)
+    x = torch.randn(3, 8)
+    with torch.no_grad():
+        diag[0].scale.fill_(2.0), diag[0].bias.fill_(0.5)
+    torch.testing.assert_close(diag[0](x), 2 * x + 0.5)
 
 
 # --------------------------------------------------------------------------------------------- RNAC-IPM
@@ -471,6 +480,12 @@ def test_running_obs_norm_and_reward_scaler():
     scaler = RewardScaler(gamma=0.0)  # returns == rewards: scaled by their running std
     out = scaler(torch.tensor([[1.0, 3.0]]), torch.tensor([[False, False]]))
     assert out[0, 1].item() == pytest.approx(3.0 / 1.0, rel=1e-6)
+    # the run's first reward: one sample, std 0; scaled by |R| to +-1 as the original (not by 1 / 1e-8)
+    first = RewardScaler(gamma=0.99)(torch.tensor([[0.8, 0.8, 0.8]]), torch.tensor([[False, False, False]]))
+    assert first[0, 0].item() == pytest.approx(1.0, rel=1e-6) and first.abs().max().item() < 10
+    assert RewardScaler(gamma=0.99)(torch.tensor([[-0.5]]), torch.tensor([[False]])).item() == pytest.approx(-1.0)
+    two = RewardScaler(gamma=0.99)(torch.tensor([[0.8], [0.8]]), torch.tensor([[False], [False]]))  # 2 envs, no spread
+    torch.testing.assert_close(two, torch.ones(2, 1))
 
 
 # ------------------------------------------------------------------------------------------------ recipes
