@@ -36,6 +36,14 @@ from adarl.baselines.normalization import RewardScaler, RunningObsNorm
 from adarl.baselines.policy import BoxTanh, ClippedNormal
 from adarl.baselines.rnac import DoubleSamplingTransform, IPMAdvantage
 from adarl.builders import make_mlp
+from adarl.env_state import (
+    collector_state_dict,
+    env_state_dict,
+    gym_rng_state_dict,
+    load_collector_state_dict,
+    load_env_state_dict,
+    load_gym_rng_state_dict,
+)
 from adarl.envs import dynamics_state_dict, load_dynamics_state_dict
 from adarl.run_dir import RunDir
 from adarl.training import Trainer, _rng_state, _set_rng_state, make_envs, seed_everything
@@ -329,6 +337,11 @@ class PPOTrainer(Trainer):
             "rng": _rng_state(),
             "dynamics": dynamics_state_dict(c.env),
             "sampling_rng": c.extras["sampling_generator"].get_state(),
+            # the live episode (exact resume), as the SAC Trainer saves it: simulator + gymnasium state and the
+            # collector's carrier and counters
+            "env_state": env_state_dict(c.env),
+            "collector": collector_state_dict(c.collector),
+            "eval_rng": gym_rng_state_dict(c.eval_env),
         }
 
     def save_checkpoint(self) -> Path:
@@ -357,6 +370,10 @@ class PPOTrainer(Trainer):
         self.last_eval_frames = int(cnt["last_eval_frames"])
         self.last_ckpt_frames = self.frames
         self.best_eval = float(cnt["best_eval"])
-        _set_rng_state(state["rng"])
         load_dynamics_state_dict(c.env, state["dynamics"])
+        live_episode = load_env_state_dict(c.env, state.get("env_state"))
+        if state.get("collector") is not None:
+            load_collector_state_dict(c.collector, state["collector"], carrier=live_episode)
+        load_gym_rng_state_dict(c.eval_env, state.get("eval_rng"))
         c.extras["sampling_generator"].set_state(state["sampling_rng"])
+        _set_rng_state(state["rng"])  # last: nothing after it may draw random numbers
