@@ -185,9 +185,11 @@ def build_ppo_components(recipe) -> PPOComponents:
 def normalize_advantage_(batch: TensorDictBase, key: str = "advantage", eps: float = 1e-5) -> TensorDictBase:
     """Standardise ``batch[key]`` in place over the whole batch, ``(A - mean) / (std + eps)`` with the unbiased
     std, as RNAC's trainer does once per 2048-frame batch before its epochs (TorchRL's ``ClipPPOLoss`` would do it
-    per minibatch). The value target, computed from the raw advantage, is left alone."""
+    per minibatch). The value target, computed from the raw advantage, is left alone. A one-frame batch has no
+    spread: its advantage becomes 0."""
     adv = batch.get(key)
-    batch.set(key, (adv - adv.mean()) / (adv.std() + eps))
+    std = adv.std() if adv.numel() > 1 else torch.zeros((), dtype=adv.dtype, device=adv.device)
+    batch.set(key, (adv - adv.mean()) / (std + eps))
     return batch
 
 

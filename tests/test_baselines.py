@@ -394,6 +394,10 @@ def test_ppo_advantage_normalisation_spans_the_whole_batch(tmp_path):
     # TorchRL's per-minibatch standardisation stays available: each minibatch then has mean advantage 0
     _, _, objective_mb = _advantage_seen_by_the_loss(tmp_path, "minibatch")
     assert objective_mb == pytest.approx(0.0, abs=1e-5)
+    from adarl.training_ppo import normalize_advantage_
+
+    one = normalize_advantage_(TensorDict({"advantage": torch.tensor([[3.0]])}, batch_size=[1]))
+    assert one["advantage"].item() == 0.0  # a one-frame batch: no spread, no NaN
 
 
 def test_simulator_steps_per_frame():
