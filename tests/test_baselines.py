@@ -213,7 +213,9 @@ def test_baseline_mlp_variants_layout():
     from adarl.baselines import DiagonalScale
 
     diag = [m for m in net.modules() if isinstance(m, DiagonalScale)]
-    assert len(diag) == 2 and all(torch.equal(d.scale, torch.ones_like(d.scale)) and torch.equal(d.bias, torch.zeros_like(d.bias)) for d in diag)
+    assert len(diag) == 2
+    assert all(torch.equal(d.scale, torch.ones_like(d.scale)) and torch.equal(d.bias, torch.zeros_like(d.bias))
+               for d in diag)
     x = torch.randn(3, 8)
     with torch.no_grad():
         diag[0].scale.fill_(2.0), diag[0].bias.fill_(0.5)
@@ -297,7 +299,8 @@ def test_rnac_networks_and_policy_start_as_the_original():
     torch.manual_seed(0)
     _, c = _ppo_components()
     actor, critic = c.modules.actor, c.modules.critic
-    weights = {f"actor.{n}": p for n, p in actor.named_parameters()} | {f"critic.{n}": p for n, p in critic.named_parameters()}
+    weights = {f"actor.{n}": p for n, p in actor.named_parameters()}
+    weights |= {f"critic.{n}": p for n, p in critic.named_parameters()}
     mats = [(n, p) for n, p in weights.items() if n.endswith("weight")]
     assert len(mats) == 6
     for n, p in mats:
