@@ -215,6 +215,10 @@ class PPOTrainer(Trainer):
         self.best_eval = -math.inf
         self.last_return = float("nan")
         self._pending_updates = 0.0
+        # training losses are averaged over logging.log_interval frames (the sums are checkpointed: exact resume)
+        self._loss_sums: dict[str, float] = {}
+        self._loss_count = 0
+        self._last_log_frames = 0
         self.c = build_ppo_components(recipe)
         self.logger = run_dir.make_logger(recipe)
         if _resume_state is not None:
@@ -246,6 +250,7 @@ class PPOTrainer(Trainer):
                     break
         finally:
             bar.close()
+        self._log_losses([], flush=True)  # the last partial logging interval
         if self.last_eval_frames != self.frames:
             self._evaluate()
         self.save_checkpoint()
@@ -313,6 +318,23 @@ class PPOTrainer(Trainer):
         return {k: td[k].detach() for k in ("loss_objective", "loss_critic", "loss_entropy", "loss_parseval")
                 if k in td.keys()}
 
+    def _log_losses(self, losses: list[dict[str, torch.Tensor]], *, flush: bool = False) -> None:
+        """Accumulate a batch's minibatch losses; log their means once ``logging.log_interval`` frames have passed
+        since the last log (at a batch boundary), and at the end (``flush``). The PPO loop's own, so it does not
+        depend on how the SAC Trainer logs."""
+        for k in losses[0] if losses else ():
+            self._loss_sums[k] = self._loss_sums.get(k, 0.0) + float(torch.stack([d[k] for d in losses]).sum())
+        self._loss_count += len(losses)
+        if not flush and self.frames - self._last_log_frames < self.recipe.logging.log_interval:
+            return
+        self._last_log_frames = self.frames
+        if self._loss_count:
+            for k, total in self._loss_sums.items():
+                self.logger.log_scalar(f"train.{k}", total / self._loss_count, step=self.frames)
+            self.logger.log_scalar("train.updates", self.updates, step=self.frames)
+            self.logger.log_scalar("train.lr", self.c.optimizers["actor"].param_groups[0]["lr"], step=self.frames)
+        self._loss_sums, self._loss_count = {}, 0
+
     def _write_summary(self, elapsed: float) -> dict:
         """The SAC Trainer's summary plus the simulator's cost: RNAC-DS takes ``m + 1`` env steps per frame, so a
         comparison at equal frames gives it ``m + 1`` times the simulator steps of the other methods."""
@@ -329,13 +351,17 @@ class PPOTrainer(Trainer):
         return {
             "counters": {"frames": self.frames, "updates": self.updates, "episodes": self.episodes,
                          "iterations": self.iterations, "last_eval_frames": self.last_eval_frames,
-                         "pending_updates": 0.0, "best_eval": self.best_eval},
+                         "pending_updates": 0.0, "best_eval": self.best_eval,
+                         "loss_sums": dict(self._loss_sums), "loss_count": self._loss_count,
+                         "last_log_frames": self._last_log_frames},
             "actor": c.modules.actor.state_dict(),
             "critic": c.modules.critic.state_dict(),
             "optimizers": {k: o.state_dict() for k, o in c.optimizers.items()},
             "schedulers": {k: s.state_dict() for k, s in c.schedulers.items()},
             "reward_scaler": c.reward_scaler.state_dict() if c.reward_scaler is not None else None,
             "ds_rng": repr(c.double_sampling.rng_state()) if c.double_sampling is not None else None,
+            "ds_counts": ([c.double_sampling.worst_picks, c.double_sampling.steps]
+                          if c.double_sampling is not None else None),
             "rng": _rng_state(),
             "dynamics": dynamics_state_dict(c.env),
             "sampling_rng": c.extras["sampling_generator"].get_state(),
@@ -366,9 +392,14 @@ class PPOTrainer(Trainer):
             c.reward_scaler.load_state_dict(state["reward_scaler"])
         if c.double_sampling is not None and state.get("ds_rng"):
             c.double_sampling.set_rng_state(ast.literal_eval(state["ds_rng"]))
+        if c.double_sampling is not None and state.get("ds_counts") is not None:
+            c.double_sampling.worst_picks, c.double_sampling.steps = (int(v) for v in state["ds_counts"])
         cnt = state["counters"]
         self.frames, self.updates, self.episodes = int(cnt["frames"]), int(cnt["updates"]), int(cnt["episodes"])
         self.iterations = int(cnt.get("iterations", 0))
+        self._loss_sums = {k: float(v) for k, v in cnt.get("loss_sums", {}).items()}
+        self._loss_count = int(cnt.get("loss_count", 0))
+        self._last_log_frames = int(cnt.get("last_log_frames", self.frames))
         self.last_eval_frames = int(cnt["last_eval_frames"])
         self.last_ckpt_frames = self.frames
         self.best_eval = float(cnt["best_eval"])

@@ -82,7 +82,7 @@ def test_rnac_resume_from_a_mid_episode_checkpoint_is_exact(mode, tmp_path):
     recipe = load_recipe(f"baselines/hopper_rnac_{mode}", [
         "collector.total_frames=384", "collector.frames_per_batch=128", "algorithm.ppo.epochs=1",
         "eval.interval=100000", "eval.episodes=1", "eval.max_steps=20", "checkpoint.interval=128",
-        "checkpoint.keep_last=5"])
+        "checkpoint.keep_last=5", "logging.log_interval=200"])
     full = RunDir.create(tmp_path / "full")
     save_resolved(recipe, full.recipe_path)
     PPOTrainer(recipe, full, quiet=True).train()
@@ -101,3 +101,8 @@ def test_rnac_resume_from_a_mid_episode_checkpoint_is_exact(mode, tmp_path):
             assert torch.equal(v, b[net][k]), (net, k)
     assert a["reward_scaler"]["returns"].equal(b["reward_scaler"]["returns"])
     assert (full.path / "eval.csv").read_text() == (resumed.path / "eval.csv").read_text()
+    metrics = sorted(p.name for p in (full.path / "metrics" / "scalars").glob("*.csv"))
+    assert "train.loss_objective.csv" in metrics
+    for name in metrics:  # losses averaged over log_interval: a line at 256 frames and the final one at 384
+        assert (full.path / "metrics" / "scalars" / name).read_text() == \
+            (resumed.path / "metrics" / "scalars" / name).read_text(), name
