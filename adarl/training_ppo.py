@@ -215,6 +215,7 @@ class PPOTrainer(Trainer):
         self.best_eval = -math.inf
         self.last_return = float("nan")
         self._pending_updates = 0.0
+        self.warm_start_frames = 0  # read by the shared summary code; the PPO loop has no warm starts
         # training losses are averaged over logging.log_interval frames (the sums are checkpointed: exact resume)
         self._loss_sums: dict[str, float] = {}
         self._loss_count = 0
