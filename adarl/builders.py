@@ -216,5 +216,11 @@ def make_sac_modules(recipe, env: EnvBase) -> SACModules:
     loss = make_sac_loss(actor, critic, env, gamma=alg.gamma, num_qvalue_nets=alg.num_qvalue_nets,
                          loss_function=alg.loss_function, init_alpha=alg.init_alpha, fixed_alpha=alg.fixed_alpha,
                          target_entropy=alg.target_entropy)
+    # after the loss exists: SACLoss resamples the stacked critics, so each member is drawn in the loss's params
+    for network, mlp in (("actor_network", a), ("qvalue_network", c)):
+        if mlp.init.scheme == "orthogonal":
+            from adarl.baselines.init import orthogonal_init_loss_
+
+            orthogonal_init_loss_(loss, network, gain=mlp.init.gain, head_gain=mlp.init.head_gain)
     updater = SoftUpdate(loss, tau=alg.tau)
     return SACModules(actor=actor, critic=critic, loss=loss, target_updater=updater)

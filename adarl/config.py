@@ -45,6 +45,7 @@ __all__ = [
     "MLPConfig",
     "AlgorithmConfig",
     "SparseLayerConfig",
+    "InitConfig",
     "ParsevalConfig",
     "PPOConfig",
     "RNACConfig",
@@ -88,6 +89,13 @@ def _not_bool(v: Any) -> Any:
     # pydantic's lax mode reads true as 1; a recipe saying `num_envs: true` is a mistake, not a number
     if isinstance(v, bool):
         raise _WrongType("a boolean is not a number")
+    return v
+
+
+def _advantage_norm(v: Any) -> Any:
+    # algorithm.ppo.normalize_advantage was a boolean (true = per minibatch) before 'batch' existed
+    if isinstance(v, bool):
+        return "minibatch" if v else "none"
     return v
 
 
@@ -258,6 +266,27 @@ class SparseLayerConfig(_Section):
         return self
 
 
+class InitConfig(_Section):
+    scheme: Literal["default", "orthogonal"] = Field(
+        "default",
+        description="Initial weights: 'default' = each layer's own (PyTorch's nn.Linear, LowRankLinear's factorised "
+        "nn.Linear init); 'orthogonal' = torch.nn.init.orthogonal_ with gain on the hidden layers and head_gain on the "
+        "output layer, zero biases, every critic of an ensemble drawn apart (the RNAC and Parseval originals; "
+        "adarl.baselines.init).",
+    )
+    gain: PosFloat = Field(
+        1.0,
+        description="Gain of the hidden layers' orthogonal init: singular values = gain, so W W^T starts at gain^2 I "
+        "where rows <= columns (RNAC's trainer: 1; Parseval's code: sqrt(2) = 1.4142135623730951, i.e. s = 2). "
+        "Ignored with scheme 'default'.",
+    )
+    head_gain: PosFloat = Field(
+        1.0,
+        description="Gain of the output layer's orthogonal init (both originals: 0.01 for the policy head, 1 for the "
+        "value head). Ignored with scheme 'default'.",
+    )
+
+
 class MLPConfig(_Section):
     num_cells: list[PosInt] = Field(
         default_factory=lambda: [64, 64],
@@ -280,6 +309,9 @@ class MLPConfig(_Section):
     )
     sparse: SparseLayerConfig = Field(
         default_factory=SparseLayerConfig, description="Optional sparsification layer (Tiwari et al. baseline)."
+    )
+    init: InitConfig = Field(
+        default_factory=InitConfig, description="Initial weights (orthogonal for the RNAC and Parseval baselines)."
     )
 
     def layer_max_ranks(self) -> dict[int, int]:
@@ -376,9 +408,22 @@ class PPOConfig(_Section):
     critic_coeff: PosFloat = Field(1.0, description="Weight of the value loss (actor and critic have separate Adams).")
     adam_eps: PosFloat = Field(1e-5, description="Adam epsilon (the original: 1e-5).")
     lr_decay: bool = Field(True, description="Decay the learning rate linearly to 0 over the run (the original does).")
-    normalize_advantage: bool = Field(True, description="Normalise advantages per minibatch.")
+    normalize_advantage: Annotated[Literal["batch", "minibatch", "none"], BeforeValidator(_advantage_norm)] = Field(
+        "batch",
+        description="Standardise the advantages (mean 0, std 1): 'batch' = over each whole collected batch, once, "
+        "before the epochs (RNAC's trainer: (A - mean) / (std + 1e-5) over its 2048 frames); 'minibatch' = in each "
+        "minibatch inside ClipPPOLoss (TorchRL's normalize_advantage); 'none'. true/false read as 'minibatch'/'none', "
+        "their meaning before 'batch' existed.",
+    )
     obs_norm: bool = Field(True, description="Running mean/std observation normalisation inside actor and critic.")
     reward_scaling: bool = Field(True, description="Divide rewards by the running std of the discounted return.")
+    policy: Literal["clipped_gaussian", "tanh_gaussian"] = Field(
+        "clipped_gaussian",
+        description="PPO policy: 'clipped_gaussian' = RNAC's original, a Gaussian with mean = tanh of the head scaled "
+        "to the action box, a state-independent log-std, samples clipped to the box, log-probability and entropy of "
+        "the unclipped Gaussian (adarl.baselines.ClippedNormal); 'tanh_gaussian' = TorchRL's TanhNormal (samples "
+        "squashed into the box; its entropy is estimated from one sample).",
+    )
 
 
 class RNACConfig(_Section):

@@ -125,8 +125,15 @@ def write_report(path: str | os.PathLike) -> Path | str:
             f"episodes: {summary.get('episodes')}",
             f"- wall time: {summary.get('wall_time_s', 0):.0f} s ({summary.get('updates_per_s', 0):.1f} updates/s)",
             f"- rank events: {summary.get('rank_events')}; final ranks: {summary.get('ranks')}",
-            "",
         ]
+        per_frame = summary.get("simulator_steps_per_frame")
+        if per_frame is not None:
+            line = f"- simulator steps: {per_frame} per frame, {summary.get('simulator_steps')} in all"
+            if int(per_frame) > 1:
+                line += (f" (RNAC-DS probes {int(per_frame) - 1} noisy candidate next states before each real step: "
+                         f"at equal frames it used {per_frame}x the simulator steps of a one-step method)")
+            lines.append(line)
+        lines.append("")
     if evals:
         last = evals[-1]
         lines += [

@@ -84,6 +84,87 @@ def test_parseval_bad_input():
         ParsevalRegularizer(nn.Sequential(nn.Linear(2, 1)))
 
 
+def _original_hidden_layer(in_features: int, out_features: int, gain: float) -> nn.Linear:
+    """A hidden layer as the originals build it (re-implemented): nn.Linear, torch's orthogonal_ with ``gain``,
+    zero bias (wechu/parseval_reg agent.py orthogonal_layer_init; tliu1997/RNAC ppo_continuous.py orthogonal_init)."""
+    layer = nn.Linear(in_features, out_features)
+    nn.init.orthogonal_(layer.weight, gain)
+    nn.init.zeros_(layer.bias)
+    return layer
+
+
+def _init_stats(w: torch.Tensor) -> tuple[float, torch.Tensor]:
+    """mean diag(W W^T) and the sorted singular values of one weight matrix."""
+    w = w.detach().double()
+    return float(torch.diagonal(w @ w.T).mean()), torch.linalg.svdvals(w)
+
+
+@pytest.mark.parametrize("env", ["hopper", "walker2d", "ant", "humanoid"])
+def test_parseval_recipes_use_the_originals_orthogonal_init(env):
+    r = load_recipe(f"baselines/{env}_parseval")
+    for net, head in (("actor", 0.01), ("critic", 1.0)):
+        init = getattr(r.network, net).init
+        assert (init.scheme, init.gain, init.head_gain) == ("orthogonal", pytest.approx(2**0.5), head)
+    assert r.algorithm.parseval.s == pytest.approx(r.network.critic.init.gain ** 2)  # W W^T starts at s I
+
+
+def test_parseval_sac_networks_start_where_the_originals_do():
+    """Every hidden layer of actor and of each critic has the original's init statistics (mean diag(W W^T) = 2 for
+    the 64x64 layers, all singular values sqrt(2)); the heads have gain 0.01 (policy) and 1 (value)."""
+    from adarl.builders import make_sac_modules
+    from adarl.envs import make_env
+
+    torch.manual_seed(0)
+    recipe = load_recipe("baselines/hopper_parseval")
+    env = make_env("Hopper-v5", preset="none")
+    loss = make_sac_modules(recipe, env).loss
+    gain = 2**0.5
+    checked = 0
+    for w in parseval_weights(loss):  # the hidden layers, as the loss trains them (critics stacked [2, out, in])
+        members = w.weight if w.weight.dim() == 3 else w.weight.unsqueeze(0)
+        for m in members:
+            out_f, in_f = m.shape
+            mean_diag, sv = _init_stats(m)
+            ref_diag, ref_sv = _init_stats(_original_hidden_layer(in_f, out_f, gain).weight)
+            assert mean_diag == pytest.approx(ref_diag, rel=1e-4), (w.path, mean_diag, ref_diag)
+            torch.testing.assert_close(sv, ref_sv, rtol=1e-4, atol=1e-5)
+            if out_f == in_f == 64:
+                assert mean_diag == pytest.approx(2.0, rel=1e-4)  # s I with s = 2 (PyTorch's default: ~0.33)
+            checked += 1
+    assert checked == 2 + 2 * 2  # actor's two hidden layers, two per critic
+    q = loss.qvalue_network_params.flatten_keys(".")
+    assert not torch.equal(q["module.2.weight"][0], q["module.2.weight"][1])  # each critic drawn apart
+    for k, v in loss.target_qvalue_network_params.flatten_keys(".").items():
+        assert torch.equal(v, q[k].data), k  # the targets start equal to the critics
+    assert all(float(v.detach().abs().max()) == 0 for k, v in q.items() if k.endswith("bias"))
+    torch.testing.assert_close(torch.linalg.svdvals(q["module.4.weight"][0].detach()), torch.ones(1))
+    actor_head = [v for k, v in loss.actor_network_params.flatten_keys(".").items() if k.endswith("weight")][-1]
+    torch.testing.assert_close(torch.linalg.svdvals(actor_head.detach()), torch.full((6,), 0.01))
+    # the penalty starts at the input layers' share only: the 64x64 layers are already s-orthogonal
+    reg = ParsevalRegularizer(loss, lam=1.0)
+    with torch.no_grad():
+        wide = sum(float(((w.gram() - 2 * torch.eye(64)) ** 2).sum()) for w in reg._weights if w.weight.shape[-1] == 64)
+    assert wide < 1e-6
+
+
+def test_orthogonal_init_of_low_rank_and_plain_networks():
+    from adarl.baselines import orthogonal_init_
+
+    torch.manual_seed(0)
+    net = nn.Sequential(LowRankLinear(8, 6), nn.Tanh(), LowRankLinear(6, 6, rank=2), nn.Tanh(), nn.Linear(6, 2))
+    assert orthogonal_init_(net, gain=1.5, head_gain=0.01) == 3
+    torch.testing.assert_close(torch.linalg.svdvals(net[0].weight.detach()), torch.full((6,), 1.5))
+    sv = torch.linalg.svdvals(net[2].weight.detach())  # rank 2: the best rank-2 part of an orthogonal draw
+    torch.testing.assert_close(sv[:2], torch.full((2,), 1.5))
+    assert float(sv[2:].abs().max()) < 1e-5
+    torch.testing.assert_close(torch.linalg.svdvals(net[4].weight.detach()), torch.full((2,), 0.01))
+    assert all(float(b.abs().max()) == 0 for n, b in net.named_parameters() if n.endswith("bias"))
+    with pytest.raises(AdaRLValueError, match="gain"):
+        orthogonal_init_(net, gain=0.0)
+    with pytest.raises(AdaRLValueError, match="no Linear"):
+        orthogonal_init_(nn.Tanh())
+
+
 # ---------------------------------------------------------------------------------------- sparsification
 
 
@@ -128,6 +209,17 @@ def test_baseline_mlp_variants_layout():
     assert net(torch.randn(3, 3), torch.randn(3, 1)).shape == (3, 2)  # inputs concatenated like torchrl's MLP
     with pytest.raises(AdaRLValueError, match="both low-rank"):
         make_baseline_mlp(4, 2, [8, 8], low_rank_layers=[1], sparse_layer=1)
+    # Parseval's diagonal layer is the original's DiagLinear: x * c + b, c = 1 and b = 0 at the start
+    from adarl.baselines import DiagonalScale
+
+    diag = [m for m in net.modules() if isinstance(m, DiagonalScale)]
+    assert len(diag) == 2
+    assert all(torch.equal(d.scale, torch.ones_like(d.scale)) and torch.equal(d.bias, torch.zeros_like(d.bias))
+               for d in diag)
+    x = torch.randn(3, 8)
+    with torch.no_grad():
+        diag[0].scale.fill_(2.0), diag[0].bias.fill_(0.5)
+    torch.testing.assert_close(diag[0](x), 2 * x + 0.5)
 
 
 # --------------------------------------------------------------------------------------------- RNAC-IPM
@@ -171,6 +263,153 @@ def test_ipm_advantage_matches_a_hand_computation():
     td3 = td.exclude("advantage", "value_target", "state_value")
     GAE(gamma=gamma, lmbda=0.95, value_network=critic)(td3)
     torch.testing.assert_close(td2["advantage"], td3["advantage"])
+
+
+# ------------------------------------------------------------------------------ RNAC's original trainer
+
+
+@pytest.mark.parametrize("env", ["hopper", "walker2d", "ant", "humanoid"])
+@pytest.mark.parametrize("mode", ["ipm", "ds"])
+def test_rnac_recipes_resolve_to_the_original_trainer(env, mode):
+    r = load_recipe(f"baselines/{env}_rnac_{mode}")
+    ppo = r.algorithm.ppo
+    assert ppo.policy == "clipped_gaussian" and ppo.normalize_advantage == "batch"
+    a, c = r.network.actor.init, r.network.critic.init
+    assert (a.scheme, a.gain, a.head_gain) == ("orthogonal", 1.0, 0.01)  # ppo_continuous.py: orthogonal_init gain 1
+    assert (c.scheme, c.gain, c.head_gain) == ("orthogonal", 1.0, 1.0)
+    assert r.network.actor.activation == r.network.critic.activation == "tanh"
+    # the tanh policy stays available, and old boolean values keep their meaning
+    assert load_recipe(f"baselines/{env}_rnac_{mode}", ["algorithm.ppo.policy=tanh_gaussian"]).algorithm.ppo.policy \
+        == "tanh_gaussian"
+    assert load_recipe("baselines/hopper_rnac_ipm", ["algorithm.ppo.normalize_advantage=true"]) \
+        .algorithm.ppo.normalize_advantage == "minibatch"
+
+
+def _ppo_components(*overrides):
+    from adarl.training_ppo import build_ppo_components
+
+    recipe = load_recipe("baselines/hopper_rnac_ipm", ["collector.total_frames=256", "collector.frames_per_batch=128",
+                                                       "algorithm.ppo.epochs=1", *overrides])
+    return recipe, build_ppo_components(recipe)
+
+
+def test_rnac_networks_and_policy_start_as_the_original():
+    from adarl.baselines import BoxTanh, ClippedNormal
+
+    torch.manual_seed(0)
+    _, c = _ppo_components()
+    actor, critic = c.modules.actor, c.modules.critic
+    weights = {f"actor.{n}": p for n, p in actor.named_parameters()}
+    weights |= {f"critic.{n}": p for n, p in critic.named_parameters()}
+    mats = [(n, p) for n, p in weights.items() if n.endswith("weight")]
+    assert len(mats) == 6
+    for n, p in mats:
+        expected = 0.01 if n.startswith("actor") and p.shape[0] == 3 else 1.0  # policy head 0.01, others gain 1
+        torch.testing.assert_close(torch.linalg.svdvals(p.detach()), torch.full((min(p.shape),), expected), msg=n)
+    assert all(float(p.abs().max()) == 0 for n, p in weights.items() if n.endswith("bias"))
+    scale = [p for n, p in weights.items() if n.endswith("state_independent_scale")]
+    assert len(scale) == 1 and float(scale[0].abs().max()) == 0  # log_std = 0: std 1, as the original
+    assert any(isinstance(m, BoxTanh) for m in actor.modules())
+    batch = next(iter(c.collector))
+    dist = actor.get_dist(batch)
+    assert isinstance(dist, ClippedNormal)
+    act = batch["action"]
+    assert float(act.abs().max()) <= 1.0 and float((act.abs() == 1.0).float().mean()) > 0.05  # clipped, not squashed
+    # the stored log-probability is the unclipped Gaussian's density at the clipped action (the original's)
+    gauss = torch.distributions.Normal(batch["loc"], batch["scale"])
+    torch.testing.assert_close(batch["action_log_prob"], gauss.log_prob(act).sum(-1))
+    # the loss's entropy bonus is the Gaussian's closed form, not a one-sample estimate
+    from adarl.training_ppo import normalize_advantage_
+
+    with torch.no_grad():
+        c.modules.advantage(batch)
+    normalize_advantage_(batch)
+    out = c.modules.loss(batch)
+    torch.testing.assert_close(out["loss_entropy"], -0.01 * gauss.entropy().sum(-1).mean())
+
+
+def test_clipped_normal_and_box_tanh():
+    from adarl.baselines import BoxTanh, ClippedNormal
+
+    torch.manual_seed(0)
+    low, high = torch.full((2,), -0.4), torch.full((2,), 0.4)  # Humanoid's box
+    x = torch.randn(5, 2) * 3
+    torch.testing.assert_close(BoxTanh(low, high)(x), 0.4 * torch.tanh(x))  # max_action * tanh(mean_layer(s))
+    torch.testing.assert_close(BoxTanh(torch.tensor([0.0]), torch.tensor([2.0]))(torch.zeros(1)), torch.ones(1))
+    loc, scale = torch.zeros(4000, 2), torch.ones(4000, 2)
+    d = ClippedNormal(loc, scale, low=low, high=high)
+    a = d.sample()
+    assert float(a.abs().max()) == pytest.approx(0.4) and float((a.abs() == 0.4).float().mean()) > 0.6
+    assert bool((d.rsample().abs() <= high).all())
+    torch.testing.assert_close(d.log_prob(a), torch.distributions.Normal(loc, scale).log_prob(a).sum(-1))
+    torch.testing.assert_close(d.entropy(), torch.distributions.Normal(loc, scale).entropy().sum(-1))
+    torch.testing.assert_close(ClippedNormal(torch.full((2,), 3.0), torch.ones(2), low, high).deterministic_sample,
+                               high)
+    with pytest.raises(ValueError, match="low <= high"):
+        ClippedNormal(loc, scale, low=high, high=low)
+
+
+def _advantage_seen_by_the_loss(tmp_path, how: str) -> tuple[torch.Tensor, torch.Tensor, float]:
+    """Run one PPO iteration on a batch whose advantages are 0 .. 127, and return the raw advantages of the first
+    minibatch, all raw advantages, and the first update's loss_objective (ratio 1 there, so it is -mean(A_used))."""
+    from adarl.run_dir import RunDir
+    from adarl.training_ppo import PPOTrainer
+
+    torch.manual_seed(0)
+    recipe = load_recipe("baselines/hopper_rnac_ipm", [
+        "collector.total_frames=256", "collector.frames_per_batch=128", "algorithm.ppo.epochs=1",
+        f"algorithm.ppo.normalize_advantage={how}", "algorithm.rnac.mode=none"])
+    trainer = PPOTrainer(recipe, RunDir.create(tmp_path / how), quiet=True)
+    m = trainer.c.modules
+    raw = torch.arange(128, dtype=torch.float32).reshape(1, 128, 1)
+    real = m.advantage
+
+    def designed(td):
+        real(td)
+        td.set("advantage", raw.clone())
+        td.set("raw_advantage", raw.clone())
+        return td
+
+    m.advantage = designed
+    seen = []
+    forward = m.loss.forward
+
+    def spy(td):
+        out = forward(td)
+        seen.append((td["raw_advantage"].clone(), float(out["loss_objective"])))
+        return out
+
+    m.loss.forward = spy
+    batch = next(iter(trainer.c.collector)).unsqueeze(0)
+    trainer._iteration(batch)
+    trainer.close()
+    assert len(seen) == 2  # 128 frames, minibatches of 64
+    return seen[0][0], raw, seen[0][1]
+
+
+def test_ppo_advantage_normalisation_spans_the_whole_batch(tmp_path):
+    first, raw, objective = _advantage_seen_by_the_loss(tmp_path, "batch")
+    batch_wide = (first - raw.mean()) / (raw.std() + 1e-5)  # RNAC's trainer, over its whole batch
+    per_minibatch = (first - first.mean()) / first.std()
+    assert abs(float(batch_wide.mean())) > 0.05  # the two normalisations differ on this minibatch
+    assert objective == pytest.approx(-float(batch_wide.mean()), abs=1e-5)
+    assert objective != pytest.approx(-float(per_minibatch.mean()), abs=1e-3)
+    # TorchRL's per-minibatch standardisation stays available: each minibatch then has mean advantage 0
+    _, _, objective_mb = _advantage_seen_by_the_loss(tmp_path, "minibatch")
+    assert objective_mb == pytest.approx(0.0, abs=1e-5)
+    from adarl.training_ppo import normalize_advantage_
+
+    one = normalize_advantage_(TensorDict({"advantage": torch.tensor([[3.0]])}, batch_size=[1]))
+    assert one["advantage"].item() == 0.0  # a one-frame batch: no spread, no NaN
+
+
+def test_simulator_steps_per_frame():
+    from adarl.training_ppo import simulator_steps_per_frame
+
+    assert simulator_steps_per_frame(load_recipe("baselines/hopper_rnac_ds")) == 3  # m = 2 probes + the real step
+    assert simulator_steps_per_frame(load_recipe("baselines/hopper_rnac_ds", ["algorithm.rnac.num_candidates=4"])) == 5
+    assert simulator_steps_per_frame(load_recipe("baselines/hopper_rnac_ipm")) == 1
+    assert simulator_steps_per_frame(load_recipe("hopper_adarl")) == 1
 
 
 # ---------------------------------------------------------------------------------------------- RNAC-DS
@@ -248,6 +487,12 @@ def test_running_obs_norm_and_reward_scaler():
     scaler = RewardScaler(gamma=0.0)  # returns == rewards: scaled by their running std
     out = scaler(torch.tensor([[1.0, 3.0]]), torch.tensor([[False, False]]))
     assert out[0, 1].item() == pytest.approx(3.0 / 1.0, rel=1e-6)
+    # the run's first reward: one sample, std 0; scaled by |R| to +-1 as the original (not by 1 / 1e-8)
+    first = RewardScaler(gamma=0.99)(torch.tensor([[0.8, 0.8, 0.8]]), torch.tensor([[False, False, False]]))
+    assert first[0, 0].item() == pytest.approx(1.0, rel=1e-6) and first.abs().max().item() < 10
+    assert RewardScaler(gamma=0.99)(torch.tensor([[-0.5]]), torch.tensor([[False]])).item() == pytest.approx(-1.0)
+    two = RewardScaler(gamma=0.99)(torch.tensor([[0.8], [0.8]]), torch.tensor([[False], [False]]))  # 2 envs, no spread
+    torch.testing.assert_close(two, torch.ones(2, 1))
 
 
 # ------------------------------------------------------------------------------------------------ recipes
@@ -298,6 +543,10 @@ def test_baseline_recipes_say_what_they_run(env):
         ("quickstart", ["network.actor.sparse.layer=1"], "low-rank or the sparsification layer"),
         ("baselines/hopper_sparse", ["network.critic.sparse.layer=2"], "must index a hidden layer"),
         ("baselines/hopper_sparse", ["network.critic.sparse.k=4096"], "must be <= width (1024)"),
+        ("baselines/hopper_rnac_ipm", ["algorithm.ppo.policy=gaussian"], "one of 'clipped_gaussian', 'tanh_gaussian'"),
+        ("baselines/hopper_rnac_ipm", ["algorithm.ppo.normalize_advantage=global"], "one of 'batch', 'minibatch', 'none'"),
+        ("baselines/hopper_parseval", ["network.critic.init.scheme=xavier"], "one of 'default', 'orthogonal'"),
+        ("baselines/hopper_parseval", ["network.actor.init.gain=-1"], "network.actor.init.gain = -1: must be a number > 0"),
     ],
 )
 def test_bad_baseline_settings_are_recipe_errors(recipe, overrides, expected):

@@ -49,6 +49,9 @@ def test_rnac_runs_from_the_cli_and_resumes(mode, tmp_path):
     out = tmp_path / mode
     summary = _run(f"baselines/hopper_rnac_{mode}", PPO_TINY, out)
     assert summary["frames"] == 256 and summary["updates"] == 4  # 2 batches x 1 epoch x 2 minibatches
+    per_frame = 3 if mode == "ds" else 1  # DS probes m = 2 candidates before each real step
+    assert summary["simulator_steps_per_frame"] == per_frame and summary["simulator_steps"] == 256 * per_frame
+    assert f"simulator steps: {per_frame} per frame, {256 * per_frame} in all" in (out / "report.md").read_text()
     metric = "train.ipm_reward_shift" if mode == "ipm" else "train.ds_worst_fraction"
     assert (out / "metrics" / "scalars" / f"{metric}.csv").is_file()
     proc = adarl("eval", str(out), "--episodes", "1")  # rebuilds the PPO trainer from the checkpoint
@@ -60,3 +63,46 @@ def test_ppo_recipe_with_rank_adaptation_fails_before_writing(tmp_path):
     out = tmp_path / "never"
     proc = adarl("run", "baselines/hopper_rnac_ipm", "rank.enabled=true", "-o", str(out))
     assert proc.returncode != 0 and "rank.enabled" in proc.stderr and not out.exists()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", ["ipm", "ds"])
+def test_rnac_resume_from_a_mid_episode_checkpoint_is_exact(mode, tmp_path):
+    """Resuming from the first of three 128-frame batches ends with the very networks, statistics and evaluation
+    of the uninterrupted run (the live episode, the collector's carrier and the RNGs are in the checkpoint)."""
+    import shutil
+
+    import torch
+
+    from adarl.config import load_recipe, save_resolved
+    from adarl.run_dir import RunDir
+    from adarl.training import Trainer
+    from adarl.training_ppo import PPOTrainer
+
+    recipe = load_recipe(f"baselines/hopper_rnac_{mode}", [
+        "collector.total_frames=384", "collector.frames_per_batch=128", "algorithm.ppo.epochs=1",
+        "eval.interval=100000", "eval.episodes=1", "eval.max_steps=20", "checkpoint.interval=128",
+        "checkpoint.keep_last=5", "logging.log_interval=200"])
+    full = RunDir.create(tmp_path / "full")
+    save_resolved(recipe, full.recipe_path)
+    PPOTrainer(recipe, full, quiet=True).train()
+    shutil.copytree(full.path, tmp_path / "resumed")
+    resumed = RunDir.open(tmp_path / "resumed")
+    later = [p for p in resumed.checkpoints() if "000000000128" not in p.name]
+    assert len(later) == 2  # 256 and 384 frames: the run continues from 128, mid-episode
+    for p in later:
+        p.unlink()
+    (resumed.path / "summary.json").unlink()
+    Trainer.resume(resumed.path, quiet=True).train()
+    a, b = full.load_checkpoint(full.checkpoints()[-1]), resumed.load_checkpoint(resumed.checkpoints()[-1])
+    assert a["counters"]["frames"] == b["counters"]["frames"] == 384
+    for net in ("actor", "critic"):
+        for k, v in a[net].items():
+            assert torch.equal(v, b[net][k]), (net, k)
+    assert a["reward_scaler"]["returns"].equal(b["reward_scaler"]["returns"])
+    assert (full.path / "eval.csv").read_text() == (resumed.path / "eval.csv").read_text()
+    metrics = sorted(p.name for p in (full.path / "metrics" / "scalars").glob("*.csv"))
+    assert "train.loss_objective.csv" in metrics
+    for name in metrics:  # losses averaged over log_interval: a line at 256 frames and the final one at 384
+        assert (full.path / "metrics" / "scalars" / name).read_text() == \
+            (resumed.path / "metrics" / "scalars" / name).read_text(), name

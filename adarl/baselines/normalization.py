@@ -60,7 +60,11 @@ class RunningObsNorm(RunningMeanStd):
 
 class RewardScaler:
     """Divides each reward by the running std of the discounted return ``R_t = gamma R_{t-1} + r_t`` (reset at
-    episode ends). Works on ``[n_envs, T]`` reward/done tensors, in time order."""
+    episode ends). Works on ``[n_envs, T]`` reward/done tensors, in time order.
+
+    While the statistics have no spread yet (the run's very first reward of one env: a single sample) their std is 0;
+    the divisor is then ``|R|``, so that reward scales to +-1: RNAC's trainer (``normalization.py``) sets its std to
+    the first sample itself, where ``std + eps`` alone would multiply the first reward by 1e8."""
 
     def __init__(self, gamma: float, eps: float = 1e-8) -> None:
         self.gamma = float(gamma)
@@ -78,7 +82,9 @@ class RewardScaler:
         for t in range(r.shape[1]):
             self.returns = self.gamma * self.returns + r[:, t]
             self.stats.update(self.returns)
-            out[:, t] = r[:, t] / (self.stats.std + self.eps)
+            std = self.stats.std
+            std = torch.where(std > 0, std, self.returns.abs())  # no spread yet: +-1, not r / eps
+            out[:, t] = r[:, t] / (std + self.eps)
             self.returns = torch.where(d[:, t], torch.zeros_like(self.returns), self.returns)
         return out.to(reward.dtype).reshape(reward.shape)
 

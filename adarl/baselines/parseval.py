@@ -162,15 +162,17 @@ class ParsevalRegularizer(nn.Module):
 
 
 class DiagonalScale(nn.Module):
-    """A learnable per-unit gain (initialised to 1): restores the per-unit scale that Parseval's constraint
-    removes from ``W`` (Chung et al.'s optional diagonal layer)."""
+    """A learnable per-unit gain (initialised to 1) and shift (initialised to 0), ``x * scale + bias``: restores
+    the per-unit scale that Parseval's constraint removes from ``W`` (Chung et al.'s optional diagonal layer,
+    ``DiagLinear`` in wechu/parseval_reg, which has the same two parameters). ``bias=False`` keeps the gain only."""
 
-    def __init__(self, width: int, device=None) -> None:
+    def __init__(self, width: int, device=None, bias: bool = True) -> None:
         super().__init__()
         self.scale = nn.Parameter(torch.ones(width, device=device))
+        self.bias = nn.Parameter(torch.zeros(width, device=device)) if bias else None
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return x * self.scale
+        return x * self.scale if self.bias is None else x * self.scale + self.bias
 
 
 class InputScale(nn.Module):
