@@ -20,7 +20,7 @@ def adarl(*args: str) -> subprocess.CompletedProcess:
 
 SAC_TINY = ["collector.total_frames=300", "collector.init_random_frames=200", "collector.frames_per_batch=100",
             "algorithm.batch_size=32", "replay.size=1000", "eval.interval=300", "eval.episodes=1",
-            "eval.max_steps=30", "checkpoint.interval=300"]
+            "eval.max_steps=30", "checkpoint.interval=300", "algorithm.update_after=null"]
 PPO_TINY = ["collector.total_frames=256", "collector.frames_per_batch=128", "algorithm.ppo.epochs=1",
             "eval.interval=256", "eval.episodes=1", "eval.max_steps=30", "checkpoint.interval=256"]
 
