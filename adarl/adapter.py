@@ -39,6 +39,7 @@ from torchrl.trainers.trainers import TrainerHookBase
 from adarl.acceptance import ProjectionAcceptance, relative_output_error
 from adarl.errors import AdaRLValueError, CheckpointError
 from adarl.lowrank import LowRankLinear, factor_svd, refactorize, truncation_error
+from adarl.lowrank import replace_data as _set_data
 from adarl.lr_schedule import restart_lr_scheduler, warmup_cosine_lambdas
 from adarl.rank import RankRule, energy_share
 
@@ -277,23 +278,6 @@ def _erase_loss_caches(loss: nn.Module) -> None:
     erase = getattr(loss, "_erase_cache", None)
     if callable(erase):
         erase()
-
-
-def _set_data(t: torch.Tensor, value: torch.Tensor) -> None:
-    """``t.data = value`` keeping ``t``'s identity, dtype and device; clears ``.grad``.
-
-    A leaf's cached gradient accumulator (kept alive by any autograd graph still referenced, e.g. last step's loss
-    tensor) records the leaf's old shape, and ``set_data`` only drops it on a dtype/device change: the next
-    backward would then fail with "invalid gradient ... expected shape". Passing through another dtype first
-    makes autograd drop the stale accumulator, so a graph left alive across the event is harmless.
-    """
-    value = value.to(device=t.device, dtype=t.dtype).contiguous()
-    if t.requires_grad:
-        other = torch.float64 if t.dtype != torch.float64 else torch.float32
-        t.data = value.to(other)
-    t.data = value
-    if getattr(t, "grad", None) is not None:
-        t.grad = None
 
 
 def _forget_optimizer_state(optimizers: Iterable[torch.optim.Optimizer], tensors: Iterable[torch.Tensor]) -> None:
