@@ -334,6 +334,9 @@ class RankEvent:
     step: int
     index: int
     layers: list[LayerRecord] = field(default_factory=list)
+    #: the adapter that ran the event (``None`` for an event read back from a checkpoint): callbacks such as
+    #: :class:`~adarl.warmstart.ReplayWarmStart` use it to check that their policy holds the loss's tensors.
+    adapter: Any = field(default=None, repr=False, compare=False)
 
     @property
     def changed(self) -> bool:
@@ -620,7 +623,8 @@ class RankAdapter(TrainerHookBase):
             :func:`~adarl.lr_schedule.make_lr_scheduler`), or objects with a ``restart()`` method; restarted
             (learning rate to 0, then warm-up) after every event that changed a rank.
         on_truncate: callables ``fn(event)`` run after every event that changed a rank (e.g.
-            :class:`~adarl.warmstart.ReplayWarmStart`).
+            :class:`~adarl.warmstart.ReplayWarmStart`). A callback with a ``check_event(event)`` method gets it
+            called before anything changes (the ranks decided), so that it can refuse the event.
         on_event: callables ``fn(event)`` run after every event, whether or not a rank changed (after the
             ``on_truncate`` ones): records, logs.
         fit_data: the batch the outputs are measured on (acceptance, :class:`~adarl.rank.PolicyFitRule`, and the
@@ -640,8 +644,10 @@ class RankAdapter(TrainerHookBase):
     (:meth:`register`, stage ``"post_optim"``).
 
     Refused with :class:`~adarl.errors.AdaRLValueError`, so that nothing trains on silently: a stock TorchRL loss
-    in :data:`UNSUPPORTED_LOSSES`, and optimisers that do not train every adapted factor (their stale state would
-    fail later, deep in Adam).
+    in :data:`UNSUPPORTED_LOSSES`; optimisers that do not train every adapted factor (their stale state would
+    fail later, deep in Adam); and, at an event, a change to factors that another process maps in shared memory
+    (a multi-process collector's workers would go on acting with the old factors next to the new biases) unless
+    an ``on_truncate`` callback rebuilds that collector (:class:`adarl.collector_rebuild.CollectorRebuild`).
     """
 
     def __init__(
@@ -793,6 +799,20 @@ class RankAdapter(TrainerHookBase):
                 f"(e.g. [actor_optimizer, critic_optimizer]); leave a layer out with scope= or requires_grad_(False)"
             )
 
+    def _check_shared(self, plans) -> None:
+        """Refuse to resize factors another process maps in shared memory, unless a callback rebuilds that process."""
+        shared = [site.path for site, record, _ in plans if record.changed and any(
+            t.device.type == "cpu" and t.is_shared() for t in (site.w1, site.w2))]
+        if shared and not any(getattr(cb, "rebuilds_collector", False) for cb in self.on_truncate):
+            raise AdaRLValueError(
+                f"RankAdapter: the factors of {shared} are in shared memory, which a multi-process collector "
+                f"(MultiSyncCollector, MultiAsyncCollector, AsyncCollector, Collector(num_collectors=...)) maps for "
+                f"its workers; a rank change gives them new tensors the workers never see, so they would act with the old "
+                f"factors next to the new biases. Nothing was changed. Rebuild the collector after each event: "
+                f"collector = adarl.CollectorRebuild(lambda: MultiSyncCollector(...)), iterate it instead of the "
+                f"collector and pass it in on_truncate (docs/rank-adapter.md, 'Supported collectors')"
+            )
+
     # -- the event ----------------------------------------------------------------------------------------------
 
     def _fit_batch(self) -> TensorDictBase:
@@ -811,7 +831,7 @@ class RankAdapter(TrainerHookBase):
         Decisions are made on the network as it is before the event; with an acceptance step, the layers of one
         network are decided in order, each measured with the earlier layers' accepted truncations in place.
         """
-        event = RankEvent(step=self.step_count, index=len(self.history))
+        event = RankEvent(step=self.step_count, index=len(self.history), adapter=self)
         batch = self._fit_batch() if self.fit_data is not None else None
         threads = torch.get_num_threads()
         if self.num_threads is not None:
@@ -826,6 +846,11 @@ class RankAdapter(TrainerHookBase):
             if any(record.changed for _, record, _ in plans):
                 # refusals before anything changes: the model stays as it was
                 self._check_optimizers(self.sites)  # param groups may have been added since construction
+                self._check_shared(plans)
+                for cb in self.on_truncate:
+                    check = getattr(cb, "check_event", None)
+                    if callable(check):
+                        check(event)  # e.g. ReplayWarmStart: its policy must run the loss's own factors
             for site, record, svd in plans:
                 if record.changed:
                     record.target = self._apply(site, record.new_rank, *svd)
