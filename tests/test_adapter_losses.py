@@ -1,11 +1,13 @@
 """RankAdapter beyond SAC: every stock TorchRL loss (tested through a truncation, or refused by name), the Trainer hook.
 
 The truncation test runs every loss of ``adarl.adapter.SUPPORTED_LOSSES``; another test checks that every loss class
-TorchRL exports is in that registry or in ``UNSUPPORTED_LOSSES``.
+TorchRL exports is in that registry or in ``UNSUPPORTED_LOSSES``, and that docs/rank-adapter.md's table is them.
 """
 
 import inspect
+import re
 import warnings
+from pathlib import Path
 
 import pytest
 import torch
@@ -421,6 +423,14 @@ def test_every_stock_torchrl_loss_is_tested_or_refused():
     assert stock == set(SUPPORTED_LOSSES) | set(UNSUPPORTED_LOSSES)
     assert not set(SUPPORTED_LOSSES) & set(UNSUPPORTED_LOSSES)
     assert list(LOSS_CASES) == list(SUPPORTED_LOSSES)  # the parametrised truncation test runs every supported loss
+
+
+def test_doc_tables_are_the_registries():
+    text = (Path(__file__).resolve().parents[1] / "docs" / "rank-adapter.md").read_text(encoding="utf-8")
+    section = text.split("## Supported losses", 1)[1].split("\n## ", 1)[0]
+    rows = [re.split(r"(?<!\\)\|", line)[1:-1] for line in section.splitlines() if line.startswith("| `")]
+    table = [(cells[0].strip().strip("`"), cells[1].strip()) for cells in rows]
+    assert table == [(k, v) for k, v in SUPPORTED_LOSSES.items()] + [(k, v) for k, v in UNSUPPORTED_LOSSES.items()]
 
 
 @pytest.mark.parametrize("name", list(LOSS_CASES))

@@ -96,6 +96,16 @@ def stored(rb):
 # --------------------------------------------------------------------------------------------------------------
 
 
+def test_doc_table_lists_exactly_the_tested_setups():
+    text = DOC.read_text(encoding="utf-8")
+    section = text.split("## Supported collectors", 1)[1].split("\n## ", 1)[0]
+    rows = [line for line in section.splitlines() if line.startswith("| `") or line.startswith("| (")]
+    cells = [re.split(r"(?<!\\)\|", row)[1].strip() for row in rows]
+    assert cells == list(ROWS), "docs/rank-adapter.md 'Supported collectors' must list exactly the tested set-ups"
+    for name in ROWS.values():
+        assert callable(globals().get(name)), name
+
+
 def test_collector_running_the_actor():
     env = make_env()
     actor, loss, opt = make_agent(env)
