@@ -10,6 +10,7 @@ The public components, importable from here:
   the truncated network still fits recent data, else ``r_new = r_old``).
 - :class:`WarmupCosine` / :func:`make_lr_scheduler`: the restartable warm-up + cosine LR schedule.
 - :class:`ReplayWarmStart`: the warm-start replay buffer, an ``on_truncate`` callback.
+- :class:`CollectorRebuild`: a collector rebuilt after each rank event (process collectors, policy copies).
 - :class:`PerturbedDynamicsEnvTransform` / :func:`make_env`: per-episode MuJoCo dynamics, a TorchRL ``Transform``.
 - :func:`load_recipe`, :func:`build_components`, :class:`Trainer`: recipes and the AdaRL-SAC loop.
 """
@@ -31,6 +32,7 @@ from adarl.acceptance import ProjectionAcceptance, RecentTransitions, recent_tra
 from adarl.lr_schedule import WarmupCosine, make_lr_scheduler, restart_lr_scheduler
 from adarl.adapter import LayerRecord, RankAdapter, RankEvent, find_low_rank_layers, resize_to_ranks
 from adarl.warmstart import ReplayWarmStart, WarmStartRecord
+from adarl.collector_rebuild import CollectorRebuild
 from adarl.envs import (
     FixedSchedule,
     ListSchedule,
@@ -68,7 +70,7 @@ __all__ = [
     "WarmupCosine", "make_lr_scheduler", "restart_lr_scheduler",
     "ProjectionAcceptance", "RecentTransitions", "recent_transitions",
     "RankAdapter", "RankEvent", "LayerRecord", "find_low_rank_layers", "resize_to_ranks",
-    "ReplayWarmStart", "WarmStartRecord",
+    "ReplayWarmStart", "WarmStartRecord", "CollectorRebuild",
     "PerturbedDynamicsEnvTransform", "make_env", "make_eval_env", "make_schedule", "env_parameters",
     "SinusoidSchedule", "UniformSchedule", "FixedSchedule", "ListSchedule",
     "load_recipe", "list_recipes", "build_components", "Trainer", "Components",

@@ -183,9 +183,11 @@ def recent_transitions(replay_buffer, n: int) -> TensorDictBase:
     if size == 0:
         raise AdaRLValueError("recent_transitions: the replay buffer is empty (nothing to measure the truncation on)")
     capacity = int(replay_buffer.storage.max_size)
-    written = int(replay_buffer.write_count)
+    # The writer's cursor is the slot written next. (Not write_count % capacity: ReplayWarmStart empties the buffer
+    # keeping write_count, which TorchRL collectors gate their random phase on, and the cursor restarts at 0.)
+    cursor = int(writer._cursor)
     take = min(n, size)
-    idx = (written - 1 - torch.arange(take)) % capacity
+    idx = (cursor - 1 - torch.arange(take)) % capacity
     batch = replay_buffer[idx.flip(0)]
     if isinstance(batch, tuple):
         batch = batch[0]

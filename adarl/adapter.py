@@ -27,6 +27,7 @@ import dataclasses
 import itertools
 import math
 import numbers
+import warnings
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -38,7 +39,8 @@ from torchrl.trainers.trainers import TrainerHookBase
 
 from adarl.acceptance import ProjectionAcceptance, relative_output_error
 from adarl.errors import AdaRLValueError, CheckpointError
-from adarl.lowrank import LowRankLinear, factor_svd, refactorize, truncation_error
+from adarl.lowrank import LowRankLinear, factor_svd, is_integer, refactorize, truncation_error
+from adarl.lowrank import replace_data as _set_data
 from adarl.lr_schedule import restart_lr_scheduler, warmup_cosine_lambdas
 from adarl.rank import RankRule, energy_share
 
@@ -52,6 +54,9 @@ __all__ = [
     "SCOPES",
     "TARGET_MODES",
     "ACTOR_NETWORK_NAMES",
+    "SUPPORTED_LOSSES",
+    "UNSUPPORTED_LOSSES",
+    "check_loss_supported",
 ]
 
 SCOPES = ("actor", "critic", "both")
@@ -60,6 +65,83 @@ TARGET_MODES = ("sync", "project")
 ACTOR_NETWORK_NAMES = ("actor_network", "actor", "policy_network", "policy")
 #: ``target_mode="project"`` falls back to "sync" when cond(R1) or cond(R2) exceeds this (float64).
 PROJECT_COND_LIMIT = 1e6
+
+_ENSEMBLE = "stacked ensemble"
+#: Stock TorchRL losses RankAdapter is tested on (tests/test_adapter_losses.py runs a truncation through each one:
+#: shapes, optimiser state, target updates, the user's actor): ``{class name: the networks adapted (role)}``.
+#: docs/rank-adapter.md's "Supported losses" table is this dict (a test checks it).
+SUPPORTED_LOSSES: dict[str, str] = {
+    "SACLoss": f"actor_network (actor); qvalue_network (critic, {_ENSEMBLE}, targets)",
+    "DiscreteSACLoss": f"actor_network (actor); qvalue_network (critic, {_ENSEMBLE}, targets)",
+    "REDQLoss": f"actor_network (actor); qvalue_network (critic, {_ENSEMBLE} of num_qvalue_nets, targets)",
+    "TQCLoss": f"actor_network (actor); qvalue_network (critic: quantile critics, {_ENSEMBLE}, targets)",
+    "CrossQLoss": f"actor_network (actor); qvalue_network (critic, {_ENSEMBLE}, no targets)",
+    "TD3Loss": f"actor_network (actor, targets); qvalue_network (critic, {_ENSEMBLE}, targets)",
+    "TD3BCLoss": f"actor_network (actor, targets); qvalue_network (critic, {_ENSEMBLE}, targets)",
+    "DDPGLoss": "actor_network (actor); value_network (critic, targets)",
+    "IQLLoss": f"actor_network (actor); qvalue_network (critic, {_ENSEMBLE}, targets); value_network (critic)",
+    "DiscreteIQLLoss": f"actor_network (actor); qvalue_network (critic, {_ENSEMBLE}, targets); value_network (critic)",
+    "CQLLoss": f"actor_network (actor); qvalue_network (critic, {_ENSEMBLE}, targets)",
+    "DiscreteCQLLoss": "value_network (critic: the Q-network the policy acts greedily on, targets)",
+    "DQNLoss": "value_network (critic: the Q-network the policy acts greedily on, targets)",
+    "DistributionalDQNLoss": "value_network (critic: the distributional Q-network the policy acts on, targets)",
+    "PPOLoss": "actor_network (actor); critic_network (critic)",
+    "ClipPPOLoss": "actor_network (actor); critic_network (critic)",
+    "KLPENPPOLoss": "actor_network (actor); critic_network (critic)",
+    "A2CLoss": "actor_network (actor); critic_network (critic)",
+    "ReinforceLoss": "actor_network (actor); critic_network (critic)",
+    "BCLoss": "actor_network (actor)",
+}
+#: Stock TorchRL losses RankAdapter refuses, by name: ``{class name: why}``. Subclasses are refused too.
+UNSUPPORTED_LOSSES: dict[str, str] = {
+    "ACTLoss": "trains an action-chunking transformer (a CVAE over action sequences); untested",
+    "DTLoss": "trains a decision transformer (a sequence model over trajectories); untested",
+    "OnlineDTLoss": "trains a decision transformer (a sequence model over trajectories); untested",
+    "DiffusionBCLoss": "trains a diffusion denoiser by behaviour cloning; untested",
+    "DreamerActorLoss": "model-based: the actor learns in imagination through a world-model env; untested",
+    "DreamerModelLoss": "trains a world model, not a policy or a critic",
+    "DreamerValueLoss": "model-based: the value is learnt in imagination through a world-model env; untested",
+    "DreamerV3ActorLoss": "model-based: the actor learns in imagination through a world-model env; untested",
+    "DreamerV3Loss": "model-based: combines the world-model, actor and value losses of DreamerV3; untested",
+    "DreamerV3ModelLoss": "trains a world model, not a policy or a critic",
+    "DreamerV3ValueLoss": "model-based: the value is learnt in imagination through a world-model env; untested",
+    "WorldModelLoss": "trains a world model, not a policy or a critic",
+    "GAILLoss": "trains a discriminator only (another loss trains the policy); nothing of the paper's actor/critic",
+    "RNDLoss": "trains an exploration-bonus predictor against a fixed random network, not a policy or a critic",
+    "ExponentialQuadraticCost": "a fixed cost function (PILCO) with no trained network",
+    "QMixerLoss": "multi-agent: per-agent Q-networks mixed by a mixer network; untested",
+    "IPPOLoss": "multi-agent: agent-stacked parameters would get one rank per layer across agents; untested",
+    "MAPPOLoss": "multi-agent: agent-stacked parameters would get one rank per layer across agents; untested",
+}
+
+
+def check_loss_supported(loss_module: nn.Module) -> None:
+    """Refuse, by name, a stock TorchRL loss adarl does not support; warn about a stock one it has not been tested on.
+
+    The first TorchRL loss class in the loss's method resolution order decides, so a subclass of ``SACLoss`` is a
+    ``SACLoss`` and a subclass of ``IPPOLoss`` is refused. Losses of your own (subclassing ``LossModule``
+    directly) are not refused: the adapter finds their networks by TorchRL's ``convert_to_functional``
+    convention (docs/custom-loss.md).
+    """
+    for cls in type(loss_module).__mro__:
+        if not cls.__module__.startswith("torchrl.objectives") or cls.__name__.startswith("_"):
+            continue
+        name = cls.__name__
+        if name in UNSUPPORTED_LOSSES:
+            raise AdaRLValueError(
+                f"RankAdapter does not support TorchRL's {name}: {UNSUPPORTED_LOSSES[name]}. Supported TorchRL losses: "
+                f"{sorted(SUPPORTED_LOSSES)} (docs/rank-adapter.md, 'Supported losses'); a loss of your own built with "
+                f"convert_to_functional works too (docs/custom-loss.md)"
+            )
+        if name in SUPPORTED_LOSSES or name == "LossModule":
+            return
+        warnings.warn(
+            f"RankAdapter has not been tested on TorchRL's {name} (tested: {sorted(SUPPORTED_LOSSES)}); check that "
+            f"adapter.layers lists the layers you expect and that a truncation keeps training working",
+            UserWarning,
+            stacklevel=3,
+        )
+        return
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -122,7 +204,10 @@ def _network_candidates(loss: nn.Module) -> list[tuple[str, nn.Module]]:
             getattr(loss, f"{prev[0]}_params", None) is None and getattr(loss, f"{name}_params", None) is not None
         ):
             found[id(mod)] = (name, mod)
-    return list(found.values())
+    # Networks with functional parameters first: a layer reachable from two networks belongs to the one the loss
+    # trains. (DDPGLoss also keeps a wrapper, actor_critic = [actor_network, value_network], without parameters of
+    # its own: found first, it would claim every layer as a critic's, without the value network's targets.)
+    return sorted(found.values(), key=lambda nm: getattr(loss, f"{nm[0]}_params", None) is None)
 
 
 def _role(name: str) -> str:
@@ -141,10 +226,12 @@ def find_low_rank_layers(loss_module: nn.Module, scope: str = "both") -> tuple[l
     sites: list[LowRankSite] = []
     searched: list[str] = []
     seen_params: set[int] = set()
+    seen_layers: set[int] = set()
     for name, network in _network_candidates(loss_module):
         role = _role(name)
         searched.append(f"{name} ({role})")
-        if scope != "both" and role != scope:
+        if scope != "both" and role != scope:  # out of scope, but its layers are its own (not a wrapper's)
+            seen_layers.update(id(m) for m in network.modules() if isinstance(m, LowRankLinear))
             continue
         params = getattr(loss_module, f"{name}_params", None)
         if params is not None and not isinstance(params, TensorDictBase):
@@ -153,8 +240,9 @@ def find_low_rank_layers(loss_module: nn.Module, scope: str = "both") -> tuple[l
         if target is not None and not isinstance(target, TensorDictBase):
             target = None
         for module_path, layer in network.named_modules():
-            if not isinstance(layer, LowRankLinear):
+            if not isinstance(layer, LowRankLinear) or id(layer) in seen_layers:
                 continue
+            seen_layers.add(id(layer))
             path = f"{name}.{module_path}" if module_path else name
             key = tuple(module_path.split(".")) if module_path else ()
             if params is not None:
@@ -246,6 +334,9 @@ class RankEvent:
     step: int
     index: int
     layers: list[LayerRecord] = field(default_factory=list)
+    #: the adapter that ran the event (``None`` for an event read back from a checkpoint): callbacks such as
+    #: :class:`~adarl.warmstart.ReplayWarmStart` use it to check that their policy holds the loss's tensors.
+    adapter: Any = field(default=None, repr=False, compare=False)
 
     @property
     def changed(self) -> bool:
@@ -277,23 +368,6 @@ def _erase_loss_caches(loss: nn.Module) -> None:
     erase = getattr(loss, "_erase_cache", None)
     if callable(erase):
         erase()
-
-
-def _set_data(t: torch.Tensor, value: torch.Tensor) -> None:
-    """``t.data = value`` keeping ``t``'s identity, dtype and device; clears ``.grad``.
-
-    A leaf's cached gradient accumulator (kept alive by any autograd graph still referenced, e.g. last step's loss
-    tensor) records the leaf's old shape, and ``set_data`` only drops it on a dtype/device change: the next
-    backward would then fail with "invalid gradient ... expected shape". Passing through another dtype first
-    makes autograd drop the stale accumulator, so a graph left alive across the event is harmless.
-    """
-    value = value.to(device=t.device, dtype=t.dtype).contiguous()
-    if t.requires_grad:
-        other = torch.float64 if t.dtype != torch.float64 else torch.float32
-        t.data = value.to(other)
-    t.data = value
-    if getattr(t, "grad", None) is not None:
-        t.grad = None
 
 
 def _forget_optimizer_state(optimizers: Iterable[torch.optim.Optimizer], tensors: Iterable[torch.Tensor]) -> None:
@@ -549,7 +623,8 @@ class RankAdapter(TrainerHookBase):
             :func:`~adarl.lr_schedule.make_lr_scheduler`), or objects with a ``restart()`` method; restarted
             (learning rate to 0, then warm-up) after every event that changed a rank.
         on_truncate: callables ``fn(event)`` run after every event that changed a rank (e.g.
-            :class:`~adarl.warmstart.ReplayWarmStart`).
+            :class:`~adarl.warmstart.ReplayWarmStart`). A callback with a ``check_event(event)`` method gets it
+            called before anything changes (the ranks decided), so that it can refuse the event.
         on_event: callables ``fn(event)`` run after every event, whether or not a rank changed (after the
             ``on_truncate`` ones): records, logs.
         fit_data: the batch the outputs are measured on (acceptance, :class:`~adarl.rank.PolicyFitRule`, and the
@@ -557,6 +632,9 @@ class RankAdapter(TrainerHookBase):
             :class:`~adarl.acceptance.RecentTransitions`, the recent transitions of a replay buffer, as recipes
             use; for an on-policy loss, the last batch), or a TorchRL replay buffer (``.sample()`` is called).
         logger: a TorchRL logger; the rank of each layer is logged as ``rank/<layer path>`` at every event.
+        log_step: a callable giving the x-axis value the ranks are logged at (e.g. ``lambda: frames``, to plot them
+            against collected frames like the returns); default: the optimisation step. :meth:`register` sets it
+            (and ``logger``, if none was given) from the TorchRL ``Trainer``: its collected frames and its logger.
         num_threads: torch threads for the decompositions of an event (restored afterwards); ``None`` keeps the
             process's setting. Training at (64, 64) is fastest on one thread, but an event on 1024-wide layers
             is a few float64 eigendecompositions that scale with cores, and it pauses training anyway.
@@ -564,6 +642,12 @@ class RankAdapter(TrainerHookBase):
     Call :meth:`step` after every optimisation step, at a clean point (after the optimiser step and the target
     update, with no live autograd graph), or register the adapter on a ``torchrl.trainers.Trainer``
     (:meth:`register`, stage ``"post_optim"``).
+
+    Refused with :class:`~adarl.errors.AdaRLValueError`, so that nothing trains on silently: a stock TorchRL loss
+    in :data:`UNSUPPORTED_LOSSES`; optimisers that do not train every adapted factor (their stale state would
+    fail later, deep in Adam); and, at an event, a change to factors that another process maps in shared memory
+    (a multi-process collector's workers would go on acting with the old factors next to the new biases) unless
+    an ``on_truncate`` callback rebuilds that collector (:class:`adarl.collector_rebuild.CollectorRebuild`).
     """
 
     def __init__(
@@ -583,18 +667,22 @@ class RankAdapter(TrainerHookBase):
         num_threads: int | None = None,
         acceptance: ProjectionAcceptance | None = None,
         on_event: Sequence[Callable] | Callable = (),
+        log_step: Callable[[], int] | None = None,
     ) -> None:
-        if num_threads is not None and (isinstance(num_threads, bool) or not isinstance(num_threads, int)
-                                        or num_threads < 1):
+        check_loss_supported(loss_module)
+        if num_threads is not None and (not is_integer(num_threads) or num_threads < 1):
             raise AdaRLValueError(f"num_threads must be an integer >= 1 or None (keep the process's), got {num_threads!r}")
-        if isinstance(interval, bool) or not isinstance(interval, int) or interval < 1:
+        if not is_integer(interval) or interval < 1:
             raise AdaRLValueError(f"interval must be an integer >= 1 (optimisation steps between events), got {interval!r}")
         if scope not in SCOPES:
             raise AdaRLValueError(f"scope must be one of {list(SCOPES)}, got {scope!r}")
         if target_mode not in TARGET_MODES:
             raise AdaRLValueError(f"target_mode must be one of {list(TARGET_MODES)}, got {target_mode!r}")
-        if isinstance(min_rank, bool) or not isinstance(min_rank, int) or min_rank < 1:
+        if not is_integer(min_rank) or min_rank < 1:
             raise AdaRLValueError(f"min_rank must be an integer >= 1, got {min_rank!r}")
+        if log_step is not None and not callable(log_step):
+            raise AdaRLValueError(f"log_step must be a callable returning the x-axis value (e.g. collected frames) or "
+                                  f"None (the optimisation step), got {type(log_step).__name__}")
         if not isinstance(rule, RankRule):
             raise AdaRLValueError(f"rule must be an adarl.rank.RankRule (e.g. EnergyRule(0.98)), got {type(rule).__name__}")
         if isinstance(optimizers, torch.optim.Optimizer):
@@ -638,9 +726,9 @@ class RankAdapter(TrainerHookBase):
         self.loss_module = loss_module
         self.optimizers = optimizers
         self.rule = rule
-        self.interval = interval
+        self.interval = int(interval)
         self.scope = scope
-        self.min_rank = min_rank
+        self.min_rank = int(min_rank)
         self.target_mode = target_mode
         self.lr_schedulers = lr_schedulers
         self.on_truncate = on_truncate
@@ -648,13 +736,15 @@ class RankAdapter(TrainerHookBase):
         self.acceptance = acceptance
         self.fit_data = fit_data
         self.logger = logger
-        self.num_threads = num_threads
+        self.log_step = log_step
+        self.num_threads = None if num_threads is None else int(num_threads)
         self.sites, searched = find_low_rank_layers(loss_module, scope)
         if not self.sites:
             raise AdaRLValueError(
                 f"no LowRankLinear layer found in scope {scope!r} of {type(loss_module).__name__}; networks searched: "
                 f"{searched or 'none'} (build them with adarl.low_rank_mlp or LowRankLinear)"
             )
+        self._check_optimizers(self.sites)
         self.step_count = 0
         self.history: list[RankEvent] = []
 
@@ -682,9 +772,46 @@ class RankAdapter(TrainerHookBase):
     __call__ = step
 
     def register(self, trainer, name: str = "rank_adapter") -> None:
-        """Register :meth:`step` at the trainer's ``"post_optim"`` stage and the adapter as a checkpointed module."""
+        """Register :meth:`step` at the trainer's ``"post_optim"`` stage and the adapter as a checkpointed module.
+
+        The ranks are then logged on the trainer's x-axis, its collected frames (as everything else the Trainer
+        logs), to the adapter's logger or, if it has none, the trainer's.
+        """
         trainer.register_op("post_optim", self.step)
         trainer.register_module(name, self)
+        if self.logger is None:
+            self.logger = getattr(trainer, "logger", None)
+        if self.log_step is None:
+            self.log_step = lambda: int(trainer.collected_frames)
+
+    # -- checks -------------------------------------------------------------------------------------------------
+
+    def _check_optimizers(self, sites: Sequence[LowRankSite]) -> None:
+        """Every trainable factor must be in one of ``optimizers``: an event must drop its stale Adam state."""
+        given = {id(p) for opt in self.optimizers for group in opt.param_groups for p in group["params"]}
+        missing = [s.path for s in sites
+                   if any(t.requires_grad and id(t) not in given for t in (s.w1, s.w2))]
+        if missing:
+            raise AdaRLValueError(
+                f"RankAdapter: the optimizers given ({len(self.optimizers)}) do not train the factors of {missing}; an "
+                f"event drops the optimiser state of every factor it resizes, and an optimiser it does not know would "
+                f"fail at its next step on the old shapes. Pass every optimizer that trains the loss's parameters "
+                f"(e.g. [actor_optimizer, critic_optimizer]); leave a layer out with scope= or requires_grad_(False)"
+            )
+
+    def _check_shared(self, plans) -> None:
+        """Refuse to resize factors another process maps in shared memory, unless a callback rebuilds that process."""
+        shared = [site.path for site, record, _ in plans if record.changed and any(
+            t.device.type == "cpu" and t.is_shared() for t in (site.w1, site.w2))]
+        if shared and not any(getattr(cb, "rebuilds_collector", False) for cb in self.on_truncate):
+            raise AdaRLValueError(
+                f"RankAdapter: the factors of {shared} are in shared memory, which a multi-process collector "
+                f"(MultiSyncCollector, MultiAsyncCollector, AsyncCollector, Collector(num_collectors=...)) maps for "
+                f"its workers; a rank change gives them new tensors the workers never see, so they would act with the old "
+                f"factors next to the new biases. Nothing was changed. Rebuild the collector after each event: "
+                f"collector = adarl.CollectorRebuild(lambda: MultiSyncCollector(...)), iterate it instead of the "
+                f"collector and pass it in on_truncate (docs/rank-adapter.md, 'Supported collectors')"
+            )
 
     # -- the event ----------------------------------------------------------------------------------------------
 
@@ -704,7 +831,7 @@ class RankAdapter(TrainerHookBase):
         Decisions are made on the network as it is before the event; with an acceptance step, the layers of one
         network are decided in order, each measured with the earlier layers' accepted truncations in place.
         """
-        event = RankEvent(step=self.step_count, index=len(self.history))
+        event = RankEvent(step=self.step_count, index=len(self.history), adapter=self)
         batch = self._fit_batch() if self.fit_data is not None else None
         threads = torch.get_num_threads()
         if self.num_threads is not None:
@@ -716,6 +843,14 @@ class RankAdapter(TrainerHookBase):
                 record, svd = self._decide(site, event.step, batch, probes)
                 event.layers.append(record)
                 plans.append((site, record, svd))
+            if any(record.changed for _, record, _ in plans):
+                # refusals before anything changes: the model stays as it was
+                self._check_optimizers(self.sites)  # param groups may have been added since construction
+                self._check_shared(plans)
+                for cb in self.on_truncate:
+                    check = getattr(cb, "check_event", None)
+                    if callable(check):
+                        check(event)  # e.g. ReplayWarmStart: its policy must run the loss's own factors
             for site, record, svd in plans:
                 if record.changed:
                     record.target = self._apply(site, record.new_rank, *svd)
@@ -730,8 +865,9 @@ class RankAdapter(TrainerHookBase):
                 else:
                     sch.restart()
         if self.logger is not None:
+            x = int(self.log_step()) if self.log_step is not None else event.step
             for record in event.layers:
-                self.logger.log_scalar(f"rank/{record.layer}", float(record.new_rank), step=event.step)
+                self.logger.log_scalar(f"rank/{record.layer}", float(record.new_rank), step=x)
         if event.changed:
             for cb in self.on_truncate:
                 cb(event)
@@ -787,7 +923,11 @@ class RankAdapter(TrainerHookBase):
                 errs = [p.relative_error(r) for p, r in zip(member_probes, replacement(rank))]
                 return math.nan if any(math.isnan(e) for e in errs) else max(errs)
 
-            if self.acceptance is not None:
+            broken = not all(bool(torch.isfinite(p.reference).all()) for p in member_probes)
+            if broken and self.acceptance is not None:  # nothing to compare against: keep the rank, say why
+                new, note = current, (f"the {site.role}'s outputs on fit_data are non-finite (NaN/inf weights "
+                                      f"elsewhere in the network, or in the batch); rank kept")
+            elif self.acceptance is not None:
                 result = self.acceptance.resolve(candidate, current, error_at, site.role)
                 new, cand_err, err_new = result.rank, result.candidate_error, result.error
                 tol, tried, note = result.tolerance, [list(t) for t in result.tried], result.reason

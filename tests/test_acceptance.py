@@ -175,6 +175,17 @@ def test_acceptance_needs_data():
                     acceptance=0.05, fit_data=lambda: fake_batch())
 
 
+def test_recent_transitions_after_an_empty_that_keeps_the_write_count():
+    # ReplayWarmStart empties the buffer keeping write_count (TorchRL collectors gate their random phase on it)
+    rb = TensorDictReplayBuffer(storage=LazyTensorStorage(10), batch_size=4)
+    rb.extend(TensorDict({"x": torch.arange(7)}, [7]))
+    rb.empty(empty_write_count=False)
+    rb.extend(TensorDict({"x": torch.arange(100, 104)}, [4]))
+    assert rb.write_count == 11
+    assert recent_transitions(rb, 3)["x"].tolist() == [101, 102, 103]
+    assert recent_transitions(rb, 50)["x"].tolist() == [100, 101, 102, 103]
+
+
 def test_recent_transitions_are_the_last_written_in_order():
     rb = TensorDictReplayBuffer(storage=LazyTensorStorage(10), batch_size=4)
     for i in range(0, 23, 4):  # 24 writes into 10 slots: wraps around twice

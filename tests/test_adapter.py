@@ -570,3 +570,66 @@ def test_num_threads_applies_during_the_event_only(monkeypatch):
     assert torch.get_num_threads() == before
     with pytest.raises(AdaRLValueError, match="num_threads"):
         RankAdapter(loss, opt, FixedRank(3), interval=1, num_threads=0)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# issue 22: NaN/inf at an event, optimisers that miss parameters, integer arguments
+# --------------------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+@pytest.mark.parametrize("with_acceptance", [False, True])
+def test_non_finite_factors_are_skipped_with_a_reason_and_the_rest_changes(bad, with_acceptance):
+    from adarl.acceptance import ProjectionAcceptance
+
+    loss = make_sac()
+    opt = torch.optim.Adam(loss.parameters())
+    train(loss, opt, steps=1)
+    sites = {s.path: s for s in find_low_rank_layers(loss)[0]}
+    with torch.no_grad():
+        sites[ACTOR_L1].w1[0, 0] = bad  # one actor layer diverged
+        sites[Q_L0].w2[1, 0, 0] = bad  # one member of the critic ensemble diverged
+    before = {p: (s.w1.detach().clone(), s.w2.detach().clone()) for p, s in sites.items()}
+    kwargs = {"acceptance": ProjectionAcceptance(1e9, 1e9), "fit_data": lambda: fake_batch(seed=4)} \
+        if with_acceptance else {}
+    adapter = RankAdapter(loss, opt, FixedRank(3), interval=1, **kwargs)
+    event = adapter.adapt()  # no LinAlgError from the SVD
+    recs = {r.layer: r for r in event.layers}
+    for path in (ACTOR_L1, Q_L0):
+        assert recs[path].new_rank == recs[path].old_rank and "non-finite values" in recs[path].skipped
+        torch.testing.assert_close(sites[path].w1, before[path][0], equal_nan=True)  # untouched
+    # the healthy layers share a network with a broken one: with the acceptance step (which measures the network's
+    # outputs, non-finite here) they keep their rank and say why; without it they change
+    for path, old in ((ACTOR_L0, 5), (Q_L1, 16)):
+        if with_acceptance:
+            assert recs[path].new_rank == old and "outputs on fit_data are non-finite" in recs[path].skipped
+        else:
+            assert recs[path].new_rank == 3 and recs[path].skipped is None
+
+
+def test_optimizers_must_train_every_adapted_factor():
+    loss = make_sac()
+    actor_opt = torch.optim.Adam(loss.actor_network_params.flatten_keys().values())
+    critic_opt = torch.optim.Adam(loss.qvalue_network_params.flatten_keys().values())
+    # only the actor's optimiser: the critic's Adam state would keep the old shapes and fail at its next step
+    with pytest.raises(AdaRLValueError, match=r"do not train the factors of \['qvalue_network.module.mlp.0', "
+                                              r"'qvalue_network.module.mlp.2'\].*every optimizer"):
+        RankAdapter(loss, actor_opt, FixedRank(3), interval=1)
+    RankAdapter(loss, actor_opt, FixedRank(3), interval=1, scope="actor")  # what it trains is what it adapts
+    adapter = RankAdapter(loss, [actor_opt, critic_opt], FixedRank(3), interval=1)
+    adapter.optimizers = [actor_opt]  # changed after construction: refused at the event, before any change
+    with pytest.raises(AdaRLValueError, match="do not train"):
+        adapter.adapt()
+    assert adapter.ranks[Q_L1] == 16 and adapter.history == []
+
+
+def test_integer_arguments_accept_numpy_integers():
+    np = pytest.importorskip("numpy")
+    loss = make_sac()
+    opt = torch.optim.Adam(loss.parameters())
+    adapter = RankAdapter(loss, opt, FixedRank(3), interval=np.int64(2), min_rank=np.int32(1),
+                          num_threads=np.int64(1))
+    assert type(adapter.interval) is int and adapter.interval == 2
+    for kwargs in ({"interval": 2.0}, {"interval": 1.5}, {"interval": 2, "min_rank": 1.0}):
+        with pytest.raises(AdaRLValueError, match="integer"):
+            RankAdapter(loss, opt, FixedRank(3), **kwargs)

@@ -149,6 +149,23 @@ def test_doc_examples_run(path: Path, tmp_path: Path):
     assert f"DOCS-EXAMPLES-OK {len(blocks)}" in proc.stdout
 
 
+# Losses that stack their critics into an ensemble (TorchRL resamples the stacked factors uniformly)
+ENSEMBLE_LOSSES = ("SACLoss", "DiscreteSACLoss", "TD3Loss", "TD3BCLoss", "REDQLoss", "CQLLoss", "CrossQLoss",
+                   "IQLLoss", "DiscreteIQLLoss", "TQCLoss")
+
+
+def test_examples_with_low_rank_critic_ensembles_call_reinit_low_rank_ensemble():
+    """docs/low-rank-linear.md says a critic ensemble over LowRankLinear layers needs reinit_low_rank_ensemble: every
+    runnable example that builds one calls it (a user copies the examples)."""
+    missing = []
+    for path in doc_files():
+        code = "\n".join(b.source for b in extract_blocks(path.read_text(encoding="utf-8")) if b.runnable)
+        builds = [n for n in ENSEMBLE_LOSSES if re.search(rf"\b{n}\(", code)]
+        if builds and re.search(r"\b(low_rank_mlp|LowRankLinear)\b", code) and "reinit_low_rank_ensemble(" not in code:
+            missing.append(f"{_id(path)} ({', '.join(builds)})")
+    assert not missing, f"examples build low-rank critic ensembles without reinit_low_rank_ensemble: {missing}"
+
+
 # ---------------------------------------------------------------------------------------------------------
 # the harness itself
 # ---------------------------------------------------------------------------------------------------------

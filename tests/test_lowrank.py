@@ -115,7 +115,8 @@ def test_from_linear_full_rank_reproduces_outputs():
     assert layer.rank == 9
     x = torch.randn(32, 12)
     torch.testing.assert_close(layer(x), lin(x), atol=FP32_ATOL, rtol=1e-5)
-    torch.testing.assert_close(layer.weight, lin.weight, atol=1e-6, rtol=1e-5)
+    # .detach(): assert_close refuses a Parameter against another Tensor subclass (the weight's write-through type)
+    torch.testing.assert_close(layer.weight, lin.weight.detach(), atol=1e-6, rtol=1e-5)
     torch.testing.assert_close(layer.bias, lin.bias)
     assert layer.bias.data_ptr() != lin.bias.data_ptr()  # a copy, not shared
 
@@ -133,7 +134,7 @@ def test_from_linear_float64():
     lin = nn.Linear(6, 4).double()
     layer = LowRankLinear.from_linear(lin)
     assert layer.w1.dtype == torch.float64
-    torch.testing.assert_close(layer.weight, lin.weight, atol=1e-12, rtol=1e-12)
+    torch.testing.assert_close(layer.weight, lin.weight.detach(), atol=1e-12, rtol=1e-12)
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -599,3 +600,130 @@ def test_sac_loss_ensemble_gets_low_rank_init_not_torchrl_uniform_resampling():
         for p in ("w1", "w2", "bias"):
             assert torch.equal(online[f"{layer}.{p}"], target[f"{layer}.{p}"])
     assert reinit_low_rank_ensemble(loss) == 2
+
+
+# ---------------------------------------------------------------------------------------------------------
+# issue 22: truncate_ in an ordinary loop, zero and non-finite layers, writes into .weight, integer arguments
+# ---------------------------------------------------------------------------------------------------------
+
+
+def test_truncate_in_an_ordinary_loop_keeps_the_next_backward_working():
+    # the previous step's loss is still referenced (its graph holds the factors' gradient accumulators)
+    layer = LowRankLinear(16, 12)
+    opt = torch.optim.Adam(layer.parameters(), lr=1e-3)
+    loss = layer(torch.randn(8, 16)).pow(2).mean()
+    loss.backward()
+    opt.step()
+    layer.truncate_(4)
+    opt.state.pop(layer.w1), opt.state.pop(layer.w2)
+    opt.zero_grad()
+    loss = layer(torch.randn(8, 16)).pow(2).mean()
+    loss.backward()  # failed with "invalid gradient ... got [12, 4] expected [12, 12]"
+    opt.step()
+    assert layer.w1.grad.shape == (12, 4) and opt.state[layer.w1]["exp_avg"].shape == (12, 4)
+    # truncate_ drops the optimiser state itself when given the optimisers
+    layer.truncate_(2, optimizers=[opt])
+    assert layer.w1 not in opt.state and layer.w2 not in opt.state and layer.bias in opt.state
+    loss = layer(torch.randn(8, 16)).pow(2).mean()
+    loss.backward()
+    opt.step()
+
+
+@pytest.mark.parametrize("rank", [11, 12, 3])  # near full rank (the product route) and well below it (QR route)
+def test_a_zero_layer_truncates_to_zero_factors_not_nan(rank):
+    layer = LowRankLinear(16, 12)
+    with torch.no_grad():
+        layer.w1.zero_()
+    u, s, vh = factor_svd(layer.w1, layer.w2)
+    assert torch.isfinite(u).all() and torch.isfinite(vh).all() and torch.equal(s, torch.zeros(12, dtype=s.dtype))
+    layer.truncate_(rank)
+    assert torch.isfinite(layer.w1).all() and torch.isfinite(layer.w2).all()
+    assert torch.equal(layer.weight.detach(), torch.zeros(12, 16))
+    # batched: one zero member does not spoil the others
+    w1 = torch.randn(2, 12, 12)
+    w1[0] = 0
+    u, s, vh = factor_svd(w1, torch.randn(2, 12, 16))
+    assert torch.isfinite(u).all() and torch.isfinite(s).all() and float(s[1, 0]) > 0
+
+
+def test_non_finite_factors_give_a_nan_spectrum_and_truncate_refuses_them():
+    layer = LowRankLinear(8, 6)
+    with torch.no_grad():
+        layer.w2[0, 0] = float("inf")
+    assert torch.isnan(layer.singular_values()).all()  # no LinAlgError: rules see a non-finite spectrum and skip
+    with pytest.raises(AdaRLValueError, match="w2 hold NaN or inf"):
+        layer.truncate_(3)
+    w1, w2 = torch.randn(3, 6, 4), torch.randn(3, 4, 8)
+    w1[1, 0, 0] = float("nan")
+    u, s, vh = factor_svd(w1, w2)
+    assert torch.isnan(s[1]).all() and torch.isfinite(s[[0, 2]]).all()
+    torch.testing.assert_close(s[[0, 2]], factor_svd(w1[[0, 2]], w2[[0, 2]])[1])
+
+
+def test_in_place_writes_to_weight_go_through():
+    torch.manual_seed(3)
+    layer = LowRankLinear(8, 6)
+    w1 = layer.w1
+    nn.init.orthogonal_(layer.weight, gain=2.0)  # used to write into a temporary and change nothing
+    w = layer.weight.detach().double()
+    torch.testing.assert_close(w @ w.T, 4 * torch.eye(6, dtype=torch.float64), atol=1e-5, rtol=0)
+    assert layer.w1 is w1  # the factors were written in place
+    with torch.no_grad():
+        layer.weight[0] = 0.0
+        layer.weight.data.mul_(3.0)
+    assert float(layer.weight.detach()[0].abs().max()) < 1e-6
+    torch.testing.assert_close(layer.weight.detach().double()[1:] @ layer.weight.detach().double()[1:].T,
+                               36 * torch.eye(5, dtype=torch.float64), atol=1e-4, rtol=0)
+    x = torch.randn(4, 8)
+    torch.testing.assert_close(layer(x), x @ layer.weight.T + layer.bias, atol=FP32_ATOL, rtol=1e-5)
+    # results that are not the weight are plain tensors; the weight still carries gradients to the factors
+    assert type(layer.weight + 1) is torch.Tensor and type(layer.weight.detach().clone()) is torch.Tensor
+    layer.weight.pow(2).sum().backward()
+    assert layer.w1.grad is not None and layer.w2.grad is not None
+    # a rank-r layer keeps the best rank-r approximation of what was written
+    low = LowRankLinear(8, 6, rank=2)
+    target = torch.randn(6, 8)
+    with torch.no_grad():
+        low.weight.copy_(target)
+    u, s, vh = torch.linalg.svd(target.double(), full_matrices=False)
+    torch.testing.assert_close(low.weight.detach().double(), (u[:, :2] * s[:2]) @ vh[:2], atol=1e-5, rtol=1e-5)
+
+
+def test_init_weight_hook_and_set_weight():
+    torch.manual_seed(0)
+    layer = LowRankLinear(8, 6)
+    w1 = layer.w1
+    assert layer.init_weight_(nn.init.orthogonal_, gain=math.sqrt(2)) is layer and layer.w1 is w1
+    w = layer.weight.detach().double()
+    torch.testing.assert_close(w @ w.T, 2 * torch.eye(6, dtype=torch.float64), atol=1e-5, rtol=0)
+    g1, g2 = layer.w1.detach().double(), layer.w2.detach().double()
+    torch.testing.assert_close(g1.T @ g1, g2 @ g2.T, atol=1e-5, rtol=0)  # balanced
+    with pytest.raises(AdaRLValueError, match=r"\(6, 8\)"):
+        layer.set_weight_(torch.zeros(8, 6))
+    with pytest.raises(AdaRLValueError, match="NaN or inf"):
+        layer.set_weight_(torch.full((6, 8), float("nan")))
+    with pytest.raises(AdaRLValueError, match="callable"):
+        layer.init_weight_("orthogonal")
+    # reset_parameters draws exactly what it did before the hook existed (same RNG use, same factorisation)
+    torch.manual_seed(1)
+    layer.reset_parameters()
+    torch.manual_seed(1)
+    dense = torch.empty(6, 8, dtype=torch.float64)
+    nn.init.kaiming_uniform_(dense, a=math.sqrt(5))
+    torch.testing.assert_close(layer.weight.detach().double(), dense, atol=1e-6, rtol=1e-5)
+
+
+def test_integer_arguments_accept_numpy_integers_and_refuse_fractions():
+    np = pytest.importorskip("numpy")
+    layer = LowRankLinear(np.int64(8), np.int32(6), rank=np.int64(3))
+    assert (layer.in_features, layer.out_features, layer.rank) == (8, 6, 3)
+    assert type(layer.in_features) is int and layer.w1.shape == (6, 3)
+    layer.truncate_(np.int64(2))
+    assert layer.rank == 2
+    mlp = low_rank_mlp(5, 3, (16, 16), rank=np.int64(4))
+    assert [m.rank for _, m in iter_low_rank(mlp)] == [4, 4]
+    for bad in (8.7, 8.0, "8", True):
+        with pytest.raises(AdaRLValueError, match="integer in_features"):
+            LowRankLinear(bad, 6)
+    with pytest.raises(AdaRLValueError, match=r"\[1, 6\]"):
+        LowRankLinear(8, 6, rank=2.0)

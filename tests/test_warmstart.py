@@ -137,7 +137,7 @@ def test_validation():
     actor = make_actor(env)
     rb = filled_buffer(env, actor, 4)
     with pytest.raises(AdaRLValueError, match="mode"):
-        ReplayWarmStart(rb, (env, actor), frames=4, mode="reset")
+        ReplayWarmStart(rb, (env, actor), frames=4, mode="restart")
     with pytest.raises(AdaRLValueError, match="frames"):
         ReplayWarmStart(rb, (env, actor), frames=0, mode="refill")
     with pytest.raises(AdaRLValueError, match="source"):
