@@ -397,6 +397,57 @@ def plot_rank_trajectories(agg: Aggregate, out: Path) -> Path | None:
     return out / "ranks.png"
 
 
+def rank_settling(run: RunRecord) -> dict[str, dict]:
+    """Per layer: the final rank, the smallest rank it had, the step of its last change (None: never changed),
+    and how many rank events followed that change without changing it (the evidence that it settled)."""
+    out: dict[str, dict] = {}
+    steps = [int(ev.get("step", 0)) for ev in run.rank_history]
+    for ev in run.rank_history:
+        step = int(ev.get("step", 0))
+        for layer in ev.get("layers", []):
+            name = f"{layer.get('network', '')}:{layer.get('layer', '?')}"
+            d = out.setdefault(name, {"initial": int(layer["old_rank"]), "final": int(layer["old_rank"]),
+                                      "min": int(layer["old_rank"]), "last_change": None})
+            new = int(layer["new_rank"])
+            if new != d["final"]:
+                d["last_change"] = step
+            d["final"] = new
+            d["min"] = min(d["min"], new)
+    for d in out.values():
+        d["events_after"] = sum(1 for s in steps if d["last_change"] is None or s > d["last_change"])
+    return out
+
+
+def _rank_settling_blocks(agg: Aggregate, out: Path) -> list[tuple]:
+    groups = [g for g in sorted(agg.groups, key=lambda g: [_num_key(v) for _, v in g.key])
+              if any(r.rank_history for r in g.scored)]
+    rows, crow = [], []
+    for g in groups:
+        per_layer: dict[str, list] = {}
+        for r in g.scored:
+            for name, d in rank_settling(r).items():
+                per_layer.setdefault(name, []).append((r.seed, d))
+                crow.append([*[v for _, v in g.key], r.seed, name, d["initial"], d["final"], d["min"],
+                             d["last_change"], d["events_after"], len(r.rank_history)])
+        for name, ds in per_layer.items():
+            ds.sort()
+            rows.append([g.label, name, str(ds[0][1]["initial"]), ", ".join(str(d["final"]) for _, d in ds),
+                         ", ".join(str(d["min"]) for _, d in ds),
+                         ", ".join("never" if d["last_change"] is None else f"{d['last_change']:,}" for _, d in ds),
+                         ", ".join(str(d["events_after"]) for _, d in ds)])
+    if not rows:
+        return []
+    (out / "rank_settling.csv").write_text(_csv(crow, [*agg.axes, "seed", "layer", "initial_rank", "final_rank",
+                                                       "min_rank", "last_change_step", "events_after_last_change",
+                                                       "events"]))
+    return [("h", 2, "Do the ranks settle?"),
+            ("p", "Per layer, one value per seed (seeds in increasing order): the final rank, the smallest rank it "
+                  "reached, the optimisation step of its last change, and the number of rank events after that "
+                  "change that left it unchanged. Data in rank_settling.csv."),
+            ("table", ["setting", "layer", "initial", "final rank", "lowest rank", "last change at step",
+                       "events since"], rows, [])]
+
+
 def plot_return_vs(agg: Aggregate, axis: str, out: Path) -> Path | None:
     """Final return (mean ± std across seeds, error bars) against a numeric axis such as the rank (Fig. 1)."""
     from adarl.report import _plt
@@ -597,6 +648,7 @@ def write_aggregate_report(dirs: list[str | os.PathLike], output: str | os.PathL
                          "the intrinsic rank (2*d_a+1, Tiwari et al. 2025; or the spec's report.intrinsic_rank). "
                          "Data in ranks.csv."),
                    ("img", p.name, "ranks")]
+    blocks += _rank_settling_blocks(agg, out)
     for name, path, summary in plot_sweeps(agg, out):
         blocks += [("h", 2, f"Robustness sweep: {name}"),
                    ("p", "Per grid point: mean across seeds of the per-point mean return, shaded ± std across seeds; "

@@ -73,3 +73,17 @@ def test_aggregate_report_statistics_reference_duplicates_and_iterations(tmp_pat
     assert "P(adarl > setting)" in md and "Score at the end of each iteration" in md
     at = [r for r in csv.DictReader((out / "at_updates.csv").open()) if r["algorithm"] == "adarl"]
     assert {int(r["updates"]): float(r["mean"]) for r in at} == {200: pytest.approx(155.0), 300: pytest.approx(310.0)}
+
+
+def test_rank_settling_reads_the_last_change_and_the_events_after_it(tmp_path):
+    from adarl.aggregate import _load_run, rank_settling
+
+    run = _fake_run(tmp_path, "r", 0, 0, [(100, 1.0), (200, 2.0)])
+    history = [{"step": s, "index": i, "layers": [
+        {"layer": "a", "network": "actor", "old_rank": o, "new_rank": n},
+        {"layer": "c", "network": "critic", "old_rank": 8, "new_rank": 8}]}
+        for i, (s, o, n) in enumerate([(10, 11, 9), (20, 9, 7), (30, 7, 7), (40, 7, 7)])]
+    (run / "ranks.json").write_text(json.dumps(history))
+    d = rank_settling(_load_run(run, None))
+    assert d["actor:a"] == {"initial": 11, "final": 7, "min": 7, "last_change": 20, "events_after": 2}
+    assert d["critic:c"]["last_change"] is None and d["critic:c"]["events_after"] == 4
