@@ -174,9 +174,34 @@ def cmd_experiment(args) -> int:
     return 0
 
 
+class _IntermixedParser(argparse.ArgumentParser):
+    """A subcommand's parser that takes options and positionals in any order (``adarl run quickstart -o DIR
+    seed=1``): argparse's intermixed parsing, which the top-level parser cannot use itself (it has subparsers)."""
+
+    _parsing = False
+
+    def parse_known_args(self, args=None, namespace=None):
+        if self._parsing:  # parse_known_intermixed_args calls back into parse_known_args (Python < 3.12)
+            return super().parse_known_args(args, namespace)
+        self._parsing = True
+        try:
+            return self.parse_known_intermixed_args(args, namespace)
+        finally:
+            self._parsing = False
+
+
+def _version() -> str:
+    from adarl import __version__
+
+    return f"adarl {__version__}"
+
+
 def build_parser() -> argparse.ArgumentParser:
+    """The ``adarl`` parser. It imports nothing heavy (torch, TorchRL): ``adarl --help`` and typos answer at once;
+    each command imports what it needs when it runs."""
     p = argparse.ArgumentParser(prog="adarl", description="Robust RL by adaptive rank control, on TorchRL.")
-    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    p.add_argument("--version", action="version", version=_version())
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=_IntermixedParser)
 
     r = sub.add_parser("run", help="train a recipe in a new run folder, evaluate it and write a report",
                        description="Train RECIPE (a shipped name, see `adarl recipes`, or a .yaml path). "
