@@ -20,7 +20,7 @@ from torchrl.objectives import DiscreteSACLoss, SACLoss, SoftUpdate, ValueEstima
 from adarl.errors import AdaRLValueError
 from adarl.lowrank import LowRankLinear, low_rank_mlp
 
-__all__ = ["ACTIVATIONS", "make_mlp", "make_sac_actor", "make_sac_critic", "make_sac_loss", "SACModules", "make_sac_modules",
+__all__ = ["ACTIVATIONS", "check_device", "make_mlp", "make_sac_actor", "make_sac_critic", "make_sac_loss", "SACModules", "make_sac_modules",
            "reinit_low_rank_ensemble"]
 
 ACTIVATIONS: dict[str, type[nn.Module]] = {
@@ -30,6 +30,25 @@ ACTIVATIONS: dict[str, type[nn.Module]] = {
     "elu": nn.ELU,
     "gelu": nn.GELU,
 }
+
+
+def check_device(device: str | torch.device) -> torch.device:
+    """``torch.device(device)``, or :class:`AdaRLValueError` naming why this machine cannot use it and what it can
+    (instead of torch's error deep inside the first tensor put there)."""
+    dev = torch.device(device)
+    if dev.type != "cuda":
+        return dev
+    if not torch.cuda.is_available():
+        why = (f"this torch ({torch.__version__}) was built without CUDA" if torch.version.cuda is None
+               else "no CUDA GPU is visible (torch.cuda.is_available() is False)")
+        raise AdaRLValueError(f"device {str(device)!r} is not available: {why}; allowed here: 'cpu' (the recipe "
+                              f"key `device`, e.g. the override device=cpu)")
+    n = torch.cuda.device_count()
+    if dev.index is not None and dev.index >= n:
+        allowed = ", ".join(["'cpu'", "'cuda'", *(f"'cuda:{i}'" for i in range(n))])
+        raise AdaRLValueError(f"device {str(device)!r} is not available: this machine has {n} CUDA device(s); "
+                              f"allowed here: {allowed}")
+    return dev
 
 
 def _activation(name: str) -> type[nn.Module]:

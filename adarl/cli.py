@@ -19,15 +19,21 @@ def _err(msg: str) -> None:
     print(f"adarl: error: {msg}", file=sys.stderr)
 
 
-def _quiet_env() -> None:
-    # MuJoCo renders headless; keep TorchRL's import-time deprecation chatter out of the user's terminal.
+def _quiet_env(quiet: bool = False) -> None:
+    """Before anything imports TorchRL or MuJoCo: headless rendering, and none of their chatter in the terminal
+    (TorchRL's INFO lines, its import-time deprecations, its "no target network updater" warning: adarl updates
+    the targets itself). ``quiet`` (``--quiet``) also silences wandb."""
     os.environ.setdefault("MUJOCO_GL", "egl")
+    os.environ.setdefault("RL_LOGGING_LEVEL", "WARNING")  # read when torchrl is imported
+    if quiet:
+        os.environ.setdefault("WANDB_SILENT", "true")
     import warnings
 
     warnings.filterwarnings("ignore", category=DeprecationWarning)
     warnings.filterwarnings("ignore", category=FutureWarning)
     warnings.filterwarnings("ignore", message=".*WeightUpdaterBase.*")
     warnings.filterwarnings("ignore", message=".*settotalmass.*")
+    warnings.filterwarnings("ignore", message="No target network updater has been associated")
 
 
 def _run_folder(recipe, output: str | None) -> Path:
@@ -63,9 +69,12 @@ def cmd_run(args) -> int:
 
 
 def _print_summary(summary: dict, path: Path) -> None:
+    from adarl.report import named_ranks
+
     ev = summary.get("final_eval") or {}
+    ranks = ", ".join(f"{name}={rank}" for name, rank in named_ranks(summary).items()) or "-"
     print(f"run finished: {summary['frames']} frames, {summary['updates']} updates, "
-          f"{summary['rank_events']} rank events, final ranks {summary['ranks']}")
+          f"{summary['rank_events']} rank events, final ranks {ranks}")
     if ev:
         print(f"nominal-dynamics evaluation: {ev['mean']:.1f} ± {ev['std']:.1f} over {ev['episodes']} episodes")
     print(f"results: {path}  (report: {path / 'report.md'})")
@@ -300,7 +309,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    _quiet_env()
+    _quiet_env(bool(getattr(args, "quiet", False)))
     from adarl.errors import AdaRLError, RecipeError
     from adarl.signals import RunInterrupted
 

@@ -35,7 +35,8 @@ from adarl.baselines.init import orthogonal_init_
 from adarl.baselines.normalization import RewardScaler, RunningObsNorm
 from adarl.baselines.policy import BoxTanh, ClippedNormal
 from adarl.baselines.rnac import DoubleSamplingTransform, IPMAdvantage
-from adarl.builders import make_mlp
+from adarl import metrics
+from adarl.builders import check_device, make_mlp
 from adarl.env_state import (
     collector_state_dict,
     env_state_dict,
@@ -150,6 +151,7 @@ def make_ppo_modules(recipe, env) -> PPOModules:
 
 def build_ppo_components(recipe) -> PPOComponents:
     """Env (+ RNAC-DS), evaluation env, networks, loss, optimisers, LR decay and collector of a PPO recipe."""
+    check_device(recipe.device)
     seed_everything(recipe.seed)
     env, eval_env = make_envs(recipe)
     modules = make_ppo_modules(recipe, env)
@@ -220,8 +222,10 @@ class PPOTrainer(Trainer):
         self._loss_sums: dict[str, float] = {}
         self._loss_count = 0
         self._last_log_frames = 0
+        self._bar = None
         self.c = build_ppo_components(recipe)
-        self.logger = run_dir.make_logger(recipe)
+        self.logger = run_dir.make_logger(
+            recipe, step=None if _resume_state is None else int(_resume_state["counters"]["frames"]))
         if _resume_state is not None:
             self._load_state(_resume_state)
 
@@ -233,6 +237,7 @@ class PPOTrainer(Trainer):
         bar = tqdm(total=total, initial=self.frames, unit="frame", disable=self.quiet, dynamic_ncols=True,
                    desc=rc.name)
         start = time.perf_counter()
+        self._clock = (start, self.frames, self.updates)
         try:
             for batch in c.collector if self.frames < total else ():
                 if batch.ndim == 1:
@@ -331,9 +336,11 @@ class PPOTrainer(Trainer):
         self._last_log_frames = self.frames
         if self._loss_count:
             for k, total in self._loss_sums.items():
-                self.logger.log_scalar(f"train.{k}", total / self._loss_count, step=self.frames)
-            self.logger.log_scalar("train.updates", self.updates, step=self.frames)
-            self.logger.log_scalar("train.lr", self.c.optimizers["actor"].param_groups[0]["lr"], step=self.frames)
+                self.logger.log_scalar(metrics.train(k), total / self._loss_count, step=self.frames)
+            self.logger.log_scalar(metrics.TRAIN_UPDATES, self.updates, step=self.frames)
+            self.logger.log_scalar(metrics.TRAIN_LR, self.c.optimizers["actor"].param_groups[0]["lr"],
+                                   step=self.frames)
+        self._log_throughput()
         self._loss_sums, self._loss_count = {}, 0
 
     def _write_summary(self, elapsed: float) -> dict:

@@ -95,3 +95,31 @@ def test_import_adarl_is_light_and_names_load_on_use():
     assert modules == "adarl.lowrank adarl.config"
     proc = _python("import adarl; adarl.nope")
     assert "has no attribute 'nope'" in proc.stderr
+
+
+def test_unavailable_device_is_one_clear_line(tmp_path):
+    import torch
+
+    if torch.cuda.is_available():
+        pytest.skip("this machine has CUDA: device=cuda is available here")
+    out = tmp_path / "run"
+    proc = _adarl("run", "quickstart", "device=cuda", "-o", str(out), "--quiet", cwd=tmp_path)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert "Traceback" not in proc.stderr
+    assert "device 'cuda' is not available" in proc.stderr and "allowed here: 'cpu'" in proc.stderr
+    assert not out.exists()
+
+
+def test_device_index_beyond_the_visible_gpus(monkeypatch):
+    import torch
+
+    from adarl.builders import check_device
+    from adarl.errors import AdaRLValueError
+
+    assert check_device("cpu") == torch.device("cpu")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
+    assert check_device("cuda:1") == torch.device("cuda:1")
+    with pytest.raises(AdaRLValueError, match=r"device 'cuda:3' is not available: this machine has 2 CUDA .*"
+                                              r"'cpu', 'cuda', 'cuda:0', 'cuda:1'"):
+        check_device("cuda:3")
