@@ -13,6 +13,7 @@ The public components, importable from here:
 - :class:`CollectorRebuild`: a collector rebuilt after each rank event (process collectors, policy copies).
 - :class:`PerturbedDynamicsEnvTransform` / :func:`make_env`: per-episode MuJoCo dynamics, a TorchRL ``Transform``.
 - :func:`load_recipe`, :func:`build_components`, :class:`Trainer`: recipes and the AdaRL-SAC loop.
+- :func:`load_policy`: a trained run's policy as a TorchRL actor, without its env, buffer or collector.
 
 Every name is imported on first use (PEP 562): ``import adarl`` itself loads neither torch nor TorchRL (~4.5 s
 here), so ``adarl --help`` and ``from adarl import load_recipe`` stay quick.
@@ -42,6 +43,7 @@ _EXPORTS: dict[str, str] = {
                      "SinusoidSchedule", "UniformSchedule", "FixedSchedule", "ListSchedule"], "adarl.envs"),
     **dict.fromkeys(["load_recipe", "list_recipes"], "adarl.config"),
     **dict.fromkeys(["build_components", "Trainer", "Components"], "adarl.training"),
+    "load_policy": "adarl.policy",
 }
 
 __all__ = list(_EXPORTS)

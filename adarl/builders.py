@@ -20,7 +20,7 @@ from torchrl.objectives import DiscreteSACLoss, SACLoss, SoftUpdate, ValueEstima
 from adarl.errors import AdaRLValueError
 from adarl.lowrank import LowRankLinear, low_rank_mlp
 
-__all__ = ["ACTIVATIONS", "check_device", "make_mlp", "make_sac_actor", "make_sac_critic", "make_sac_loss", "SACModules", "make_sac_modules",
+__all__ = ["ACTIVATIONS", "check_device", "make_mlp", "make_recipe_actor", "make_sac_actor", "make_sac_critic", "make_sac_loss", "SACModules", "make_sac_modules",
            "reinit_low_rank_ensemble"]
 
 ACTIVATIONS: dict[str, type[nn.Module]] = {
@@ -216,6 +216,19 @@ class SACModules:
     target_updater: SoftUpdate
 
 
+def make_recipe_actor(recipe, env: EnvBase) -> ProbabilisticActor:
+    """The SAC actor of a recipe's ``network.actor`` section, for ``env``'s specs (any object with
+    ``observation_spec`` and ``action_spec``: :func:`adarl.load_policy` passes the specs a checkpoint saved)."""
+    from adarl.baselines.mlp import variant_kwargs
+
+    a = recipe.network.actor
+    spec = env.action_spec_unbatched if hasattr(env, "action_spec_unbatched") else env.action_spec
+    action_dim = spec.space.n if _is_discrete(spec) else spec.shape[-1]
+    return make_sac_actor(env, num_cells=a.num_cells, activation=a.activation, low_rank_layers=a.low_rank_layers,
+                          rank=a.rank, device=torch.device(recipe.device),
+                          **variant_kwargs(a, recipe.algorithm.parseval, action_dim))
+
+
 def make_sac_modules(recipe, env: EnvBase) -> SACModules:
     """Build actor, critic, loss and target updater from a recipe's ``network`` and ``algorithm`` sections."""
     from adarl.baselines.mlp import variant_kwargs
@@ -225,9 +238,7 @@ def make_sac_modules(recipe, env: EnvBase) -> SACModules:
     spec = env.action_spec_unbatched if hasattr(env, "action_spec_unbatched") else env.action_spec
     action_dim = spec.space.n if _is_discrete(spec) else spec.shape[-1]
     pv = recipe.algorithm.parseval
-    actor = make_sac_actor(env, num_cells=a.num_cells, activation=a.activation,
-                           low_rank_layers=a.low_rank_layers, rank=a.rank, device=device,
-                           **variant_kwargs(a, pv, action_dim))
+    actor = make_recipe_actor(recipe, env)
     critic = make_sac_critic(env, num_cells=c.num_cells, activation=c.activation,
                              low_rank_layers=c.low_rank_layers, rank=c.rank, device=device,
                              **variant_kwargs(c, pv, action_dim))

@@ -134,6 +134,33 @@ def cmd_eval(args) -> int:
     return 0
 
 
+def cmd_play(args) -> int:
+    from adarl.play import parse_perturb, play
+
+    size = _size(args.size)
+    result = play(args.run, which=args.which, episodes=args.episodes, video=args.video,
+                  perturb=parse_perturb(args.perturb), max_steps=args.max_steps, seed=args.seed, size=size)
+    dyn = ", ".join(f"{k}={v:g}" for k, v in result.dynamics.items()) or "the env's own"
+    print(f"policy of {result.checkpoint} ({result.frames} frames), dynamics: {dyn}")
+    for i, (ret, n) in enumerate(zip(result.returns, result.lengths)):
+        print(f"episode {i}: return {ret:.1f} over {n} steps")
+    if result.video is not None:
+        print(f"video: {result.video}")
+    return 0
+
+
+def _size(text: str) -> tuple[int, int]:
+    from adarl.errors import AdaRLValueError
+
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+        if w < 16 or h < 16:
+            raise ValueError
+    except ValueError:
+        raise AdaRLValueError(f"--size {text!r} must be WIDTHxHEIGHT in pixels (each >= 16), e.g. 480x480") from None
+    return w, h
+
+
 def cmd_bench(args) -> int:
     from adarl.bench import cli
 
@@ -249,6 +276,24 @@ def build_parser() -> argparse.ArgumentParser:
                          "for a 2-D grid. Writes sweeps/<name>.csv, .json and .png in RUN_DIR")
     ev.add_argument("--name", default=None, help="file stem of the sweep's outputs (default: the parameter names)")
     ev.set_defaults(func=cmd_eval)
+
+    pl = sub.add_parser("play", help="watch a run's policy act (headless), optionally recorded to an MP4 video",
+                        description="Run the policy of RUN (a run folder or a checkpoint file) deterministically on "
+                                    "the nominal dynamics (the evaluations' centre of the training schedule), or on "
+                                    "dynamics set with --perturb, and print each episode's return; with --video, "
+                                    "render headless (MUJOCO_GL=egl or osmesa) into one MP4 file (needs moviepy: "
+                                    "pip install 'adarl[video]').")
+    pl.add_argument("run", metavar="RUN")
+    pl.add_argument("--video", default=None, metavar="OUT.mp4", help="record the episodes to this MP4 file")
+    pl.add_argument("--episodes", "-n", type=int, default=1, help="episodes to play (default: 1)")
+    pl.add_argument("--perturb", action="append", default=[], metavar="PARAM=V",
+                    help="set a dynamics parameter (e.g. torso_length=0.5); give it again for another")
+    pl.add_argument("--which", choices=["latest", "best"], default="latest",
+                    help="with a run folder: its latest checkpoint (default) or the best evaluation's")
+    pl.add_argument("--max-steps", type=int, default=None, help="steps per episode (default: the recipe's eval.max_steps)")
+    pl.add_argument("--seed", type=int, default=0, help="seed of the env's initial states (default: 0)")
+    pl.add_argument("--size", default="480x480", metavar="WxH", help="video frame size (default: 480x480)")
+    pl.set_defaults(func=cmd_play)
 
     rp = sub.add_parser("report", help="write a run's report, or aggregate many runs into one report",
                         description="One run folder: (re)write its report.md and plots/*.png. Several folders (run "

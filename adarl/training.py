@@ -45,6 +45,7 @@ from adarl.evaluation import EvalResult, evaluate_policy
 from adarl.guards import NonFiniteError, NonFiniteGuard, check_live_layers
 from adarl import metrics
 from adarl.lr_schedule import make_lr_scheduler
+from adarl.policy import policy_specs
 from adarl.rank import make_rule
 from adarl.run_dir import RunDir
 from adarl.signals import GracefulInterrupt, RunInterrupted
@@ -610,6 +611,7 @@ class Trainer:
             "env_state": env_state_dict(c.env),
             "collector": collector_state_dict(c.collector),
             "eval_rng": gym_rng_state_dict(c.eval_env),
+            "policy_specs": policy_specs(c.env),  # adarl.load_policy builds the actor from these, without an env
         }
 
     def save_checkpoint(self, *, scheduled: bool = True) -> Path:

@@ -46,6 +46,7 @@ from adarl.env_state import (
     load_gym_rng_state_dict,
 )
 from adarl.envs import dynamics_state_dict, load_dynamics_state_dict
+from adarl.policy import policy_specs
 from adarl.run_dir import RunDir
 from adarl.training import Trainer, _rng_state, _set_rng_state, make_envs, seed_everything
 
@@ -378,6 +379,7 @@ class PPOTrainer(Trainer):
             "env_state": env_state_dict(c.env),
             "collector": collector_state_dict(c.collector),
             "eval_rng": gym_rng_state_dict(c.eval_env),
+            "policy_specs": policy_specs(c.env),
         }
 
     def save_checkpoint(self) -> Path:

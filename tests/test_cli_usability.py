@@ -68,7 +68,7 @@ def test_version():
 def test_help_imports_nothing_heavy_and_answers_within_a_second():
     code = ("import sys, adarl.cli\n"
             "p = adarl.cli.build_parser(); p.format_help()\n"
-            "for name in ('run', 'eval', 'bench', 'experiment'):\n"
+            "for name in ('run', 'play', 'eval', 'bench', 'experiment'):\n"
             "    p._subparsers._group_actions[0].choices[name].format_help()\n"
             f"print(sorted({{m.split('.')[0] for m in sys.modules}} & set({HEAVY!r})))")
     proc = _python(code)
@@ -86,13 +86,13 @@ def test_help_imports_nothing_heavy_and_answers_within_a_second():
 def test_import_adarl_is_light_and_names_load_on_use():
     proc = _python("import sys, adarl\n"
                    f"print(sorted({{m.split('.')[0] for m in sys.modules}} & set({HEAVY!r})))\n"
-                   "from adarl import LowRankLinear, load_recipe, AdaRLError\n"
+                   "from adarl import LowRankLinear, load_recipe, load_policy, AdaRLError\n"
                    "assert set(adarl.__all__) <= set(dir(adarl))\n"
-                   "print(LowRankLinear.__module__, load_recipe.__module__)")
+                   "print(LowRankLinear.__module__, load_policy.__module__)")
     assert proc.returncode == 0, proc.stderr
     heavy, modules = proc.stdout.strip().splitlines()
     assert heavy == "[]"
-    assert modules == "adarl.lowrank adarl.config"
+    assert modules == "adarl.lowrank adarl.policy"
     proc = _python("import adarl; adarl.nope")
     assert "has no attribute 'nope'" in proc.stderr
 
