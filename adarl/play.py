@@ -86,6 +86,9 @@ def _recording_env(recipe, values: dict[str, float], folder: Path, size: tuple[i
     try:
         base.reset(seed=0)
         frame = base.render()
+    except DependencyNotInstalled as err:  # CartPole draws with pygame
+        base.close()
+        raise AdaRLError(f"rendering {env_id} needs a package that is not installed: {err}") from None
     except Exception as err:  # noqa: BLE001 - any GL failure: say how to render headless
         base.close()
         gl = os.environ.get("MUJOCO_GL", "(unset)")

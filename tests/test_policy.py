@@ -198,3 +198,28 @@ def test_play_without_video_and_its_errors(tiny, tmp_path):
         assert "Traceback" not in proc.stderr
         for word in words:
             assert word in proc.stderr, (word, proc.stderr)
+
+
+@pytest.mark.parametrize("recipe, overrides, obs_dim", [
+    ("baselines/hopper_rnac_ipm", ["collector.total_frames=256", "collector.frames_per_batch=128",
+                                   "algorithm.ppo.epochs=1", "eval.interval=256", "eval.episodes=1",
+                                   "eval.max_steps=20", "checkpoint.interval=256"], 11),
+    ("cartpole_adarl", ["collector.total_frames=400", "collector.init_random_frames=200",
+                        "collector.frames_per_batch=100", "rank.interval=100", "replay.warm_start.frames=100",
+                        "eval.interval=400", "eval.episodes=1", "eval.max_steps=20"], 4),
+])
+def test_load_policy_of_a_ppo_run_and_a_discrete_run(recipe, overrides, obs_dim, tmp_path):
+    from adarl.policy import load_policy, load_policy_with_info
+
+    out = tmp_path / "run"
+    proc = adarl("run", recipe, *overrides, "-o", str(out), "--quiet")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    loaded = load_policy_with_info(out)
+    state = torch.load(loaded.checkpoint, weights_only=True)["state"]
+    if recipe.startswith("baselines/"):  # PPO: the actor's own state dict, running obs normalisation included
+        assert all(torch.equal(v, state["actor"][k]) for k, v in loaded.actor.state_dict().items())
+    else:
+        for name, p in loaded.actor.named_parameters():
+            assert torch.equal(p, state["loss"][f"actor_network_params.{name}"]), name
+    action = load_policy(out)(TensorDict(observation=torch.randn(obs_dim)))["action"]
+    assert action.shape == ((2,) if recipe == "cartpole_adarl" else (3,))
