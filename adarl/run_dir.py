@@ -127,8 +127,9 @@ class RunDir:
                     )
         config = recipe.model_dump(mode="json") if hasattr(recipe, "model_dump") else None
         if "tensorboard" in backends:
+            new = not (self.path / "tensorboard").exists()
             tb = _tensorboard_logger(self.path, purge_step=None if step is None else int(step) + 1)
-            if step is None and config is not None:
+            if new and config is not None:
                 from adarl.config import recipe_to_yaml
 
                 tb.experiment.add_text("recipe", "```yaml\n" + recipe_to_yaml(recipe) + "```", global_step=0)

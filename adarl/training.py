@@ -254,7 +254,8 @@ class Trainer:
     ``Trainer(recipe, run_dir).train()`` for a new run; ``Trainer.resume(run_dir).train()`` to continue one.
     """
 
-    def __init__(self, recipe, run_dir: RunDir, *, quiet: bool = False, _resume_state: dict | None = None) -> None:
+    def __init__(self, recipe, run_dir: RunDir, *, quiet: bool = False, _resume_state: dict | None = None,
+                 _log_from: int | None = None) -> None:
         self.recipe = recipe
         self.run_dir = run_dir
         self.quiet = quiet
@@ -273,8 +274,8 @@ class Trainer:
         self._last_log_frames = 0
         self._pending_updates = 0.0
         self._bar = None
-        self.logger = run_dir.make_logger(
-            recipe, step=None if _resume_state is None else int(_resume_state["counters"]["frames"]))
+        # _log_from: the frames a resumed run's logs continue from (None: a new run, or evaluation only)
+        self.logger = run_dir.make_logger(recipe, step=_log_from)
         self._build(_resume_state)
 
     def _build(self, state: dict | None) -> None:
@@ -325,7 +326,8 @@ class Trainer:
             state = run_dir.load_checkpoint(run_dir.best_checkpoint_path if checkpoint == "best" else checkpoint)
         if truncate_metrics:
             run_dir.truncate_metrics(int(state["counters"]["frames"]))
-        return cls(recipe, run_dir, quiet=quiet, _resume_state=state)
+        log_from = int(state["counters"]["frames"]) if truncate_metrics else None  # eval/sweeps rewrite no logs
+        return cls(recipe, run_dir, quiet=quiet, _resume_state=state, _log_from=log_from)
 
     # ------------------------------------------------------------------ the loop
     def train(self) -> dict:

@@ -211,7 +211,8 @@ def trainer_class(recipe) -> type[Trainer]:
 class PPOTrainer(Trainer):
     """Runs a PPO/RNAC recipe in a run folder; same outputs as the SAC :class:`~adarl.training.Trainer`."""
 
-    def __init__(self, recipe, run_dir: RunDir, *, quiet: bool = False, _resume_state: dict | None = None) -> None:
+    def __init__(self, recipe, run_dir: RunDir, *, quiet: bool = False, _resume_state: dict | None = None,
+                 _log_from: int | None = None) -> None:
         self.recipe, self.run_dir, self.quiet = recipe, run_dir, quiet
         self.frames = self.updates = self.episodes = self.iterations = 0
         self.last_eval_frames = self.last_ckpt_frames = 0
@@ -225,8 +226,7 @@ class PPOTrainer(Trainer):
         self._last_log_frames = 0
         self._bar = None
         self.c = build_ppo_components(recipe)
-        self.logger = run_dir.make_logger(
-            recipe, step=None if _resume_state is None else int(_resume_state["counters"]["frames"]))
+        self.logger = run_dir.make_logger(recipe, step=_log_from)
         if _resume_state is not None:
             self._load_state(_resume_state)
 

@@ -254,6 +254,9 @@ def logged_run(tmp_path_factory):
         resumed.train()
         second = {"bar": _Bar.made[-1], "wandb": _FakeWandb.made[-1], "writer": _FakeWriter.made[-1],
                   "from": 800}
+        evaluating = Trainer.resume(path, quiet=True, truncate_metrics=False, checkpoint="best")  # adarl eval
+        evaluating.close()
+        second["eval_writer"] = _FakeWriter.made[-1]
         yield {"path": path, "recipe": recipe, "summary": summary, "first": first, "second": second}
     finally:
         mp.undo()
@@ -320,3 +323,4 @@ def test_tensorboard_hides_the_steps_a_resume_logs_again(logged_run):
     first, second = logged_run["first"]["writer"], logged_run["second"]["writer"]
     assert first.purge_step is None and "collector" in first.texts["recipe"]
     assert second.purge_step == logged_run["second"]["from"] + 1
+    assert logged_run["second"]["eval_writer"].purge_step is None  # an evaluation hides no training step
