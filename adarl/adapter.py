@@ -50,6 +50,7 @@ __all__ = [
     "LayerRecord",
     "LowRankSite",
     "find_low_rank_layers",
+    "layer_indices",
     "resize_to_ranks",
     "SCOPES",
     "TARGET_MODES",
@@ -171,6 +172,7 @@ class LowRankSite:
     target_w1: torch.Tensor | None
     target_w2: torch.Tensor | None
     extra: tuple[torch.Tensor, torch.Tensor] | None
+    name: str = ""  # what a person reads: "<role>.layer<k>" (see layer_names), e.g. "actor.layer0"
 
     @property
     def key(self) -> tuple[str, ...]:
@@ -212,6 +214,32 @@ def _network_candidates(loss: nn.Module) -> list[tuple[str, nn.Module]]:
 
 def _role(name: str) -> str:
     return "actor" if name in ACTOR_NETWORK_NAMES else "critic"
+
+
+def layer_indices(network: nn.Module) -> dict[str, int]:
+    """``{module path: k}`` of the network's weight layers in forward order (``nn.Linear``, ``LowRankLinear``; a
+    layer inside another counted one is not counted again): ``k`` is the hidden-layer index a recipe's
+    ``low_rank_layers`` uses."""
+    out: dict[str, int] = {}
+    for path, module in network.named_modules():
+        if isinstance(module, (nn.Linear, LowRankLinear)) and not any(path.startswith(p + ".") for p in out):
+            out[path] = len(out)
+    return out
+
+
+def _name_sites(sites: list[LowRankSite]) -> None:
+    """Give each site its human name, ``<role>.layer<k>`` (``actor.layer0``, ``critic.layer1``). Where two networks
+    of a loss share a role (IQL's Q and V critics), the network's attribute less ``_network`` stands for the role
+    (``qvalue.layer0``, ``value.layer0``)."""
+    roles: dict[str, set[str]] = {}
+    for s in sites:
+        roles.setdefault(s.role, set()).add(s.network_name)
+    indices: dict[int, dict[str, int]] = {}
+    for s in sites:
+        idx = indices.setdefault(id(s.network), layer_indices(s.network))
+        prefix = s.role if len(roles[s.role]) == 1 else s.network_name.removesuffix("_network")
+        k = idx.get(s.module_path)
+        s.name = f"{prefix}.layer{k}" if k is not None else f"{prefix}.{s.module_path or s.network_name}"
 
 
 def find_low_rank_layers(loss_module: nn.Module, scope: str = "both") -> tuple[list[LowRankSite], list[str]]:
@@ -275,6 +303,7 @@ def find_low_rank_layers(loss_module: nn.Module, scope: str = "both") -> tuple[l
             sites.append(
                 LowRankSite(path, name, role, module_path, network, layer, params, w1, w2, tw1, tw2, extra)
             )
+    _name_sites(sites)
     return sites, searched
 
 
@@ -318,6 +347,7 @@ class LayerRecord:
     tolerance: float | None = None
     tried: list | None = None
     note: str | None = None
+    name: str | None = None  # the layer's human name ("actor.layer0"); ``layer`` keeps the module path
 
     @property
     def changed(self) -> bool:
@@ -351,8 +381,16 @@ class RankEvent:
         return {"step": self.step, "index": self.index, "layers": [r.as_dict() for r in self.layers]}
 
     @classmethod
-    def from_dict(cls, d: Mapping) -> RankEvent:
-        return cls(int(d["step"]), int(d["index"]), [LayerRecord(**r) for r in d["layers"]])
+    def from_dict(cls, d: Mapping, names: Mapping[str, str] | None = None) -> RankEvent:
+        """An event from :meth:`as_dict`; ``names`` (``{layer_path: human name}``) fills the names of records saved
+        before layers had them."""
+        layers = []
+        for r in d["layers"]:
+            rec = LayerRecord(**r)
+            if rec.name is None and names:
+                rec.name = names.get(rec.layer)
+            layers.append(rec)
+        return cls(int(d["step"]), int(d["index"]), layers)
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -631,7 +669,8 @@ class RankAdapter(TrainerHookBase):
             error recorded for every truncation when given): a callable returning a TensorDict batch (e.g.
             :class:`~adarl.acceptance.RecentTransitions`, the recent transitions of a replay buffer, as recipes
             use; for an on-policy loss, the last batch), or a TorchRL replay buffer (``.sample()`` is called).
-        logger: a TorchRL logger; the rank of each layer is logged as ``rank/<layer path>`` at every event.
+        logger: a TorchRL logger; the rank of each layer is logged as ``rank/<layer name>`` (``rank/actor.layer0``,
+            see :attr:`names`) at every event.
         log_step: a callable giving the x-axis value the ranks are logged at (e.g. ``lambda: frames``, to plot them
             against collected frames like the returns); default: the optimisation step. :meth:`register` sets it
             (and ``logger``, if none was given) from the TorchRL ``Trainer``: its collected frames and its logger.
@@ -760,6 +799,17 @@ class RankAdapter(TrainerHookBase):
         """``{layer_path: "actor" | "critic"}`` of the adapted layers."""
         return {s.path: s.role for s in self.sites}
 
+    @property
+    def names(self) -> dict[str, str]:
+        """``{layer_path: human name}``, e.g. ``{"actor_network.module.0.module.0.0": "actor.layer0"}``: the names
+        logs, tables and plots show (``<role>.layer<k>``, ``k`` the recipe's hidden-layer index)."""
+        return {s.path: s.name for s in self.sites}
+
+    @property
+    def named_ranks(self) -> dict[str, int]:
+        """:attr:`ranks` keyed by human name (``{"actor.layer0": 11, ...}``)."""
+        return {s.name: s.rank for s in self.sites}
+
     # -- hooks --------------------------------------------------------------------------------------------------
 
     def step(self) -> RankEvent | None:
@@ -867,7 +917,7 @@ class RankAdapter(TrainerHookBase):
         if self.logger is not None:
             x = int(self.log_step()) if self.log_step is not None else event.step
             for record in event.layers:
-                self.logger.log_scalar(f"rank/{record.layer}", float(record.new_rank), step=x)
+                self.logger.log_scalar(f"rank/{record.name or record.layer}", float(record.new_rank), step=x)
         if event.changed:
             for cb in self.on_truncate:
                 cb(event)
@@ -893,7 +943,7 @@ class RankAdapter(TrainerHookBase):
             reason = f"non-finite values in {' and '.join(nonfinite)} (training diverged?); rank kept"
             return LayerRecord(step=step, layer=site.path, network=site.role, old_rank=current, new_rank=current,
                                singular_values=[], retained_energy=float("nan"), truncation_error=float("nan"),
-                               skipped=reason), None
+                               skipped=reason, name=site.name), None
         u, s, vh = factor_svd(site.w1, site.w2)
         members = list(itertools.product(*[range(n) for n in lead]))  # [()] for a single network
         choices, reasons = [], []
@@ -967,6 +1017,7 @@ class RankAdapter(TrainerHookBase):
             tolerance=tol,
             tried=tried,
             note=note if new != current else None,
+            name=site.name,
         )
         return record, (u, s, vh)
 
@@ -1035,7 +1086,7 @@ class RankAdapter(TrainerHookBase):
                 f"adapter.load_state_dict"
             )
         self.step_count = int(state_dict.get("step_count", 0))
-        self.history = [RankEvent.from_dict(e) for e in state_dict.get("history", [])]
+        self.history = [RankEvent.from_dict(e, self.names) for e in state_dict.get("history", [])]
         saved = list(state_dict.get("lr_schedulers", []))
         with_state = [sch for sch in self.lr_schedulers if hasattr(sch, "load_state_dict")]
         if saved and len(saved) != len(with_state):

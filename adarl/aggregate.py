@@ -25,8 +25,10 @@ from pathlib import Path
 
 import yaml
 
+from adarl import metrics
 from adarl.errors import AdaRLError
 from adarl.experiment import run_is_finished
+from adarl.report import layer_label
 from adarl.results import is_url
 from adarl.run_dir import RunDir
 
@@ -149,7 +151,7 @@ def _load_run(path: Path, axes: dict[str, str] | None) -> RunRecord | None:
     rows = run.read_eval()
     evals = [(int(r["frames"]), float(r["mean"])) for r in rows]
     eval_updates = [int(r["updates"]) for r in rows]
-    events = sorted({step for step, _ in run.scalars().get("rank.warm_start_frames", [])})
+    events = sorted({step for step, _ in metrics.series(run.scalars(), metrics.WARM_START_FRAMES)})
     summary_path = path / "summary.json"
     summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
     sweeps = {}
@@ -352,7 +354,7 @@ def _rank_series(run: RunRecord) -> dict[str, list[tuple[int, int]]]:
     for ev in run.rank_history:
         step = int(ev.get("step", 0))
         for layer in ev.get("layers", []):
-            name = f"{layer.get('network', '')}:{layer.get('layer', '?')}"
+            name = layer_label(layer)
             pts = series.setdefault(name, [(0, int(layer["old_rank"]))])
             pts.append((step, int(layer["new_rank"])))
     for pts in series.values():
@@ -745,9 +747,9 @@ def _statistics_blocks(agg: Aggregate, out: Path) -> list[tuple]:
 
 def event_dips(run: RunRecord, window: int) -> list[tuple[int, float, float]]:
     """``(event frame, mean training return in the window before, mean in the window after)`` per rank event
-    that changed a rank, from the run's ``train.episode_return`` log (events without episodes on both sides are
-    left out)."""
-    returns = RunDir(run.path).scalars().get("train.episode_return", [])
+    that changed a rank, from the run's ``train/episode_return`` log (``train.episode_return`` in run folders of
+    an older adarl; events without episodes on both sides are left out)."""
+    returns = metrics.series(RunDir(run.path).scalars(), metrics.TRAIN_RETURN)
     out = []
     for e in run.events:
         before = [v for f, v in returns if e - window < f <= e]

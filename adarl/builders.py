@@ -20,7 +20,7 @@ from torchrl.objectives import DiscreteSACLoss, SACLoss, SoftUpdate, ValueEstima
 from adarl.errors import AdaRLValueError
 from adarl.lowrank import LowRankLinear, low_rank_mlp
 
-__all__ = ["ACTIVATIONS", "make_mlp", "make_sac_actor", "make_sac_critic", "make_sac_loss", "SACModules", "make_sac_modules",
+__all__ = ["ACTIVATIONS", "check_device", "make_mlp", "make_recipe_actor", "make_sac_actor", "make_sac_critic", "make_sac_loss", "SACModules", "make_sac_modules",
            "reinit_low_rank_ensemble"]
 
 ACTIVATIONS: dict[str, type[nn.Module]] = {
@@ -30,6 +30,25 @@ ACTIVATIONS: dict[str, type[nn.Module]] = {
     "elu": nn.ELU,
     "gelu": nn.GELU,
 }
+
+
+def check_device(device: str | torch.device) -> torch.device:
+    """``torch.device(device)``, or :class:`AdaRLValueError` naming why this machine cannot use it and what it can
+    (instead of torch's error deep inside the first tensor put there)."""
+    dev = torch.device(device)
+    if dev.type != "cuda":
+        return dev
+    if not torch.cuda.is_available():
+        why = (f"this torch ({torch.__version__}) was built without CUDA" if torch.version.cuda is None
+               else "no CUDA GPU is visible (torch.cuda.is_available() is False)")
+        raise AdaRLValueError(f"device {str(device)!r} is not available: {why}; allowed here: 'cpu' (the recipe "
+                              f"key `device`, e.g. the override device=cpu)")
+    n = torch.cuda.device_count()
+    if dev.index is not None and dev.index >= n:
+        allowed = ", ".join(["'cpu'", "'cuda'", *(f"'cuda:{i}'" for i in range(n))])
+        raise AdaRLValueError(f"device {str(device)!r} is not available: this machine has {n} CUDA device(s); "
+                              f"allowed here: {allowed}")
+    return dev
 
 
 def _activation(name: str) -> type[nn.Module]:
@@ -197,6 +216,19 @@ class SACModules:
     target_updater: SoftUpdate
 
 
+def make_recipe_actor(recipe, env: EnvBase) -> ProbabilisticActor:
+    """The SAC actor of a recipe's ``network.actor`` section, for ``env``'s specs (any object with
+    ``observation_spec`` and ``action_spec``: :func:`adarl.load_policy` passes the specs a checkpoint saved)."""
+    from adarl.baselines.mlp import variant_kwargs
+
+    a = recipe.network.actor
+    spec = env.action_spec_unbatched if hasattr(env, "action_spec_unbatched") else env.action_spec
+    action_dim = spec.space.n if _is_discrete(spec) else spec.shape[-1]
+    return make_sac_actor(env, num_cells=a.num_cells, activation=a.activation, low_rank_layers=a.low_rank_layers,
+                          rank=a.rank, device=torch.device(recipe.device),
+                          **variant_kwargs(a, recipe.algorithm.parseval, action_dim))
+
+
 def make_sac_modules(recipe, env: EnvBase) -> SACModules:
     """Build actor, critic, loss and target updater from a recipe's ``network`` and ``algorithm`` sections."""
     from adarl.baselines.mlp import variant_kwargs
@@ -206,9 +238,7 @@ def make_sac_modules(recipe, env: EnvBase) -> SACModules:
     spec = env.action_spec_unbatched if hasattr(env, "action_spec_unbatched") else env.action_spec
     action_dim = spec.space.n if _is_discrete(spec) else spec.shape[-1]
     pv = recipe.algorithm.parseval
-    actor = make_sac_actor(env, num_cells=a.num_cells, activation=a.activation,
-                           low_rank_layers=a.low_rank_layers, rank=a.rank, device=device,
-                           **variant_kwargs(a, pv, action_dim))
+    actor = make_recipe_actor(recipe, env)
     critic = make_sac_critic(env, num_cells=c.num_cells, activation=c.activation,
                              low_rank_layers=c.low_rank_layers, rank=c.rank, device=device,
                              **variant_kwargs(c, pv, action_dim))

@@ -19,15 +19,21 @@ def _err(msg: str) -> None:
     print(f"adarl: error: {msg}", file=sys.stderr)
 
 
-def _quiet_env() -> None:
-    # MuJoCo renders headless; keep TorchRL's import-time deprecation chatter out of the user's terminal.
+def _quiet_env(quiet: bool = False) -> None:
+    """Before anything imports TorchRL or MuJoCo: headless rendering, and none of their chatter in the terminal
+    (TorchRL's INFO lines, its import-time deprecations, its "no target network updater" warning: adarl updates
+    the targets itself). ``quiet`` (``--quiet``) also silences wandb."""
     os.environ.setdefault("MUJOCO_GL", "egl")
+    os.environ.setdefault("RL_LOGGING_LEVEL", "WARNING")  # read when torchrl is imported
+    if quiet:
+        os.environ.setdefault("WANDB_SILENT", "true")
     import warnings
 
     warnings.filterwarnings("ignore", category=DeprecationWarning)
     warnings.filterwarnings("ignore", category=FutureWarning)
     warnings.filterwarnings("ignore", message=".*WeightUpdaterBase.*")
     warnings.filterwarnings("ignore", message=".*settotalmass.*")
+    warnings.filterwarnings("ignore", message="No target network updater has been associated")
 
 
 def _run_folder(recipe, output: str | None) -> Path:
@@ -63,9 +69,12 @@ def cmd_run(args) -> int:
 
 
 def _print_summary(summary: dict, path: Path) -> None:
+    from adarl.report import named_ranks
+
     ev = summary.get("final_eval") or {}
+    ranks = ", ".join(f"{name}={rank}" for name, rank in named_ranks(summary).items()) or "-"
     print(f"run finished: {summary['frames']} frames, {summary['updates']} updates, "
-          f"{summary['rank_events']} rank events, final ranks {summary['ranks']}")
+          f"{summary['rank_events']} rank events, final ranks {ranks}")
     if ev:
         print(f"nominal-dynamics evaluation: {ev['mean']:.1f} ± {ev['std']:.1f} over {ev['episodes']} episodes")
     print(f"results: {path}  (report: {path / 'report.md'})")
@@ -125,6 +134,33 @@ def cmd_eval(args) -> int:
     return 0
 
 
+def cmd_play(args) -> int:
+    from adarl.play import parse_perturb, play
+
+    size = _size(args.size)
+    result = play(args.run, which=args.which, episodes=args.episodes, video=args.video,
+                  perturb=parse_perturb(args.perturb), max_steps=args.max_steps, seed=args.seed, size=size)
+    dyn = ", ".join(f"{k}={v:g}" for k, v in result.dynamics.items()) or "the env's own"
+    print(f"policy of {result.checkpoint} ({result.frames} frames), dynamics: {dyn}")
+    for i, (ret, n) in enumerate(zip(result.returns, result.lengths)):
+        print(f"episode {i}: return {ret:.1f} over {n} steps")
+    if result.video is not None:
+        print(f"video: {result.video}")
+    return 0
+
+
+def _size(text: str) -> tuple[int, int]:
+    from adarl.errors import AdaRLValueError
+
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+        if w < 16 or h < 16:
+            raise ValueError
+    except ValueError:
+        raise AdaRLValueError(f"--size {text!r} must be WIDTHxHEIGHT in pixels (each >= 16), e.g. 480x480") from None
+    return w, h
+
+
 def cmd_bench(args) -> int:
     from adarl.bench import cli
 
@@ -174,9 +210,34 @@ def cmd_experiment(args) -> int:
     return 0
 
 
+class _IntermixedParser(argparse.ArgumentParser):
+    """A subcommand's parser that takes options and positionals in any order (``adarl run quickstart -o DIR
+    seed=1``): argparse's intermixed parsing, which the top-level parser cannot use itself (it has subparsers)."""
+
+    _parsing = False
+
+    def parse_known_args(self, args=None, namespace=None):
+        if self._parsing:  # parse_known_intermixed_args calls back into parse_known_args (Python < 3.12)
+            return super().parse_known_args(args, namespace)
+        self._parsing = True
+        try:
+            return self.parse_known_intermixed_args(args, namespace)
+        finally:
+            self._parsing = False
+
+
+def _version() -> str:
+    from adarl import __version__
+
+    return f"adarl {__version__}"
+
+
 def build_parser() -> argparse.ArgumentParser:
+    """The ``adarl`` parser. It imports nothing heavy (torch, TorchRL): ``adarl --help`` and typos answer at once;
+    each command imports what it needs when it runs."""
     p = argparse.ArgumentParser(prog="adarl", description="Robust RL by adaptive rank control, on TorchRL.")
-    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    p.add_argument("--version", action="version", version=_version())
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=_IntermixedParser)
 
     r = sub.add_parser("run", help="train a recipe in a new run folder, evaluate it and write a report",
                        description="Train RECIPE (a shipped name, see `adarl recipes`, or a .yaml path). "
@@ -215,6 +276,24 @@ def build_parser() -> argparse.ArgumentParser:
                          "for a 2-D grid. Writes sweeps/<name>.csv, .json and .png in RUN_DIR")
     ev.add_argument("--name", default=None, help="file stem of the sweep's outputs (default: the parameter names)")
     ev.set_defaults(func=cmd_eval)
+
+    pl = sub.add_parser("play", help="watch a run's policy act (headless), optionally recorded to an MP4 video",
+                        description="Run the policy of RUN (a run folder or a checkpoint file) deterministically on "
+                                    "the nominal dynamics (the evaluations' centre of the training schedule), or on "
+                                    "dynamics set with --perturb, and print each episode's return; with --video, "
+                                    "render headless (MUJOCO_GL=egl or osmesa) into one MP4 file (needs moviepy: "
+                                    "pip install 'adarl[video]').")
+    pl.add_argument("run", metavar="RUN")
+    pl.add_argument("--video", default=None, metavar="OUT.mp4", help="record the episodes to this MP4 file")
+    pl.add_argument("--episodes", "-n", type=int, default=1, help="episodes to play (default: 1)")
+    pl.add_argument("--perturb", action="append", default=[], metavar="PARAM=V",
+                    help="set a dynamics parameter (e.g. torso_length=0.5); give it again for another")
+    pl.add_argument("--which", choices=["latest", "best"], default="latest",
+                    help="with a run folder: its latest checkpoint (default) or the best evaluation's")
+    pl.add_argument("--max-steps", type=int, default=None, help="steps per episode (default: the recipe's eval.max_steps)")
+    pl.add_argument("--seed", type=int, default=0, help="seed of the env's initial states (default: 0)")
+    pl.add_argument("--size", default="480x480", metavar="WxH", help="video frame size (default: 480x480)")
+    pl.set_defaults(func=cmd_play)
 
     rp = sub.add_parser("report", help="write a run's report, or aggregate many runs into one report",
                         description="One run folder: (re)write its report.md and plots/*.png. Several folders (run "
@@ -275,7 +354,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    _quiet_env()
+    _quiet_env(bool(getattr(args, "quiet", False)))
     from adarl.errors import AdaRLError, RecipeError
     from adarl.signals import RunInterrupted
 

@@ -1239,7 +1239,11 @@ EXPERIMENTS_DIR = "experiments"
 
 
 def _package_recipes_dir() -> Path:
-    return Path(__file__).resolve().parent.parent / "recipes"
+    """The shipped recipes: ``adarl/recipes/`` in an installed wheel (package data mapped from the source tree's
+    top-level ``recipes/``, see pyproject.toml), else that top-level folder (a source checkout, an editable install)."""
+    here = Path(__file__).resolve().parent
+    installed = here / "recipes"
+    return installed if installed.is_dir() else here.parent / "recipes"
 
 
 def recipes_dir() -> list[Path]:

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import yaml
 
+from adarl import metrics
 from adarl.results import is_url
 
 __all__ = ["RunProgress", "BoardTotals", "read_progress", "ProgressBoard", "LiveBoard", "use_live"]
@@ -83,11 +84,13 @@ def read_progress(run_id: str, path: str | Path, state: str) -> RunProgress:
     except (KeyError, TypeError, ValueError, yaml.YAMLError):
         pass
     frames, ret = 0, None
-    for name in ("train.updates.csv", "train.episode_return.csv"):
-        last = _last_step(_read(p, f"metrics/scalars/{name}"))
+    for name in (metrics.TRAIN_UPDATES, metrics.TRAIN_RETURN):
+        new, legacy = metrics.csv_paths(name)  # a run of an older adarl wrote train.updates.csv
+        text = _read(p, new)
+        last = _last_step(text if text is not None else _read(p, legacy))
         if last is not None:
             frames = max(frames, last[0])
-            if name == "train.episode_return.csv":
+            if name == metrics.TRAIN_RETURN:
                 ret = last[1]
     text = _read(p, "eval.csv")
     try:

@@ -11,6 +11,7 @@ import json
 import os
 from pathlib import Path
 
+from adarl import metrics
 from adarl.run_dir import RunDir
 
 __all__ = ["write_report", "plot_returns", "plot_ranks"]
@@ -26,15 +27,13 @@ def _plt():
 
 
 def _event_frames(run: RunDir) -> list[int]:
-    scalars = run.scalars()
-    rows = scalars.get("rank.warm_start_frames", [])
+    rows = metrics.series(run.scalars(), metrics.WARM_START_FRAMES)  # one row per event (older runs: rank.*)
     return sorted({step for step, _ in rows})
 
 
 def plot_returns(run: RunDir, out: Path) -> Path | None:
     """Training return (per finished episode batch) and evaluation mean ± std, rank events marked."""
-    scalars = run.scalars()
-    train = scalars.get("train.episode_return", [])
+    train = metrics.series(run.scalars(), metrics.TRAIN_RETURN)
     evals = run.read_eval()
     if not train and not evals:
         return None
@@ -68,7 +67,7 @@ def plot_ranks(run: RunDir, out: Path) -> Path | None:
     for event in history:
         step = int(event.get("step", 0))
         for layer in event.get("layers", []):
-            name = f"{layer.get('network', '')}:{layer.get('layer', '?')}"
+            name = layer_label(layer)
             pts = series.setdefault(name, [(0, int(layer["old_rank"]))])
             pts.append((step, int(layer["new_rank"])))
     summary = run.path / "summary.json"
@@ -124,7 +123,7 @@ def write_report(path: str | os.PathLike) -> Path | str:
             f"- frames: {summary.get('frames')}, optimisation steps: {summary.get('updates')}, "
             f"episodes: {summary.get('episodes')}",
             f"- wall time: {summary.get('wall_time_s', 0):.0f} s ({summary.get('updates_per_s', 0):.1f} updates/s)",
-            f"- rank events: {summary.get('rank_events')}; final ranks: {summary.get('ranks')}",
+            f"- rank events: {summary.get('rank_events')}; final ranks: {named_ranks(summary)}",
         ]
         per_frame = summary.get("simulator_steps_per_frame")
         if per_frame is not None:
@@ -164,7 +163,8 @@ def write_report(path: str | os.PathLike) -> Path | str:
                 energy = min(energy) if isinstance(energy, list) else energy
                 note = layer.get("note") or layer.get("skipped") or ""
                 lines.append(
-                    f"| {ev.get('step')} | {layer.get('network', '')} | {layer.get('layer', '')} | {layer.get('old_rank')} "
+                    f"| {ev.get('step')} | {layer.get('network', '')} | {layer.get('name') or layer.get('layer', '')} "
+                    f"| {layer.get('old_rank')} "
                     f"| {_int(layer.get('candidate'))} | {layer.get('new_rank')} | {_fmt(layer.get('candidate_error'))} "
                     f"| {_fmt(layer.get('error'))} | {_fmt(layer.get('tolerance'))} | {_fmt(energy)} | {_fmt(err)} "
                     f"| {note.replace('|', '/')} |"
@@ -178,6 +178,18 @@ def write_report(path: str | os.PathLike) -> Path | str:
     out = run.path / "report.md"
     out.write_text("\n".join(lines) + "\n")
     return out
+
+
+def named_ranks(summary: dict) -> dict:
+    """``summary.json``'s final ranks by human name (by module path for a run of an older adarl)."""
+    names = summary.get("layer_names") or {}
+    return {names.get(path, path): rank for path, rank in (summary.get("ranks") or {}).items()}
+
+
+def layer_label(layer: dict) -> str:
+    """What a person reads for a layer of ``ranks.json``: its human name (``actor.layer0``), or for a run folder
+    written before layers had names, ``<network>:<module path>``."""
+    return layer.get("name") or f"{layer.get('network', '')}:{layer.get('layer', '?')}"
 
 
 def _int(x) -> str:

@@ -3,7 +3,9 @@
 ::
 
     <run>/recipe.yaml            resolved recipe (what ran; `adarl resume` rebuilds from it)
-    <run>/metrics/scalars/*.csv  TorchRL CSVLogger scalars, one file per metric ("step,value", step = frames)
+    <run>/metrics/scalars/       TorchRL CSVLogger scalars, one file per metric ("step,value", step = frames):
+                                 train/episode_return.csv, eval/return.csv, rank/actor.layer0.csv (adarl.metrics)
+    <run>/wandb_run_id           the wandb run this folder logs to (with logging.backends: [wandb]), for resume
     <run>/eval.csv               nominal-dynamics evaluations (frames, updates, mean, std, ci95, episodes, ranks)
     <run>/ranks.json, ranks.csv  rank history: per event and layer, old/new rank, spectrum, energy, error
     <run>/checkpoints/           ckpt-<frames>.pt (torch.save, loaded with weights_only=True) [+ replay buffer]
@@ -82,8 +84,31 @@ class RunDir:
         return self.path / "checkpoints"
 
     # ------------------------------------------------------------------ logging
-    def make_logger(self, recipe) -> _Fanout:
-        """TorchRL loggers from ``recipe.logging``: CSV into ``metrics/``, optional tensorboard and wandb."""
+    @property
+    def wandb_id_path(self) -> Path:
+        """``wandb_run_id``: the wandb run this folder logs to, so that a resume continues that run."""
+        return self.path / "wandb_run_id"
+
+    def wandb_run_id(self) -> str:
+        """This run folder's wandb run id (made and saved on first use)."""
+        p = self.wandb_id_path
+        if p.is_file():
+            rid = p.read_text().strip()
+            if rid:
+                return rid
+        import uuid
+
+        rid = uuid.uuid4().hex[:16]
+        _atomic_write_text(p, rid + "\n")
+        return rid
+
+    def make_logger(self, recipe, *, step: int | None = None) -> _Fanout:
+        """TorchRL loggers from ``recipe.logging``: CSV into ``metrics/``, optional tensorboard and wandb.
+
+        ``step``: the frames a resume continues from (None: a new run). TensorBoard then hides the events logged
+        after it (the work since the checkpoint, logged again), and wandb continues the folder's run (same id,
+        ``resume="allow"``) on the same step axis (frames; wandb cannot hide rows, so the lost work's rows stay).
+        wandb gets the resolved recipe as the run's config, TensorBoard as text."""
         from torchrl.record.loggers import CSVLogger
 
         loggers = [CSVLogger(exp_name="metrics", log_dir=str(self.path))]
@@ -100,20 +125,31 @@ class RunDir:
                         f"install it (pip install 'adarl[{backend}]') or remove {backend!r} from logging.backends "
                         f"(allowed without extras: ['csv'])"
                     )
+        config = recipe.model_dump(mode="json") if hasattr(recipe, "model_dump") else None
         if "tensorboard" in backends:
-            from torchrl.record.loggers import TensorboardLogger
+            new = not (self.path / "tensorboard").exists()
+            tb = _tensorboard_logger(self.path, purge_step=None if step is None else int(step) + 1)
+            if new and config is not None:
+                from adarl.config import recipe_to_yaml
 
-            loggers.append(TensorboardLogger(exp_name="tensorboard", log_dir=str(self.path)))
+                tb.experiment.add_text("recipe", "```yaml\n" + recipe_to_yaml(recipe) + "```", global_step=0)
+            loggers.append(tb)
         if "wandb" in backends:
             from torchrl.record.loggers import WandbLogger
 
             loggers.append(WandbLogger(exp_name=recipe.name, project=recipe.logging.wandb_project,
-                                       offline=recipe.logging.wandb_mode == "offline", save_dir=str(self.path)))
+                                       offline=recipe.logging.wandb_mode == "offline", save_dir=str(self.path),
+                                       id=self.wandb_run_id(), config=config))
         return _Fanout(loggers)
 
     def close_logger(self, logger: _Fanout) -> None:
         for lg in logger.loggers:
             exp = getattr(lg, "experiment", None)
+            if not hasattr(exp, "files"):  # wandb: finish (a resume or rollback re-opens the run by its id); TB
+                close = getattr(exp, "finish", None) or getattr(exp, "close", None)
+                if close is not None:
+                    close()
+                continue
             for fd in getattr(exp, "files", {}).values():
                 try:
                     fd.close()
@@ -121,10 +157,12 @@ class RunDir:
                     pass
 
     def scalars(self) -> dict[str, list[tuple[int, float]]]:
-        """All CSV scalars as ``{name: [(step, value), ...]}``."""
+        """All CSV scalars as ``{name: [(step, value), ...]}``: ``train/episode_return`` from
+        ``metrics/scalars/train/episode_return.csv``, and a folder's older flat files by their own names
+        (``train.episode_return``; :func:`adarl.metrics.series` reads either)."""
         out = {}
         root = self.path / "metrics" / "scalars"
-        for f in sorted(root.glob("*.csv")) if root.is_dir() else []:
+        for f in sorted(root.rglob("*.csv")) if root.is_dir() else []:
             rows = []
             for line in f.read_text().splitlines():
                 parts = line.split(",")
@@ -133,13 +171,13 @@ class RunDir:
                         rows.append((int(float(parts[0])), float(parts[1])))
                     except ValueError:
                         continue
-            out[f.stem] = rows
+            out[f.relative_to(root).with_suffix("").as_posix()] = rows
         return out
 
     def truncate_metrics(self, frames: int) -> None:
         """Drop metric rows logged after ``frames`` (work lost since the checkpoint being resumed)."""
         root = self.path / "metrics" / "scalars"
-        for f in root.glob("*.csv") if root.is_dir() else []:
+        for f in root.rglob("*.csv") if root.is_dir() else []:
             keep = []
             for line in f.read_text().splitlines():
                 parts = line.split(",")
@@ -231,6 +269,10 @@ class RunDir:
                     elif isinstance(v, dict):
                         continue
                     row[k] = v
+                if "name" in row and "layer" in row:  # the human name beside the module path
+                    keys = [k for k in row if k != "name"]
+                    keys.insert(keys.index("layer") + 1, "name")
+                    row = {k: row[k] for k in keys}
                 flat.append(row)
         if flat:
             import io
@@ -368,6 +410,19 @@ class RunDir:
             return False
         replay_buffer.loads(str(rb_dir))
         return True
+
+
+def _tensorboard_logger(path: Path, *, purge_step: int | None):
+    """TorchRL's TensorboardLogger, with SummaryWriter's ``purge_step`` (events at or after it are hidden)."""
+    from torchrl.record.loggers import TensorboardLogger
+
+    class _Tensorboard(TensorboardLogger):
+        def _create_experiment(self):
+            from torch.utils.tensorboard import SummaryWriter
+
+            return SummaryWriter(log_dir=os.path.join(self.log_dir, self.exp_name), purge_step=purge_step)
+
+    return _Tensorboard(exp_name="tensorboard", log_dir=str(path))
 
 
 def _json_default(obj):

@@ -27,7 +27,7 @@ from torchrl.envs import TransformedEnv
 
 from adarl.acceptance import ProjectionAcceptance, RecentTransitions
 from adarl.adapter import RankAdapter
-from adarl.builders import SACModules, make_sac_modules
+from adarl.builders import SACModules, check_device, make_sac_modules
 from adarl.env_state import (
     collector_state_dict,
     env_state_dict,
@@ -43,7 +43,9 @@ from adarl.fast_replay import UniformTensorSampler
 from adarl.lean_collector import LeanCollector, wants_lean
 from adarl.evaluation import EvalResult, evaluate_policy
 from adarl.guards import NonFiniteError, NonFiniteGuard, check_live_layers
+from adarl import metrics
 from adarl.lr_schedule import make_lr_scheduler
+from adarl.policy import policy_specs
 from adarl.rank import make_rule
 from adarl.run_dir import RunDir
 from adarl.signals import GracefulInterrupt, RunInterrupted
@@ -123,6 +125,7 @@ def build_components(recipe, *, init_random_frames: int | None = None,
 
     With ``algorithm.fused`` the SAC step is a :class:`~adarl.fast_sac.FusedSACUpdate` in ``extras["fused_update"]``
     (same parameters, losses and optimisers as the plain path). ``scratch_dir`` holds a memmap replay storage."""
+    check_device(recipe.device)
     if recipe.algorithm.num_threads is not None:
         torch.set_num_threads(recipe.algorithm.num_threads)
     seed_everything(recipe.seed)
@@ -239,9 +242,10 @@ def build_components(recipe, *, init_random_frames: int | None = None,
 
 
 def _rank_summary(adapter: RankAdapter | None) -> str:
+    """The progress bar's ranks: ``actor.layer0=11 actor.layer1=64 ...``."""
     if adapter is None:
         return "-"
-    return ",".join(str(v) for v in adapter.ranks.values())
+    return " ".join(f"{name}={rank}" for name, rank in adapter.named_ranks.items())
 
 
 class Trainer:
@@ -250,7 +254,8 @@ class Trainer:
     ``Trainer(recipe, run_dir).train()`` for a new run; ``Trainer.resume(run_dir).train()`` to continue one.
     """
 
-    def __init__(self, recipe, run_dir: RunDir, *, quiet: bool = False, _resume_state: dict | None = None) -> None:
+    def __init__(self, recipe, run_dir: RunDir, *, quiet: bool = False, _resume_state: dict | None = None,
+                 _log_from: int | None = None) -> None:
         self.recipe = recipe
         self.run_dir = run_dir
         self.quiet = quiet
@@ -268,7 +273,9 @@ class Trainer:
         self._loss_count = 0
         self._last_log_frames = 0
         self._pending_updates = 0.0
-        self.logger = run_dir.make_logger(recipe)
+        self._bar = None
+        # _log_from: the frames a resumed run's logs continue from (None: a new run, or evaluation only)
+        self.logger = run_dir.make_logger(recipe, step=_log_from)
         self._build(_resume_state)
 
     def _build(self, state: dict | None) -> None:
@@ -319,7 +326,8 @@ class Trainer:
             state = run_dir.load_checkpoint(run_dir.best_checkpoint_path if checkpoint == "best" else checkpoint)
         if truncate_metrics:
             run_dir.truncate_metrics(int(state["counters"]["frames"]))
-        return cls(recipe, run_dir, quiet=quiet, _resume_state=state)
+        log_from = int(state["counters"]["frames"]) if truncate_metrics else None  # eval/sweeps rewrite no logs
+        return cls(recipe, run_dir, quiet=quiet, _resume_state=state, _log_from=log_from)
 
     # ------------------------------------------------------------------ the loop
     def train(self) -> dict:
@@ -334,7 +342,9 @@ class Trainer:
         total = rc.collector.total_frames
         bar = tqdm(total=total, initial=self.frames, unit="frame", disable=self.quiet, dynamic_ncols=True,
                    desc=rc.name)
+        self._bar = bar
         start = time.perf_counter()
+        self._clock = (start, self.frames, self.updates)  # time/fps counts this process's work only
         try:
             with GracefulInterrupt(quiet=self.quiet) as interrupt:
                 if not self.run_dir.checkpoints():
@@ -352,7 +362,9 @@ class Trainer:
                     self._evaluate()
                 self.save_checkpoint()
         finally:
+            self._sync_bar()
             bar.close()
+            self._bar = None
         elapsed = time.perf_counter() - start
         summary = self._write_summary(elapsed)
         from adarl.report import write_report
@@ -370,7 +382,6 @@ class Trainer:
                 batch = batch[: total - self.frames]
             c.replay_buffer.extend(batch)
             self.frames += batch.numel()
-            bar.update(batch.numel())
             self._log_episodes(batch)
 
             if self.frames >= update_after(rc) and len(c.replay_buffer) >= rc.algorithm.batch_size:
@@ -384,6 +395,7 @@ class Trainer:
                     losses.append(self._update())
                 self._log_losses(losses)
 
+            self._sync_bar()  # the batch and any warm-start frames that count towards the budget
             if self.frames - self.last_eval_frames >= rc.eval.interval:
                 self._evaluate()
             if self.frames - self.last_ckpt_frames >= rc.checkpoint.interval:
@@ -401,6 +413,13 @@ class Trainer:
                     f"`adarl resume {self.run_dir.path}`", signum=interrupt.requested, checkpoint=path)
             if self.frames >= total:
                 break
+
+    def _sync_bar(self) -> None:
+        """Move the progress bar to ``self.frames``: every frame the budget counts (warm starts included when
+        ``replay.warm_start.count_frames``), so that its percentage and ETA are right."""
+        bar = self._bar
+        if bar is not None and self.frames != bar.n:
+            bar.update(self.frames - bar.n)
 
     def _on_nonfinite(self, err: NonFiniteError) -> None:
         """Stop with a clear message, or roll back to the last checkpoint with a lower learning rate."""
@@ -424,7 +443,7 @@ class Trainer:
         state = self.run_dir.load_latest_checkpoint()
         self.close()
         self.run_dir.truncate_metrics(int(state["counters"]["frames"]))
-        self.logger = self.run_dir.make_logger(self.recipe)
+        self.logger = self.run_dir.make_logger(self.recipe, step=int(state["counters"]["frames"]))
         self._build(state)
         self.rollbacks = rollbacks
         for sched in self.c.schedulers.values():
@@ -434,7 +453,7 @@ class Trainer:
                 group["lr"] *= g.lr_factor
                 if "initial_lr" in group:
                     group["initial_lr"] *= g.lr_factor
-        self.logger.log_scalar("guards.rollbacks", self.rollbacks, step=self.frames)
+        self.logger.log_scalar(metrics.ROLLBACKS, self.rollbacks, step=self.frames)
         if not self.quiet:
             import sys
 
@@ -493,16 +512,17 @@ class Trainer:
             self.warm_start_frames += added
             if self.recipe.replay.warm_start.count_frames:
                 self.frames += added
-        self.logger.log_scalar("rank.warm_start_frames", added, step=self.frames)
+        self.logger.log_scalar(metrics.WARM_START_FRAMES, added, step=self.frames)
 
     def _on_rank_event(self, event) -> None:
         """After every rank event, changed or not (a refused candidate is a result too): ranks and history."""
         c = self.c
-        for path, rank in c.adapter.ranks.items():
-            self.logger.log_scalar(f"rank.{path}", rank, step=self.frames)
+        for name, rank in c.adapter.named_ranks.items():
+            self.logger.log_scalar(metrics.rank(name), rank, step=self.frames)
         for record in event.layers:
             if record.error is not None:
-                self.logger.log_scalar(f"rank.{record.layer}.error", float(record.error), step=self.frames)
+                self.logger.log_scalar(metrics.rank_error(record.name or record.layer), float(record.error),
+                                       step=self.frames)
         self.run_dir.write_rank_history(c.adapter.history, frames=self.frames)
 
     # ------------------------------------------------------------------ logging and evaluation
@@ -513,13 +533,16 @@ class Trainer:
         returns = batch["next", "episode_reward"].reshape(-1)[done]
         self.episodes += int(done.sum())
         self.last_return = float(returns.mean())
-        self.logger.log_scalar("train.episode_return", self.last_return, step=self.frames)
-        self.logger.log_scalar("train.episodes", self.episodes, step=self.frames)
+        self.logger.log_scalar(metrics.TRAIN_RETURN, self.last_return, step=self.frames)
+        if ("next", "step_count") in batch.keys(True):
+            lengths = batch["next", "step_count"].reshape(-1)[done]
+            self.logger.log_scalar(metrics.TRAIN_LENGTH, float(lengths.float().mean()), step=self.frames)
+        self.logger.log_scalar(metrics.TRAIN_EPISODES, self.episodes, step=self.frames)
         key = self.recipe.env.perturbation.key
         if key in batch.keys():
             for name, value in batch[key].items():
                 if name != "episode":
-                    self.logger.log_scalar(f"dynamics.{name}", float(value.reshape(-1)[done].float().mean()),
+                    self.logger.log_scalar(metrics.dynamics(name), float(value.reshape(-1)[done].float().mean()),
                                            step=self.frames)
 
     def _log_losses(self, losses: list[dict[str, torch.Tensor]], *, flush: bool = False) -> None:
@@ -533,17 +556,31 @@ class Trainer:
         self._last_log_frames = self.frames
         if self._loss_count:
             for k, total in self._loss_sums.items():
-                self.logger.log_scalar(f"train.{k}", total / self._loss_count, step=self.frames)
-            self.logger.log_scalar("train.updates", self.updates, step=self.frames)
-            self.logger.log_scalar("train.lr", self.c.optimizers["actor"].param_groups[0]["lr"], step=self.frames)
+                self.logger.log_scalar(metrics.train(k), total / self._loss_count, step=self.frames)
+            self.logger.log_scalar(metrics.TRAIN_UPDATES, self.updates, step=self.frames)
+            self.logger.log_scalar(metrics.TRAIN_LR, self.c.optimizers["actor"].param_groups[0]["lr"],
+                                   step=self.frames)
+        self._log_throughput()
         self._loss_sums, self._loss_count = {}, 0
+
+    def _log_throughput(self) -> None:
+        """``time/fps`` and ``time/updates_per_s`` since this process started training (wall clock)."""
+        clock = getattr(self, "_clock", None)
+        if clock is None or getattr(self, "_fps_frames", None) == self.frames:  # once per step
+            return
+        self._fps_frames = self.frames
+        t0, frames0, updates0 = clock
+        elapsed = time.perf_counter() - t0
+        if elapsed > 0 and self.frames > frames0:
+            self.logger.log_scalar(metrics.FPS, (self.frames - frames0) / elapsed, step=self.frames)
+            self.logger.log_scalar(metrics.UPDATES_PER_S, (self.updates - updates0) / elapsed, step=self.frames)
 
     def _evaluate(self) -> EvalResult:
         e = self.recipe.eval
         result = evaluate_policy(self.c.modules.actor, self.c.eval_env, episodes=e.episodes, max_steps=e.max_steps)
         self.last_eval_frames = self.frames
-        self.logger.log_scalar("eval.return_mean", result.mean, step=self.frames)
-        self.logger.log_scalar("eval.return_std", result.std, step=self.frames)
+        self.logger.log_scalar(metrics.EVAL_RETURN, result.mean, step=self.frames)
+        self.logger.log_scalar(metrics.EVAL_RETURN_STD, result.std, step=self.frames)
         self.run_dir.append_eval(self.frames, self.updates, result, ranks=self.c.adapter.ranks if self.c.adapter else {})
         if result.mean > self.best_eval:
             self.best_eval = result.mean
@@ -576,6 +613,7 @@ class Trainer:
             "env_state": env_state_dict(c.env),
             "collector": collector_state_dict(c.collector),
             "eval_rng": gym_rng_state_dict(c.eval_env),
+            "policy_specs": policy_specs(c.env),  # adarl.load_policy builds the actor from these, without an env
         }
 
     def save_checkpoint(self, *, scheduled: bool = True) -> Path:
@@ -645,6 +683,7 @@ class Trainer:
             "wall_time_s": elapsed,
             "updates_per_s": self.updates / elapsed if elapsed > 0 else float("nan"),
             "ranks": self.c.adapter.ranks if self.c.adapter is not None else {},
+            "layer_names": self.c.adapter.names if self.c.adapter is not None else {},  # module path -> name
             "rank_events": len(self.c.adapter.history) if self.c.adapter is not None else 0,
             "final_eval": self.run_dir.last_eval(),
             "best_eval_mean": self.best_eval,

@@ -35,7 +35,8 @@ from adarl.baselines.init import orthogonal_init_
 from adarl.baselines.normalization import RewardScaler, RunningObsNorm
 from adarl.baselines.policy import BoxTanh, ClippedNormal
 from adarl.baselines.rnac import DoubleSamplingTransform, IPMAdvantage
-from adarl.builders import make_mlp
+from adarl import metrics
+from adarl.builders import check_device, make_mlp
 from adarl.env_state import (
     collector_state_dict,
     env_state_dict,
@@ -45,6 +46,7 @@ from adarl.env_state import (
     load_gym_rng_state_dict,
 )
 from adarl.envs import dynamics_state_dict, load_dynamics_state_dict
+from adarl.policy import policy_specs
 from adarl.run_dir import RunDir
 from adarl.training import Trainer, _rng_state, _set_rng_state, make_envs, seed_everything
 
@@ -150,6 +152,7 @@ def make_ppo_modules(recipe, env) -> PPOModules:
 
 def build_ppo_components(recipe) -> PPOComponents:
     """Env (+ RNAC-DS), evaluation env, networks, loss, optimisers, LR decay and collector of a PPO recipe."""
+    check_device(recipe.device)
     seed_everything(recipe.seed)
     env, eval_env = make_envs(recipe)
     modules = make_ppo_modules(recipe, env)
@@ -208,7 +211,8 @@ def trainer_class(recipe) -> type[Trainer]:
 class PPOTrainer(Trainer):
     """Runs a PPO/RNAC recipe in a run folder; same outputs as the SAC :class:`~adarl.training.Trainer`."""
 
-    def __init__(self, recipe, run_dir: RunDir, *, quiet: bool = False, _resume_state: dict | None = None) -> None:
+    def __init__(self, recipe, run_dir: RunDir, *, quiet: bool = False, _resume_state: dict | None = None,
+                 _log_from: int | None = None) -> None:
         self.recipe, self.run_dir, self.quiet = recipe, run_dir, quiet
         self.frames = self.updates = self.episodes = self.iterations = 0
         self.last_eval_frames = self.last_ckpt_frames = 0
@@ -220,8 +224,9 @@ class PPOTrainer(Trainer):
         self._loss_sums: dict[str, float] = {}
         self._loss_count = 0
         self._last_log_frames = 0
+        self._bar = None
         self.c = build_ppo_components(recipe)
-        self.logger = run_dir.make_logger(recipe)
+        self.logger = run_dir.make_logger(recipe, step=_log_from)
         if _resume_state is not None:
             self._load_state(_resume_state)
 
@@ -233,6 +238,7 @@ class PPOTrainer(Trainer):
         bar = tqdm(total=total, initial=self.frames, unit="frame", disable=self.quiet, dynamic_ncols=True,
                    desc=rc.name)
         start = time.perf_counter()
+        self._clock = (start, self.frames, self.updates)
         try:
             for batch in c.collector if self.frames < total else ():
                 if batch.ndim == 1:
@@ -331,9 +337,11 @@ class PPOTrainer(Trainer):
         self._last_log_frames = self.frames
         if self._loss_count:
             for k, total in self._loss_sums.items():
-                self.logger.log_scalar(f"train.{k}", total / self._loss_count, step=self.frames)
-            self.logger.log_scalar("train.updates", self.updates, step=self.frames)
-            self.logger.log_scalar("train.lr", self.c.optimizers["actor"].param_groups[0]["lr"], step=self.frames)
+                self.logger.log_scalar(metrics.train(k), total / self._loss_count, step=self.frames)
+            self.logger.log_scalar(metrics.TRAIN_UPDATES, self.updates, step=self.frames)
+            self.logger.log_scalar(metrics.TRAIN_LR, self.c.optimizers["actor"].param_groups[0]["lr"],
+                                   step=self.frames)
+        self._log_throughput()
         self._loss_sums, self._loss_count = {}, 0
 
     def _write_summary(self, elapsed: float) -> dict:
@@ -371,6 +379,7 @@ class PPOTrainer(Trainer):
             "env_state": env_state_dict(c.env),
             "collector": collector_state_dict(c.collector),
             "eval_rng": gym_rng_state_dict(c.eval_env),
+            "policy_specs": policy_specs(c.env),
         }
 
     def save_checkpoint(self) -> Path:

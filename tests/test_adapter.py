@@ -373,7 +373,7 @@ def test_lr_restart_callbacks_and_logger():
         adapter.step()
     assert opt.param_groups[0]["lr"] == 0.0  # restarted: warm-up from zero
     assert len(calls) == 1 and calls[0] is adapter.history[-1]
-    assert {name for name, _, _ in logged} == {f"rank/{p}" for p in adapter.ranks}
+    assert {name for name, _, _ in logged} == {f"rank/{n}" for n in adapter.names.values()}
     assert all(step == 3 and isinstance(v, float) for _, v, step in logged)
     sch.step()
     assert opt.param_groups[0]["lr"] == pytest.approx(0.05 * 0.5 * (1 + math.cos(math.pi * 4 / 100)))

@@ -66,7 +66,10 @@ def _wait_for_checkpoint(path: Path, proc: subprocess.Popen, newer_than: set[str
 
 def _results(run: Path) -> dict[str, str]:
     """Every metric file and the evaluation/rank records, as text (timing fields left out)."""
-    out = {f"metrics/{p.name}": p.read_text() for p in sorted((run / "metrics" / "scalars").glob("*.csv"))}
+    root = run / "metrics" / "scalars"
+    out = {f"metrics/{p.relative_to(root).as_posix()}": p.read_text() for p in sorted(root.rglob("*.csv"))
+           if p.relative_to(root).parts[0] != "time"}  # time/fps: wall clock
+    assert "metrics/train/episode_return.csv" in out
     out["eval.csv"] = (run / "eval.csv").read_text()
     out["ranks.json"] = (run / "ranks.json").read_text()
     summary = json.loads((run / "summary.json").read_text())
