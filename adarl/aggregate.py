@@ -210,7 +210,38 @@ def collect_runs(dirs: list[str | os.PathLike]) -> tuple[list[RunRecord], dict]:
                     add(_load_run(sub.parent, None))
     if not runs:
         raise AdaRLError(f"no run folders (with recipe.yaml) found in {[str(d) for d in dirs]}")
+    _split_loose_variants(runs)
     return runs, info
+
+
+def _flat(d: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flat(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+# Keys that differ between the seeds of one setting (or do not change what is learned).
+_NOT_A_SETTING = ("seed", "name", "description", "output.")
+
+
+def _split_loose_variants(runs: list[RunRecord]) -> None:
+    """Loose run folders are grouped by recipe name; runs of one name with different settings (other than the
+    seed) would then pool as replicates of one setting. Give those a ``variant`` axis naming the keys that differ."""
+    by_name: dict[str, list[RunRecord]] = {}
+    for r in runs:
+        if set(r.axes) == {"recipe"}:
+            by_name.setdefault(r.axes["recipe"], []).append(r)
+    for group in by_name.values():
+        flats = [{k: v for k, v in _flat(r.recipe).items() if not k.startswith(_NOT_A_SETTING)} for r in group]
+        keys = sorted({k for f in flats for k in f if len({repr(g.get(k)) for g in flats}) > 1})
+        if not keys:
+            continue
+        for r, f in zip(group, flats):
+            r.axes["variant"] = ",".join(f"{k}={f.get(k)}" for k in keys)
 
 
 def aggregate_runs(dirs: list[str | os.PathLike]) -> Aggregate:
@@ -407,7 +438,7 @@ def rank_settling(run: RunRecord) -> dict[str, dict]:
     for ev in run.rank_history:
         step = int(ev.get("step", 0))
         for layer in ev.get("layers", []):
-            name = f"{layer.get('network', '')}:{layer.get('layer', '?')}"
+            name = layer_label(layer)
             d = out.setdefault(name, {"initial": int(layer["old_rank"]), "final": int(layer["old_rank"]),
                                       "min": int(layer["old_rank"]), "last_change": None})
             new = int(layer["new_rank"])
