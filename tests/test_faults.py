@@ -257,6 +257,16 @@ def test_disk_full_injected_stops_with_one_line(tmp_path):
     _check_stopped_cleanly(run, proc)
 
 
+def test_disk_full_while_logging_metrics_is_one_line(tmp_path):
+    run = tmp_path / "run"  # the metric files' disk is full from the start: the first row fails
+    proc = adarl_under_faults(run / "metrics", "full", 0,
+                              ["run", "quickstart", *FAST, "-o", str(run), "--quiet"], timeout=300)
+    line = _one_error_line(proc, "metrics/scalars/", "disk full", "its last checkpoint is intact", "adarl resume")
+    assert "No space left on device" in line
+    assert [p.name for p in RunDir(run).checkpoints()] == ["ckpt-000000000000.pt"]
+    RunDir(run).load_checkpoint(RunDir(run).checkpoints()[-1])
+
+
 _DUMP = """
 import sys, torch
 from tensordict import TensorDict
