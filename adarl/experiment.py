@@ -47,7 +47,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from adarl.errors import AdaRLError, AdaRLValueError, AdaRLWarning, RecipeError
 from adarl.results import is_url
 
-__all__ = ["ExperimentSpec", "PlannedRun", "load_experiment", "plan_runs", "unused_axes", "run_experiment", "run_is_finished",
+__all__ = ["ExperimentSpec", "PlannedRun", "load_experiment", "plan_runs", "unused_axes", "run_experiment",
+           "run_is_finished",
            "execute_run", "read_attempts", "shipped_experiments", "EXPERIMENT_FILE", "ATTEMPTS_DIR"]
 
 EXPERIMENT_FILE = "experiment.json"

@@ -110,7 +110,7 @@ class RunDir:
 
         Why a claim: checking that the folder is empty and then writing into it lets two processes started at the
         same instant (`adarl run -o SAME` twice) both pass the check. The claim is ``.adarl.lock`` created with
-        ``O_EXCL``: exactly one process creates it, the other is refused. It stays locked while this process lives.
+        ``O_EXCL``: exactly one process creates it, the other is refused. It stays locked until training ends.
         """
         p = Path(path)
         try:
@@ -153,8 +153,9 @@ class RunDir:
         return cls(p)
 
     def lock(self) -> None:
-        """Lock the folder for this process until it exits (or :meth:`discard`): another process that would train
-        in it (`adarl resume` while `adarl run` still runs, two resumes) is refused. Re-entrant in one process."""
+        """Lock the folder for this process until :meth:`unlock` (a trainer's ``close()``) or the process ends: another
+        process that would train in it (`adarl resume` while `adarl run` still runs, two resumes) is refused.
+        Re-entrant in one process."""
         lock = self.path / LOCK_FILE
         key = str(lock.absolute())
         fd = _HELD_LOCKS.get(key)
@@ -168,15 +169,20 @@ class RunDir:
         try:
             fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
         except OSError as err:
-            raise AdaRLError(f"cannot lock run folder {str(self.path)!r} to train in it: {_os_why(err, lock)}") from None
+            raise AdaRLError(f"cannot lock run folder {str(self.path)!r} to train in it: "
+                             f"{_os_why(err, lock)}") from None
         if not _hold_lock(lock, fd):
             raise AdaRLError(f"run folder {str(self.path)!r} is in use by another process ({_holder(lock)}); wait "
                              f"for it to finish or stop it first")
 
+    def unlock(self) -> None:
+        """Release this process's lock (training ended); another process may train in the folder again."""
+        _release_lock(self.path / LOCK_FILE)
+
     def discard(self, *, keep_folder: bool = False) -> None:
         """Undo :meth:`create` when nothing ran (a recipe that fails to build): the folder goes (or only its contents,
         ``keep_folder``, when it existed before) and the lock is released."""
-        _release_lock(self.path / LOCK_FILE)
+        self.unlock()
         if not keep_folder:
             shutil.rmtree(self.path, ignore_errors=True)
             return

@@ -271,6 +271,8 @@ class Trainer:
         self._loss_count = 0
         self._last_log_frames = 0
         self._pending_updates = 0.0
+        if not _read_only:
+            run_dir.lock()  # one process trains in a run folder at a time (released by close())
         self.logger = null_logger() if _read_only else run_dir.make_logger(recipe)
         self._build(_resume_state)
 
@@ -451,6 +453,7 @@ class Trainer:
         rollbacks = self.rollbacks + 1
         state = self.run_dir.load_latest_checkpoint(fingerprint=self.fingerprint)
         self.close()
+        self.run_dir.lock()  # close() released it; training goes on here
         self.run_dir.truncate_metrics(int(state["counters"]["frames"]))
         self.logger = self.run_dir.make_logger(self.recipe)
         self._build(state)
@@ -658,7 +661,8 @@ class Trainer:
         saved = state.get("replay_buffer_saved")
         if not self.read_only and (saved or (saved is None and self.recipe.checkpoint.replay_buffer)):
             source = state.get("checkpoint_file")  # the buffer lies beside the checkpoint file, wherever it is
-            if not self.run_dir.load_replay_buffer(self.c.replay_buffer, frames=self.frames, checkpoint=source) and saved:
+            loaded = self.run_dir.load_replay_buffer(self.c.replay_buffer, frames=self.frames, checkpoint=source)
+            if not loaded and saved:
                 raise CheckpointError(f"the replay buffer saved with the checkpoint at {self.frames} frames is missing "
                                       f"from {Path(source).parent if source else self.run_dir.checkpoint_dir}")
         if c.adapter is not None and not self.read_only:  # the rank history as of the checkpoint resumed
@@ -690,6 +694,8 @@ class Trainer:
             except Exception:  # already closed
                 pass
         self.run_dir.close_logger(self.logger)
+        if not getattr(self, "read_only", True):  # an evaluator never held the lock (a trainer beside it may)
+            self.run_dir.unlock()
 
 
 def _rng_state() -> dict:

@@ -2,11 +2,12 @@
 same faults injected in-process.
 
 ``small_fs(size)`` / ``readonly_fs()`` mount a real tmpfs (root, or CAP_SYS_ADMIN) and yield its path; they skip
-the test where ``mount`` is not allowed. :class:`FaultFS` makes every path under a folder behave as on a full
-(``ENOSPC`` once a byte budget is spent) or read-only (``EROFS``) file system, for code in this process: it patches
-``open``/``io.open`` (writes counted through a proxy file), ``os.open``/``os.write``/``os.pwrite`` and the calls that
-create, rename or delete. ``python tests/faultfs.py ROOT MODE BUDGET -- adarl ARGS`` runs the ``adarl`` command
-under it, so CLI tests cover the same behaviour where nothing can be mounted (CI without root).
+the test where ``mount`` is not allowed (or with ``ADARL_TESTS_NO_MOUNT=1``: the CI path, on a machine that can).
+:class:`FaultFS` makes every path under a folder behave as on a full (``ENOSPC`` once a byte budget is spent) or
+read-only (``EROFS``) file system, for code in this process: it patches ``open``/``io.open`` (writes counted
+through a proxy file), ``os.open``/``os.write``/``os.pwrite`` and the calls that create, rename or delete.
+``python tests/faultfs.py ROOT MODE BUDGET -- ARGS`` runs ``adarl ARGS`` under it, so the CLI tests cover the same
+behaviour where nothing can be mounted (CI without root).
 """
 
 from __future__ import annotations
@@ -41,7 +42,8 @@ def can_mount() -> bool:
     """Whether this process may mount a tmpfs (tried once: root in a container may still lack CAP_SYS_ADMIN)."""
     global _CAN_MOUNT
     if _CAN_MOUNT is None:
-        if shutil.which("mount") is None or not sys.platform.startswith("linux"):
+        if (os.environ.get("ADARL_TESTS_NO_MOUNT") or shutil.which("mount") is None
+                or not sys.platform.startswith("linux")):
             _CAN_MOUNT = False
         else:
             probe = Path(tempfile.mkdtemp(prefix="adarl-mount-probe-"))

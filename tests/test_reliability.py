@@ -183,6 +183,15 @@ def test_replay_buffer_is_found_beside_a_checkpoint_file(finished_run, tmp_path)
     evaluator.close()
 
 
+def test_training_releases_the_run_folder_lock(finished_run):
+    import subprocess
+    import sys
+
+    code = "import sys; from adarl.run_dir import RunDir; RunDir(sys.argv[1]).lock()"
+    proc = subprocess.run([sys.executable, "-c", code, str(finished_run)], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+
+
 def test_summary_is_strict_json(finished_run):
     import json
 

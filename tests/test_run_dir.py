@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+import os
 import types
 
 import pytest
@@ -127,7 +128,8 @@ def test_lock_is_per_process_and_released_with_the_process(tmp_path):
     RunDir(run.path).lock()
     code = "import sys; from adarl.run_dir import RunDir; RunDir(sys.argv[1]).lock()"
     proc = subprocess.run([sys.executable, "-c", code, str(run.path)], capture_output=True, text=True)
-    assert proc.returncode != 0 and "in use by another process" in proc.stderr and f"pid {__import__('os').getpid()}" in proc.stderr
+    assert proc.returncode != 0 and "in use by another process" in proc.stderr
+    assert f"pid {os.getpid()}" in proc.stderr
     run.discard(keep_folder=True)  # released: another process may take it now
     proc = subprocess.run([sys.executable, "-c", code, str(run.path)], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
@@ -138,8 +140,8 @@ def test_write_json_is_strict_json(tmp_path):
     import math
 
     run = RunDir.create(tmp_path / "run")
-    run.write_json("summary.json", {"a": float("nan"), "b": [1.0, float("inf")], "c": torch.tensor([float("-inf"), 2.0]),
-                                    "d": {"e": math.pi}})
+    run.write_json("summary.json", {"a": float("nan"), "b": [1.0, float("inf")],
+                                    "c": torch.tensor([float("-inf"), 2.0]), "d": {"e": math.pi}})
     text = (run.path / "summary.json").read_text()
     data = json.loads(text, parse_constant=lambda c: pytest.fail(f"{c} in JSON"))
     assert data == {"a": None, "b": [1.0, None], "c": [None, 2.0], "d": {"e": math.pi}}
@@ -148,7 +150,8 @@ def test_write_json_is_strict_json(tmp_path):
 def test_checkpoint_of_another_recipe_is_refused_by_name(tmp_path):
     run = RunDir.create(tmp_path / "run")
     mine = {"env.id": "Hopper-v5", "network.actor.num_cells": [64, 64], "replay.size": 1000}
-    path = run.save_checkpoint({"counters": {"frames": 1}}, frames=1, fingerprint={**mine, "network.actor.num_cells": [32]})
+    theirs = {**mine, "network.actor.num_cells": [32]}
+    path = run.save_checkpoint({"counters": {"frames": 1}}, frames=1, fingerprint=theirs)
     with pytest.raises(CheckpointError, match=r"another recipe \(network.actor.num_cells: \[32\] in it, \[64, 64\]"):
         run.load_checkpoint(path, fingerprint=mine)
     # keys one side does not know (another adarl version) are not compared; no fingerprint given: not checked
