@@ -466,12 +466,16 @@ class RunDir:
             raise refuse(f"cannot be loaded safely: {_why_unloadable(err)}") from None
         if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
             raise refuse("is not an adarl checkpoint (format marker missing)")
-        if int(payload.get("version", 0)) > CHECKPOINT_VERSION:
-            raise refuse(f"was written by a newer adarl (checkpoint version {payload['version']}, this version reads "
-                         f"up to {CHECKPOINT_VERSION}); upgrade adarl to load it")
         state = payload.get("state")
-        if not isinstance(state, dict) or "counters" not in state:
-            raise refuse("is not an adarl checkpoint (no training state in it)")
+        try:  # the fields everything below relies on, of the right kinds (a file may hold anything plain)
+            version = int(payload.get("version", 0))
+            if version > CHECKPOINT_VERSION:  # a newer layout: say so before judging it by this one
+                raise refuse(f"was written by a newer adarl (checkpoint version {version}, this version reads up to "
+                             f"{CHECKPOINT_VERSION}); upgrade adarl to load it")
+            frames = int(payload.get("frames", state["counters"]["frames"]))
+            int(state["counters"]["frames"])
+        except (TypeError, ValueError, KeyError, IndexError):
+            raise refuse("is not an adarl checkpoint (no training state in it)") from None
         theirs = payload.get("recipe_fingerprint")
         if fingerprint is not None and isinstance(theirs, dict):
             differ = [k for k in fingerprint if k in theirs and theirs[k] != fingerprint[k]]
@@ -480,7 +484,7 @@ class RunDir:
                 raise refuse(f"was written for another recipe ({shown}{'; ...' if len(differ) > 3 else ''}); it "
                              f"cannot be loaded into this run's networks")
         if replay_buffer and payload.get("replay_buffer"):
-            rb = self._replay_buffer_dir(path, payload.get("frames", state["counters"].get("frames", 0)))
+            rb = self._replay_buffer_dir(path, frames)
             if not rb.is_dir():
                 raise refuse(f"has lost its replay buffer: the folder {rb.name} is missing beside it")
         state["checkpoint_file"] = str(path)

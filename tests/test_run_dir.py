@@ -178,3 +178,18 @@ def test_replay_buffer_round_trip_and_older_dumps_folders(tmp_path):
     rb.dumps(str(run.checkpoint_dir / "rb-000000000060"))  # the layout checkpoints had before this release
     old = buffer()
     assert run.load_replay_buffer(old, frames=60) and len(old) == 30
+
+
+@pytest.mark.parametrize("payload", [
+    {"format": "adarl.checkpoint", "version": 1, "state": {"counters": 5}},
+    {"format": "adarl.checkpoint", "version": "x", "state": {"counters": {"frames": 1}}},
+    {"format": "adarl.checkpoint", "version": 1, "state": [1, 2]},
+    {"format": "adarl.checkpoint", "version": 1, "frames": "soon", "state": {"counters": {"frames": 1}}},
+])
+def test_malformed_checkpoint_is_refused_not_a_traceback(tmp_path, payload):
+    run = RunDir.create(tmp_path / "run")
+    run.checkpoint_dir.mkdir()
+    path = run.checkpoint_dir / "ckpt-000000000001.pt"
+    torch.save(payload, path)  # loads with weights_only=True: only its layout is wrong
+    with pytest.raises(CheckpointError, match="not an adarl checkpoint"):
+        run.load_checkpoint(path)
