@@ -133,7 +133,7 @@ def cmd_eval(args) -> int:
         from adarl.sweep import parse_sweep, sweep_run
 
         result = sweep_run(args.run_dir, [parse_sweep(s) for s in args.sweep], episodes=args.episodes,
-                           name=args.name)
+                           name=args.name, checkpoint=args.checkpoint)
         print(result.describe())
         return 0
 
