@@ -36,6 +36,22 @@ def _quiet_env(quiet: bool = False) -> None:
     warnings.filterwarnings("ignore", message="No target network updater has been associated")
 
 
+def _one_line_warnings() -> None:
+    """adarl's own warnings (a skipped checkpoint, an experiment axis that changes nothing) as one line each."""
+    import warnings
+
+    from adarl.errors import AdaRLWarning
+
+    plain = warnings.formatwarning
+
+    def fmt(message, category, filename, lineno, line=None):
+        if issubclass(category, AdaRLWarning):
+            return f"adarl: warning: {message}\n"
+        return plain(message, category, filename, lineno, line)
+
+    warnings.formatwarning = fmt
+
+
 def _run_folder(recipe, output: str | None) -> Path:
     if output:
         return Path(output)
@@ -58,14 +74,29 @@ def cmd_run(args) -> int:
         trainer = trainer_class(recipe)(recipe, run_dir, quiet=args.quiet)
     except BaseException:
         # Nothing ran: leave no half-made run folder behind (and never remove one the user had).
-        if not existed:
-            import shutil
-
-            shutil.rmtree(path, ignore_errors=True)
+        run_dir.discard(keep_folder=existed)
         raise
-    summary = trainer.train()
+    summary = _train(trainer)
     _print_summary(summary, run_dir.path)
     return 0
+
+
+def _train(trainer) -> dict:
+    """``trainer.train()``; a file-system failure (disk full, read-only) becomes one line saying how to go on."""
+    from adarl.errors import STORAGE_ERRNOS, AdaRLError, describe_os_error
+
+    try:
+        return trainer.train()
+    except BaseException as err:
+        try:  # envs, workers and metric files; on a full disk, closing must not add errors to the one line below
+            trainer.close()
+        except Exception:  # noqa: BLE001
+            pass
+        if not isinstance(err, OSError) or err.errno not in STORAGE_ERRNOS:
+            raise
+        path = trainer.run_dir.path
+        raise AdaRLError(f"{describe_os_error(err)}; the run stopped, its last checkpoint is intact: free space (or "
+                         f"make {str(path)!r} writable) and `adarl resume {path}`") from None
 
 
 def _print_summary(summary: dict, path: Path) -> None:
@@ -83,8 +114,8 @@ def _print_summary(summary: dict, path: Path) -> None:
 def cmd_resume(args) -> int:
     from adarl.training import Trainer
 
-    trainer = Trainer.resume(args.run_dir, quiet=args.quiet)
-    summary = trainer.train()
+    trainer = Trainer.resume(args.run_dir, quiet=args.quiet, checkpoint=args.checkpoint)
+    summary = _train(trainer)
     _print_summary(summary, Path(args.run_dir))
     return 0
 
@@ -107,28 +138,26 @@ def cmd_show(args) -> int:
 
 
 def cmd_eval(args) -> int:
-    import json
-
     if args.sweep:
         from adarl.sweep import parse_sweep, sweep_run
 
         result = sweep_run(args.run_dir, [parse_sweep(s) for s in args.sweep], episodes=args.episodes,
-                           name=args.name)
+                           name=args.name, checkpoint=args.checkpoint)
         print(result.describe())
         return 0
 
     from adarl.evaluation import evaluate_policy
     from adarl.training import Trainer
 
-    trainer = Trainer.resume(args.run_dir, quiet=True, truncate_metrics=False, checkpoint=args.checkpoint)
+    # read-only: the training records (metrics, ranks, checkpoints, summary) are left exactly as training wrote them
+    trainer = Trainer.resume(args.run_dir, quiet=True, read_only=True, checkpoint=args.checkpoint)
     recipe = trainer.recipe
     episodes = args.episodes or recipe.eval.episodes
     result = evaluate_policy(trainer.c.modules.actor, trainer.c.eval_env, episodes=episodes,
                              max_steps=recipe.eval.max_steps)
     trainer.close()
     out = Path(args.run_dir) / "eval_nominal.json"
-    payload = {"frames": trainer.frames, "episodes": episodes, **result.as_dict()}
-    out.write_text(json.dumps(payload, indent=2) + "\n")
+    trainer.run_dir.write_json(out.name, {"frames": trainer.frames, "episodes": episodes, **result.as_dict()})
     print(f"nominal-dynamics evaluation at {trainer.frames} frames: {result.mean:.1f} ± {result.std:.1f} "
           f"(95% CI ± {result.ci95:.1f}) over {episodes} episodes -> {out}")
     return 0
@@ -252,6 +281,9 @@ def build_parser() -> argparse.ArgumentParser:
     rs = sub.add_parser("resume", help="continue a run from its latest checkpoint",
                         description="Continue the run in RUN_DIR from its latest loadable checkpoint.")
     rs.add_argument("run_dir")
+    rs.add_argument("--checkpoint", choices=["latest"], default=None,
+                    help="insist on the newest checkpoint: fail if it cannot be used, instead of skipping it (with a "
+                         "warning) for the newest one that loads")
     rs.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
     rs.set_defaults(func=cmd_resume)
 
@@ -269,8 +301,9 @@ def build_parser() -> argparse.ArgumentParser:
                                     "dynamics (the centre of the uncertainty set); writes eval_nominal.json.")
     ev.add_argument("run_dir")
     ev.add_argument("--episodes", type=int, default=None, help="episodes (default: the recipe's eval.episodes)")
-    ev.add_argument("--checkpoint", default="latest", metavar="latest|best|PATH",
-                    help="which checkpoint: the latest (default), the best nominal evaluation, or a file")
+    ev.add_argument("--checkpoint", default=None, metavar="latest|best|PATH",
+                    help="which checkpoint: the best nominal evaluation, a file, or the newest ('latest': fail if it "
+                         "cannot be used; default: the newest one that loads, a skipped newer one named in a warning)")
     ev.add_argument("--sweep", action="append", metavar="PARAM=LO:HI:N",
                     help="robustness sweep instead: evaluate on a grid of PARAM (others at nominal); give it twice "
                          "for a 2-D grid. Writes sweeps/<name>.csv, .json and .png in RUN_DIR")
@@ -355,7 +388,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     _quiet_env(bool(getattr(args, "quiet", False)))
-    from adarl.errors import AdaRLError, RecipeError
+    _one_line_warnings()
+    from adarl.errors import STORAGE_ERRNOS, AdaRLError, RecipeError, describe_os_error
     from adarl.signals import RunInterrupted
 
     try:
@@ -369,6 +403,11 @@ def main(argv: list[str] | None = None) -> int:
     except AdaRLError as err:
         _err(str(err))
         return 2 if isinstance(err, ValueError) else 1
+    except OSError as err:  # disk full, read-only, no permission: one line, not a traceback
+        if err.errno not in STORAGE_ERRNOS:
+            raise
+        _err(describe_os_error(err))
+        return 1
     except KeyboardInterrupt:
         _err("interrupted (stopped at once; the run folder keeps its previous checkpoint: `adarl resume RUN_DIR`)")
         return 130

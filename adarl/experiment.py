@@ -44,10 +44,11 @@ from typing import Annotated, Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from adarl.errors import AdaRLError, AdaRLValueError, RecipeError
+from adarl.errors import AdaRLError, AdaRLValueError, AdaRLWarning, RecipeError
 from adarl.results import is_url
 
-__all__ = ["ExperimentSpec", "PlannedRun", "load_experiment", "plan_runs", "run_experiment", "run_is_finished",
+__all__ = ["ExperimentSpec", "PlannedRun", "load_experiment", "plan_runs", "unused_axes", "run_experiment",
+           "run_is_finished",
            "execute_run", "read_attempts", "shipped_experiments", "EXPERIMENT_FILE", "ATTEMPTS_DIR"]
 
 EXPERIMENT_FILE = "experiment.json"
@@ -311,8 +312,35 @@ def default_output(spec: ExperimentSpec, budget: str | None) -> Path | str:
     return Path("runs") / "experiments" / (spec.name + (f"-{budget}" if budget else ""))
 
 
+def unused_axes(spec: ExperimentSpec) -> list[str]:
+    """Axes that change nothing: no value brings a recipe or overrides and no template names ``{axis}``; their
+    values plan identical runs (the same training repeated under other names)."""
+    import string
+
+    templates = [spec.recipe or "", *spec.overrides, *(o for b in spec.budgets.values() for o in b.overrides)]
+    templates += [t for vals in spec.axes.values() for v in vals for t in (v.recipe or "", *v.overrides)]
+    named = set()
+    for t in templates:
+        try:
+            named |= {f.split(".")[0].split("[")[0] for _, f, _, _ in string.Formatter().parse(t) if f}
+        except ValueError:  # a malformed template is reported when it is filled
+            continue
+    return [a for a, vals in spec.axes.items()
+            if a not in named and not any(v.recipe or v.overrides for v in vals)]
+
+
 def plan_runs(spec: ExperimentSpec, output: str | os.PathLike, budget: str | None = None) -> list[PlannedRun]:
-    """Every run of the spec under ``budget``: axes product x seeds, recipe and overrides filled in."""
+    """Every run of the spec under ``budget``: axes product x seeds, recipe and overrides filled in.
+
+    An axis that changes nothing (:func:`unused_axes`) is planned anyway, with an
+    :class:`~adarl.errors.AdaRLWarning`: its runs would repeat the same training."""
+    import warnings
+
+    for axis in unused_axes(spec):
+        names = [v.name for v in spec.axes[axis]]
+        warnings.warn(f"experiment {spec.name!r}: axis {axis!r} changes nothing (no override or recipe uses "
+                      f"{{{axis}}} and its values {names} bring none), so its runs repeat the same training; use "
+                      f"{{{axis}}} in an override, give its values overrides, or remove it", AdaRLWarning, stacklevel=2)
     _, b = resolve_budget(spec, budget)
     seeds = b.seeds if b.seeds is not None else spec.seeds
     axes = {a: [v for v in vals if a not in b.axes or v.name in b.axes[a]] for a, vals in spec.axes.items()}

@@ -150,8 +150,10 @@ def write_atomic(url: str, data: str | bytes) -> None:
 
 
 def _is_temp(rel: str) -> bool:
+    """Files never copied between a scratch folder and the URL: temporary names, and the run folder's lock (which
+    process trains in a folder is a fact of one machine; a lock file is made wherever the run resumes)."""
     name = rel.rsplit("/", 1)[-1]
-    return _PART in name or name.endswith(".tmp")
+    return _PART in name or name.endswith(".tmp") or name == ".adarl.lock"
 
 
 def _files(fs, root: str) -> list[str]:

@@ -161,8 +161,10 @@ def _nominal_values(recipe) -> dict[str, float]:
 
 
 def sweep_run(run_dir: str | os.PathLike, axes: list[tuple[str, list[float]]], *, episodes: int | None = None,
-              name: str | None = None) -> SweepResult:
-    """Sweep the latest checkpoint of a run folder; writes ``sweeps/<name>.{csv,json,png}`` there."""
+              name: str | None = None, checkpoint: str | os.PathLike | None = None) -> SweepResult:
+    """Sweep the latest checkpoint of a run folder (or ``checkpoint``: ``"latest"``, ``"best"``, a file, as
+    :meth:`~adarl.training.Trainer.resume` takes it); writes ``sweeps/<name>.{csv,json,png}`` there and nothing
+    else (the run is loaded read-only)."""
     from adarl.config import load_recipe
     from adarl.envs import env_parameters
     from adarl.run_dir import RunDir
@@ -174,7 +176,7 @@ def sweep_run(run_dir: str | os.PathLike, axes: list[tuple[str, list[float]]], *
     for n, _ in axes:
         if n not in allowed:
             raise AdaRLValueError(f"unknown sweep parameter {n!r} for {env_id}; allowed: {list(allowed)}")
-    trainer = Trainer.resume(run_dir, quiet=True, truncate_metrics=False)
+    trainer = Trainer.resume(run_dir, quiet=True, read_only=True, checkpoint=checkpoint)
     try:
         recipe = trainer.recipe
         e = recipe.env

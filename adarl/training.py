@@ -47,7 +47,7 @@ from adarl import metrics
 from adarl.lr_schedule import make_lr_scheduler
 from adarl.policy import policy_specs
 from adarl.rank import make_rule
-from adarl.run_dir import RunDir
+from adarl.run_dir import RunDir, null_logger, recipe_fingerprint
 from adarl.signals import GracefulInterrupt, RunInterrupted
 from adarl.warmstart import ReplayWarmStart
 
@@ -255,10 +255,12 @@ class Trainer:
     """
 
     def __init__(self, recipe, run_dir: RunDir, *, quiet: bool = False, _resume_state: dict | None = None,
-                 _log_from: int | None = None) -> None:
+                 _log_from: int | None = None, _read_only: bool = False) -> None:
         self.recipe = recipe
         self.run_dir = run_dir
         self.quiet = quiet
+        self.read_only = _read_only  # loaded for evaluation: nothing is written into the run folder
+        self.fingerprint = recipe_fingerprint(recipe)
         self.frames = 0
         self.updates = 0
         self.episodes = 0
@@ -274,8 +276,10 @@ class Trainer:
         self._last_log_frames = 0
         self._pending_updates = 0.0
         self._bar = None
+        if not _read_only:
+            run_dir.lock()  # one process trains in a run folder at a time (released by close())
         # _log_from: the frames a resumed run's logs continue from (None: a new run, or evaluation only)
-        self.logger = run_dir.make_logger(recipe, step=_log_from)
+        self.logger = null_logger() if _read_only else run_dir.make_logger(recipe, step=_log_from)
         self._build(_resume_state)
 
     def _build(self, state: dict | None) -> None:
@@ -285,7 +289,7 @@ class Trainer:
             # Checkpoints without the collector's state (older format): skip the random frames already done.
             init_random = max(0, self.recipe.collector.init_random_frames - int(state["counters"]["frames"]))
         self.c = build_components(self.recipe, init_random_frames=init_random,
-                                  scratch_dir=self.run_dir.path / "replay_storage")
+                                  scratch_dir=None if self.read_only else self.run_dir.path / "replay_storage")
         if self.c.adapter is not None:
             lean = isinstance(self.c.collector, LeanCollector)
             if lean:  # nothing may step the env under the warm start (a batch being prefetched is dropped)
@@ -302,15 +306,34 @@ class Trainer:
         self.guard = NonFiniteGuard(named)
         self._factors = {k: v for k, v in named.items() if k.endswith((".w1", ".w2"))}
         if state is not None:
+            self._load_checked(state)
+
+    def _load_checked(self, state: dict) -> None:
+        """:meth:`_load_state`, with a checkpoint that does not fit (one written before checkpoints named their
+        recipe, for other networks) refused in one line instead of a traceback from deep inside torch."""
+        try:
             self._load_state(state)
+        except AdaRLError:
+            raise
+        except (RuntimeError, KeyError, ValueError, IndexError, TypeError) as err:
+            first = (str(err).strip().splitlines() or [type(err).__name__])[0]
+            where = state.get("checkpoint_file", "the checkpoint")
+            raise CheckpointError(f"checkpoint {where!r} does not fit this run's recipe ({type(err).__name__}: "
+                                  f"{first[:200]}); it was written for other networks or is damaged") from None
 
     # ------------------------------------------------------------------ construction helpers
     @classmethod
     def resume(cls, path: str | os.PathLike, *, quiet: bool = False, truncate_metrics: bool = True,
-               checkpoint: str | os.PathLike | None = None) -> Trainer:
+               checkpoint: str | os.PathLike | None = None, read_only: bool | None = None) -> Trainer:
         """Continue the run in ``path`` from its latest loadable checkpoint (metrics after it are dropped first).
 
-        ``checkpoint``: ``"best"`` (the best nominal evaluation), or a checkpoint file, instead of the latest.
+        ``checkpoint``: None, the newest checkpoint that loads (a damaged or foreign newer one is skipped with a
+        :class:`~adarl.errors.CheckpointFallbackWarning` naming it and why); ``"latest"``, the newest or a
+        :class:`~adarl.errors.CheckpointError` (no fallback); ``"best"`` (the best nominal evaluation); or a
+        checkpoint file (its replay buffer is looked for beside it). Every checkpoint is checked against the run's
+        recipe (:func:`~adarl.run_dir.recipe_fingerprint`) before any tensor is used.
+        ``read_only`` (default: ``not truncate_metrics``, i.e. loading to evaluate): nothing in the run folder is
+        written, renamed or locked, and the replay buffer is not read; such a trainer evaluates, it does not train.
         """
         from adarl.config import load_recipe
 
@@ -320,14 +343,20 @@ class Trainer:
             from adarl.training_ppo import PPOTrainer
 
             cls = PPOTrainer
+        read_only = not truncate_metrics if read_only is None else read_only
+        if not read_only:
+            run_dir.lock()  # one process trains in a run folder at a time
+        fingerprint = recipe_fingerprint(recipe)
         if checkpoint is None or checkpoint == "latest":
-            state = run_dir.load_latest_checkpoint(quarantine=truncate_metrics)
+            state = run_dir.load_latest_checkpoint(quarantine=not read_only, fingerprint=fingerprint,
+                                                   strict=checkpoint == "latest", replay_buffer=not read_only)
         else:
-            state = run_dir.load_checkpoint(run_dir.best_checkpoint_path if checkpoint == "best" else checkpoint)
-        if truncate_metrics:
+            state = run_dir.load_checkpoint(run_dir.best_checkpoint_path if checkpoint == "best" else checkpoint,
+                                            fingerprint=fingerprint, replay_buffer=not read_only)
+        if truncate_metrics and not read_only:
             run_dir.truncate_metrics(int(state["counters"]["frames"]))
-        log_from = int(state["counters"]["frames"]) if truncate_metrics else None  # eval/sweeps rewrite no logs
-        return cls(recipe, run_dir, quiet=quiet, _resume_state=state, _log_from=log_from)
+        log_from = int(state["counters"]["frames"]) if truncate_metrics and not read_only else None
+        return cls(recipe, run_dir, quiet=quiet, _resume_state=state, _log_from=log_from, _read_only=read_only)
 
     # ------------------------------------------------------------------ the loop
     def train(self) -> dict:
@@ -440,8 +469,9 @@ class Trainer:
     def _rollback(self, err: NonFiniteError) -> None:
         g = self.recipe.guards
         rollbacks = self.rollbacks + 1
-        state = self.run_dir.load_latest_checkpoint()
+        state = self.run_dir.load_latest_checkpoint(fingerprint=self.fingerprint)
         self.close()
+        self.run_dir.lock()  # close() released it; training goes on here
         self.run_dir.truncate_metrics(int(state["counters"]["frames"]))
         self.logger = self.run_dir.make_logger(self.recipe, step=int(state["counters"]["frames"]))
         self._build(state)
@@ -585,7 +615,8 @@ class Trainer:
         if result.mean > self.best_eval:
             self.best_eval = result.mean
             if self.recipe.checkpoint.keep_best:
-                self.run_dir.save_best(self.state_dict(), frames=self.frames, score=result.mean)
+                self.run_dir.save_best(self.state_dict(), frames=self.frames, score=result.mean,
+                                       fingerprint=self.fingerprint)
         return result
 
     # ------------------------------------------------------------------ checkpoints
@@ -629,6 +660,7 @@ class Trainer:
         state["replay_buffer_saved"] = rb is not None
         return self.run_dir.save_checkpoint(
             state, frames=self.frames, keep_last=self.recipe.checkpoint.keep_last, replay_buffer=rb,
+            fingerprint=self.fingerprint,
         )
 
     def _load_state(self, state: dict) -> None:
@@ -664,11 +696,13 @@ class Trainer:
         load_gym_rng_state_dict(c.eval_env, state.get("eval_rng"))
         c.extras["sampling_generator"].set_state(state["sampling_rng"])
         saved = state.get("replay_buffer_saved")
-        if saved or (saved is None and self.recipe.checkpoint.replay_buffer):
-            if not self.run_dir.load_replay_buffer(self.c.replay_buffer, frames=self.frames) and saved:
+        if not self.read_only and (saved or (saved is None and self.recipe.checkpoint.replay_buffer)):
+            source = state.get("checkpoint_file")  # the buffer lies beside the checkpoint file, wherever it is
+            loaded = self.run_dir.load_replay_buffer(self.c.replay_buffer, frames=self.frames, checkpoint=source)
+            if not loaded and saved:
                 raise CheckpointError(f"the replay buffer saved with the checkpoint at {self.frames} frames is missing "
-                                      f"from {self.run_dir.checkpoint_dir}")
-        if c.adapter is not None:
+                                      f"from {Path(source).parent if source else self.run_dir.checkpoint_dir}")
+        if c.adapter is not None and not self.read_only:  # the rank history as of the checkpoint resumed
             self.run_dir.write_rank_history(c.adapter.history, frames=self.frames)
         _set_rng_state(state["rng"])  # last: nothing after it may draw random numbers
 
@@ -698,6 +732,8 @@ class Trainer:
             except Exception:  # already closed
                 pass
         self.run_dir.close_logger(self.logger)
+        if not getattr(self, "read_only", True):  # an evaluator never held the lock (a trainer beside it may)
+            self.run_dir.unlock()
 
 
 def _rng_state() -> dict:

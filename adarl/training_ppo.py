@@ -47,7 +47,7 @@ from adarl.env_state import (
 )
 from adarl.envs import dynamics_state_dict, load_dynamics_state_dict
 from adarl.policy import policy_specs
-from adarl.run_dir import RunDir
+from adarl.run_dir import RunDir, null_logger, recipe_fingerprint
 from adarl.training import Trainer, _rng_state, _set_rng_state, make_envs, seed_everything
 
 __all__ = ["PPOModules", "PPOComponents", "LinearDecay", "make_ppo_modules", "build_ppo_components", "PPOTrainer",
@@ -212,8 +212,9 @@ class PPOTrainer(Trainer):
     """Runs a PPO/RNAC recipe in a run folder; same outputs as the SAC :class:`~adarl.training.Trainer`."""
 
     def __init__(self, recipe, run_dir: RunDir, *, quiet: bool = False, _resume_state: dict | None = None,
-                 _log_from: int | None = None) -> None:
+                 _log_from: int | None = None, _read_only: bool = False) -> None:
         self.recipe, self.run_dir, self.quiet = recipe, run_dir, quiet
+        self.read_only, self.fingerprint = _read_only, recipe_fingerprint(recipe)
         self.frames = self.updates = self.episodes = self.iterations = 0
         self.last_eval_frames = self.last_ckpt_frames = 0
         self.best_eval = -math.inf
@@ -226,9 +227,9 @@ class PPOTrainer(Trainer):
         self._last_log_frames = 0
         self._bar = None
         self.c = build_ppo_components(recipe)
-        self.logger = run_dir.make_logger(recipe, step=_log_from)
+        self.logger = null_logger() if _read_only else run_dir.make_logger(recipe, step=_log_from)
         if _resume_state is not None:
-            self._load_state(_resume_state)
+            self._load_checked(_resume_state)
 
     def train(self) -> dict:
         from tqdm.auto import tqdm
@@ -384,7 +385,8 @@ class PPOTrainer(Trainer):
 
     def save_checkpoint(self) -> Path:
         path = self.run_dir.save_checkpoint(self.state_dict(), frames=self.frames,
-                                            keep_last=self.recipe.checkpoint.keep_last, replay_buffer=None)
+                                            keep_last=self.recipe.checkpoint.keep_last, replay_buffer=None,
+                                            fingerprint=self.fingerprint)
         self.last_ckpt_frames = self.frames
         return path
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 import errno
 import os
 import pickle
+import shutil
 import signal
 from pathlib import Path
 
@@ -14,7 +15,7 @@ import pytest
 import torch
 
 from adarl.config import load_recipe, save_resolved
-from adarl.errors import CheckpointError, RecipeError
+from adarl.errors import CheckpointError, CheckpointFallbackWarning, RecipeError
 from adarl.guards import DeadLayerError, NonFiniteError, NonFiniteGuard, check_live_layers
 from adarl.run_dir import RunDir
 from adarl.signals import GracefulInterrupt
@@ -75,16 +76,35 @@ def test_truncated_and_garbage_checkpoints_are_refused_and_resume_falls_back(fin
     assert len(ckpts) >= 2
     newest = ckpts[-1]
     newest.write_bytes(newest.read_bytes()[: newest.stat().st_size // 2])  # a write cut short
-    with pytest.raises(CheckpointError, match="corrupt, truncated"):
+    with pytest.raises(CheckpointError, match="truncated or corrupt"):
         run.load_checkpoint(newest)
     ckpts[-2].write_bytes(b"\x00garbage" * 100)
     with pytest.raises(CheckpointError, match="cannot be loaded safely"):
         run.load_checkpoint(ckpts[-2])
-    # resume takes the newest good one and sets the damaged ones aside, so rotation never keeps them
-    state = run.load_latest_checkpoint(quarantine=True)
+    rb_dirs = [RunDir._replay_buffer_dir(c) for c in ckpts]
+    assert all(d.is_dir() for d in rb_dirs)
+    # resume takes the newest good one, says so (one warning per skipped file, naming it and why) and sets the
+    # damaged ones aside, so rotation never keeps them; their replay buffers (useless without them) are deleted
+    with pytest.warns(CheckpointFallbackWarning) as caught:
+        state = run.load_latest_checkpoint(quarantine=True)
+    msgs = [str(w.message) for w in caught if issubclass(w.category, CheckpointFallbackWarning)]
+    assert len(msgs) == 2
+    assert newest.name in msgs[0] and "truncated" in msgs[0] and ckpts[-3].name in msgs[0]
+    assert ckpts[-2].name in msgs[1] and "cannot be loaded safely" in msgs[1]
     assert state["counters"]["frames"] == int(ckpts[-3].stem.split("-")[1])
     assert not newest.exists() and newest.with_name(newest.name + ".corrupt").exists()
     assert run.checkpoints()[-1] == ckpts[-3]
+    assert not rb_dirs[-1].exists() and not rb_dirs[-2].exists() and rb_dirs[-3].is_dir()
+
+
+def test_latest_checkpoint_strict_refuses_instead_of_falling_back(finished_run, tmp_path):
+    run = _copy_run(finished_run, tmp_path / "run")
+    newest = run.checkpoints()[-1]
+    newest.write_bytes(b"")  # an empty file: a write cut short at once
+    with pytest.raises(CheckpointError, match="--checkpoint latest does not fall back") as info:
+        run.load_latest_checkpoint(strict=True, quarantine=True)
+    assert newest.name in str(info.value) and "empty" in str(info.value)
+    assert newest.exists()  # nothing renamed: the user decides
 
 
 class _Evil:
@@ -102,11 +122,14 @@ def test_malicious_pickle_is_refused_without_running_code(tmp_path, monkeypatch)
     torch.save({"format": "adarl.checkpoint", "version": 1, "frames": 100, "state": _Evil()}, evil)
     with pytest.raises(CheckpointError, match="cannot be loaded safely") as info:
         run.load_checkpoint(evil)
-    assert "only tensors and plain containers" in str(info.value)
+    assert "only tensors and plain containers" in str(info.value) and "posix.system" in str(info.value)
+    # torch's own message advises retrying with weights_only=False, which would run the code: never passed on
+    assert "weights_only" not in str(info.value) and "trust" not in str(info.value)
     with evil.open("wb") as fh:  # a plain pickle (not a torch zip) too
         pickle.dump(_Evil(), fh)
-    with pytest.raises(CheckpointError):
+    with pytest.raises(CheckpointError) as info:
         run.load_latest_checkpoint()
+    assert "weights_only" not in str(info.value)
     assert not marker.exists()
 
 
@@ -138,6 +161,43 @@ def test_disk_full_while_writing_keeps_the_previous_checkpoint(finished_run, tmp
     assert run.checkpoints() == before  # nothing rotated away, nothing half-written left
     assert not list(run.checkpoint_dir.glob("*.tmp")) and not (run.checkpoint_dir / "rb-000000010000").exists()
     assert run.load_checkpoint(before[-1])["counters"] == good["counters"]
+
+
+def test_replay_buffer_is_found_beside_a_checkpoint_file(finished_run, tmp_path):
+    run = _copy_run(finished_run, tmp_path / "run")
+    ckpt = run.checkpoints()[-2]
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    shutil.copy(ckpt, elsewhere / ckpt.name)
+    shutil.copytree(RunDir._replay_buffer_dir(ckpt), RunDir._replay_buffer_dir(elsewhere / ckpt.name))
+    shutil.rmtree(RunDir._replay_buffer_dir(ckpt))  # not in the run folder: only beside the file
+    saved = torch.load(RunDir._replay_buffer_dir(elsewhere / ckpt.name) / "buffer.pt", weights_only=True)
+    trainer = Trainer.resume(run.path, quiet=True, checkpoint=elsewhere / ckpt.name)
+    assert len(trainer.c.replay_buffer) == int(saved["_storage"]["_len"]) > 0
+    trainer.close()
+    shutil.rmtree(RunDir._replay_buffer_dir(elsewhere / ckpt.name))
+    with pytest.raises(CheckpointError, match="has lost its replay buffer"):
+        Trainer.resume(run.path, quiet=True, checkpoint=elsewhere / ckpt.name)
+    evaluator = Trainer.resume(run.path, quiet=True, read_only=True, checkpoint=elsewhere / ckpt.name)
+    assert len(evaluator.c.replay_buffer) == 0  # evaluation does not need the buffer
+    evaluator.close()
+
+
+def test_training_releases_the_run_folder_lock(finished_run):
+    import subprocess
+    import sys
+
+    code = "import sys; from adarl.run_dir import RunDir; RunDir(sys.argv[1]).lock()"
+    proc = subprocess.run([sys.executable, "-c", code, str(finished_run)], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+
+
+def test_summary_is_strict_json(finished_run):
+    import json
+
+    text = (finished_run / "summary.json").read_text()
+    summary = json.loads(text, parse_constant=lambda c: pytest.fail(f"{c} in summary.json"))
+    assert summary["final_eval"]["episodes"] == 1 and summary["final_eval"]["ci95"] is None  # no interval from 1
 
 
 def test_best_checkpoint_is_kept_and_loadable(finished_run):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+import os
 import types
 
 import pytest
@@ -86,3 +87,109 @@ def test_missing_logger_extra_is_a_clear_error(tmp_path):
                                                                  wandb_project="adarl"), name="x")
     with pytest.raises(AdaRLError, match=r"adarl\[tensorboard\]"):
         run.make_logger(recipe)
+
+
+def _create_after(barrier, path, results) -> None:
+    barrier.wait()
+    try:
+        RunDir.create(path)
+        results.put("won")
+    except AdaRLError as err:
+        results.put(str(err))
+
+
+@pytest.mark.parametrize("existing", [False, True])
+def test_create_is_exclusive_when_processes_race(tmp_path, existing):
+    """The check-then-create race of two `adarl run -o SAME`: processes released by one barrier, one wins each round."""
+    import multiprocessing as mp
+
+    ctx = mp.get_context("fork")
+    for round_ in range(5):
+        path = tmp_path / f"run{round_}"
+        if existing:
+            path.mkdir()  # an empty folder the user made: the emptiness check alone cannot decide
+        barrier, results = ctx.Barrier(4), ctx.Queue()
+        procs = [ctx.Process(target=_create_after, args=(barrier, path, results)) for _ in range(4)]
+        for p in procs:
+            p.start()
+        for p in procs:
+            p.join(30)
+        outcomes = [results.get(timeout=5) for _ in procs]
+        assert outcomes.count("won") == 1, outcomes
+        assert all(o == "won" or "already exists" in o or "claimed by another process" in o for o in outcomes)
+
+
+def test_lock_is_per_process_and_released_with_the_process(tmp_path):
+    import subprocess
+    import sys
+
+    run = RunDir.create(tmp_path / "run")
+    run.lock()  # re-entrant in the process that holds it
+    RunDir(run.path).lock()
+    code = "import sys; from adarl.run_dir import RunDir; RunDir(sys.argv[1]).lock()"
+    proc = subprocess.run([sys.executable, "-c", code, str(run.path)], capture_output=True, text=True)
+    assert proc.returncode != 0 and "in use by another process" in proc.stderr
+    assert f"pid {os.getpid()}" in proc.stderr
+    run.discard(keep_folder=True)  # released: another process may take it now
+    proc = subprocess.run([sys.executable, "-c", code, str(run.path)], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+
+
+def test_write_json_is_strict_json(tmp_path):
+    import json
+    import math
+
+    run = RunDir.create(tmp_path / "run")
+    run.write_json("summary.json", {"a": float("nan"), "b": [1.0, float("inf")],
+                                    "c": torch.tensor([float("-inf"), 2.0]), "d": {"e": math.pi}})
+    text = (run.path / "summary.json").read_text()
+    data = json.loads(text, parse_constant=lambda c: pytest.fail(f"{c} in JSON"))
+    assert data == {"a": None, "b": [1.0, None], "c": [None, 2.0], "d": {"e": math.pi}}
+
+
+def test_checkpoint_of_another_recipe_is_refused_by_name(tmp_path):
+    run = RunDir.create(tmp_path / "run")
+    mine = {"env.id": "Hopper-v5", "network.actor.num_cells": [64, 64], "replay.size": 1000}
+    theirs = {**mine, "network.actor.num_cells": [32]}
+    path = run.save_checkpoint({"counters": {"frames": 1}}, frames=1, fingerprint=theirs)
+    with pytest.raises(CheckpointError, match=r"another recipe \(network.actor.num_cells: \[32\] in it, \[64, 64\]"):
+        run.load_checkpoint(path, fingerprint=mine)
+    # keys one side does not know (another adarl version) are not compared; no fingerprint given: not checked
+    assert run.load_checkpoint(path, fingerprint={"env.id": "Hopper-v5", "new.key": 1})["counters"]["frames"] == 1
+    assert run.load_checkpoint(path)["counters"]["frames"] == 1
+
+
+def test_replay_buffer_round_trip_and_older_dumps_folders(tmp_path):
+    from tensordict import TensorDict
+    from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+
+    def buffer():
+        return TensorDictReplayBuffer(storage=LazyTensorStorage(100), batch_size=4,
+                                      generator=torch.Generator().manual_seed(0))
+
+    rb = buffer()
+    rb.extend(TensorDict({"obs": torch.randn(30, 3)}, [30]))
+    run = RunDir.create(tmp_path / "run")
+    run.save_checkpoint({"counters": {"frames": 30}}, frames=30, replay_buffer=rb)
+    assert [p.name for p in (run.checkpoint_dir / "rb-000000000030").iterdir()] == ["buffer.pt"]
+    back = buffer()
+    assert run.load_replay_buffer(back, frames=30) and len(back) == 30
+    assert torch.equal(back.sample()["obs"], rb.sample()["obs"])  # same data, same sampler state
+    rb.dumps(str(run.checkpoint_dir / "rb-000000000060"))  # the layout checkpoints had before this release
+    old = buffer()
+    assert run.load_replay_buffer(old, frames=60) and len(old) == 30
+
+
+@pytest.mark.parametrize("payload", [
+    {"format": "adarl.checkpoint", "version": 1, "state": {"counters": 5}},
+    {"format": "adarl.checkpoint", "version": "x", "state": {"counters": {"frames": 1}}},
+    {"format": "adarl.checkpoint", "version": 1, "state": [1, 2]},
+    {"format": "adarl.checkpoint", "version": 1, "frames": "soon", "state": {"counters": {"frames": 1}}},
+])
+def test_malformed_checkpoint_is_refused_not_a_traceback(tmp_path, payload):
+    run = RunDir.create(tmp_path / "run")
+    run.checkpoint_dir.mkdir()
+    path = run.checkpoint_dir / "ckpt-000000000001.pt"
+    torch.save(payload, path)  # loads with weights_only=True: only its layout is wrong
+    with pytest.raises(CheckpointError, match="not an adarl checkpoint"):
+        run.load_checkpoint(path)

@@ -1,0 +1,390 @@
+"""Faults a user or a cluster causes, through the `adarl` command: damaged and foreign checkpoints, evaluation
+beside training records, two starts in one folder, a full disk and a read-only one.
+
+Every row of docs/resuming.md's fault table names its test here (or in tests/test_reliability.py and
+tests/test_run_dir.py); ``test_fault_table_rows_are_tests`` checks that. File-system faults run twice: on a real
+tmpfs where this machine lets us mount one (small, or read-only), and under tests/faultfs.py's injected faults, which
+need no privileges, so CI covers the same behaviour either way.
+"""
+
+from __future__ import annotations
+
+import ast
+import hashlib
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from faultfs import FaultFS, adarl_under_faults, readonly_fs, remount, small_fs
+from test_cli_e2e import REPO, adarl
+
+from adarl.errors import AdaRLWarning, CheckpointError
+from adarl.run_dir import TRAINING_RECORDS, RunDir
+
+# A few hundred frames: checkpoints at 100, 200 and the end, two rank events, best.pt before the second one.
+FAST = [
+    "collector.total_frames=300",
+    "collector.init_random_frames=100",
+    "collector.frames_per_batch=50",
+    "algorithm.batch_size=32",
+    "rank.interval=100",
+    "replay.size=1000",
+    "replay.warm_start.frames=50",
+    "lr_schedule.warmup_steps=20",
+    "eval.interval=150",
+    "eval.episodes=2",
+    "eval.max_steps=20",
+    "checkpoint.interval=100",
+]
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("faults") / "run"
+    proc = adarl("run", "quickstart", *FAST, "-o", str(out), "--quiet")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return out
+
+
+def _copy(src: Path, dst: Path) -> Path:
+    shutil.copytree(src, dst)
+    return dst
+
+
+def _one_error_line(proc: subprocess.CompletedProcess, *words: str) -> str:
+    """The command failed with exactly one `adarl: error:` line holding ``words``, and no traceback."""
+    assert proc.returncode == 1, (proc.returncode, proc.stderr[-3000:])
+    assert "Traceback" not in proc.stderr, proc.stderr[-3000:]
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("adarl: error:")]
+    assert len(errors) == 1, proc.stderr[-3000:]
+    for word in words:
+        assert word in errors[0], (word, errors[0])
+    return errors[0]
+
+
+def _warnings(proc: subprocess.CompletedProcess) -> list[str]:
+    return [line for line in proc.stderr.splitlines() if line.startswith("adarl: warning:")]
+
+
+def _tree(path: Path) -> dict[str, str]:
+    return {f.relative_to(path).as_posix(): hashlib.sha256(f.read_bytes()).hexdigest()
+            for f in sorted(path.rglob("*")) if f.is_file()}
+
+
+def _is_training_record(rel: str) -> bool:
+    return any(rel == r or (r.endswith("/") and rel.startswith(r)) for r in TRAINING_RECORDS)
+
+
+# ------------------------------------------------------------------------------------------ damaged checkpoints
+
+
+def test_resume_names_a_damaged_checkpoint_or_refuses_it(finished, tmp_path):
+    run = _copy(finished, tmp_path / "run")
+    ckpts = RunDir(run).checkpoints()
+    newest = ckpts[-1]
+    newest.write_bytes(newest.read_bytes()[:1000])  # a write cut short
+    proc = adarl("resume", str(run), "--checkpoint", "latest", "--quiet")
+    _one_error_line(proc, newest.name, "truncated", "--checkpoint latest")
+    assert newest.exists()  # insisting changes nothing
+    proc = adarl("resume", str(run), "--quiet")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    [line] = _warnings(proc)
+    assert f"skipped checkpoint {newest.name}" in line and "truncated" in line and ckpts[-2].name in line
+    assert f"renamed {newest.name}.corrupt" in line
+    assert newest.with_name(newest.name + ".corrupt").is_file()
+    assert json.loads((run / "summary.json").read_text())["frames"] >= 300
+
+
+class _Evil:
+    def __reduce__(self):
+        return (os.system, (f"touch {os.environ.get('ADARL_EVIL_MARKER', '/nonexistent/x')}",))
+
+
+def test_eval_names_a_refused_checkpoint_and_renames_nothing(finished, tmp_path, monkeypatch):
+    run = _copy(finished, tmp_path / "run")
+    marker = tmp_path / "pwned"
+    monkeypatch.setenv("ADARL_EVIL_MARKER", str(marker))
+    evil = run / "checkpoints" / "ckpt-000000099999.pt"
+    torch.save({"format": "adarl.checkpoint", "version": 1, "frames": 99999, "state": _Evil()}, evil)
+    before = evil.read_bytes()
+    proc = adarl("eval", str(run), "--episodes", "1")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    [line] = _warnings(proc)
+    assert evil.name in line and "Python object" in line and "weights_only" not in proc.stderr
+    assert evil.read_bytes() == before  # evaluation renames nothing
+    proc = adarl("eval", str(run), "--checkpoint", "latest", "--episodes", "1")
+    _one_error_line(proc, evil.name, "Python object")
+    assert "weights_only" not in proc.stderr
+    assert not marker.exists()
+
+
+# ------------------------------------------------------------------------------------------ foreign checkpoints
+
+
+def _foreign_checkpoint(tmp_path: Path, *, fingerprint: bool = True) -> Path:
+    """A checkpoint of the same recipe with other widths (32 instead of 64): what a copy from another run is."""
+    from adarl.config import load_recipe, save_resolved
+    from adarl.training import Trainer
+
+    recipe = load_recipe("quickstart", [*FAST, "network.actor.num_cells=[32,32]", "network.critic.num_cells=[32,32]"])
+    other = RunDir.create(tmp_path / "other")
+    save_resolved(recipe, other.recipe_path)
+    trainer = Trainer(recipe, other, quiet=True)
+    path = trainer.save_checkpoint()
+    trainer.close()
+    if not fingerprint:  # as written before checkpoints named their recipe
+        payload = torch.load(path, weights_only=True)
+        del payload["recipe_fingerprint"]
+        torch.save(payload, path)
+    return path
+
+
+def test_foreign_checkpoint_is_refused_by_name_before_loading(finished, tmp_path):
+    run = _copy(finished, tmp_path / "run")
+    foreign = _foreign_checkpoint(tmp_path)
+    copied = run / "checkpoints" / "ckpt-000000099999.pt"
+    shutil.copy(foreign, copied)
+    proc = adarl("eval", str(run), "--checkpoint", str(foreign), "--episodes", "1")
+    _one_error_line(proc, foreign.name, "another recipe", "network.actor.num_cells: [32, 32] in it, [64, 64]")
+    proc = adarl("resume", str(run), "--quiet")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    [line] = _warnings(proc)
+    assert copied.name in line and "another recipe" in line
+    assert copied.with_name(copied.name + ".corrupt").is_file()
+
+
+def test_foreign_checkpoint_without_fingerprint_is_one_line(finished, tmp_path):
+    foreign = _foreign_checkpoint(tmp_path, fingerprint=False)
+    proc = adarl("eval", str(finished), "--checkpoint", str(foreign), "--episodes", "1")
+    _one_error_line(proc, foreign.name, "does not fit this run's recipe")
+
+
+# ------------------------------------------------------------------------------------------ evaluation and reports
+
+
+@pytest.mark.parametrize("command, allowed", [
+    (["eval", "--checkpoint", "best", "--episodes", "1"], {"eval_nominal.json"}),
+    (["eval", "--episodes", "1"], {"eval_nominal.json"}),
+    (["eval", "--sweep", "torso_length=0.3:0.5:2", "--episodes", "1"], {"sweeps/"}),
+    (["report"], {"report.md", "plots/return.png", "plots/ranks.png"}),
+])
+def test_eval_and_report_leave_training_records_unchanged(finished, tmp_path, command, allowed):
+    run = _copy(finished, tmp_path / "run")
+    before = _tree(run)
+    assert "ranks.csv" in before and len(json.loads((run / "ranks.json").read_text())) == 2
+    proc = adarl(command[0], str(run), *command[1:])
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    after = _tree(run)
+    changed = {k for k in before.keys() | after.keys() if before.get(k) != after.get(k)}
+    assert all(any(k == a or k.startswith(a) for k in after) for a in allowed), "its output is missing"
+    unexpected = {k for k in changed if k not in allowed and not any(a.endswith("/") and k.startswith(a) for a in allowed)}
+    assert not unexpected, unexpected
+    assert not any(_is_training_record(k) for k in changed)
+    assert {k for k in after if _is_training_record(k)} == {k for k in before if _is_training_record(k)}
+
+
+# ------------------------------------------------------------------------------------------ concurrent starts
+
+
+def test_two_runs_started_at_once_cannot_share_a_folder(tmp_path):
+    out = tmp_path / "same"
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
+    procs = [subprocess.Popen([sys.executable, "-m", "adarl.cli", "run", "quickstart", *FAST, f"seed={seed}", "-o",
+                               str(out), "--quiet"], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                              text=True) for seed in (0, 7)]
+    results = [(p.wait(timeout=300), p.stderr.read()) for p in procs]
+    codes = sorted(rc for rc, _ in results)
+    assert codes == [0, 1], results
+    winner = [seed for (rc, _), seed in zip(results, (0, 7)) if rc == 0][0]
+    loser_err = [err for rc, err in results if rc != 0][0]
+    assert "Traceback" not in loser_err and re.search(r"already exists|claimed by another process", loser_err)
+    assert f"seed: {winner}\n" in (out / "recipe.yaml").read_text()
+    steps = [line.split(",")[0] for line in (out / "metrics/scalars/train.episodes.csv").read_text().split()]
+    assert len(steps) == len(set(steps)), "metric rows written twice"
+
+
+def test_resume_refuses_a_folder_another_process_trains_in(finished, tmp_path):
+    run = _copy(finished, tmp_path / "run")
+    holder = subprocess.Popen([sys.executable, "-c", "import sys, time; from adarl.run_dir import RunDir; "
+                               "RunDir(sys.argv[1]).lock(); print('locked', flush=True); time.sleep(120)", str(run)],
+                              env={**os.environ, "PYTHONPATH": str(REPO)}, stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        proc = adarl("resume", str(run), "--quiet")
+        _one_error_line(proc, "in use by another process", f"pid {holder.pid}")
+        proc = adarl("run", "quickstart", *FAST, "-o", str(run), "--overwrite", "--quiet")
+        _one_error_line(proc, "in use by another process")
+        assert (run / "summary.json").is_file()  # --overwrite removed nothing
+    finally:
+        holder.kill()
+        holder.wait()
+
+
+# ------------------------------------------------------------------------------------------ disk full
+
+
+def _check_stopped_cleanly(run: Path, proc: subprocess.CompletedProcess) -> None:
+    line = _one_error_line(proc, "adarl resume")
+    assert "disk full" in line or "No space left" in line
+    assert not [p for p in run.rglob("*") if p.name.endswith(".tmp")], "partial files left"
+    rd = RunDir(run)
+    last = rd.checkpoints()[-1]
+    state = rd.load_checkpoint(last)  # the previous checkpoint is complete, with its buffer when it has one
+    assert int(state["counters"]["frames"]) in (0, 100)
+
+
+def test_disk_full_tmpfs_stops_with_one_line_and_resumes(tmp_path):
+    with small_fs("3m", tmp=tmp_path) as fs:
+        run = fs / "run"  # a 1 MB replay buffer: the checkpoint at 200 frames no longer fits
+        proc = adarl("run", "quickstart", *FAST, "replay.size=6000", "-o", str(run), "--quiet")
+        assert proc.returncode != 135, "SIGBUS: the replay buffer was memory-mapped onto the full disk"
+        _check_stopped_cleanly(run, proc)
+        remount(fs, "size=32m")  # space freed: the run goes on from its last checkpoint
+        proc = adarl("resume", str(run), "--quiet")
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        assert json.loads((run / "summary.json").read_text())["frames"] >= 300
+
+
+def test_disk_full_injected_stops_with_one_line(tmp_path):
+    run = tmp_path / "run"  # 1.2 MB of writes: the run folder, the frame-0 checkpoint, then the buffer at 100 frames
+    proc = adarl_under_faults(tmp_path, "full", 1_200_000,
+                              ["run", "quickstart", *FAST, "replay.size=6000", "-o", str(run), "--quiet"], timeout=300)
+    _check_stopped_cleanly(run, proc)
+
+
+def test_disk_full_while_logging_metrics_is_one_line(tmp_path):
+    run = tmp_path / "run"  # the metric files' disk is full from the start: the first row fails
+    proc = adarl_under_faults(run / "metrics", "full", 0,
+                              ["run", "quickstart", *FAST, "-o", str(run), "--quiet"], timeout=300)
+    line = _one_error_line(proc, "metrics/scalars/", "disk full", "its last checkpoint is intact", "adarl resume")
+    assert "No space left on device" in line
+    assert [p.name for p in RunDir(run).checkpoints()] == ["ckpt-000000000000.pt"]
+    RunDir(run).load_checkpoint(RunDir(run).checkpoints()[-1])
+
+
+_DUMP = """
+import sys, torch
+from tensordict import TensorDict
+from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+import adarl.run_dir as rd
+from adarl.errors import CheckpointError
+root, check = sys.argv[1], sys.argv[2] == "check"
+if not check:
+    rd._check_free_space = lambda *a: None  # let the write itself meet the full disk
+rb = TensorDictReplayBuffer(storage=LazyTensorStorage(20000), batch_size=4)
+rb.extend(TensorDict({"obs": torch.randn(20000, 40)}, [20000]))  # 3.2 MB on a 3 MB disk
+run = rd.RunDir.create(root + "/run")
+run.save_checkpoint({"counters": {"frames": 1}}, frames=1)
+try:
+    run.save_checkpoint({"counters": {"frames": 2}}, frames=2, replay_buffer=rb)
+except CheckpointError as err:
+    print("REFUSED", err)
+"""
+
+
+@pytest.mark.parametrize("check", ["check", "write"])
+def test_replay_buffer_dump_on_a_full_tmpfs_is_an_error_not_sigbus(tmp_path, check):
+    with small_fs("3m", tmp=tmp_path) as fs:
+        proc = subprocess.run([sys.executable, "-c", _DUMP, str(fs), check], capture_output=True, text=True,
+                              env={**os.environ, "PYTHONPATH": str(REPO)}, timeout=120)
+        assert proc.returncode == 0, (proc.returncode, proc.stderr[-2000:])  # 135 = SIGBUS
+        assert "REFUSED" in proc.stdout and "disk full" in proc.stdout
+        assert sorted(p.name for p in (fs / "run" / "checkpoints").iterdir()) == ["ckpt-000000000001.pt"]
+
+
+def test_replay_buffer_dump_injected_full_disk(tmp_path):
+    from tensordict import TensorDict
+    from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+
+    rb = TensorDictReplayBuffer(storage=LazyTensorStorage(5000), batch_size=4)
+    rb.extend(TensorDict({"obs": torch.randn(5000, 40)}, [5000]))  # 0.8 MB
+    run = RunDir.create(tmp_path / "run")
+    run.save_checkpoint({"counters": {"frames": 1}}, frames=1, replay_buffer=rb)
+    with FaultFS(tmp_path, "full", budget=300_000), pytest.raises(CheckpointError, match="disk full") as info:
+        run.save_checkpoint({"counters": {"frames": 2}}, frames=2, replay_buffer=rb)
+    assert "ckpt-000000000001.pt is intact" in str(info.value)
+    names = sorted(p.name for p in run.checkpoint_dir.iterdir())
+    assert names == ["ckpt-000000000001.pt", "rb-000000000001"]
+    fresh = TensorDictReplayBuffer(storage=LazyTensorStorage(5000), batch_size=4)
+    assert run.load_replay_buffer(fresh, frames=1) and len(fresh) == 5000
+
+
+# ------------------------------------------------------------------------------------------ read-only
+
+
+def _readonly_cases(ro: Path) -> dict[str, subprocess.CompletedProcess]:
+    return {"run": adarl("run", "quickstart", *FAST, "-o", str(ro / "new"), "--quiet"),
+            "resume": adarl("resume", str(ro / "run"), "--quiet"),
+            "eval": adarl("eval", str(ro / "run"), "--episodes", "1")}
+
+
+def _check_readonly(ro: Path, procs: dict[str, subprocess.CompletedProcess]) -> None:
+    _one_error_line(procs["run"], "cannot create run folder", "Read-only file system")
+    _one_error_line(procs["resume"], "cannot lock run folder", "Read-only file system")
+    _one_error_line(procs["eval"], "eval_nominal.json", "Read-only file system")
+    assert not (ro / "new").exists()
+
+
+def test_read_only_tmpfs_is_one_line(finished, tmp_path):
+    with readonly_fs(tmp=tmp_path, populate=lambda fs: shutil.copytree(finished, fs / "run")) as ro:
+        _check_readonly(ro, _readonly_cases(ro))
+
+
+def test_read_only_injected_is_one_line(finished, tmp_path):
+    ro = tmp_path / "ro"
+    _copy(finished, ro / "run")
+    procs = {"run": adarl_under_faults(ro, "readonly", 0, ["run", "quickstart", *FAST, "-o", str(ro / "new"), "-q"]),
+             "resume": adarl_under_faults(ro, "readonly", 0, ["resume", str(ro / "run"), "--quiet"]),
+             "eval": adarl_under_faults(ro, "readonly", 0, ["eval", str(ro / "run"), "--episodes", "1"])}
+    _check_readonly(ro, procs)
+
+
+# ------------------------------------------------------------------------------------------ experiments
+
+
+def test_experiment_axis_that_changes_nothing_is_warned_about(tmp_path):
+    from adarl.experiment import load_experiment, plan_runs
+
+    spec = tmp_path / "exp.yaml"
+    spec.write_text("kind: experiment\nname: x\nrecipe: quickstart\nseeds: [0]\n"
+                    "axes:\n  rank: [4, 8]\n  replicate: [a, b]\noverrides: ['network.actor.rank={rank}']\n")
+    with pytest.warns(AdaRLWarning, match="axis 'replicate' changes nothing") as caught:
+        runs = plan_runs(load_experiment(spec), tmp_path / "out")
+    assert len(runs) == 4 and not any("'rank'" in str(w.message) for w in caught)
+    proc = adarl("experiment", str(spec), "--dry-run", "-o", str(tmp_path / "out"))
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert [line for line in _warnings(proc) if "'replicate' changes nothing" in line]
+
+
+# ------------------------------------------------------------------------------------------ the documented table
+
+
+def _defined_tests() -> set[str]:
+    found = set()
+    for f in (REPO / "tests").glob("test_*.py"):
+        for node in ast.parse(f.read_text()).body:
+            if isinstance(node, ast.FunctionDef) and node.name.startswith("test_"):
+                found.add(f"{f.name}::{node.name}")
+    return found
+
+
+def test_fault_table_rows_are_tests():
+    text = (REPO / "docs" / "resuming.md").read_text()
+    table = text.split("## Faults and what you see", 1)[1].split("\n## ", 1)[0]
+    rows = [line for line in table.splitlines() if line.startswith("|") and not set(line) <= set("|-: ")][1:]
+    assert len(rows) >= 15
+    defined = _defined_tests()
+    for row in rows:
+        names = re.findall(r"`(test_\w+\.py::test_\w+)`", row)
+        assert names, f"fault table row without a test: {row}"
+        for name in names:
+            assert name in defined, f"{name} (docs/resuming.md) is not a test"
+
