@@ -354,10 +354,14 @@ def plot_learning_curves(agg: Aggregate, out: Path) -> tuple[Path | None, str]:
     for ax, (title, groups) in zip(axs, panels.items()):
         for i, g in enumerate(groups):
             color = cmap(i / max(1, len(groups) - 1)) if len(agg.groups) > 8 else cmap(i % 10)
-            frames = sorted({f for r in g.runs for f, _ in r.evals})
+            # Seeds evaluate at slightly different frames when warm-start frames count towards the budget: each
+            # evaluation goes to the end of its eval.interval bin, so the seeds' curves line up.
+            width = int((g.runs[0].recipe.get("eval") or {}).get("interval") or 1)
+            binned = [[(-(-ff // width) * width, m) for ff, m in r.evals] for r in g.scored]
+            frames = sorted({f for ev in binned for f, _ in ev})
             xs, ms, ss = [], [], []
             for f in frames:
-                vals = [m for r in g.runs for ff, m in r.evals if ff == f]
+                vals = [m for ev in binned for ff, m in ev if ff == f]
                 xs.append(f)
                 ms.append(statistics.fmean(vals))
                 ss.append(statistics.stdev(vals) if len(vals) > 1 else 0.0)
@@ -368,7 +372,7 @@ def plot_learning_curves(agg: Aggregate, out: Path) -> tuple[Path | None, str]:
             for f in g.runs[0].events:
                 ax.axvline(f, color=color, ls=":", lw=1)
         ax.set_title(title or "nominal-dynamics evaluation", fontsize=9)
-        ax.set_xlabel("environment frames")
+        ax.set_xlabel("frames (evaluations binned by eval.interval)")
         ax.set_ylabel("return (mean ± std over seeds)")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7, ncol=2 if len(groups) > 6 else 1)
