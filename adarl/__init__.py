@@ -3,7 +3,7 @@
 The public components, importable from here:
 
 - :class:`LowRankLinear` / :func:`low_rank_mlp`: ``W = W1 @ W2`` layers with a bias-free bottleneck.
-- Rank rules (:mod:`adarl.rank`): :class:`EnergyRule` (paper Eq. 10), :class:`InclusiveEnergyRule`,
+- Rank rules (:mod:`adarl.core.rank`): :class:`EnergyRule` (paper Eq. 10), :class:`InclusiveEnergyRule`,
   :class:`RatioRule` (Eq. 33), :class:`FixedRank`, :class:`PolicyFitRule` (upper level of Eq. 8).
 - :class:`RankAdapter`: Algorithm 1's rank-adaptation step on any TorchRL loss module (a ``TrainerHookBase``).
 - :class:`ProjectionAcceptance` / :class:`RecentTransitions`: Algorithm 1's acceptance step (a lower rank only if
@@ -29,21 +29,22 @@ __version__ = "0.1.0"
 _EXPORTS: dict[str, str] = {
     **dict.fromkeys(["AdaRLError", "AdaRLValueError", "CheckpointError", "RecipeError"], "adarl.errors"),
     **dict.fromkeys(["LowRankLinear", "low_rank_mlp", "factor_svd", "refactorize", "truncation_error",
-                     "iter_low_rank"], "adarl.lowrank"),
-    "reinit_low_rank_ensemble": "adarl.builders",
+                     "iter_low_rank"], "adarl.core.lowrank"),
+    "reinit_low_rank_ensemble": "adarl.runtime.builders.sac",
     **dict.fromkeys(["RankRule", "RankDecision", "EnergyRule", "InclusiveEnergyRule", "RatioRule", "FixedRank",
-                     "PolicyFitRule", "make_rule"], "adarl.rank"),
-    **dict.fromkeys(["WarmupCosine", "make_lr_scheduler", "restart_lr_scheduler"], "adarl.lr_schedule"),
-    **dict.fromkeys(["ProjectionAcceptance", "RecentTransitions", "recent_transitions"], "adarl.acceptance"),
+                     "PolicyFitRule", "make_rule"], "adarl.core.rank"),
+    **dict.fromkeys(["WarmupCosine", "make_lr_scheduler", "restart_lr_scheduler"], "adarl.core.lr_schedule"),
+    **dict.fromkeys(["ProjectionAcceptance", "RecentTransitions", "recent_transitions"], "adarl.core.acceptance"),
     **dict.fromkeys(["RankAdapter", "RankEvent", "LayerRecord", "find_low_rank_layers", "resize_to_ranks"],
-                    "adarl.adapter"),
-    **dict.fromkeys(["ReplayWarmStart", "WarmStartRecord"], "adarl.warmstart"),
-    "CollectorRebuild": "adarl.collector_rebuild",
+                    "adarl.core.adapter"),
+    **dict.fromkeys(["ReplayWarmStart", "WarmStartRecord"], "adarl.core.warmstart"),
+    "CollectorRebuild": "adarl.core.collector_rebuild",
     **dict.fromkeys(["PerturbedDynamicsEnvTransform", "make_env", "make_eval_env", "make_schedule", "env_parameters",
                      "SinusoidSchedule", "UniformSchedule", "FixedSchedule", "ListSchedule"], "adarl.envs"),
-    **dict.fromkeys(["load_recipe", "list_recipes"], "adarl.config"),
-    **dict.fromkeys(["build_components", "Trainer", "Components"], "adarl.training"),
-    "load_policy": "adarl.policy",
+    **dict.fromkeys(["load_recipe", "list_recipes"], "adarl.runtime.config"),
+    **dict.fromkeys(["build_components", "Components"], "adarl.runtime.builders.sac"),
+    "Trainer": "adarl.runtime.trainers.sac",
+    "load_policy": "adarl.runtime.policy",
 }
 
 __all__ = list(_EXPORTS)

@@ -2,6 +2,10 @@
 
 Errors that adarl raises on purpose (bad recipe, existing run folder, corrupt checkpoint) print one clear line
 and exit with status 2 (bad input) or 1; nothing is written for a recipe that does not validate.
+
+Each command imports the wing it runs (the recipe runtime, the experiment tooling) when it runs, not at the top:
+``adarl --help`` and a typo answer at once, without torch, TorchRL or MuJoCo, and ``--quiet`` takes effect before
+any of them is imported (:func:`_quiet_env`). What is imported at the top here is light.
 """
 
 from __future__ import annotations
@@ -10,7 +14,13 @@ import argparse
 import os
 import sys
 import time
+import warnings
 from pathlib import Path
+
+from adarl import __version__
+from adarl.errors import STORAGE_ERRNOS, AdaRLError, AdaRLValueError, AdaRLWarning, RecipeError, describe_os_error
+from adarl.experiments.bench import add_arguments as bench_arguments
+from adarl.runtime.signals import RunInterrupted
 
 __all__ = ["main"]
 
@@ -27,8 +37,6 @@ def _quiet_env(quiet: bool = False) -> None:
     os.environ.setdefault("RL_LOGGING_LEVEL", "WARNING")  # read when torchrl is imported
     if quiet:
         os.environ.setdefault("WANDB_SILENT", "true")
-    import warnings
-
     warnings.filterwarnings("ignore", category=DeprecationWarning)
     warnings.filterwarnings("ignore", category=FutureWarning)
     warnings.filterwarnings("ignore", message=".*WeightUpdaterBase.*")
@@ -38,10 +46,6 @@ def _quiet_env(quiet: bool = False) -> None:
 
 def _one_line_warnings() -> None:
     """adarl's own warnings (a skipped checkpoint, an experiment axis that changes nothing) as one line each."""
-    import warnings
-
-    from adarl.errors import AdaRLWarning
-
     plain = warnings.formatwarning
 
     def fmt(message, category, filename, lineno, line=None):
@@ -61,9 +65,9 @@ def _run_folder(recipe, output: str | None) -> Path:
 
 
 def cmd_run(args) -> int:
-    from adarl.config import load_recipe, save_resolved
-    from adarl.run_dir import RunDir
-    from adarl.training_ppo import trainer_class
+    from adarl.runtime.config import load_recipe, save_resolved
+    from adarl.runtime.run_dir import RunDir
+    from adarl.runtime.trainers import trainer_class
 
     recipe = load_recipe(args.recipe, args.overrides)  # validates everything before anything is written
     path = _run_folder(recipe, args.output)
@@ -83,8 +87,6 @@ def cmd_run(args) -> int:
 
 def _train(trainer) -> dict:
     """``trainer.train()``; a file-system failure (disk full, read-only) becomes one line saying how to go on."""
-    from adarl.errors import STORAGE_ERRNOS, AdaRLError, describe_os_error
-
     try:
         return trainer.train()
     except BaseException as err:
@@ -100,7 +102,7 @@ def _train(trainer) -> dict:
 
 
 def _print_summary(summary: dict, path: Path) -> None:
-    from adarl.report import named_ranks
+    from adarl.runtime.report import named_ranks
 
     ev = summary.get("final_eval") or {}
     ranks = ", ".join(f"{name}={rank}" for name, rank in named_ranks(summary).items()) or "-"
@@ -112,16 +114,16 @@ def _print_summary(summary: dict, path: Path) -> None:
 
 
 def cmd_resume(args) -> int:
-    from adarl.training import Trainer
+    from adarl.runtime.trainers import BaseTrainer
 
-    trainer = Trainer.resume(args.run_dir, quiet=args.quiet, checkpoint=args.checkpoint)
+    trainer = BaseTrainer.resume(args.run_dir, quiet=args.quiet, checkpoint=args.checkpoint)
     summary = _train(trainer)
     _print_summary(summary, Path(args.run_dir))
     return 0
 
 
 def cmd_recipes(args) -> int:
-    from adarl.config import list_recipes
+    from adarl.runtime.config import list_recipes
 
     rows = list_recipes()
     width = max((len(n) for n, _ in rows), default=10)
@@ -131,7 +133,7 @@ def cmd_recipes(args) -> int:
 
 
 def cmd_show(args) -> int:
-    from adarl.config import load_recipe, recipe_to_yaml
+    from adarl.runtime.config import load_recipe, recipe_to_yaml
 
     print(recipe_to_yaml(load_recipe(args.recipe, args.overrides)), end="")
     return 0
@@ -139,18 +141,18 @@ def cmd_show(args) -> int:
 
 def cmd_eval(args) -> int:
     if args.sweep:
-        from adarl.sweep import parse_sweep, sweep_run
+        from adarl.experiments.sweep import parse_sweep, sweep_run
 
         result = sweep_run(args.run_dir, [parse_sweep(s) for s in args.sweep], episodes=args.episodes,
                            name=args.name, checkpoint=args.checkpoint)
         print(result.describe())
         return 0
 
-    from adarl.evaluation import evaluate_policy
-    from adarl.training import Trainer
+    from adarl.runtime.evaluation import evaluate_policy
+    from adarl.runtime.trainers import BaseTrainer
 
     # read-only: the training records (metrics, ranks, checkpoints, summary) are left exactly as training wrote them
-    trainer = Trainer.resume(args.run_dir, quiet=True, read_only=True, checkpoint=args.checkpoint)
+    trainer = BaseTrainer.resume(args.run_dir, quiet=True, read_only=True, checkpoint=args.checkpoint)
     recipe = trainer.recipe
     episodes = args.episodes or recipe.eval.episodes
     result = evaluate_policy(trainer.c.modules.actor, trainer.c.eval_env, episodes=episodes,
@@ -164,7 +166,7 @@ def cmd_eval(args) -> int:
 
 
 def cmd_play(args) -> int:
-    from adarl.play import parse_perturb, play
+    from adarl.runtime.play import parse_perturb, play
 
     size = _size(args.size)
     result = play(args.run, which=args.which, episodes=args.episodes, video=args.video,
@@ -179,8 +181,6 @@ def cmd_play(args) -> int:
 
 
 def _size(text: str) -> tuple[int, int]:
-    from adarl.errors import AdaRLValueError
-
     try:
         w, h = (int(v) for v in text.lower().split("x"))
         if w < 16 or h < 16:
@@ -191,14 +191,14 @@ def _size(text: str) -> tuple[int, int]:
 
 
 def cmd_bench(args) -> int:
-    from adarl.bench import cli
+    from adarl.experiments.bench import cli
 
     return cli(args)
 
 
 def cmd_report(args) -> int:
-    from adarl.aggregate import is_single_run, write_aggregate_report
-    from adarl.report import write_report
+    from adarl.experiments.aggregate import is_single_run, write_aggregate_report
+    from adarl.runtime.report import write_report
 
     dirs = args.run_dir
     if len(dirs) == 1 and is_single_run(dirs[0]) and not args.output:
@@ -209,9 +209,10 @@ def cmd_report(args) -> int:
 
 
 def cmd_experiment(args) -> int:
-    from adarl.experiment import load_experiment, run_experiment
-    from adarl.progress import use_live
-    from adarl.results import is_url
+    from adarl.experiments.orchestrate import run_experiment
+    from adarl.experiments.progress import use_live
+    from adarl.experiments.spec import load_experiment
+    from adarl.runtime.results import is_url
 
     options = {"max_retries": args.max_retries}
     if args.launcher == "ray":
@@ -256,8 +257,6 @@ class _IntermixedParser(argparse.ArgumentParser):
 
 
 def _version() -> str:
-    from adarl import __version__
-
     return f"adarl {__version__}"
 
 
@@ -338,8 +337,6 @@ def build_parser() -> argparse.ArgumentParser:
                          "folder, else ./report)")
     rp.set_defaults(func=cmd_report)
 
-    from adarl.bench import add_arguments as bench_arguments
-
     bn = sub.add_parser("bench", help="side-by-side SAC speed benchmark (AdaRL-SAC, no-rank, stock TorchRL, SB3)",
                         description="Interleaved, repeated (median) speed benchmark of AdaRL-SAC against the same loop "
                         "without rank adaptation, a stock TorchRL SAC loop and Stable-Baselines3 SAC (when installed: "
@@ -389,9 +386,6 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     _quiet_env(bool(getattr(args, "quiet", False)))
     _one_line_warnings()
-    from adarl.errors import STORAGE_ERRNOS, AdaRLError, RecipeError, describe_os_error
-    from adarl.signals import RunInterrupted
-
     try:
         return int(args.func(args) or 0)
     except RunInterrupted as err:  # SIGINT/SIGTERM: a checkpoint was saved, the run can be resumed

@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import difflib
 import errno
+from collections.abc import Iterable
+from typing import Any
 
 __all__ = ["AdaRLError", "AdaRLValueError", "RecipeError", "CheckpointError", "AdaRLWarning",
-           "CheckpointFallbackWarning", "STORAGE_ERRNOS", "describe_os_error"]
+           "CheckpointFallbackWarning", "STORAGE_ERRNOS", "describe_os_error", "NO_VALUE", "one_of", "did_you_mean"]
 
 
 class AdaRLError(Exception):
@@ -50,3 +53,29 @@ def describe_os_error(err: OSError) -> str:
     if hint and hint.lower() != why.lower():
         why += f" ({hint})"
     return f"{str(err.filename)!r}: {why}" if err.filename else why
+
+
+#: The value of a problem about a key that has none (a required key that is missing): messages show no value.
+NO_VALUE: Any = type("NoValue", (), {"__repr__": lambda self: "<no value>"})()
+
+
+def one_of(options: Iterable[Any]) -> str:
+    """The allowed values as an error message lists them: ``'a', 'b', 'c'``.
+
+    >>> one_of(["sinusoid", "uniform"])
+    "'sinusoid', 'uniform'"
+    """
+    return ", ".join(repr(o) for o in options)
+
+
+def did_you_mean(word: str, options: Iterable[Any]) -> str:
+    """``"; did you mean 'x'?"`` for the option closest to a mistyped ``word``, or ``""`` when none is close.
+
+    >>> did_you_mean("unifrom", ["sinusoid", "uniform"])
+    "; did you mean 'uniform'?"
+    """
+    opts = [str(o) for o in options]
+    match = difflib.get_close_matches(str(word), opts, n=1, cutoff=0.6)
+    if not match:  # case-only typos ('hopper-v5') score low in difflib
+        match = [o for o in opts if o.lower() == str(word).lower()][:1]
+    return f"; did you mean {match[0]!r}?" if match else ""

@@ -6,7 +6,7 @@ Each RUN_DIR is a finished run whose low-rank layers are still at full rank (``r
 ``off`` arm of recipes/experiments/rank_settling.yaml). From its last checkpoint, for every low-rank layer and a
 grid of ranks, with that one layer projected to the rank (the SVD projection a rank event applies):
 
-* actor layers: the relative output error the acceptance step measures (:func:`adarl.acceptance.relative_output_error`
+* actor layers: the relative output error the acceptance step measures (:func:`adarl.core.acceptance.relative_output_error`
   of the distribution parameters on the 2048 most recent transitions) and the return of the truncated
   deterministic policy on the nominal dynamics (``--episodes`` episodes, the same start states for every rank);
 * critic layers: the relative output error (worst of the two critics) and the critic loss (clipped double-Q TD
@@ -26,11 +26,11 @@ from pathlib import Path
 
 import torch
 
-from adarl.acceptance import recent_transitions, relative_output_error
-from adarl.adapter import _NetworkProbe, _padded_factors, find_low_rank_layers
-from adarl.evaluation import evaluate_policy
-from adarl.lowrank import factor_svd
-from adarl.training import Trainer
+from adarl.core.acceptance import recent_transitions, relative_output_error
+from adarl.core.adapter import _NetworkProbe, _padded_factors, find_low_rank_layers
+from adarl.runtime.evaluation import evaluate_policy
+from adarl.core.lowrank import factor_svd
+from adarl.runtime.trainers import Trainer
 
 
 def _grid(width: int) -> list[int]:
@@ -125,7 +125,7 @@ def main() -> None:
     p.add_argument("--episodes", type=int, default=5)
     p.add_argument("--replot", action="store_true", help="only redraw calibration.png from --out's CSV")
     a = p.parse_args()
-    from adarl.config import load_recipe
+    from adarl.runtime.config import load_recipe
 
     accept = load_recipe("base").rank.accept
     tolerances = (accept.actor_tol, accept.critic_tol)

@@ -45,10 +45,10 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(1)
 
-    from adarl.config import load_recipe
-    from adarl.evaluation import evaluate_policy
-    from adarl.run_dir import RunDir
-    from adarl.training_ppo import trainer_class
+    from adarl.runtime.config import load_recipe
+    from adarl.runtime.evaluation import evaluate_policy
+    from adarl.runtime.run_dir import RunDir
+    from adarl.runtime.trainers import trainer_class
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -77,10 +77,9 @@ def main() -> None:
         from torchrl.envs.utils import RandomPolicy
 
         recipe = load_recipe("quickstart", common)
-        from adarl.envs import make_eval_env
-        from adarl.training import _env_kwargs
+        from adarl.runtime.builders.common import make_envs
 
-        env = make_eval_env(args.env, recipe.env.perturbation.preset, seed=recipe.seed + 10_000, **_env_kwargs(recipe))
+        _, env = make_envs(recipe)  # the evaluation env: nominal dynamics, seed + 10000
         ev = evaluate_policy(RandomPolicy(env.action_spec), env, episodes=args.episodes, max_steps=1000,
                              deterministic=False)
         results["random policy"] = {"recipe": "-", "frames": 0, "updates": 0, "mean": ev.mean, "std": ev.std,

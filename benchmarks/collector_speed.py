@@ -1,6 +1,6 @@
 """ms per frame of collection alone on Hopper-v5 (paper perturbation, policy actions, 1 torch thread), side by side:
 TorchRL's ``Collector``, and adarl's ``LeanCollector`` stepping TorchRL's env (``direct=False``) or the gymnasium env
-directly (``direct=True``, :mod:`adarl.direct_env`; the same batches bit for bit). Same env layout and policy for
+directly (``direct=True``, :mod:`adarl.fast.direct_env`; the same batches bit for bit). Same env layout and policy for
 all; the variants take turns for ``--rounds`` rounds and the median round is reported.
 
     PYTHONPATH=. python benchmarks/collector_speed.py [--frames 3000] [--rounds 3] [--skip-torchrl]
@@ -12,9 +12,9 @@ import time
 
 import torch
 
-from adarl.config import load_recipe
-from adarl.lean_collector import LeanCollector
-from adarl.training import build_components
+from adarl.runtime.config import load_recipe
+from adarl.fast.collector import LeanCollector
+from adarl.runtime.builders.sac import build_components
 
 p = argparse.ArgumentParser()
 p.add_argument("--frames", type=int, default=3000, help="frames per variant per round")

@@ -16,9 +16,9 @@ import time
 
 import torch
 
-from adarl import fast_sac, manual_backward
-from adarl.config import load_recipe
-from adarl.training import build_components
+from adarl.fast import adam, manual_backward
+from adarl.runtime.builders.sac import build_components
+from adarl.runtime.config import load_recipe
 
 p = argparse.ArgumentParser()
 p.add_argument("--env", default="Hopper-v5")
@@ -32,7 +32,7 @@ c = build_components(load_recipe("quickstart", [f"env.id={a.env}", "env.perturba
                                                 f"network.actor.num_cells=[{w},{w}]",
                                                 f"network.critic.num_cells=[{w},{w}]"]))
 c.replay_buffer.extend(c.env.rollout(1000, break_when_any_done=False).reshape(-1))
-update, sample = c.extras["fused_update"], c.extras["fused_sampler"]
+update, sample = c.update.fused, c.update.sampler  # the run's FusedStep
 if update.backward != "manual":
     raise SystemExit(f"this profile times the manual backward; the update uses {update.backward!r}")
 for _ in range(30):
@@ -64,7 +64,7 @@ manual_backward._Net.prepare = timed("merge low-rank products", manual_backward.
 step = update._manual
 step._sample = timed("TanhNormal sample", step._sample)
 step._sample_backward = timed("TanhNormal sample backward", step._sample_backward)
-fast_sac.DirectAdamStep.step = timed("Adam (3 optimisers)", fast_sac.DirectAdamStep.step)
+adam.DirectAdamStep.step = timed("Adam (3 optimisers)", adam.DirectAdamStep.step)
 batches = [sample() for _ in range(a.updates)]
 total = time.perf_counter()
 for b in batches:

@@ -5,7 +5,7 @@
 
 import sys
 
-from adarl.bench import main
+from adarl.experiments.bench import main
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -11,9 +11,10 @@ import time
 
 import torch
 
-from adarl.config import load_recipe
-from adarl.fast_sac import FusedSACUpdate, make_adam
-from adarl.training import build_components
+from adarl.fast.adam import make_adam
+from adarl.fast.sac import FusedSACUpdate
+from adarl.runtime.builders.sac import build_components
+from adarl.runtime.config import load_recipe
 
 p = argparse.ArgumentParser()
 p.add_argument("--width", type=int, default=64)

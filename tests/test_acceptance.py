@@ -12,9 +12,9 @@ from torchrl.data import LazyTensorStorage, ReplayBuffer, TensorDictReplayBuffer
 from torchrl.data.replay_buffers.writers import TensorDictMaxValueWriter
 
 from adarl import ProjectionAcceptance, RankAdapter, RecentTransitions, recent_transitions
-from adarl.adapter import find_low_rank_layers
+from adarl.core.adapter import find_low_rank_layers
 from adarl.errors import AdaRLValueError
-from adarl.rank import EnergyRule
+from adarl.core.rank import EnergyRule
 from test_adapter import ACTOR_L0, ACTOR_L1, Q_L0, Q_L1, fake_batch, make_sac, train
 
 
@@ -129,7 +129,7 @@ def test_layers_of_one_network_share_the_tolerance():
     opt = torch.optim.Adam(loss.parameters())
     batch = fake_batch(seed=6, n=512)
     reference = None
-    from adarl.adapter import _NetworkProbe
+    from adarl.core.adapter import _NetworkProbe
 
     site = _site(loss, ACTOR_L0)
     reference = _NetworkProbe("actor_network", site.network, site.params, (), batch)
@@ -137,7 +137,7 @@ def test_layers_of_one_network_share_the_tolerance():
                           acceptance=ProjectionAcceptance(actor_tol=0.2), fit_data=lambda: batch)
     event = adapter.adapt()
     after = _NetworkProbe("actor_network", site.network, site.params, (), batch).reference
-    from adarl.acceptance import relative_output_error
+    from adarl.core.acceptance import relative_output_error
 
     total = relative_output_error(after, reference.reference)
     assert total <= 0.2 + 1e-6
@@ -233,7 +233,7 @@ def test_td3_critic_outputs_are_compared():
     from torchrl.modules import Actor, ValueOperator
     from torchrl.objectives import TD3Loss, ValueEstimators
 
-    from adarl.lowrank import low_rank_mlp
+    from adarl.core.lowrank import low_rank_mlp
 
     torch.manual_seed(0)
     actor = Actor(low_rank_mlp(5, 2, (16, 16)), in_keys=["observation"])

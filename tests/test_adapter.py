@@ -14,11 +14,11 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import ProbabilisticActor, TanhNormal, ValueOperator
 from torchrl.objectives import SACLoss, SoftUpdate, ValueEstimators
 
-from adarl.adapter import RankAdapter, find_low_rank_layers, resize_to_ranks
+from adarl.core.adapter import RankAdapter, find_low_rank_layers, resize_to_ranks
 from adarl.errors import AdaRLValueError, CheckpointError
-from adarl.lowrank import LowRankLinear, factor_svd, low_rank_mlp
-from adarl.lr_schedule import make_lr_scheduler
-from adarl.rank import EnergyRule, FixedRank, InclusiveEnergyRule, PolicyFitRule
+from adarl.core.lowrank import LowRankLinear, factor_svd, low_rank_mlp
+from adarl.core.lr_schedule import make_lr_scheduler
+from adarl.core.rank import EnergyRule, FixedRank, InclusiveEnergyRule, PolicyFitRule
 
 warnings.filterwarnings("ignore", category=UserWarning)
 OBS, ACT, B = 5, 2, 16
@@ -550,7 +550,7 @@ def test_template_modules_stay_consistent():
 
 
 def test_num_threads_applies_during_the_event_only(monkeypatch):
-    import adarl.adapter as adapter_mod
+    import adarl.core.adapter as adapter_mod
 
     loss = make_sac()
     opt = torch.optim.Adam(loss.parameters(), lr=1e-3)
@@ -580,7 +580,7 @@ def test_num_threads_applies_during_the_event_only(monkeypatch):
 @pytest.mark.parametrize("bad", [float("nan"), float("inf")])
 @pytest.mark.parametrize("with_acceptance", [False, True])
 def test_non_finite_factors_are_skipped_with_a_reason_and_the_rest_changes(bad, with_acceptance):
-    from adarl.acceptance import ProjectionAcceptance
+    from adarl.core.acceptance import ProjectionAcceptance
 
     loss = make_sac()
     opt = torch.optim.Adam(loss.parameters())

@@ -1,6 +1,6 @@
 """RankAdapter beyond SAC: every stock TorchRL loss (tested through a truncation, or refused by name), the Trainer hook.
 
-The truncation test runs every loss of ``adarl.adapter.SUPPORTED_LOSSES``; another test checks that every loss class
+The truncation test runs every loss of ``adarl.core.adapter.SUPPORTED_LOSSES``; another test checks that every loss class
 TorchRL exports is in that registry or in ``UNSUPPORTED_LOSSES``, and that docs/rank-adapter.md's table is them.
 """
 
@@ -28,10 +28,10 @@ from torchrl.modules import (
 )
 from torchrl.objectives import ClipPPOLoss, DiscreteSACLoss, SoftUpdate, TD3Loss, ValueEstimators
 
-from adarl.adapter import SUPPORTED_LOSSES, UNSUPPORTED_LOSSES, RankAdapter, check_loss_supported, resize_to_ranks
+from adarl.core.adapter import SUPPORTED_LOSSES, UNSUPPORTED_LOSSES, RankAdapter, check_loss_supported, resize_to_ranks
 from adarl.errors import AdaRLValueError
-from adarl.lowrank import low_rank_mlp
-from adarl.rank import EnergyRule, FixedRank, PolicyFitRule
+from adarl.core.lowrank import low_rank_mlp
+from adarl.core.rank import EnergyRule, FixedRank, PolicyFitRule
 
 warnings.filterwarnings("ignore", category=UserWarning)
 OBS, ACT, B = 5, 2, 16

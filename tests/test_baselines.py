@@ -21,9 +21,9 @@ from adarl.baselines import (
 )
 from adarl.baselines.normalization import RewardScaler, RunningObsNorm
 from adarl.baselines.rnac import mujoco_state
-from adarl.config import list_recipes, load_recipe
+from adarl.runtime.config import list_recipes, load_recipe
 from adarl.errors import AdaRLValueError, RecipeError
-from adarl.lowrank import LowRankLinear
+from adarl.core.lowrank import LowRankLinear
 
 # ------------------------------------------------------------------------------------------------ Parseval
 
@@ -60,7 +60,7 @@ def test_parseval_counts_low_rank_layers_by_their_product_and_has_gradients():
 
 
 def test_parseval_reads_the_stacked_critics_of_sacloss():
-    from adarl.builders import make_sac_modules
+    from adarl.runtime.builders import make_sac_modules
     from adarl.envs import make_env
 
     recipe = load_recipe("baselines/hopper_parseval", ["env.id=InvertedPendulum-v5"])
@@ -111,7 +111,7 @@ def test_parseval_recipes_use_the_originals_orthogonal_init(env):
 def test_parseval_sac_networks_start_where_the_originals_do():
     """Every hidden layer of actor and of each critic has the original's init statistics (mean diag(W W^T) = 2 for
     the 64x64 layers, all singular values sqrt(2)); the heads have gain 0.01 (policy) and 1 (value)."""
-    from adarl.builders import make_sac_modules
+    from adarl.runtime.builders import make_sac_modules
     from adarl.envs import make_env
 
     torch.manual_seed(0)
@@ -185,7 +185,7 @@ def test_sparsification_layer_activations_are_k_sparse():
 
 
 def test_recipe_sparse_network_is_wide_and_sparse():
-    from adarl.builders import make_sac_modules
+    from adarl.runtime.builders import make_sac_modules
     from adarl.envs import make_env
 
     recipe = load_recipe("baselines/hopper_sparse")
@@ -286,7 +286,7 @@ def test_rnac_recipes_resolve_to_the_original_trainer(env, mode):
 
 
 def _ppo_components(*overrides):
-    from adarl.training_ppo import build_ppo_components
+    from adarl.runtime.builders.ppo import build_ppo_components
 
     recipe = load_recipe("baselines/hopper_rnac_ipm", ["collector.total_frames=256", "collector.frames_per_batch=128",
                                                        "algorithm.ppo.epochs=1", *overrides])
@@ -319,7 +319,7 @@ def test_rnac_networks_and_policy_start_as_the_original():
     gauss = torch.distributions.Normal(batch["loc"], batch["scale"])
     torch.testing.assert_close(batch["action_log_prob"], gauss.log_prob(act).sum(-1))
     # the loss's entropy bonus is the Gaussian's closed form, not a one-sample estimate
-    from adarl.training_ppo import normalize_advantage_
+    from adarl.runtime.trainers.ppo import normalize_advantage_
 
     with torch.no_grad():
         c.modules.advantage(batch)
@@ -352,8 +352,8 @@ def test_clipped_normal_and_box_tanh():
 def _advantage_seen_by_the_loss(tmp_path, how: str) -> tuple[torch.Tensor, torch.Tensor, float]:
     """Run one PPO iteration on a batch whose advantages are 0 .. 127, and return the raw advantages of the first
     minibatch, all raw advantages, and the first update's loss_objective (ratio 1 there, so it is -mean(A_used))."""
-    from adarl.run_dir import RunDir
-    from adarl.training_ppo import PPOTrainer
+    from adarl.runtime.run_dir import RunDir
+    from adarl.runtime.trainers import PPOTrainer
 
     torch.manual_seed(0)
     recipe = load_recipe("baselines/hopper_rnac_ipm", [
@@ -397,14 +397,14 @@ def test_ppo_advantage_normalisation_spans_the_whole_batch(tmp_path):
     # TorchRL's per-minibatch standardisation stays available: each minibatch then has mean advantage 0
     _, _, objective_mb = _advantage_seen_by_the_loss(tmp_path, "minibatch")
     assert objective_mb == pytest.approx(0.0, abs=1e-5)
-    from adarl.training_ppo import normalize_advantage_
+    from adarl.runtime.trainers.ppo import normalize_advantage_
 
     one = normalize_advantage_(TensorDict({"advantage": torch.tensor([[3.0]])}, batch_size=[1]))
     assert one["advantage"].item() == 0.0  # a one-frame batch: no spread, no NaN
 
 
 def test_simulator_steps_per_frame():
-    from adarl.training_ppo import simulator_steps_per_frame
+    from adarl.runtime.builders.ppo import simulator_steps_per_frame
 
     assert simulator_steps_per_frame(load_recipe("baselines/hopper_rnac_ds")) == 3  # m = 2 probes + the real step
     assert simulator_steps_per_frame(load_recipe("baselines/hopper_rnac_ds", ["algorithm.rnac.num_candidates=4"])) == 5

@@ -6,7 +6,7 @@ import importlib.util
 
 import pytest
 
-from adarl.bench import format_table, measure
+from adarl.experiments.bench import format_table, measure
 from adarl.cli import main
 
 
@@ -27,7 +27,7 @@ def test_overrides_apply_to_our_loops_only():
     out = measure("adarl_norank", "Hopper-v5", 16, warmup=50, steps=20, skip=5, batch=32,
                   overrides=("network.actor.rank=3", "network.critic.rank=2"))
     assert out["updates_per_s"] > 0
-    from adarl.bench import _recipe
+    from adarl.experiments.bench import _recipe
 
     r = _recipe("Hopper-v5", 16, "adarl", 10, 100, 30, 8, ("network.actor.rank=3",))
     assert r.network.actor.rank == 3

@@ -65,7 +65,7 @@ def test_run_folder_has_every_output(tiny_run: Path):
     torso = [float(line.split(",")[1]) for line in (scalars / "dynamics/torso_length.csv").read_text().splitlines()]
     assert max(torso) - min(torso) > 0.01
     # The resolved recipe loads back to the same recipe (overrides applied).
-    from adarl.config import load_recipe
+    from adarl.runtime.config import load_recipe
 
     resolved = load_recipe(str(tiny_run / "recipe.yaml"))
     assert resolved.collector.total_frames == 1600 and resolved.rank.interval == 400
@@ -105,7 +105,7 @@ def test_ranks_fell_and_evaluation_ran(tiny_run: Path):
 
 @pytest.mark.slow
 def test_checkpoint_holds_ranks_and_loads_safely(tiny_run: Path):
-    from adarl.run_dir import RunDir
+    from adarl.runtime.run_dir import RunDir
 
     run = RunDir.open(tiny_run)
     ckpts = run.checkpoints()
@@ -131,7 +131,7 @@ def test_resume_continues_without_duplicated_metrics(tmp_path: Path):
     proc = adarl("run", "quickstart", *TINY, "collector.total_frames=1000", "-o", str(out), "--quiet")
     assert proc.returncode == 0, proc.stderr[-3000:]
     # Pretend the run died after its checkpoint at 500 frames: drop the later checkpoint, keep later metrics.
-    from adarl.run_dir import RunDir
+    from adarl.runtime.run_dir import RunDir
 
     run = RunDir.open(out)
     for ckpt in run.checkpoints():

@@ -92,7 +92,7 @@ def test_import_adarl_is_light_and_names_load_on_use():
     assert proc.returncode == 0, proc.stderr
     heavy, modules = proc.stdout.strip().splitlines()
     assert heavy == "[]"
-    assert modules == "adarl.lowrank adarl.policy"
+    assert modules == "adarl.core.lowrank adarl.runtime.policy"
     proc = _python("import adarl; adarl.nope")
     assert "has no attribute 'nope'" in proc.stderr
 
@@ -113,7 +113,7 @@ def test_unavailable_device_is_one_clear_line(tmp_path):
 def test_device_index_beyond_the_visible_gpus(monkeypatch):
     import torch
 
-    from adarl.builders import check_device
+    from adarl.runtime.builders import check_device
     from adarl.errors import AdaRLValueError
 
     assert check_device("cpu") == torch.device("cpu")

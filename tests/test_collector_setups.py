@@ -23,12 +23,12 @@ from torchrl.envs import GymEnv, SerialEnv, StepCounter, TransformedEnv
 from torchrl.modules import Actor, ValueOperator
 from torchrl.objectives import TD3Loss, ValueEstimators
 
-from adarl.adapter import RankAdapter
-from adarl.collector_rebuild import CollectorRebuild
+from adarl.core.adapter import RankAdapter
+from adarl.core.collector_rebuild import CollectorRebuild
 from adarl.errors import AdaRLValueError
-from adarl.lowrank import low_rank_mlp
-from adarl.rank import FixedRank
-from adarl.warmstart import ReplayWarmStart
+from adarl.core.lowrank import low_rank_mlp
+from adarl.core.rank import FixedRank
+from adarl.core.warmstart import ReplayWarmStart
 
 warnings.filterwarnings("ignore", category=UserWarning)
 DOC = Path(__file__).resolve().parents[1] / "docs" / "rank-adapter.md"

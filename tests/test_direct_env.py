@@ -1,4 +1,4 @@
-"""adarl.direct_env: the LeanCollector's direct stepping hands out TorchRL's batches and carrier, bit for bit."""
+"""adarl.fast.direct_env: the LeanCollector's direct stepping hands out TorchRL's batches and carrier, bit for bit."""
 
 from __future__ import annotations
 
@@ -6,12 +6,12 @@ import pytest
 import torch
 from torchrl.envs import RewardScaling
 
-from adarl.builders import make_sac_actor
-from adarl.direct_env import direct_stepper
-from adarl.env_state import env_state_dict, load_env_state_dict
+from adarl.runtime.builders import make_sac_actor
+from adarl.fast.direct_env import direct_stepper
+from adarl.envs.state import env_state_dict, load_env_state_dict
 from adarl.envs import dynamics_state_dict, load_dynamics_state_dict, make_env
 from adarl.errors import AdaRLValueError
-from adarl.lean_collector import LeanCollector, _tanh_normal_action
+from adarl.fast.collector import LeanCollector, _tanh_normal_action
 
 
 def _parts(env_id="Hopper-v5", preset="paper", max_episode_steps=30, seed=3):

@@ -67,7 +67,7 @@ def test_linear_cartpole_through_make_env_follows_the_schedule():
 
 # ------------------------------------------------------------------------------------------- sweeps
 def test_parse_sweep():
-    from adarl.sweep import parse_sweep
+    from adarl.experiments.sweep import parse_sweep
 
     assert parse_sweep("torso_length=0.25:0.55:7") == ("torso_length", pytest.approx([0.25 + 0.05 * i for i in range(7)]))
     assert parse_sweep("wind=0,1.5") == ("wind", [0.0, 1.5])
@@ -87,7 +87,7 @@ def _spec(tmp_path: Path, **extra) -> Path:
 
 
 def test_experiment_spec_errors_name_the_key(tmp_path):
-    from adarl.experiment import load_experiment
+    from adarl.experiments.spec import load_experiment
 
     with pytest.raises(RecipeError, match="seedz"):
         load_experiment(_spec(tmp_path, seedz=[1]))
@@ -102,7 +102,7 @@ def test_experiment_spec_errors_name_the_key(tmp_path):
 
 
 def test_plan_runs_product_budget_and_templates(tmp_path):
-    from adarl.experiment import load_experiment, plan_runs
+    from adarl.experiments.spec import load_experiment, plan_runs
 
     spec = load_experiment(_spec(tmp_path, overrides=["name=run_{algo}_{seed}"],
                                  budgets={"small": {"seeds": [5], "axes": {"algo": ["b"]},
@@ -121,8 +121,8 @@ def test_plan_runs_product_budget_and_templates(tmp_path):
 
 
 def test_shipped_experiment_specs_validate_and_are_not_recipes():
-    from adarl.config import list_recipes, load_recipe
-    from adarl.experiment import load_experiment, plan_runs
+    from adarl.runtime.config import list_recipes, load_recipe
+    from adarl.experiments.spec import load_experiment, plan_runs
 
     specs = sorted((REPO / "recipes" / "experiments").glob("*.yaml"))
     assert {p.stem for p in specs} >= {"table1", "table2", "cartpole_rank_sweep", "warmstart_ablation",
@@ -155,7 +155,7 @@ def _fake_run(root: Path, name: str, seed: int, rank: int, evals: list[tuple[int
 
 
 def test_aggregate_table_matches_runs(tmp_path):
-    from adarl.aggregate import aggregate_runs, write_aggregate_report
+    from adarl.experiments.aggregate import aggregate_runs, write_aggregate_report
 
     exp = tmp_path / "exp"
     runs = []
@@ -242,8 +242,8 @@ def test_experiment_end_to_end_two_seeds_two_algorithms(tmp_path):
     for png in ("learning_curves.png", "ranks.png", "sweep_pole.png"):
         assert (out / "report" / png).is_file()
     # Resumable: a second call runs nothing new (in-process: it only plans, validates and skips).
-    from adarl.aggregate import write_aggregate_report
-    from adarl.experiment import run_experiment
+    from adarl.experiments.aggregate import write_aggregate_report
+    from adarl.experiments.orchestrate import run_experiment
 
     said: list[str] = []
     again = run_experiment(path, output=out, report=False, log=said.append)
@@ -258,10 +258,10 @@ def test_experiment_end_to_end_two_seeds_two_algorithms(tmp_path):
 
 @pytest.mark.slow
 def test_hopper_sweep_writes_fig8_plot_and_worst_case(tmp_path):
-    from adarl.config import load_recipe, save_resolved
-    from adarl.run_dir import RunDir
-    from adarl.sweep import parse_sweep, sweep_run
-    from adarl.training import Trainer
+    from adarl.runtime.config import load_recipe, save_resolved
+    from adarl.runtime.run_dir import RunDir
+    from adarl.experiments.sweep import parse_sweep, sweep_run
+    from adarl.runtime.trainers import Trainer
 
     run = tmp_path / "hopper"
     hopper_tiny = [o for o in TINY if not o.startswith("eval.max_steps")] + ["eval.max_steps=40"]

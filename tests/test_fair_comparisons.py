@@ -10,11 +10,12 @@ import torch
 from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
-from adarl.config import load_recipe, save_resolved
+from adarl.runtime.config import load_recipe, save_resolved
 from adarl.errors import AdaRLValueError
-from adarl.run_dir import RunDir
-from adarl.training import Trainer, planned_updates, update_after
-from adarl.warmstart import ReplayWarmStart
+from adarl.runtime.run_dir import RunDir
+from adarl.runtime.builders.sac import planned_updates, update_after
+from adarl.runtime.trainers import Trainer
+from adarl.core.warmstart import ReplayWarmStart
 
 SMALL = [
     "collector.total_frames=600",
@@ -118,7 +119,7 @@ def test_update_after_in_a_run(tmp_path):
 
 
 def test_reproduction_specs_compare_what_the_paper_compares():
-    from adarl.experiment import load_experiment, plan_runs
+    from adarl.experiments.spec import load_experiment, plan_runs
 
     names = lambda spec, axis: [v.name for v in spec.axes[axis]]  # noqa: E731
     sweep = load_experiment("hopper_sweep")

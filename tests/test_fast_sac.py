@@ -3,14 +3,18 @@
 from __future__ import annotations
 
 import copy
+import re
 
 import pytest
 import torch
+from torchrl.objectives import ValueEstimators
 
-from adarl.config import load_recipe
+from adarl.runtime.config import load_recipe
 from adarl.errors import AdaRLValueError
-from adarl.fast_sac import FusedSACUpdate, make_adam, wants_fused
-from adarl.training import build_components
+from adarl.fast.adam import make_adam
+from adarl.fast.sac import FusedSACUpdate, wants_fused
+from adarl.runtime.builders.sac import build_components
+from adarl.runtime.update import FusedStep, LossStep
 
 OVR = ["collector.total_frames=2000", "collector.init_random_frames=500", "replay.size=2000", "algorithm.batch_size=64"]
 
@@ -49,10 +53,35 @@ def _fused_losses(fu, batch):
     return out
 
 
-@pytest.mark.parametrize("backward", ["manual", "autograd"])
-def test_losses_and_gradients_match_sacloss(filled, backward):
-    c, batch = filled
+#: settings the fused update must compute exactly as SACLoss does (each builds its own networks and env)
+CONFIGS = {
+    "quickstart": [],
+    # truncated ranks: the low-rank layers stay factored (x W2^T W1^T) instead of merged
+    "truncated-ranks": ["network.actor.rank=4", "network.critic.rank=3"],
+    # other activations and critic losses
+    "tanh-elu-smooth_l1": ["network.actor.activation=tanh", "network.critic.activation=elu",
+                           "algorithm.loss_function=smooth_l1"],
+    "gelu-softplus-l1": ["network.actor.activation=gelu", "network.critic.activation=softplus",
+                         "algorithm.loss_function=l1"],
+    # an action box other than [-1, 1] (InvertedPendulum: [-3, 3]): the affine squashing
+    "box-3": ["env.id=InvertedPendulum-v5", "env.perturbation.preset=none", "network.actor.rank=1"],
+}
+
+
+@pytest.mark.parametrize("config", CONFIGS)
+def test_losses_and_gradients_match_sacloss(config):
+    """Both backwards (hand-written and autograd) give SACLoss's five outputs and its gradients on the same batch
+    and RNG state, over activations, critic losses, action boxes and truncated ranks."""
+    overrides = CONFIGS[config]
+    c = build_components(load_recipe("quickstart", OVR + ["algorithm.fused=false"] + overrides))
+    torch.manual_seed(3)
+    c.replay_buffer.extend(c.env.rollout(120, break_when_any_done=False).reshape(-1))
     loss = c.modules.loss
+    with torch.no_grad():
+        loss.log_alpha.fill_(-1.3)  # a non-trivial alpha and alpha loss
+        for p in loss.target_qvalue_network_params.flatten_keys().values():
+            p.add_(0.01 * torch.randn_like(p))  # targets differ from the online critics
+    batch = c.replay_buffer.sample()
     params = _params(loss)
     for p in params:
         p.grad = None
@@ -60,20 +89,61 @@ def test_losses_and_gradients_match_sacloss(filled, backward):
     ref = loss(batch.clone())
     (ref["loss_actor"] + ref["loss_qvalue"] + ref["loss_alpha"]).backward()
     ref_grads = _grads(params)
+    assert float(ref["loss_alpha"].detach()) != 0.0
+    for backward in ("manual", "autograd"):
+        for p in params:
+            p.grad = None
+        fu = FusedSACUpdate(loss, [], tau=0.005, backward=backward)
+        assert fu.backward == backward
+        torch.manual_seed(11)
+        out = _fused_losses(fu, batch)
+        for name, value in zip(["loss_actor", "loss_qvalue", "loss_alpha", "alpha", "entropy"], out):
+            torch.testing.assert_close(value.detach(), ref[name].detach(), rtol=1e-5, atol=1e-6,
+                                       msg=f"{backward}: {name}")
+        for g, r in zip(_grads(params), ref_grads):
+            assert g is not None and r is not None
+            torch.testing.assert_close(g, r, rtol=1e-4, atol=1e-6, msg=backward)
+        if config == "truncated-ranks" and backward == "manual":
+            assert any(layer.kind == "factored" for layer in fu._manual.actor.prepare(128, 64, 64))
     for p in params:
         p.grad = None
+    c.close()
 
-    fu = FusedSACUpdate(loss, [], tau=0.005, backward=backward)
-    assert fu.backward == backward
+
+@pytest.mark.parametrize("change, named", [
+    (lambda loss: loss.make_value_estimator(ValueEstimators.TDLambda, gamma=0.99, lmbda=0.95), "TDLambdaEstimator"),
+    (lambda loss: loss.make_value_estimator(ValueEstimators.TD0, gamma=0.99, average_rewards=True),
+     "average_rewards=True"),
+    (lambda loss: setattr(loss, "reduction", "sum"), "reduction='sum'"),
+    (lambda loss: setattr(loss, "skip_done_states", True), "skip_done_states=True"),
+    (lambda loss: loss.set_keys(action="act"), "loss.tensor_keys.action='act'"),
+    (lambda loss: loss.actor_network.module[1].distribution_kwargs.update(tanh_loc=True), "tanh_loc=True"),
+], ids=["td-lambda", "average-rewards", "reduction-sum", "skip-done-states", "action-key", "tanh-loc"])
+def test_fused_update_refuses_what_it_does_not_implement(filled, change, named):
+    """A SACLoss setting the fused update would silently compute otherwise is refused, naming the setting."""
+    loss = copy.deepcopy(filled[0].modules.loss)
+    change(loss)
+    with pytest.raises(AdaRLValueError, match=re.escape(named) + ".*algorithm.fused: false"):
+        FusedSACUpdate(loss, [], tau=0.005)
+
+
+def test_fused_update_reads_the_losss_tensordict_keys(filled):
+    """Renamed reward and terminated keys are read where SACLoss reads them (its value estimator's tensor_keys)."""
+    c, batch = filled
+    loss = copy.deepcopy(c.modules.loss)
+    loss.set_keys(reward="rew", terminated="term")
+    renamed = batch.clone()
+    renamed.rename_key_(("next", "reward"), ("next", "rew"))
+    renamed.rename_key_(("next", "terminated"), ("next", "term"))
+    fu = FusedSACUpdate(loss, [], tau=0.005, backward="manual")
+    assert fu.keys == ("observation", "action", ("next", "rew"), ("next", "observation"), ("next", "term"))
     torch.manual_seed(11)
-    out = _fused_losses(fu, batch)
-    for name, value in zip(["loss_actor", "loss_qvalue", "loss_alpha", "alpha", "entropy"], out):
+    ref = loss(renamed.clone())
+    torch.manual_seed(11)
+    out = _fused_losses(fu, renamed)
+    for name, value in zip(["loss_actor", "loss_qvalue", "loss_alpha"], out):
         torch.testing.assert_close(value.detach(), ref[name].detach(), rtol=1e-5, atol=1e-6, msg=name)
-    assert float(ref["loss_alpha"].detach()) != 0.0
-    for g, r in zip(_grads(params), ref_grads):
-        assert g is not None and r is not None
-        torch.testing.assert_close(g, r, rtol=1e-4, atol=1e-6)
-    for p in params:
+    for p in _params(loss):
         p.grad = None
 
 
@@ -178,7 +248,7 @@ def test_fused_setting_resolution(filled):
 def test_discrete_sac_auto_uses_plain_path_and_true_is_an_error():
     recipe = load_recipe("cartpole_adarl", ["collector.total_frames=1000", "collector.init_random_frames=250"])
     c = build_components(recipe)
-    assert "fused_update" not in c.extras
+    assert isinstance(c.update, LossStep)
     with pytest.raises(AdaRLValueError, match="algorithm.fused"):
         wants_fused(True, c.modules.loss)
 
@@ -197,8 +267,8 @@ def test_memmap_storage_and_threads(tmp_path):
         c.replay_buffer.extend(c.env.rollout(20, break_when_any_done=False).reshape(-1))
         assert type(c.replay_buffer.storage).__name__ == "LazyMemmapStorage"
         assert any((tmp_path / "rb").rglob("*.memmap"))
-        assert "fused_update" in c.extras
-        c.extras["fused_update"](c.replay_buffer.sample())
+        assert isinstance(c.update, FusedStep)
+        c.update.fused(c.replay_buffer.sample())
     finally:
         torch.set_num_threads(before)
 
@@ -207,8 +277,8 @@ def test_prepared_layers_merge_near_full_rank_with_the_same_output_and_gradients
     # one update reuses a merged W1 W2 across passes; it must equal the factored product (values and grads)
     from torch import nn
 
-    from adarl.fast_sac import _StackedMLP
-    from adarl.lowrank import low_rank_mlp
+    from adarl.fast.sac import _StackedMLP
+    from adarl.core.lowrank import low_rank_mlp
 
     torch.manual_seed(0)
     net = low_rank_mlp(5, 3, (32, 32), low_rank_layers=[0, 1])
@@ -236,18 +306,20 @@ def test_prepared_layers_merge_near_full_rank_with_the_same_output_and_gradients
 
 
 def test_uniform_tensor_sampler_draws_what_the_buffer_draws(filled):
-    from adarl.fast_replay import UniformTensorSampler
+    from adarl.fast.replay import UniformTensorSampler
 
     c, _ = filled
-    rb, gen = c.replay_buffer, c.extras["sampling_generator"]
-    sampler = UniformTensorSampler(rb, FusedSACUpdate.KEYS, generator=gen)
+    rb, gen = c.replay_buffer, c.sampling_generator
+    keys = FusedSACUpdate(c.modules.loss, [], tau=0.005).keys  # the loss's own keys
+    assert keys == ("observation", "action", ("next", "reward"), ("next", "observation"), ("next", "terminated"))
+    sampler = UniformTensorSampler(rb, keys, generator=gen)
     state = gen.get_state()
     ref = rb.sample()
     after = gen.get_state()
     gen.set_state(state)
     got = sampler()
     assert torch.equal(gen.get_state(), after)  # the same RNG consumption: exact resume is unchanged
-    for key, t in zip(FusedSACUpdate.KEYS, got):
+    for key, t in zip(keys, got):
         assert torch.equal(ref.get(key), t), key
 
 
@@ -255,7 +327,7 @@ def test_uniform_tensor_sampler_rejects_buffers_it_cannot_reproduce():
     from tensordict import TensorDict
     from torchrl.data import LazyTensorStorage, SamplerWithoutReplacement, TensorDictReplayBuffer
 
-    from adarl.fast_replay import UniformTensorSampler
+    from adarl.fast.replay import UniformTensorSampler
 
     rb = TensorDictReplayBuffer(storage=LazyTensorStorage(10), sampler=SamplerWithoutReplacement(),
                                 batch_size=4)
@@ -271,7 +343,7 @@ def test_uniform_tensor_sampler_rejects_buffers_it_cannot_reproduce():
 
 
 def test_direct_adam_step_is_bit_identical_to_fused_adam_and_falls_back():
-    from adarl.fast_sac import DirectAdamStep
+    from adarl.fast.adam import DirectAdamStep
 
     torch.manual_seed(0)
     ref = [torch.nn.Parameter(torch.randn(5, 3)), torch.nn.Parameter(torch.randn(3))]
@@ -304,47 +376,6 @@ def test_direct_adam_step_is_bit_identical_to_fused_adam_and_falls_back():
         q.grad = torch.ones_like(q)
     direct.step()
     assert calls == [1]
-
-
-@pytest.mark.parametrize("overrides", [
-    # truncated ranks: the low-rank layers stay factored (x W2^T W1^T) instead of merged
-    ["network.actor.rank=4", "network.critic.rank=3"],
-    # other activations and critic losses
-    ["network.actor.activation=tanh", "network.critic.activation=elu", "algorithm.loss_function=smooth_l1"],
-    ["network.actor.activation=gelu", "network.critic.activation=softplus", "algorithm.loss_function=l1"],
-    # an action box other than [-1, 1] (InvertedPendulum: [-3, 3]): the affine squashing
-    ["env.id=InvertedPendulum-v5", "env.perturbation.preset=none", "network.actor.rank=1"],
-])
-def test_manual_backward_matches_autograd(overrides):
-    """The hand-written gradients equal autograd's on networks and settings the quickstart does not cover."""
-    c = build_components(load_recipe("quickstart", OVR + ["algorithm.fused=false"] + overrides))
-    torch.manual_seed(3)
-    c.replay_buffer.extend(c.env.rollout(120, break_when_any_done=False).reshape(-1))
-    loss = c.modules.loss
-    with torch.no_grad():
-        loss.log_alpha.fill_(-1.3)
-        for p in loss.target_qvalue_network_params.flatten_keys().values():
-            p.add_(0.01 * torch.randn_like(p))
-    batch = c.replay_buffer.sample()
-    params = _params(loss)
-    results = {}
-    for backward in ("autograd", "manual"):
-        fu = FusedSACUpdate(loss, [], tau=0.005, backward=backward)
-        for p in params:
-            p.grad = None
-        torch.manual_seed(17)
-        out = [t.detach() for t in _fused_losses(fu, batch)]
-        results[backward] = out, _grads(params)
-    if any("rank=" in o for o in overrides):
-        assert any(k == "factored" for k, *_ in (layer for layer in fu._manual.actor.prepare(128, 64, 64)))
-    (out_a, grads_a), (out_m, grads_m) = results["autograd"], results["manual"]
-    for a, m in zip(out_a, out_m):
-        torch.testing.assert_close(m, a, rtol=1e-5, atol=1e-6)
-    for a, m in zip(grads_a, grads_m):
-        assert a is not None and m is not None
-        torch.testing.assert_close(m, a, rtol=1e-4, atol=1e-6)
-    for p in params:
-        p.grad = None
 
 
 def test_backward_setting_is_validated(filled):

@@ -25,7 +25,7 @@ from faultfs import FaultFS, adarl_under_faults, readonly_fs, remount, small_fs
 from test_cli_e2e import REPO, adarl
 
 from adarl.errors import AdaRLWarning, CheckpointError
-from adarl.run_dir import TRAINING_RECORDS, RunDir
+from adarl.runtime.run_dir import TRAINING_RECORDS, RunDir
 
 # A few hundred frames: checkpoints at 100, 200 and the end, two rank events, best.pt before the second one.
 FAST = [
@@ -131,8 +131,8 @@ def test_eval_names_a_refused_checkpoint_and_renames_nothing(finished, tmp_path,
 
 def _foreign_checkpoint(tmp_path: Path, *, fingerprint: bool = True) -> Path:
     """A checkpoint of the same recipe with other widths (32 instead of 64): what a copy from another run is."""
-    from adarl.config import load_recipe, save_resolved
-    from adarl.training import Trainer
+    from adarl.runtime.config import load_recipe, save_resolved
+    from adarl.runtime.trainers import Trainer
 
     recipe = load_recipe("quickstart", [*FAST, "network.actor.num_cells=[32,32]", "network.critic.num_cells=[32,32]"])
     other = RunDir.create(tmp_path / "other")
@@ -213,7 +213,7 @@ def test_two_runs_started_at_once_cannot_share_a_folder(tmp_path):
 
 def test_resume_refuses_a_folder_another_process_trains_in(finished, tmp_path):
     run = _copy(finished, tmp_path / "run")
-    holder = subprocess.Popen([sys.executable, "-c", "import sys, time; from adarl.run_dir import RunDir; "
+    holder = subprocess.Popen([sys.executable, "-c", "import sys, time; from adarl.runtime.run_dir import RunDir; "
                                "RunDir(sys.argv[1]).lock(); print('locked', flush=True); time.sleep(120)", str(run)],
                               env={**os.environ, "PYTHONPATH": str(REPO)}, stdout=subprocess.PIPE, text=True)
     try:
@@ -274,7 +274,7 @@ _DUMP = """
 import sys, torch
 from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
-import adarl.run_dir as rd
+import adarl.runtime.run_dir as rd
 from adarl.errors import CheckpointError
 root, check = sys.argv[1], sys.argv[2] == "check"
 if not check:
@@ -351,7 +351,7 @@ def test_read_only_injected_is_one_line(finished, tmp_path):
 
 
 def test_experiment_axis_that_changes_nothing_is_warned_about(tmp_path):
-    from adarl.experiment import load_experiment, plan_runs
+    from adarl.experiments.spec import load_experiment, plan_runs
 
     spec = tmp_path / "exp.yaml"
     spec.write_text("kind: experiment\nname: x\nrecipe: quickstart\nseeds: [0]\n"

@@ -18,9 +18,11 @@ import pytest
 import yaml
 
 from adarl.errors import AdaRLError, AdaRLValueError
-from adarl.experiment import plan_runs, load_experiment, read_attempts, run_experiment
-from adarl.launchers import make_launcher
-from adarl.progress import ProgressBoard
+from adarl.experiments.execute import read_attempts
+from adarl.experiments.orchestrate import run_experiment
+from adarl.experiments.spec import load_experiment, plan_runs
+from adarl.experiments.launchers import make_launcher
+from adarl.experiments.progress import ProgressBoard
 
 REPO = Path(__file__).resolve().parents[1]
 # ~8 s per run on one core; a checkpoint every 50 frames so a killed run resumes from mid-run.

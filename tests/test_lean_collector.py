@@ -6,10 +6,10 @@ import pytest
 import torch
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from adarl.config import load_recipe
+from adarl.runtime.config import load_recipe
 from adarl.errors import AdaRLValueError
-from adarl.lean_collector import LeanCollector, _layer_chain, wants_lean
-from adarl.training import build_components
+from adarl.fast.collector import LeanCollector, _layer_chain, wants_lean
+from adarl.runtime.builders.sac import build_components
 
 OVR = ["collector.total_frames=2000", "collector.init_random_frames=10", "collector.frames_per_batch=40",
        "replay.size=2000"]
@@ -49,6 +49,38 @@ def test_the_layer_chain_computes_the_network_bit_for_bit(comps):
     handle = net[0][2].register_forward_hook(lambda module, args, out: out)
     assert _layer_chain(net) is net  # a hook would be skipped: the network is called as a module
     handle.remove()
+
+
+@pytest.mark.parametrize("direct", ["auto", False], ids=["direct", "torchrl-step"])
+def test_batches_equal_torchrl_collectors(direct):
+    """From the same seeds, LeanCollector hands out TorchRL's Collector's batches: every key it writes, bit for bit,
+    through the random phase, policy actions, episode ends and resets."""
+    from torchrl.collectors import Collector
+
+    from adarl.runtime.builders.common import train_env_factory
+    from adarl.runtime.builders.sac import make_sac_modules
+
+    recipe = load_recipe("quickstart", ["collector.total_frames=2000", "collector.init_random_frames=60",
+                                        "replay.size=2000"])
+    factory = train_env_factory(recipe)
+    env_lean, env_torchrl = factory(), factory()  # the same seed: the same episodes and dynamics draws
+    torch.manual_seed(0)
+    actor = make_sac_modules(recipe, env_lean).actor
+    lean = LeanCollector(env_lean, actor, frames_per_batch=60, init_random_frames=60, total_frames=240,
+                         direct=direct)
+    ref = Collector(env_torchrl, actor, frames_per_batch=60, total_frames=240, init_random_frames=60)
+    batches = {}
+    for name, collector in (("lean", lean), ("torchrl", ref)):
+        torch.manual_seed(123)  # the action noise (and the random phase's actions) from the global RNG, as TorchRL
+        batches[name] = torch.cat([b.clone() for b in collector])
+        collector.shutdown()
+    got, want = batches["lean"], batches["torchrl"]
+    assert got.shape == want.shape == (240,)
+    assert int(got["next", "done"].sum()) >= 2  # episodes ended and were reset inside the window
+    keys = set(got.keys(True, True))
+    assert keys <= set(want.keys(True, True)) and {"observation", "action", ("next", "reward")} <= keys
+    for key in keys:
+        assert torch.equal(got.get(key), want.get(key)), key
 
 
 def test_batches_are_consistent_transitions(comps):
@@ -136,7 +168,7 @@ def test_overlap_needs_the_lean_collector():
 
 # ---------------------------------------------------------------------------------------- overlap: "process"
 def _parts(seed):
-    from adarl.training import train_env_factory
+    from adarl.runtime.builders.common import train_env_factory
 
     recipe = load_recipe("quickstart", OVR + [f"seed={seed}"])
     c = build_components(recipe)
@@ -145,7 +177,7 @@ def _parts(seed):
 
 def _run_overlapped(mode, seed=5, batches=12, state_at=None, direct="auto"):
     """Batches of an overlapped collector while the 'updates' change the actor in place between batches."""
-    from adarl.env_state import env_state_dict
+    from adarl.envs.state import env_state_dict
 
     env, actor, factory = _parts(seed)
     torch.manual_seed(0)
@@ -170,7 +202,7 @@ def _run_overlapped(mode, seed=5, batches=12, state_at=None, direct="auto"):
 
 
 def test_process_overlap_hands_out_the_thread_modes_batches_and_env_state():
-    # the thread steps through TorchRL (direct=False), the worker process directly (adarl.direct_env)
+    # the thread steps through TorchRL (direct=False), the worker process directly (adarl.fast.direct_env)
     thread, live_t, state_t, _ = _run_overlapped("thread", state_at=6, direct=False)
     proc, live_p, state_p, x = _run_overlapped("process", state_at=6)
     assert x._worker is None  # shutdown stopped the worker
@@ -192,7 +224,7 @@ def test_process_overlap_hands_out_the_thread_modes_batches_and_env_state():
 def test_process_overlap_resumes_from_a_state_dict():
     # what the Trainer checkpoints: the collector's state (which finishes the prefetched batch first), then the
     # env's live state, which the worker's final state was loaded into
-    from adarl.env_state import env_state_dict, load_env_state_dict
+    from adarl.envs.state import env_state_dict, load_env_state_dict
     from adarl.envs import dynamics_state_dict, load_dynamics_state_dict
 
     env, actor, factory = _parts(6)
@@ -249,8 +281,8 @@ def test_a_failing_worker_raises_with_its_traceback(comps):
 
 _ORPHAN = """
 import os, sys, time
-from adarl.config import load_recipe
-from adarl.training import build_components
+from adarl.runtime.config import load_recipe
+from adarl.runtime.builders.sac import build_components
 
 if __name__ == "__main__":
     c = build_components(load_recipe("quickstart", sys.argv[1:] + ["collector.overlap=process",

@@ -17,7 +17,7 @@ import torch
 from torch import nn
 
 from adarl.errors import AdaRLValueError
-from adarl.lowrank import (
+from adarl.core.lowrank import (
     LowRankLinear,
     factor_svd,
     iter_low_rank,
@@ -582,7 +582,7 @@ def test_sac_loss_ensemble_gets_low_rank_init_not_torchrl_uniform_resampling():
     # large at 64 wide. make_sac_loss redraws every member as a fresh (factorised nn.Linear) LowRankLinear.
     from torchrl.envs import GymEnv
 
-    from adarl.builders import make_sac_actor, make_sac_critic, make_sac_loss, reinit_low_rank_ensemble
+    from adarl.runtime.builders import make_sac_actor, make_sac_critic, make_sac_loss, reinit_low_rank_ensemble
 
     torch.manual_seed(0)
     env = GymEnv("Hopper-v5")

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from adarl.errors import AdaRLValueError
-from adarl.lr_schedule import WarmupCosine, make_lr_scheduler, restart_lr_scheduler
+from adarl.core.lr_schedule import WarmupCosine, make_lr_scheduler, restart_lr_scheduler
 
 
 def _cos(step, total, floor=0.0):

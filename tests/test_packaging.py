@@ -34,7 +34,7 @@ def test_pyproject_lists_every_subpackage_and_maps_the_recipes():
 
 
 def test_source_checkout_finds_the_top_level_recipes():
-    from adarl.config import list_recipes, recipes_dir
+    from adarl.runtime.config import list_recipes, recipes_dir
 
     assert recipes_dir()[-1] == REPO / "recipes"
     names = {n for n, _ in list_recipes()}
@@ -90,7 +90,7 @@ def test_wheel_ships_recipes_and_runs_from_another_folder(tmp_path: Path):
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
     adarl = str(venv / "bin" / "adarl")
-    proc = subprocess.run([str(py), "-c", "import adarl.config as c; print(c.__file__); print(c.recipes_dir()[-1])"],
+    proc = subprocess.run([str(py), "-c", "import adarl.runtime.config as c; print(c.__file__); print(c.recipes_dir()[-1])"],
                           cwd=elsewhere, capture_output=True, text=True, env=env, timeout=120)
     module_file, recipes = proc.stdout.split()
     assert Path(module_file).is_relative_to(venv), module_file

@@ -47,7 +47,7 @@ def test_quiet_run_prints_only_its_result(tiny):
 
 
 def _actor_ranks(actor) -> list[int]:
-    from adarl.lowrank import LowRankLinear
+    from adarl.core.lowrank import LowRankLinear
 
     return [m.rank for m in actor.modules() if isinstance(m, LowRankLinear)]
 
@@ -59,7 +59,7 @@ def test_load_policy_restores_truncated_ranks_without_building_env_buffer_or_col
     import torchrl.envs.libs.gym
 
     import adarl
-    import adarl.training
+    import adarl.runtime.builders.sac
 
     out, _ = tiny
     summary = json.loads((out / "summary.json").read_text())
@@ -70,7 +70,7 @@ def test_load_policy_restores_truncated_ranks_without_building_env_buffer_or_col
     def refuse(*args, **kwargs):
         raise AssertionError("load_policy built an env, a buffer or a collector")
 
-    monkeypatch.setattr(adarl.training, "build_components", refuse)
+    monkeypatch.setattr(adarl.runtime.builders.sac, "build_components", refuse)
     monkeypatch.setattr(gymnasium, "make", refuse)
     monkeypatch.setattr(torchrl.envs.libs.gym.GymEnv, "__init__", refuse)
     monkeypatch.setattr(torchrl.collectors.Collector, "__init__", refuse)
@@ -97,7 +97,7 @@ def test_loaded_policy_acts_as_the_trained_one_and_in_gymnasium(tiny):
     from torchrl.envs.utils import ExplorationType, set_exploration_type
 
     import adarl
-    from adarl.training import Trainer
+    from adarl.runtime.trainers import Trainer
 
     out, _ = tiny
     actor = adarl.load_policy(out)
@@ -123,7 +123,7 @@ def test_load_policy_best_a_checkpoint_file_and_an_older_checkpoint(tiny, tmp_pa
 
     import adarl
     from adarl.errors import AdaRLValueError, CheckpointError
-    from adarl.policy import load_policy_with_info
+    from adarl.runtime.policy import load_policy_with_info
 
     out, _ = tiny
     best = load_policy_with_info(out, "best")
@@ -209,7 +209,7 @@ def test_play_without_video_and_its_errors(tiny, tmp_path):
                         "eval.interval=400", "eval.episodes=1", "eval.max_steps=20"], 4),
 ])
 def test_load_policy_of_a_ppo_run_and_a_discrete_run(recipe, overrides, obs_dim, tmp_path):
-    from adarl.policy import load_policy, load_policy_with_info
+    from adarl.runtime.policy import load_policy, load_policy_with_info
 
     out = tmp_path / "run"
     proc = adarl("run", recipe, *overrides, "-o", str(out), "--quiet")

@@ -15,7 +15,7 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from adarl.errors import AdaRLValueError
-from adarl.rank import (
+from adarl.core.rank import (
     RULES,
     EnergyRule,
     FixedRank,

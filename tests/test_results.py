@@ -1,4 +1,4 @@
-"""Results at an fsspec URL (adarl.results) and the live progress board, without training anything.
+"""Results at an fsspec URL (adarl.runtime.results) and the live progress board, without training anything.
 
 The URL tests use ``fakes3://`` (the ``fake_s3`` fixture of conftest.py): a local folder that behaves like an object
 store (a move is a copy then a delete, no append, no hard links; every write is logged), so that no code can lean on
@@ -15,9 +15,10 @@ from pathlib import Path
 import pytest
 
 from adarl.errors import AdaRLValueError
-from adarl.experiment import PlannedRun, _record_attempt, read_attempts, run_is_finished
-from adarl.progress import LiveBoard, ProgressBoard, read_progress, use_live
-from adarl.results import LATEST, RunMirror, filesystem, read_text, scratch_folder
+from adarl.experiments.execute import _record_attempt, read_attempts, run_is_finished
+from adarl.experiments.spec import PlannedRun
+from adarl.experiments.progress import LiveBoard, ProgressBoard, read_progress, use_live
+from adarl.runtime.results import LATEST, RunMirror, filesystem, read_text, scratch_folder
 
 
 def _ckpt(folder: Path, frames: int, payload: bytes = b"weights", rb: bool = True) -> None:
@@ -243,8 +244,8 @@ def test_live_only_on_a_terminal_outside_ci():
 
 
 def test_launchers_that_cannot_use_the_url_say_so(tmp_path):
-    from adarl.experiment import run_experiment
-    from adarl.launchers import make_launcher
+    from adarl.experiments.orchestrate import run_experiment
+    from adarl.experiments.launchers import make_launcher
 
     with pytest.raises(AdaRLValueError, match="--submitit-folder"):
         make_launcher("submitit", output="s3://bucket/exp")

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from adarl.errors import AdaRLError, CheckpointError
-from adarl.run_dir import RunDir
+from adarl.runtime.run_dir import RunDir
 
 
 def test_create_refuses_existing_non_empty(tmp_path):
@@ -126,7 +126,7 @@ def test_lock_is_per_process_and_released_with_the_process(tmp_path):
     run = RunDir.create(tmp_path / "run")
     run.lock()  # re-entrant in the process that holds it
     RunDir(run.path).lock()
-    code = "import sys; from adarl.run_dir import RunDir; RunDir(sys.argv[1]).lock()"
+    code = "import sys; from adarl.runtime.run_dir import RunDir; RunDir(sys.argv[1]).lock()"
     proc = subprocess.run([sys.executable, "-c", code, str(run.path)], capture_output=True, text=True)
     assert proc.returncode != 0 and "in use by another process" in proc.stderr
     assert f"pid {os.getpid()}" in proc.stderr

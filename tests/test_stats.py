@@ -1,4 +1,4 @@
-"""adarl.stats (IQM, stratified bootstrap, probability of improvement) and the aggregate report's statistics."""
+"""adarl.experiments.stats (IQM, stratified bootstrap, probability of improvement) and the aggregate report's statistics."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from adarl.stats import interval_estimate, iqm, poi_estimate, probability_of_improvement, stratified_bootstrap
+from adarl.experiments.stats import interval_estimate, iqm, poi_estimate, probability_of_improvement, stratified_bootstrap
 from test_evaluation_experiments import _fake_run
 
 
@@ -45,7 +45,7 @@ def test_bootstrap_is_stratified_reproducible_and_covers_the_point():
 
 
 def test_aggregate_report_statistics_reference_duplicates_and_iterations(tmp_path):
-    from adarl.aggregate import write_aggregate_report
+    from adarl.experiments.aggregate import write_aggregate_report
 
     exp = tmp_path / "exp"
     runs = []
@@ -76,7 +76,7 @@ def test_aggregate_report_statistics_reference_duplicates_and_iterations(tmp_pat
 
 
 def test_rank_settling_reads_the_last_change_and_the_events_after_it(tmp_path):
-    from adarl.aggregate import _load_run, rank_settling
+    from adarl.experiments.aggregate import _load_run, rank_settling
 
     run = _fake_run(tmp_path, "r", 0, 0, [(100, 1.0), (200, 2.0)])
     history = [{"step": s, "index": i, "layers": [

@@ -13,11 +13,11 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import ProbabilisticActor, TanhNormal, ValueOperator
 from torchrl.objectives import SACLoss, SoftUpdate, ValueEstimators
 
-from adarl.adapter import RankAdapter
+from adarl.core.adapter import RankAdapter
 from adarl.errors import AdaRLValueError
-from adarl.lowrank import low_rank_mlp
-from adarl.rank import FixedRank
-from adarl.warmstart import ReplayWarmStart
+from adarl.core.lowrank import low_rank_mlp
+from adarl.core.rank import FixedRank
+from adarl.core.warmstart import ReplayWarmStart
 
 warnings.filterwarnings("ignore", category=UserWarning)
 

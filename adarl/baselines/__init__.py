@@ -6,11 +6,15 @@
 * :mod:`adarl.baselines.normalization` - the PPO trainer's running observation normalisation and reward scaling;
 * :mod:`adarl.baselines.policy` - the PPO trainer's Gaussian policy with actions clipped to the box;
 * :mod:`adarl.baselines.init` - orthogonal initialisation as RNAC's and Parseval's original code does it;
-* :mod:`adarl.baselines.mlp` - one MLP builder for the network variants.
+* :mod:`adarl.baselines.mlp` - one MLP builder for the network variants;
+* :mod:`adarl.baselines.registry` - how they plug into the recipe builders (network variants, init schemes, loss
+  terms), each module registering itself on import.
 
-Fixed- and full-rank SAC need no new code (``rank.enabled: false``); the PPO loop is :mod:`adarl.training_ppo`.
+Fixed- and full-rank SAC need no new code (``rank.enabled: false``); the PPO loop of the RNAC baselines is
+:mod:`adarl.runtime.trainers.ppo`, its networks :mod:`adarl.runtime.builders.ppo`.
 """
 
+from adarl.baselines import registry
 from adarl.baselines.init import orthogonal_init_, orthogonal_init_loss_
 from adarl.baselines.mlp import BaselineMLP, make_baseline_mlp
 from adarl.baselines.normalization import RewardScaler, RunningMeanStd, RunningObsNorm
@@ -20,7 +24,7 @@ from adarl.baselines.rnac import DoubleSamplingTransform, IPMAdvantage, critic_p
 from adarl.baselines.sparse import KWinnersTakeAll, SparsificationLayer, intrinsic_rank
 
 __all__ = [
-    "BaselineMLP", "make_baseline_mlp", "RewardScaler", "RunningMeanStd", "RunningObsNorm", "DiagonalScale",
+    "registry", "BaselineMLP", "make_baseline_mlp", "RewardScaler", "RunningMeanStd", "RunningObsNorm", "DiagonalScale",
     "InputScale", "ParsevalRegularizer", "parseval_penalty", "parseval_weights", "DoubleSamplingTransform",
     "IPMAdvantage", "critic_parameter_norm", "KWinnersTakeAll", "SparsificationLayer", "intrinsic_rank",
     "BoxTanh", "ClippedNormal", "orthogonal_init_", "orthogonal_init_loss_",

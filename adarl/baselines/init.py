@@ -12,7 +12,7 @@ Why it matters: PyTorch's default ``nn.Linear`` init starts a 64x64 layer at mea
 times below Parseval's target, so the penalty first spends its gradient on rescaling the weights; and RNAC's
 0.01 head starts the policy mean at ~0 for every state.
 
-A :class:`~adarl.lowrank.LowRankLinear` gets the best rank-``r`` factorisation of an orthogonal draw (exact at full
+A :class:`~adarl.core.lowrank.LowRankLinear` gets the best rank-``r`` factorisation of an orthogonal draw (exact at full
 rank, balanced factors). The output layer of a network is its last linear layer, as in
 :func:`adarl.baselines.parseval_weights`. TorchRL losses that keep a critic ensemble as new stacked parameters
 (SACLoss resamples them uniformly within the template's range) need :func:`orthogonal_init_loss_`, which draws each
@@ -25,14 +25,15 @@ import torch
 from tensordict import TensorDictBase
 from torch import nn
 
+from adarl.baselines.registry import register_init
 from adarl.errors import AdaRLValueError
-from adarl.lowrank import LowRankLinear, refactorize
+from adarl.core.lowrank import LowRankLinear, refactorize
 
 __all__ = ["linear_layers", "orthogonal_weight", "orthogonal_init_", "orthogonal_init_loss_"]
 
 
 def linear_layers(network: nn.Module) -> list[tuple[str, nn.Module]]:
-    """``(path, layer)`` of every ``nn.Linear`` / :class:`~adarl.lowrank.LowRankLinear` of ``network`` in module
+    """``(path, layer)`` of every ``nn.Linear`` / :class:`~adarl.core.lowrank.LowRankLinear` of ``network`` in module
     order; the last one is the output layer."""
     return [(p, m) for p, m in network.named_modules() if isinstance(m, (nn.Linear, LowRankLinear))]
 
@@ -113,3 +114,6 @@ def orthogonal_init_loss_(loss: nn.Module, network: str, gain: float = 1.0, head
                 if tgt is not None:
                     tgt.data.copy_(t.data)
     return len(layers)
+
+
+register_init("orthogonal", orthogonal_init_, orthogonal_init_loss_)

@@ -2,9 +2,12 @@
 Parseval's optional diagonal and input scale layers, in any combination.
 
 The layout is ``[InputScale] -> (hidden layer -> [DiagonalScale] -> activation) x n -> Linear head``; a hidden
-layer is an ``nn.Linear``, a :class:`~adarl.lowrank.LowRankLinear` (indices in ``low_rank_layers``) or, at index
+layer is an ``nn.Linear``, a :class:`~adarl.core.lowrank.LowRankLinear` (indices in ``low_rank_layers``) or, at index
 ``sparse_layer``, a :class:`~adarl.baselines.sparse.SparsificationLayer` of ``sparse_width`` units (which brings
 its own activation and k-winners-take-all).
+
+It is the registered variant builder (:mod:`adarl.baselines.registry`): the recipe builders call it whenever a
+network section asks for a variant.
 """
 
 from __future__ import annotations
@@ -15,11 +18,12 @@ import torch
 from torch import nn
 
 from adarl.baselines.parseval import DiagonalScale, InputScale
+from adarl.baselines.registry import register_variant_builder
 from adarl.baselines.sparse import SparsificationLayer
 from adarl.errors import AdaRLValueError
-from adarl.lowrank import LowRankLinear
+from adarl.core.lowrank import LowRankLinear
 
-__all__ = ["BaselineMLP", "make_baseline_mlp", "variant_kwargs"]
+__all__ = ["BaselineMLP", "make_baseline_mlp"]
 
 
 class BaselineMLP(nn.Sequential):
@@ -78,18 +82,4 @@ def make_baseline_mlp(
     return BaselineMLP(*layers)
 
 
-def variant_kwargs(mlp_config, parseval_config, action_dim: int) -> dict:
-    """Keyword arguments of :func:`make_baseline_mlp` for a recipe's ``network.<net>`` and
-    ``algorithm.parseval`` sections (empty when the network is a plain or low-rank MLP)."""
-    from adarl.baselines.sparse import intrinsic_rank
-
-    out: dict = {}
-    sp = mlp_config.sparse
-    if sp.layer is not None:
-        out.update(sparse_layer=sp.layer, sparse_width=sp.width,
-                   sparse_k=sp.k if sp.k is not None else min(intrinsic_rank(action_dim), sp.width))
-    if parseval_config.enabled and parseval_config.diagonal:
-        out["diagonal_scale"] = True
-    if parseval_config.enabled and parseval_config.input_scale:
-        out["input_scale"] = True
-    return out
+register_variant_builder(make_baseline_mlp)

@@ -9,7 +9,7 @@ the critic ensemble into new ``[n, out, in]`` parameters), so the term must read
 not the modules it was given. :func:`parseval_weights` finds them for any loss that follows TorchRL's
 ``<name>_network`` / ``<name>_network_params`` convention (or holds plain modules), and
 :class:`ParsevalRegularizer` adds ``loss_parseval`` to the loss's output when used through :meth:`wrap_output`.
-:class:`~adarl.lowrank.LowRankLinear` layers count with their product ``W = W1 @ W2``.
+:class:`~adarl.core.lowrank.LowRankLinear` layers count with their product ``W = W1 @ W2``.
 
 The optional layers of the paper, :class:`DiagonalScale` (a learnable per-unit gain after each hidden linear
 layer) and :class:`InputScale` (one learnable scalar on the input), are built into the networks by
@@ -26,7 +26,9 @@ from tensordict import TensorDictBase
 from torch import nn
 
 from adarl.errors import AdaRLValueError
-from adarl.lowrank import LowRankLinear
+from adarl.baselines.registry import register_loss_term, register_network_variant
+from adarl.core.adapter import network_candidates
+from adarl.core.lowrank import LowRankLinear
 
 __all__ = ["ParsevalWeight", "parseval_weights", "parseval_penalty", "ParsevalRegularizer", "DiagonalScale", "InputScale"]
 
@@ -65,18 +67,12 @@ def _linear_layers(network: nn.Module) -> list[tuple[str, nn.Module]]:
     return [(p, m) for p, m in network.named_modules() if isinstance(m, (nn.Linear, LowRankLinear))]
 
 
-def _network_candidates(loss: nn.Module) -> list[tuple[str, nn.Module]]:
-    from adarl.adapter import _network_candidates as candidates  # same discovery as RankAdapter
-
-    return candidates(loss)
-
-
 def parseval_weights(loss: nn.Module, networks: Iterable[str] | None = None) -> list[ParsevalWeight]:
     """The hidden-layer weights of every network of ``loss`` (or of the named ones), as the loss trains them.
 
     The last linear layer of each network is its output layer and is left out. ``loss`` may also be a plain
     ``nn.Module`` (a single network)."""
-    candidates = _network_candidates(loss) if not isinstance(loss, (nn.Sequential,)) else []
+    candidates = network_candidates(loss) if not isinstance(loss, (nn.Sequential,)) else []
     if not candidates or not any(_linear_layers(m) for _, m in candidates):
         candidates = [("network", loss)]
     if networks is not None:
@@ -184,3 +180,24 @@ class InputScale(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return x * self.scale
+
+
+def _parseval_layers(mlp_config, algorithm_config, action_dim: int) -> dict:
+    """``algorithm.parseval.{diagonal, input_scale}``: Parseval's optional scale layers in every network."""
+    pv = algorithm_config.parseval
+    out = {}
+    if pv.enabled and pv.diagonal:
+        out["diagonal_scale"] = True
+    if pv.enabled and pv.input_scale:
+        out["input_scale"] = True
+    return out
+
+
+def _parseval_term(loss: nn.Module, algorithm_config) -> ParsevalRegularizer | None:
+    """``algorithm.parseval``: the Parseval term on the loss's networks, when enabled."""
+    pv = algorithm_config.parseval
+    return ParsevalRegularizer(loss, lam=pv.lam, s=pv.s, base_width=pv.base_width) if pv.enabled else None
+
+
+register_network_variant("parseval", _parseval_layers)
+register_loss_term("parseval", _parseval_term)

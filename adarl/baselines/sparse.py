@@ -23,6 +23,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from adarl.baselines.registry import register_network_variant
 from adarl.errors import AdaRLValueError
 
 __all__ = ["intrinsic_rank", "KWinnersTakeAll", "SparsificationLayer"]
@@ -77,3 +78,15 @@ class SparsificationLayer(nn.Sequential):
     @property
     def k(self) -> int:
         return self[2].k
+
+
+def _sparse_variant(mlp_config, algorithm_config, action_dim: int) -> dict:
+    """``network.<net>.sparse``: the sparsification layer's arguments (``k`` defaults to the intrinsic rank)."""
+    sp = mlp_config.sparse
+    if sp.layer is None:
+        return {}
+    k = sp.k if sp.k is not None else min(intrinsic_rank(action_dim), sp.width)
+    return {"sparse_layer": sp.layer, "sparse_width": sp.width, "sparse_k": k}
+
+
+register_network_variant("sparse", _sparse_variant)

@@ -1,95 +1,41 @@
 """Perturbed dynamics for robust RL: per-episode schedules of physical parameters, as a TorchRL transform.
 
-See ``docs/perturbed-dynamics.md``.
+See ``docs/perturbed-dynamics.md``. The package's names load on first use (PEP 562), so that the schedule grammar
+(:mod:`adarl.envs.schedules`) and the parameter registry (:mod:`adarl.envs.parameters`), which the recipe schema
+validates against, import without TorchRL or MuJoCo.
+
+* :mod:`adarl.envs.schedules` - episode schedules and their grammar (``{kind: sinusoid | uniform | fixed | list}``);
+* :mod:`adarl.envs.parameters` - which parameters each env has, their ranges, presets, and the appliers;
+* :mod:`adarl.envs.perturbation` - :class:`PerturbedDynamicsEnvTransform`, the TorchRL ``Transform``;
+* :mod:`adarl.envs.factory` - :func:`make_env` / :func:`make_eval_env`;
+* :mod:`adarl.envs.state` - snapshots of live envs mid-episode (exact resume);
+* :mod:`adarl.envs.linear_cartpole` - the linear CartPole of paper App. A.1.
 """
 
-from adarl.envs.factory import (
-    dynamics_state_dict,
-    load_dynamics_state_dict,
-    make_env,
-    make_eval_env,
-    perturbation_transform,
-    resolve_schedule,
-)
-from adarl.envs.linear_cartpole import LINEAR_CARTPOLE_ID, LinearCartPoleEnv, linear_cartpole_matrices
-from adarl.envs.parameters import (
-    AIR_DENSITY,
-    AIR_VISCOSITY,
-    MODES,
-    PAPER_ENVS,
-    PRESETS,
-    SUPPORTED_ENVS,
-    CartPoleDynamics,
-    DynamicsApplier,
-    LinearCartPoleDynamics,
-    MujocoDynamics,
-    ParameterInfo,
-    check_env_id,
-    env_parameters,
-    make_applier,
-    make_schedule,
-    preset_names,
-    quiet_mujoco,
-    validate_schedule,
-    validate_values,
-)
-from adarl.envs.perturbation import EPISODE_KEY, PerturbedDynamicsEnvTransform, find_gym_env
-from adarl.envs.schedules import (
-    SCHEDULE_KINDS,
-    FixedSchedule,
-    ListSchedule,
-    Schedule,
-    SinusoidSchedule,
-    UniformSchedule,
-    as_schedule,
-    grid_schedule,
-    schedule_from_dict,
-)
+from __future__ import annotations
 
-__all__ = [
-    # transform and factory
-    "PerturbedDynamicsEnvTransform",
-    "make_env",
-    "make_eval_env",
-    "resolve_schedule",
-    "perturbation_transform",
-    "dynamics_state_dict",
-    "load_dynamics_state_dict",
-    "find_gym_env",
-    "EPISODE_KEY",
-    # schedules
-    "Schedule",
-    "SinusoidSchedule",
-    "UniformSchedule",
-    "FixedSchedule",
-    "ListSchedule",
-    "SCHEDULE_KINDS",
-    "schedule_from_dict",
-    "as_schedule",
-    "grid_schedule",
-    # registry and presets
-    "SUPPORTED_ENVS",
-    "PAPER_ENVS",
-    "MODES",
-    "PRESETS",
-    "AIR_DENSITY",
-    "AIR_VISCOSITY",
-    "ParameterInfo",
-    "check_env_id",
-    "env_parameters",
-    "validate_values",
-    "validate_schedule",
-    "make_schedule",
-    "preset_names",
-    # appliers
-    "DynamicsApplier",
-    "MujocoDynamics",
-    "CartPoleDynamics",
-    "LinearCartPoleDynamics",
-    # the linear CartPole of paper App. A.1
-    "LinearCartPoleEnv",
-    "LINEAR_CARTPOLE_ID",
-    "linear_cartpole_matrices",
-    "make_applier",
-    "quiet_mujoco",
-]
+import importlib
+
+# public name -> the module that defines it (imported when the name is first read)
+_EXPORTS: dict[str, str] = {
+    **dict.fromkeys(["PerturbedDynamicsEnvTransform", "find_gym_env", "EPISODE_KEY"], "adarl.envs.perturbation"),
+    **dict.fromkeys(["make_env", "make_eval_env", "resolve_schedule", "perturbation_transform", "dynamics_state_dict", "load_dynamics_state_dict"], "adarl.envs.factory"),
+    **dict.fromkeys(["Schedule", "SinusoidSchedule", "UniformSchedule", "FixedSchedule", "ListSchedule", "SCHEDULE_KINDS", "schedule_from_dict", "as_schedule", "grid_schedule"], "adarl.envs.schedules"),
+    **dict.fromkeys(["SUPPORTED_ENVS", "PAPER_ENVS", "MODES", "PRESETS", "AIR_DENSITY", "AIR_VISCOSITY", "ParameterInfo", "check_env_id", "env_parameters", "validate_values", "validate_schedule", "make_schedule", "preset_names", "DynamicsApplier", "MujocoDynamics", "CartPoleDynamics", "LinearCartPoleDynamics", "make_applier", "quiet_mujoco"], "adarl.envs.parameters"),
+    **dict.fromkeys(["LinearCartPoleEnv", "LINEAR_CARTPOLE_ID", "linear_cartpole_matrices"], "adarl.envs.linear_cartpole"),
+}
+
+__all__ = list(_EXPORTS)
+
+
+def __getattr__(name: str):
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'adarl.envs' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value  # later reads skip this function
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *__all__})

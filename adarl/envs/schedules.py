@@ -23,7 +23,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from adarl.errors import AdaRLValueError
+from adarl.errors import NO_VALUE, AdaRLValueError, did_you_mean, one_of
 
 __all__ = [
     "Schedule",
@@ -35,6 +35,9 @@ __all__ = [
     "schedule_from_dict",
     "as_schedule",
     "grid_schedule",
+    "schedule_problems",
+    "schedule_parameter_paths",
+    "schedule_parameter_names",
 ]
 
 
@@ -365,3 +368,123 @@ def grid_schedule(axes: Mapping[str, Sequence[float]], cycle: bool = False) -> L
             raise AdaRLValueError(f"grid_schedule: axes[{n!r}] must be a non-empty list of numbers, got {axes[n]!r}")
     entries = [dict(zip(names, combo)) for combo in itertools.product(*(axes[n] for n in names))]
     return ListSchedule(entries, cycle=cycle)
+
+
+# ---------------------------------------------------------------- the grammar, checked with key paths
+
+
+def _is_finite_number(x: Any) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def _check_param_map(where: str, m: Any, problems: list) -> bool:
+    if not isinstance(m, Mapping):
+        problems.append((where, m, "must be a mapping {parameter: number}"))
+        return False
+    ok = True
+    for k, x in m.items():
+        if not isinstance(k, str) or not k:
+            problems.append((where, m, f"parameter names must be non-empty strings, got {k!r}"))
+            ok = False
+        elif not _is_finite_number(x):
+            problems.append((f"{where}.{k}", x, "must be a finite number"))
+            ok = False
+    return ok
+
+
+def _same_params(where: str, m: Mapping, ref: Mapping, ref_name: str, problems: list) -> None:
+    if set(m) != set(ref):
+        problems.append((where, m, f"must name the same parameters as {ref_name}: {sorted(map(str, ref))}"))
+
+
+def schedule_problems(s: Mapping) -> list[tuple[str, Any, str]]:
+    """Every problem with a schedule description, as ``(key path, value, message)`` (``[]``: it is well formed).
+
+    The grammar of :func:`schedule_from_dict` (each kind's keys, from the classes) checked with key paths in the
+    messages, so that a recipe reports ``schedule.high.torso_length`` rather than a constructor's message. Parameter
+    names and ranges belong to the env: :func:`adarl.envs.parameters.validate_schedule` checks them.
+
+    >>> schedule_problems({"kind": "uniform", "low": {"torso_length": 0.5}, "high": {"torso_length": 0.3}})
+    [('high.torso_length', 0.3, 'must be >= low.torso_length (0.5)')]
+    """
+    problems: list[tuple[str, Any, str]] = []
+    kind = s.get("kind", NO_VALUE)
+    kinds = list(SCHEDULE_KINDS)
+    if kind is NO_VALUE:
+        return [("kind", NO_VALUE, f"is required: one of {one_of(kinds)}")]
+    if not isinstance(kind, str) or kind not in SCHEDULE_KINDS:
+        return [("kind", kind, f"must be one of {one_of(kinds)}{did_you_mean(str(kind), kinds)}")]
+    required, allowed = SCHEDULE_KINDS[kind]._required, ["kind", *SCHEDULE_KINDS[kind]._fields]
+    for k in s:
+        if k not in allowed:
+            problems.append(
+                (str(k), s[k], f"unknown key for a {kind} schedule; allowed: {one_of(allowed)}{did_you_mean(str(k), allowed)}")
+            )
+    for k in required:
+        if k not in s:
+            problems.append((k, NO_VALUE, f"is required by a {kind} schedule"))
+    if problems:
+        return problems
+    if kind == "sinusoid":
+        ok_c = _check_param_map("center", s["center"], problems)
+        if _check_param_map("amplitude", s["amplitude"], problems) and ok_c:
+            _same_params("amplitude", s["amplitude"], s["center"], "center", problems)
+        for key in ("frequency", "phase"):
+            if key not in s:
+                continue
+            v = s[key]
+            if isinstance(v, Mapping):
+                if _check_param_map(key, v, problems) and ok_c:
+                    _same_params(key, v, s["center"], "center", problems)
+            elif not _is_finite_number(v):
+                problems.append((key, v, "must be a finite number (radians per episode) or a mapping {parameter: number}"))
+    elif kind == "uniform":
+        ok_lo = _check_param_map("low", s["low"], problems)
+        if _check_param_map("high", s["high"], problems) and ok_lo:
+            if set(s["low"]) != set(s["high"]):
+                _same_params("high", s["high"], s["low"], "low", problems)
+            else:
+                for k, lo in s["low"].items():
+                    if s["high"][k] < lo:
+                        problems.append((f"high.{k}", s["high"][k], f"must be >= low.{k} ({lo})"))
+    elif kind == "fixed":
+        _check_param_map("values", s["values"], problems)
+    else:  # list
+        vals = s["values"]
+        if not isinstance(vals, list) or not vals:
+            problems.append(("values", vals, "must be a non-empty list of mappings {parameter: number}"))
+        else:
+            oks = [_check_param_map(f"values[{i}]", m, problems) for i, m in enumerate(vals)]
+            if all(oks):
+                for i, m in enumerate(vals[1:], 1):
+                    _same_params(f"values[{i}]", m, vals[0], "values[0]", problems)
+        if "cycle" in s and not isinstance(s["cycle"], bool):
+            problems.append(("cycle", s["cycle"], "must be true or false"))
+    return problems
+
+
+def schedule_parameter_paths(s: Mapping) -> list[tuple[str, Any]]:
+    """``(key path, parameter name)`` of every parameter a schedule description names, each name once (at its
+    first use), e.g. ``[("center.torso_length", "torso_length")]``."""
+    out = []
+    for field in ("center", "amplitude", "frequency", "phase", "low", "high"):
+        if isinstance(s.get(field), Mapping):
+            out += [(f"{field}.{k}", k) for k in s[field]]
+    vals = s.get("values")
+    if isinstance(vals, Mapping):
+        out += [(f"values.{k}", k) for k in vals]
+    elif isinstance(vals, list):
+        for i, m in enumerate(vals):
+            if isinstance(m, Mapping):
+                out += [(f"values[{i}].{k}", k) for k in m]
+    seen, unique = set(), []
+    for where, k in out:  # report each unknown name once, at its first use
+        if k not in seen:
+            seen.add(k)
+            unique.append((where, k))
+    return unique
+
+
+def schedule_parameter_names(s: Mapping) -> set[str]:
+    """The parameter names a schedule description sets."""
+    return {str(k) for _, k in schedule_parameter_paths(s)}

@@ -1,0 +1,13 @@
+"""The paper's components, as TorchRL pieces: they depend on torch, TorchRL and :mod:`adarl.errors` only.
+
+* :mod:`~adarl.core.lowrank` - :class:`~adarl.core.lowrank.LowRankLinear` (``W = W1 @ W2``), the low-rank MLP,
+  factor SVDs;
+* :mod:`~adarl.core.rank` - rank rules (paper Eq. 10, Eq. 33, fixed, the Eq. 8 policy fit);
+* :mod:`~adarl.core.acceptance` - Algorithm 1's acceptance step (``r_new = r_old`` unless the truncated network
+  still fits);
+* :mod:`~adarl.core.adapter` - :class:`~adarl.core.adapter.RankAdapter`, Algorithm 1's rank-adaptation step on any
+  TorchRL loss;
+* :mod:`~adarl.core.lr_schedule` - the restartable warm-up + cosine learning-rate schedule;
+* :mod:`~adarl.core.warmstart` - the warm-start replay buffer after a truncation;
+* :mod:`~adarl.core.collector_rebuild` - a collector rebuilt after each rank event (process collectors).
+"""

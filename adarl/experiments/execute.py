@@ -1,0 +1,225 @@
+"""One run of an experiment, wherever a launcher puts it: :func:`execute_run`.
+
+It starts ``adarl run`` (or ``adarl resume`` when the run folder has a checkpoint) in a child process that dies with
+its launcher process, so a worker lost mid-run is retried from the run's last checkpoint and a finished run is never
+started again; each start and end is recorded in ``<output>/attempts/``. A run at an fsspec URL trains in a local
+scratch folder that is uploaded after each checkpoint (:class:`~adarl.runtime.results.RunMirror`). This module is a
+leaf of the experiment tooling: it knows a :class:`~adarl.experiments.spec.PlannedRun` and the run folder, nothing of
+launchers, progress boards or reports.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+import uuid
+from pathlib import Path
+
+import yaml
+
+from adarl.experiments.spec import PlannedRun
+from adarl.runtime.results import SYNC_INTERVAL_S, RunMirror, filesystem, is_url, join, read_text, scratch_folder, write_atomic
+
+__all__ = ["execute_run", "run_is_finished", "read_attempts", "ATTEMPTS_DIR"]
+
+ATTEMPTS_DIR = "attempts"  # <output>/attempts/<run id>.jsonl: one line per start and end of a run, by any launcher
+
+
+def run_is_finished(path: str | os.PathLike) -> bool:
+    """A run folder (or URL) whose summary shows its whole frame budget spent."""
+    if is_url(path):
+        summary, recipe = read_text(join(path, "summary.json")), read_text(join(path, "recipe.yaml"))
+        if summary is None or recipe is None:
+            return False
+        try:
+            total = int(yaml.safe_load(recipe)["collector"]["total_frames"])
+            return int(json.loads(summary).get("frames", -1)) >= total
+        except (ValueError, KeyError, TypeError, AttributeError, yaml.YAMLError, json.JSONDecodeError):
+            return False
+    p = Path(path)
+    summary, recipe = p / "summary.json", p / "recipe.yaml"
+    if not (summary.is_file() and recipe.is_file()):
+        return False
+    try:
+        frames = int(json.loads(summary.read_text()).get("frames", -1))
+        total = int(yaml.safe_load(recipe.read_text())["collector"]["total_frames"])
+    except (ValueError, KeyError, TypeError, yaml.YAMLError, json.JSONDecodeError):
+        return False
+    return frames >= total
+
+
+def _cli(*args: str) -> list[str]:
+    return [sys.executable, "-m", "adarl.cli", *args]
+
+
+def _die_with_parent() -> None:  # pragma: no cover - runs in the child between fork and exec
+    """Linux: the training process gets SIGKILL when its launcher process dies (a lost Ray worker, a killed job),
+    so a retried run never races an orphan writing the same folder."""
+    try:
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, int(signal.SIGKILL))  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
+def _record_attempt(run: PlannedRun, **event) -> None:
+    if is_url(run.path):  # object stores cannot append: one small file per event, named so that they sort in order
+        event = {"time": time.time(), "host": socket.gethostname(), "pid": os.getpid(), **event}
+        name = f"{time.time_ns():020d}-{event['event']}-{uuid.uuid4().hex[:6]}.json"
+        write_atomic(join(run.path.rsplit("/", 1)[0], ATTEMPTS_DIR, run.run_id, name), json.dumps(event) + "\n")
+        return
+    folder = Path(run.path).parent / ATTEMPTS_DIR
+    folder.mkdir(parents=True, exist_ok=True)
+    event = {"time": time.time(), "host": socket.gethostname(), "pid": os.getpid(), **event}
+    with (folder / f"{run.run_id}.jsonl").open("a") as fh:
+        fh.write(json.dumps(event) + "\n")
+
+
+def read_attempts(output: str | os.PathLike, run_id: str) -> list[dict]:
+    """The start/end events of a run, in order (``event``: start | end; ``action``: ran | resumed | uploaded;
+    ``pid``...). At a URL they are ``attempts/<run id>/*.json``, one file per event."""
+    if is_url(output):
+        fs, folder = filesystem(join(output, ATTEMPTS_DIR, run_id))
+        try:
+            names = sorted(fs.ls(folder, detail=False))
+        except FileNotFoundError:
+            return []
+        events = []
+        for name in names:
+            if name.endswith(".json"):
+                try:
+                    events.append(json.loads(fs.cat_file(name)))
+                except (FileNotFoundError, ValueError):  # being written (local-like filesystems)
+                    continue
+        return sorted(events, key=lambda e: e.get("time", 0))
+    f = Path(output) / ATTEMPTS_DIR / f"{run_id}.jsonl"
+    if not f.is_file():
+        return []
+    return [json.loads(line) for line in f.read_text().splitlines() if line.strip()]
+
+
+def execute_run(run: PlannedRun, threads: int | None) -> PlannedRun:
+    """Run (or resume, when its folder has a checkpoint) one run with the ``adarl`` command; sets its status.
+
+    What every launcher executes, wherever it runs; a finished run is left alone (``skipped-finished``). A run at a
+    URL trains in a local scratch folder copied to the URL (:func:`_execute_at_url`)."""
+    if is_url(run.path):
+        return _execute_at_url(run, threads)
+    path = Path(run.path)
+    if run_is_finished(path):  # e.g. a retried task whose first try finished before its worker was lost
+        run.status, run.message = "skipped-finished", "already finished"
+        return run
+    if (path / "checkpoints").is_dir() and any((path / "checkpoints").glob("ckpt-*.pt")):
+        cmd, action = _cli("resume", str(path), "--quiet"), "resumed"
+    else:
+        if path.exists():
+            shutil.rmtree(path)  # a start that never checkpointed: nothing to keep
+        cmd, action = _cli("run", run.recipe, *run.overrides, "-o", str(path), "--quiet"), "ran"
+    env = _train_env(threads)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    log = path.parent / f"{run.run_id}.log"
+    _record_attempt(run, event="start", action=action)
+    start = time.perf_counter()
+    with log.open("w") as fh:
+        proc = subprocess.run(cmd, stdout=fh, stderr=subprocess.STDOUT, env=env,
+                              preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None)
+    run.wall_time_s = time.perf_counter() - start
+    if proc.returncode == 0 and run_is_finished(path):
+        run.status, run.message = "finished", action
+        log.unlink(missing_ok=True)
+    else:
+        tail = log.read_text().strip().splitlines()[-1:] if log.is_file() else []
+        run.status, run.message = "failed", f"exit {proc.returncode}: {' '.join(tail)} (log: {log})"
+    _record_attempt(run, event="end", action=action, status=run.status)
+    return run
+
+
+def _train_env(threads: int | None) -> dict:
+    env = dict(os.environ)
+    if threads:
+        env.update(OMP_NUM_THREADS=str(threads), MKL_NUM_THREADS=str(threads))
+    return env
+
+
+_POLL_S = 1.0  # how often a URL run's scratch folder is checked for a new checkpoint to upload
+
+
+def _execute_at_url(run: PlannedRun, threads: int | None) -> PlannedRun:
+    """:func:`execute_run` for a run at a URL: train in the local scratch folder (downloaded from the URL first when
+    it lacks the URL's latest checkpoint), upload after each checkpoint and at the end (:class:`RunMirror`)."""
+    if run_is_finished(run.path):
+        run.status, run.message = "skipped-finished", "already finished"
+        return run
+    local = scratch_folder(run.path, run.run_id, run.scratch)
+    local.parent.mkdir(parents=True, exist_ok=True)
+    mirror = RunMirror(local, run.path)
+    remote_log = join(run.path.rsplit("/", 1)[0], f"{run.run_id}.log")
+    log = local.with_name(f"{run.run_id}.log")
+    try:
+        state = mirror.prepare()
+    except Exception as err:  # noqa: BLE001 - e.g. the store does not answer: this attempt fails, others go on
+        run.status, run.message = "failed", f"could not read {run.path}: {type(err).__name__}: {err}"
+        return run
+    if state == "fresh":
+        cmd, action = _cli("run", run.recipe, *run.overrides, "-o", str(local), "--quiet"), "ran"
+    elif run_is_finished(local):  # finished here, but the worker was lost before the upload ended
+        cmd, action = None, "uploaded"
+    else:
+        cmd, action = _cli("resume", str(local), "--quiet"), "resumed"
+    _record_attempt(run, event="start", action=action, scratch=str(local))
+    start = time.perf_counter()
+    returncode, upload_error = 0, None
+    if cmd is not None:
+        with log.open("w") as fh:
+            proc = subprocess.Popen(cmd, stdout=fh, stderr=subprocess.STDOUT, env=_train_env(threads),
+                                    preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None)
+            try:
+                while True:
+                    try:
+                        returncode = proc.wait(timeout=_POLL_S)
+                        break
+                    except subprocess.TimeoutExpired:
+                        pass
+                    if mirror.has_new_checkpoint() or time.monotonic() - mirror.last_push >= SYNC_INTERVAL_S:
+                        try:
+                            mirror.push()
+                        except Exception as err:  # noqa: BLE001 - retried at the next checkpoint; the run goes on
+                            fh.write(f"adarl: upload to {run.path} failed (retrying later): {err}\n")
+                            fh.flush()
+            except BaseException:
+                proc.kill()
+                proc.wait()
+                raise
+    run.wall_time_s = time.perf_counter() - start
+    finished_here = returncode == 0 and run_is_finished(local)
+    try:
+        mirror.push(final=finished_here)
+        upload_error = None
+    except Exception as err:  # noqa: BLE001 - reported below; the scratch folder is kept for a retry
+        upload_error = err
+    if finished_here and upload_error is None and run_is_finished(run.path):
+        run.status, run.message = "finished", action
+        mirror.clean()
+        log.unlink(missing_ok=True)
+        fs, rpath = filesystem(remote_log)
+        if fs.exists(rpath):  # the log of an earlier failed attempt
+            fs.rm(rpath)
+    elif finished_here:
+        why = upload_error or "its summary.json is not readable there"
+        run.status, run.message = "failed", f"finished in {local} but the upload to {run.path} failed: {why}"
+    else:
+        tail = log.read_text().strip().splitlines()[-1:] if log.is_file() else []
+        try:
+            write_atomic(remote_log, log.read_text() if log.is_file() else "")
+            where = remote_log
+        except Exception:  # noqa: BLE001 - the local log is still there
+            where = str(log)
+        run.status, run.message = "failed", f"exit {returncode}: {' '.join(tail)} (log: {where})"
+    _record_attempt(run, event="end", action=action, status=run.status)
+    return run

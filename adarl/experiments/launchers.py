@@ -1,0 +1,243 @@
+"""Launchers: where an experiment's runs execute. ``local`` (a process pool on this machine, the default),
+``ray`` (one Ray task per run, on an existing cluster or a Ray started on demand) and ``submitit`` (one SLURM job
+per run, or submitit's local executor).
+
+Every launcher runs the same thing: :func:`adarl.experiments.execute.execute_run`, which starts ``adarl run`` (or ``adarl
+resume`` when the run folder has a checkpoint) in a child process that dies with its launcher process. So a worker
+that is lost mid-run is retried from the run's last checkpoint (Ray: ``max_retries``; submitit: resubmitted by the
+driver, and requeued from the checkpoint on preemption/timeout), and a finished run is never started again. Runs
+write into the experiment's output: a filesystem path that every worker sees (NFS, Lustre, ...), or an fsspec URL
+(``s3://...``) that each run uploads to from a local scratch folder (:mod:`adarl.runtime.results`). The launchers do not
+stage code or install packages on workers: each worker needs ``adarl`` installed (and the URL's fsspec backend, e.g.
+``s3fs``, with its credentials), or the output folder mounted at the same path.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from abc import ABC, abstractmethod
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Callable
+
+from adarl.errors import AdaRLError, AdaRLValueError
+from adarl.experiments.execute import execute_run
+from adarl.runtime.results import is_url
+
+__all__ = ["Launcher", "LocalLauncher", "RayLauncher", "SubmititLauncher", "make_launcher", "LAUNCHERS"]
+
+LAUNCHERS = ("local", "ray", "submitit")
+
+
+class Launcher(ABC):
+    """Runs a list of :class:`~adarl.experiments.spec.PlannedRun` and reports each one as it ends."""
+
+    name = "launcher"
+
+    @abstractmethod
+    def launch(self, runs: list, on_done: Callable, *, tick: Callable[[set], None] = lambda running: None) -> None:
+        """Execute ``runs``; call ``on_done(run)`` (status set) as each ends and ``tick(running_ids)`` now and then."""
+
+    @property
+    def threads(self) -> int | None:
+        """Torch threads per run (``OMP_NUM_THREADS``); ``None`` leaves the default."""
+        return None
+
+
+class LocalLauncher(Launcher):
+    """``workers`` runs at a time on this machine, each in its own process (one torch thread each when > 1)."""
+
+    name = "local"
+
+    def __init__(self, workers: int = 1, poll_s: float = 5.0) -> None:
+        if workers < 1:
+            raise AdaRLValueError(f"workers must be >= 1, got {workers}")
+        self.workers, self.poll_s = workers, poll_s
+
+    @property
+    def threads(self) -> int | None:
+        return 1 if self.workers > 1 else None
+
+    def launch(self, runs, on_done, *, tick=lambda running: None) -> None:
+        running: set[str] = set()
+
+        def one(r):
+            running.add(r.run_id)
+            try:
+                return execute_run(r, self.threads)
+            finally:
+                running.discard(r.run_id)
+
+        with ThreadPoolExecutor(max_workers=self.workers) as pool:
+            futures = {pool.submit(one, r): r for r in runs}
+            pending = set(futures)
+            while pending:
+                done = {f for f in pending if f.done()}
+                for f in done:
+                    on_done(f.result())
+                pending -= done
+                if pending:
+                    tick(set(running))
+                    time.sleep(min(self.poll_s, 0.2) if not done else 0)
+
+
+def _ray_execute(run, threads):
+    return execute_run(run, threads)
+
+
+class RayLauncher(Launcher):
+    """One Ray task per run, declaring ``cpus_per_run``/``gpus_per_run``; a task whose worker dies is retried
+    (``max_retries`` times) and resumes from the run's last checkpoint.
+
+    ``address``: an existing cluster (``"auto"``, ``"ray://head:10001"``, ...); ``None`` starts a local Ray on demand
+    (``num_cpus`` CPUs, no dashboard) and stops it afterwards. Needs ``pip install 'adarl[ray]'``.
+    """
+
+    name = "ray"
+
+    def __init__(self, address: str | None = None, *, cpus_per_run: float = 1, gpus_per_run: float = 0,
+                 max_retries: int = 3, num_cpus: int | None = None, poll_s: float = 5.0) -> None:
+        if cpus_per_run <= 0 or gpus_per_run < 0 or max_retries < 0:
+            raise AdaRLValueError(f"ray launcher: cpus_per_run must be > 0, gpus_per_run and max_retries >= 0 "
+                                  f"(got {cpus_per_run}, {gpus_per_run}, {max_retries})")
+        self.address, self.cpus_per_run, self.gpus_per_run = address, cpus_per_run, gpus_per_run
+        self.max_retries, self.num_cpus, self.poll_s = max_retries, num_cpus, poll_s
+
+    @property
+    def threads(self) -> int | None:
+        return max(1, int(self.cpus_per_run))
+
+    def launch(self, runs, on_done, *, tick=lambda running: None) -> None:
+        try:
+            import ray
+        except ImportError:
+            raise AdaRLError("the ray launcher needs Ray: pip install 'adarl[ray]'") from None
+        started = False
+        if not ray.is_initialized():
+            if self.address is None:
+                ray.init(num_cpus=self.num_cpus, include_dashboard=False, log_to_driver=False,
+                         configure_logging=False)
+            else:
+                ray.init(address=self.address, log_to_driver=False, configure_logging=False)
+            started = True
+        try:
+            task = ray.remote(_ray_execute).options(num_cpus=self.cpus_per_run, num_gpus=self.gpus_per_run,
+                                                    max_retries=self.max_retries, retry_exceptions=False)
+            refs = {task.remote(r, self.threads): r for r in runs}
+            pending = list(refs)
+            while pending:
+                done, pending = ray.wait(pending, num_returns=1, timeout=self.poll_s)
+                for ref in done:
+                    run = refs[ref]
+                    try:
+                        result = ray.get(ref)
+                        run.status, run.message, run.wall_time_s = result.status, result.message, result.wall_time_s
+                    except Exception as err:  # noqa: BLE001 - worker lost more than max_retries times, etc.
+                        run.status, run.message = "failed", f"ray: {type(err).__name__}: {str(err).splitlines()[0]}"
+                    on_done(run)
+                tick({refs[ref].run_id for ref in pending})
+        finally:
+            if started:
+                ray.shutdown()
+
+
+class SubmititLauncher(Launcher):
+    """One submitit job per run: SLURM (``cluster=None`` picks it when ``sbatch`` exists) or ``cluster="local"``.
+
+    Jobs are requeued from the run's checkpoint on preemption or timeout (submitit ``Checkpointable``); a job that
+    fails otherwise (node lost) is resubmitted up to ``max_retries`` times. Needs ``pip install 'adarl[slurm]'``.
+    """
+
+    name = "submitit"
+
+    def __init__(self, folder: str | os.PathLike, *, cluster: str | None = None, cpus_per_run: int = 1,
+                 gpus_per_run: int = 0, timeout_min: int = 24 * 60, slurm_partition: str | None = None,
+                 slurm_additional_parameters: dict | None = None, max_retries: int = 3, poll_s: float = 5.0) -> None:
+        self.folder, self.cluster = Path(folder), cluster
+        self.cpus_per_run, self.gpus_per_run, self.timeout_min = int(cpus_per_run), int(gpus_per_run), timeout_min
+        self.slurm_partition, self.slurm_additional_parameters = slurm_partition, slurm_additional_parameters or {}
+        self.max_retries, self.poll_s = max_retries, poll_s
+
+    @property
+    def threads(self) -> int | None:
+        return max(1, self.cpus_per_run)
+
+    def _executor(self):
+        try:
+            import submitit
+        except ImportError:
+            raise AdaRLError("the submitit launcher needs submitit: pip install 'adarl[slurm]'") from None
+        ex = submitit.AutoExecutor(folder=self.folder, cluster=self.cluster)
+        params = dict(timeout_min=self.timeout_min, cpus_per_task=self.cpus_per_run, nodes=1, tasks_per_node=1)
+        if self.gpus_per_run:
+            params["gpus_per_node"] = self.gpus_per_run
+        if ex.cluster == "slurm":
+            if self.slurm_partition:
+                params["slurm_partition"] = self.slurm_partition
+            if self.slurm_additional_parameters:
+                params["slurm_additional_parameters"] = self.slurm_additional_parameters
+        ex.update_parameters(**params)
+        return ex
+
+    def launch(self, runs, on_done, *, tick=lambda running: None) -> None:
+        ex = self._executor()
+        job_fn = _CheckpointableRun()
+        jobs = {r.run_id: (ex.submit(job_fn, r, self.threads), r, 0) for r in runs}
+        while jobs:
+            for run_id, (job, run, tries) in list(jobs.items()):
+                if not job.done():
+                    continue
+                try:
+                    result = job.result()
+                    run.status, run.message, run.wall_time_s = result.status, result.message, result.wall_time_s
+                except Exception as err:  # noqa: BLE001 - job lost (node failure, cancelled): retry from checkpoint
+                    if tries < self.max_retries:
+                        jobs[run_id] = (ex.submit(job_fn, run, self.threads), run, tries + 1)
+                        continue
+                    run.status, run.message = "failed", f"submitit job {job.job_id}: {str(err).splitlines()[0]}"
+                del jobs[run_id]
+                on_done(run)
+            if jobs:
+                tick(set(jobs))
+                time.sleep(min(self.poll_s, 1.0))
+
+
+try:  # submitit's requeue-on-preemption protocol, when submitit is installed
+    from submitit.helpers import Checkpointable as _Checkpointable
+except ImportError:  # pragma: no cover - the launcher raises a clear error before this is used
+    _Checkpointable = object
+
+
+class _CheckpointableRun(_Checkpointable):
+    """The job submitit runs; on preemption/timeout it is resubmitted as is (the run resumes from its checkpoint)."""
+
+    def __call__(self, run, threads):
+        return execute_run(run, threads)
+
+
+def make_launcher(name: str, *, workers: int = 1, output: str | os.PathLike = ".", address: str | None = None,
+                  cpus_per_run: float | None = None, gpus_per_run: float | None = None, max_retries: int = 3,
+                  resources=None, cluster: str | None = None, submitit_folder: str | os.PathLike | None = None
+                  ) -> Launcher:
+    """A launcher by name (``local``, ``ray``, ``submitit``), sized from the spec's ``resources`` unless given.
+
+    ``submitit_folder``: where submitit keeps its job files (default ``<output>/submitit``; required when the output
+    is a URL, since SLURM jobs read them from a shared filesystem)."""
+    if name not in LAUNCHERS:
+        raise AdaRLValueError(f"unknown launcher {name!r}; choose one of {', '.join(LAUNCHERS)}")
+    cpus = cpus_per_run if cpus_per_run is not None else (resources.cpus_per_run if resources else 1)
+    gpus = gpus_per_run if gpus_per_run is not None else (resources.gpus_per_run if resources else 0)
+    if name == "local":
+        return LocalLauncher(workers)
+    if name == "ray":
+        return RayLauncher(address, cpus_per_run=cpus, gpus_per_run=gpus, max_retries=max_retries)
+    if submitit_folder is None and is_url(output):
+        raise AdaRLValueError(f"the submitit launcher keeps its job files in a folder every job can read; with an "
+                              f"fsspec URL as output ({output}) give one: --submitit-folder /shared/path")
+    folder = Path(submitit_folder) if submitit_folder is not None else Path(output) / "submitit"
+    return SubmititLauncher(folder, cluster=cluster, cpus_per_run=int(cpus), gpus_per_run=int(gpus),
+                            timeout_min=resources.timeout_min if resources else 24 * 60,
+                            slurm_partition=resources.slurm_partition if resources else None,
+                            slurm_additional_parameters=resources.slurm_additional_parameters if resources else None,
+                            max_retries=max_retries)

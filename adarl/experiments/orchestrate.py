@@ -1,0 +1,197 @@
+"""Running an experiment: :func:`run_experiment` plans the spec's runs, skips finished ones, flags runs whose recipe
+does not exist (yet), hands the rest to a launcher (one after another, ``workers`` at a time, Ray or SLURM), shows
+their progress, sweeps each finished run if the spec asks, and writes the aggregate report
+(:mod:`adarl.experiments.aggregate`). ``experiment.json`` in the output folder records what ran.
+
+The output may be an fsspec URL (``s3://bucket/exp``): runs then train in a local scratch folder and are copied to
+``<URL>/<run id>`` after each checkpoint (:mod:`adarl.runtime.results`); the finished-run check, ``experiment.json``,
+the attempt records, the progress board and the report read and write the URL.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+from adarl.errors import AdaRLError, AdaRLValueError, RecipeError
+from adarl.experiments.aggregate import write_aggregate_report
+from adarl.experiments.execute import run_is_finished
+from adarl.experiments.launchers import Launcher, make_launcher
+from adarl.experiments.progress import LiveBoard, ProgressBoard
+from adarl.experiments.spec import ExperimentSpec, PlannedRun, SweepSpec, default_output, load_experiment, plan_runs, resolve_budget
+from adarl.experiments.sweep import parse_sweep, sweep_run
+from adarl.runtime.config import load_recipe
+from adarl.runtime.results import RunMirror, exists, filesystem, is_url, join, makedirs, read_text, upload_tree, write_atomic
+
+__all__ = ["run_experiment", "EXPERIMENT_FILE"]
+
+EXPERIMENT_FILE = "experiment.json"
+
+
+def _check_recipes(runs: list[PlannedRun]) -> None:
+    """Validate every run's recipe before anything runs: a missing recipe flags its runs, a bad one stops all."""
+    problems = []
+    for run in runs:
+        try:
+            load_recipe(run.recipe, run.overrides)
+        except RecipeError as err:
+            if str(err).startswith(f"no recipe named {run.recipe!r}") or "not found" in str(err).split("\n")[0]:
+                run.status, run.message = "missing-recipe", str(err).split(";")[0]
+            else:
+                problems.append(f"{run.run_id}: {err}")
+    if problems:
+        raise RecipeError("experiment runs do not validate (nothing was run):\n" + "\n".join(problems[:10]))
+
+
+def _sweep(run: PlannedRun, sweeps: list[SweepSpec]) -> None:
+    """Run the spec's sweeps missing from a finished run; a URL run is swept in a local copy, then uploaded."""
+    names: dict[str, SweepSpec] = {}
+    for s in sweeps:
+        names.setdefault(s.name or "__".join(p.split("=")[0] for p in s.params), s)
+    if not is_url(run.path):
+        for name, s in names.items():
+            if not (Path(run.path) / "sweeps" / f"{name}.csv").is_file():
+                sweep_run(run.path, [parse_sweep(p) for p in s.params], episodes=s.episodes, name=name)
+        return
+    todo = {n: s for n, s in names.items() if not exists(join(run.path, "sweeps", f"{n}.csv"))}
+    if not todo:
+        return
+    with tempfile.TemporaryDirectory(prefix="adarl-sweep-") as tmp:
+        mirror = RunMirror(Path(tmp) / run.run_id, run.path)
+        latest = mirror.remote_latest()
+        if latest is None:
+            raise AdaRLError(f"cannot sweep {run.path}: it has no checkpoint (checkpoints/LATEST is missing)")
+        mirror.download(latest)
+        for name, s in todo.items():
+            sweep_run(mirror.local, [parse_sweep(p) for p in s.params], episodes=s.episodes, name=name)
+        upload_tree(mirror.local / "sweeps", join(run.path, "sweeps"))
+
+
+def _write_state(out: Path | str, spec: ExperimentSpec, budget: str | None, runs: list[PlannedRun],
+                 command: str = "") -> None:
+    payload = {"name": spec.name, "description": spec.description, "budget": budget, "command": command,
+               "axes": list(spec.axes),
+               "report": spec.report.model_dump(), "runs": [r.as_dict() for r in runs]}
+    if is_url(out):
+        write_atomic(join(out, EXPERIMENT_FILE), json.dumps(payload, indent=2) + "\n")
+        return
+    tmp = out / (EXPERIMENT_FILE + ".tmp")
+    tmp.write_text(json.dumps(payload, indent=2) + "\n")
+    os.replace(tmp, out / EXPERIMENT_FILE)
+
+
+def _read_previous(out: Path | str) -> str | None:
+    if is_url(out):
+        return read_text(join(out, EXPERIMENT_FILE))
+    previous = out / EXPERIMENT_FILE
+    return previous.read_text() if previous.is_file() else None
+
+
+def run_experiment(spec_path: str | os.PathLike, *, budget: str | None = None, output: str | os.PathLike | None = None,
+                   workers: int | None = None, dry_run: bool = False, report: bool = True,
+                   log=print, launcher: str | Any = "local", launcher_options: dict | None = None,
+                   progress_interval: float = 0, scratch: str | os.PathLike | None = None,
+                   live: bool = False, console=None) -> list[PlannedRun]:
+    """Run (or continue) the experiment in ``spec_path``; returns the runs with their status.
+
+    ``output``: a folder, or an fsspec URL (``s3://bucket/exp``, ``file:///shared/exp``; see :mod:`adarl.runtime.results`),
+    where each run then trains in ``scratch`` (default: ``$TMPDIR/adarl-scratch`` of the machine it runs on) and is
+    uploaded after each checkpoint. ``launcher``: ``local`` (default), ``ray``, ``submitit`` (see
+    :mod:`adarl.experiments.launchers`; ``launcher_options`` go to :func:`~adarl.experiments.launchers.make_launcher`) or a
+    :class:`~adarl.experiments.launchers.Launcher`. ``progress_interval`` > 0 logs one line per run and an aggregate bar that
+    often (seconds); with ``live`` a table redrawn in place instead (rich, on ``console``: default stdout)."""
+    spec = load_experiment(spec_path)
+    budget, _ = resolve_budget(spec, budget)
+    out = output if output is not None else default_output(spec, budget)
+    out = str(out).rstrip("/") if is_url(out) else Path(out)
+    if is_url(out):
+        filesystem(out)  # an unknown protocol or a missing backend package fails here, before anything runs
+    runs = plan_runs(spec, out, budget)
+    if scratch is not None:
+        if is_url(out):
+            for r in runs:
+                r.scratch = str(scratch)
+        else:
+            log(f"note: --scratch is ignored: results at a local path ({out}) are written in place")
+    _check_recipes(runs)
+    todo = []
+    for r in runs:
+        if r.status == "missing-recipe":
+            log(f"[skip] {r.run_id}: {r.message}")
+        elif run_is_finished(r.path):
+            r.status, r.message = "skipped-finished", "already finished"
+        else:
+            todo.append(r)
+    previous = _read_previous(out)
+    if previous is not None:  # keep the timings of runs finished in earlier sessions
+        try:
+            before = {r["run_id"]: r for r in json.loads(previous).get("runs", [])}
+        except (json.JSONDecodeError, AttributeError, TypeError):
+            before = {}
+        for r in runs:
+            if r.status == "skipped-finished" and r.run_id in before:
+                r.wall_time_s = float(before[r.run_id].get("wall_time_s") or 0.0)
+    n_done = sum(r.status == "skipped-finished" for r in runs)
+    log(f"experiment {spec.name} (budget {budget or 'default'}): {len(runs)} runs, {n_done} already finished, "
+        f"{len(todo)} to run, {sum(r.status == 'missing-recipe' for r in runs)} with a missing recipe -> {out}")
+    if dry_run:
+        for r in runs:
+            log(f"  {r.status:<16} {r.run_id}: {r.recipe} {' '.join(r.overrides)}")
+        return runs
+    if is_url(out):
+        makedirs(out)
+    else:
+        out.mkdir(parents=True, exist_ok=True)
+    command = f"adarl experiment {spec_path}" + (f" --budget {budget}" if budget else "") + f" -o {out}"
+    _write_state(out, spec, budget, runs, command)
+    if not isinstance(launcher, Launcher):
+        launcher = make_launcher(launcher, workers=workers or spec.workers, output=out, resources=spec.resources,
+                                 **(launcher_options or {}))
+    if is_url(out) and out.startswith("memory://") and launcher.name != "local":
+        raise AdaRLValueError(f"output {out!r}: memory:// lives in one process, which the {launcher.name} launcher's "
+                              "workers cannot see; use a shared URL (s3://, gs://, file:///shared/...)")
+    board, last_tick = ProgressBoard(runs), [time.monotonic()]
+    screen = LiveBoard(board, console=console) if live and progress_interval > 0 else None
+    say = screen.log if screen is not None else log
+
+    def done(r: PlannedRun) -> None:
+        say(f"[{r.status}] {r.run_id} ({r.wall_time_s:.0f} s){'' if r.status == 'finished' else ': ' + r.message}")
+        _write_state(out, spec, budget, runs, command)
+        if screen is not None:
+            screen.update()
+
+    def tick(running: set) -> None:
+        board.running = running
+        if progress_interval > 0 and time.monotonic() - last_tick[0] >= progress_interval:
+            last_tick[0] = time.monotonic()
+            if screen is not None:
+                screen.update()
+            else:
+                for line in board.render():
+                    log(line)
+
+    if todo:
+        if screen is not None:
+            with screen:
+                launcher.launch(todo, done, tick=tick)
+        else:
+            launcher.launch(todo, done, tick=tick)
+    _, b = resolve_budget(spec, budget)
+    sweeps = spec.sweeps if b.sweeps is None else b.sweeps
+    if sweeps:
+        for r in runs:
+            if r.status in ("finished", "skipped-finished"):
+                _sweep(r, sweeps)
+    _write_state(out, spec, budget, runs, command)
+    failed = [r for r in runs if r.status == "failed"]
+    if report:
+        path = write_aggregate_report([out], f"{out}/report" if is_url(out) else out / "report")
+        log(f"report: {path}")
+    if failed:
+        raise AdaRLError(f"{len(failed)} of {len(runs)} runs failed: " + "; ".join(f"{r.run_id}: {r.message}"
+                                                                               for r in failed[:5]))
+    return runs

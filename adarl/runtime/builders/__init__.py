@@ -1,0 +1,39 @@
+"""Where a recipe becomes objects, in one package: networks, losses, and every component of a run wired together.
+
+* :mod:`~adarl.runtime.builders.common` - the device check, the MLP of a ``network.<net>`` section (plain,
+  low-rank, or a registered baseline's variant), the training and evaluation envs, an actor's specs;
+* :mod:`~adarl.runtime.builders.sac` - SAC's actor, critic and ``SACLoss``; :func:`build_components` for AdaRL-SAC
+  and the SAC baselines;
+* :mod:`~adarl.runtime.builders.ppo` - the RNAC baselines' PPO modules; :func:`build_ppo_components`.
+
+The baselines plug in through :mod:`adarl.baselines.registry`; nothing here names one.
+"""
+
+from adarl.runtime.builders.common import (
+    ACTIVATIONS,
+    check_device,
+    make_envs,
+    make_mlp,
+    policy_specs,
+    spec_env,
+    train_env_factory,
+)
+from adarl.runtime.builders.ppo import PPOComponents, PPOModules, build_ppo_components, make_ppo_modules
+from adarl.runtime.builders.sac import (
+    Components,
+    SACModules,
+    build_components,
+    make_recipe_actor,
+    make_sac_actor,
+    make_sac_critic,
+    make_sac_loss,
+    make_sac_modules,
+    planned_updates,
+    reinit_low_rank_ensemble,
+    update_after,
+)
+
+__all__ = ["ACTIVATIONS", "check_device", "make_mlp", "make_envs", "train_env_factory", "policy_specs", "spec_env",
+           "make_sac_actor", "make_sac_critic", "make_sac_loss", "make_recipe_actor", "make_sac_modules",
+           "reinit_low_rank_ensemble", "SACModules", "Components", "build_components", "planned_updates",
+           "update_after", "PPOModules", "PPOComponents", "make_ppo_modules", "build_ppo_components"]

@@ -1,0 +1,175 @@
+"""Where a PPO recipe (the RNAC baselines, Zhou et al., 2023) becomes objects: actor, state-value critic,
+TorchRL's ``ClipPPOLoss`` and GAE (or RNAC-IPM's shifted GAE), then every component of a run wired together
+(:func:`build_ppo_components`): envs (with RNAC-DS's double-sampling transform), optimisers, the linear LR decay
+and the collector.
+
+Defaults follow the original RNAC trainer (tliu1997/RNAC): 64-64 tanh networks with its orthogonal init
+(``network.<net>.init`` in the recipes), its Gaussian policy (mean ``tanh`` into the box, state-independent
+log-std, samples clipped to the action box: :class:`~adarl.baselines.policy.ClippedNormal`), Adam (eps 1e-5) with
+a linear learning-rate decay, running observation normalisation and reward scaling. ``algorithm.ppo.policy:
+tanh_gaussian`` gives TorchRL's tanh-squashed Gaussian instead; docs/baselines/rnac.md lists what still differs
+from the original. The loop is :class:`~adarl.runtime.trainers.ppo.PPOTrainer`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import torch
+from tensordict.nn import AddStateIndependentNormalScale, TensorDictModule
+from torch import nn
+from torchrl.collectors import Collector
+from torchrl.modules import ProbabilisticActor, TanhNormal, ValueOperator
+from torchrl.objectives import ClipPPOLoss
+from torchrl.objectives.value import GAE
+
+from adarl.baselines import registry
+from adarl.baselines.normalization import RewardScaler, RunningObsNorm
+from adarl.baselines.policy import BoxTanh, ClippedNormal
+from adarl.baselines.rnac import DoubleSamplingTransform, IPMAdvantage
+from adarl.runtime.builders.common import action_spec, check_device, init_network, make_envs, make_recipe_mlp
+from adarl.runtime.state import seed_everything
+
+__all__ = ["PPOModules", "PPOComponents", "LinearDecay", "make_ppo_modules", "build_ppo_components",
+           "simulator_steps_per_frame"]
+
+
+@dataclass
+class PPOModules:
+    """Actor, critic, PPO loss and advantage module of one PPO/RNAC agent (``obs_norms`` sit inside actor and
+    critic)."""
+
+    actor: ProbabilisticActor
+    critic: ValueOperator
+    loss: ClipPPOLoss
+    advantage: GAE
+    obs_norms: list[RunningObsNorm]
+
+
+@dataclass
+class PPOComponents:
+    """Everything a PPO recipe builds, wired together (no training has happened yet). ``terms``: the loss terms the
+    recipe switches on (:mod:`adarl.baselines.registry`: Parseval); ``sampling_generator`` draws the minibatches."""
+
+    recipe: object
+    env: object
+    eval_env: object
+    modules: PPOModules
+    optimizers: dict[str, torch.optim.Optimizer]
+    schedulers: dict[str, torch.optim.lr_scheduler.LRScheduler]
+    collector: Collector
+    reward_scaler: RewardScaler | None
+    double_sampling: DoubleSamplingTransform | None
+    total_iterations: int
+    sampling_generator: torch.Generator
+    terms: dict[str, nn.Module] = field(default_factory=dict)
+
+    @property
+    def policy(self):
+        return self.modules.actor
+
+    def close(self) -> None:
+        """Shut the collector down and close the envs (each only once)."""
+        for closable in (self.collector, self.env, self.eval_env):
+            try:
+                closable.shutdown() if hasattr(closable, "shutdown") else closable.close()
+            except Exception:  # noqa: BLE001 - already closed
+                pass
+
+
+class LinearDecay:
+    """``1 - step / total`` (floored at 0): the original trainer's linear LR decay, as a picklable object so that
+    ``LambdaLR.state_dict()`` saves it.
+
+    >>> LinearDecay(4)(1), LinearDecay(4)(8)
+    (0.75, 0.0)
+    """
+
+    def __init__(self, total: int) -> None:
+        self.total = max(1, int(total))
+
+    def __call__(self, step: int) -> float:
+        return max(0.0, 1.0 - step / self.total)
+
+
+def _net(in_dim: int, out_dim: int, mlp, algorithm, action_dim: int, obs_norm: RunningObsNorm | None, device):
+    body = make_recipe_mlp(in_dim, out_dim, mlp, algorithm, action_dim, device)
+    init_network(body, mlp)
+    return nn.Sequential(obs_norm, body) if obs_norm is not None else body
+
+
+def make_ppo_modules(recipe, env) -> PPOModules:
+    """Actor (``algorithm.ppo.policy``: RNAC's clipped Gaussian or TorchRL's tanh-Gaussian, both with a
+    state-independent log-std), state-value critic, ``ClipPPOLoss`` and GAE (or RNAC-IPM's shifted GAE) from a
+    recipe's ``network`` and ``algorithm`` sections."""
+    device = torch.device(recipe.device)
+    alg, ppo = recipe.algorithm, recipe.algorithm.ppo
+    obs_dim = env.observation_spec["observation"].shape[-1]
+    spec = action_spec(env)
+    act_dim = spec.shape[-1]
+    norms = [RunningObsNorm(obs_dim).to(device), RunningObsNorm(obs_dim).to(device)] if ppo.obs_norm else []
+    a, c = recipe.network.actor, recipe.network.critic
+    actor_body = _net(obs_dim, act_dim, a, alg, act_dim, norms[0] if norms else None, device)
+    low, high = spec.space.low, spec.space.high
+    if ppo.policy == "clipped_gaussian":  # RNAC's: mean = tanh into the box, samples clipped to it
+        head, dist_class = [BoxTanh(low, high).to(device)], ClippedNormal
+    else:  # TorchRL's tanh-squashed Gaussian
+        head, dist_class = [], TanhNormal
+    policy = TensorDictModule(
+        nn.Sequential(actor_body, *head, AddStateIndependentNormalScale(act_dim, scale_lb=1e-8).to(device)),
+        in_keys=["observation"], out_keys=["loc", "scale"],
+    )
+    actor = ProbabilisticActor(
+        policy, in_keys=["loc", "scale"], spec=spec, distribution_class=dist_class,
+        distribution_kwargs={"low": low, "high": high}, return_log_prob=True,
+    )
+    critic = ValueOperator(_net(obs_dim, 1, c, alg, act_dim, norms[1] if norms else None, device),
+                           in_keys=["observation"])
+    # 'batch' standardises once per collected batch in PPOTrainer's iteration; 'minibatch' inside the loss
+    loss = ClipPPOLoss(actor, critic, clip_epsilon=ppo.clip_epsilon, entropy_bonus=ppo.entropy_coeff > 0,
+                       entropy_coeff=ppo.entropy_coeff, critic_coeff=ppo.critic_coeff, loss_critic_type="l2",
+                       normalize_advantage=ppo.normalize_advantage == "minibatch", functional=False)
+    rn = alg.rnac
+    if rn.mode == "ipm":
+        advantage = IPMAdvantage(gamma=alg.gamma, lmbda=ppo.gae_lambda, value_network=critic, kappa=rn.kappa,
+                                 average_gae=False)
+    else:
+        advantage = GAE(gamma=alg.gamma, lmbda=ppo.gae_lambda, value_network=critic, average_gae=False)
+    return PPOModules(actor, critic, loss, advantage, norms)
+
+
+def build_ppo_components(recipe) -> PPOComponents:
+    """Env (+ RNAC-DS), evaluation env, networks, loss, optimisers, LR decay and collector of a PPO recipe."""
+    check_device(recipe.device)
+    seed_everything(recipe.seed)
+    env, eval_env = make_envs(recipe)
+    modules = make_ppo_modules(recipe, env)
+    alg, ppo = recipe.algorithm, recipe.algorithm.ppo
+    ds = None
+    if alg.rnac.mode == "ds":
+        rn = alg.rnac
+        ds = DoubleSamplingTransform(rn.num_candidates, rn.noise, value_network=modules.critic, seed=recipe.seed + 2)
+        env.append_transform(ds)
+    optimizers = {
+        "actor": torch.optim.Adam(modules.actor.parameters(), lr=alg.lr, eps=ppo.adam_eps),
+        "critic": torch.optim.Adam(modules.critic.parameters(), lr=alg.lr, eps=ppo.adam_eps),
+    }
+    c = recipe.collector
+    iterations = math.ceil(c.total_frames / c.frames_per_batch)
+    schedulers = {k: torch.optim.lr_scheduler.LambdaLR(o, LinearDecay(iterations if ppo.lr_decay else 10**12))
+                  for k, o in optimizers.items()}
+    collector = Collector(env, modules.actor, frames_per_batch=c.frames_per_batch, total_frames=-1,
+                          device=recipe.device)
+    terms = registry.loss_terms(modules.loss, alg)
+    scaler = RewardScaler(alg.gamma) if ppo.reward_scaling else None
+    generator = torch.Generator().manual_seed(recipe.seed + 1)
+    return PPOComponents(recipe, env, eval_env, modules, optimizers, schedulers, collector, scaler, ds, iterations,
+                         generator, terms)
+
+
+def simulator_steps_per_frame(recipe) -> int:
+    """Environment steps the simulator takes per collected frame: ``m + 1`` for RNAC-DS (it probes ``m`` noisy
+    candidates before the real step), 1 otherwise."""
+    rn = recipe.algorithm.rnac
+    return rn.num_candidates + 1 if recipe.algorithm.name == "ppo" and rn.mode == "ds" else 1

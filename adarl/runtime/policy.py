@@ -1,0 +1,146 @@
+"""A trained run's policy as a TorchRL actor, for your own code: :func:`load_policy`.
+
+Resuming a run to get at its actor rebuilds the whole training stack (envs, replay buffer loaded from disk,
+collector, optimisers: seconds and gigabytes). The actor needs far less: the recipe's network section, the
+observation and action specs (saved in every checkpoint as ``policy_specs``), and the actor's tensors. Layers a
+rank event truncated are given the checkpoint's ranks before the tensors are loaded.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import gymnasium as gym
+import torch
+
+from adarl.core.lowrank import LowRankLinear
+from adarl.envs.linear_cartpole import LINEAR_CARTPOLE_ID, LinearCartPoleEnv
+from adarl.envs.parameters import quiet_mujoco
+from adarl.errors import AdaRLValueError, CheckpointError
+from adarl.runtime.builders.common import check_device, policy_specs, spec_env
+from adarl.runtime.builders.ppo import make_ppo_modules
+from adarl.runtime.builders.sac import make_recipe_actor
+from adarl.runtime.config import load_recipe
+from adarl.runtime.run_dir import RunDir
+
+__all__ = ["load_policy", "LoadedPolicy", "load_policy_with_info", "WHICH"]
+
+#: the checkpoints of a run folder ``load_policy`` can load
+WHICH = ("latest", "best")
+_ACTOR_PREFIX = "actor_network_params."
+
+
+def _specs_from_env_id(env_id: str) -> dict:
+    """For checkpoints written before they held ``policy_specs``: the spaces of the gymnasium env (its model is
+    built, no TorchRL env, buffer or collector)."""
+    if env_id == LINEAR_CARTPOLE_ID:
+        return policy_specs(LinearCartPoleEnv())
+    with quiet_mujoco():
+        env = gym.make(env_id)
+    try:
+        obs, act = env.observation_space, env.action_space
+        out = {"observation_dim": int(obs.shape[-1])}
+        if isinstance(act, gym.spaces.Discrete):
+            out.update(action_kind="one_hot", action_n=int(act.n))  # TorchRL's GymEnv default encoding
+        else:
+            out.update(action_kind="box", action_low=torch.as_tensor(act.low, dtype=torch.float32),
+                       action_high=torch.as_tensor(act.high, dtype=torch.float32))
+        return out
+    finally:
+        env.close()
+
+
+@dataclass
+class LoadedPolicy:
+    """:func:`load_policy_with_info`'s answer: the actor and where it came from."""
+
+    actor: torch.nn.Module
+    recipe: object
+    run_dir: Path
+    checkpoint: Path
+    frames: int
+
+
+def _checkpoint(path: str | os.PathLike, which: str):
+    if which not in WHICH:
+        raise AdaRLValueError(f"which must be one of {list(WHICH)}, got {which!r}")
+    p = Path(path)
+    if p.is_dir():
+        run = RunDir.open(p)
+        if which == "best":
+            ckpt = run.best_checkpoint_path
+            if not ckpt.is_file():
+                raise CheckpointError(f"{str(p)!r} has no best checkpoint ({ckpt.name}: written at evaluations "
+                                      f"when checkpoint.keep_best is true); load which='latest' instead")
+            return run, ckpt, run.load_checkpoint(ckpt)
+        ckpts = run.checkpoints()
+        if not ckpts:
+            raise CheckpointError(f"{str(p)!r} has no checkpoint to load the policy from (checkpoints/ckpt-*.pt)")
+        state = run.load_latest_checkpoint()
+        frames = int(state["counters"]["frames"])
+        ckpt = next((c for c in reversed(ckpts) if c.name == f"ckpt-{frames:012d}.pt"), ckpts[-1])
+        return run, ckpt, state
+    if p.is_file():
+        folder = p.parent.parent if p.parent.name == "checkpoints" else p.parent
+        if not (folder / "recipe.yaml").is_file():
+            raise CheckpointError(f"checkpoint {str(p)!r}: its run folder's recipe.yaml (the network it holds) was "
+                                  f"not found at {str(folder / 'recipe.yaml')!r}; load the checkpoint from inside "
+                                  f"its run folder (<run>/checkpoints/)")
+        run = RunDir.open(folder)
+        return run, p, run.load_checkpoint(p)
+    raise CheckpointError(f"{str(p)!r} is neither a run folder nor a checkpoint file")
+
+
+def _resize_low_rank(actor: torch.nn.Module, params: dict) -> None:
+    """Give the actor's LowRankLinear layers the checkpoint's ranks (the ``w2`` shapes), so the tensors load."""
+    for name, module in actor.named_modules():
+        if not isinstance(module, LowRankLinear):
+            continue
+        w2 = params.get(f"{name}.w2")
+        if w2 is None or int(w2.shape[-2]) == module.rank:
+            continue
+        rank = int(w2.shape[-2])
+        if not 1 <= rank <= module.rank:
+            raise CheckpointError(f"the checkpoint's rank {rank} of actor layer {name!r} does not fit the recipe's "
+                                  f"network (rank {module.rank}, at most {module.max_rank})")
+        module.truncate_(rank)
+
+
+def load_policy_with_info(run_dir_or_checkpoint: str | os.PathLike, which: str = "latest", *,
+                          device: str | torch.device = "cpu") -> LoadedPolicy:
+    """:func:`load_policy`, with the recipe, run folder, checkpoint file and frames it was saved at."""
+    dev = check_device(device)
+    run, ckpt, state = _checkpoint(run_dir_or_checkpoint, which)
+    recipe = load_recipe(str(run.recipe_path)).model_copy(update={"device": str(dev)})
+    specs = state.get("policy_specs") or _specs_from_env_id(recipe.env.id)
+    env = spec_env(specs, dev)
+    if recipe.algorithm.name == "ppo":
+        actor = make_ppo_modules(recipe, env).actor
+        params = state["actor"]
+    else:
+        actor = make_recipe_actor(recipe, env)
+        params = {k[len(_ACTOR_PREFIX):]: v for k, v in state["loss"].items() if k.startswith(_ACTOR_PREFIX)}
+        _resize_low_rank(actor, params)
+    try:
+        actor.load_state_dict({k: v.to(dev) for k, v in params.items()})
+    except RuntimeError as err:
+        raise CheckpointError(f"{str(ckpt)!r}: the actor's tensors do not fit the network recipe.yaml describes: "
+                              f"{str(err).splitlines()[0]}") from None
+    actor.eval().requires_grad_(False)
+    return LoadedPolicy(actor, recipe, run.path, ckpt, int(state["counters"]["frames"]))
+
+
+def load_policy(run_dir_or_checkpoint: str | os.PathLike, which: str = "latest", *,
+                device: str | torch.device = "cpu"):
+    """The trained policy of a run as a TorchRL actor (a ``ProbabilisticActor``, a ``TensorDictModule``).
+
+    ``run_dir_or_checkpoint``: a run folder (``which="latest"``, its newest loadable checkpoint, or ``"best"``,
+    ``checkpoints/best.pt``, the best nominal-dynamics evaluation), or a checkpoint file inside a run folder.
+    Layers a rank event truncated get the checkpoint's ranks. No env, replay buffer or collector is built.
+
+    The actor reads ``"observation"`` (float32) and writes ``"action"``; outside ``set_exploration_type`` it acts
+    deterministically (the distribution's mode), as the evaluations do. Its parameters do not require grad.
+    """
+    return load_policy_with_info(run_dir_or_checkpoint, which, device=device).actor

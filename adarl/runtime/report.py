@@ -1,0 +1,201 @@
+"""A run's report: a markdown summary and PNG plots, made only from the files in its run folder.
+
+``plots/return.png``: training episode return and nominal-dynamics evaluation against frames, rank events as red
+dashed lines (paper Fig. 3). ``plots/ranks.png``: each low-rank layer's rank over optimisation steps (Fig. 4).
+matplotlib (Agg backend, no display) draws them.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+
+from adarl.runtime import metrics
+from adarl.runtime.results import download_results, is_url, join, upload_tree, write_atomic
+from adarl.runtime.run_dir import RunDir
+
+__all__ = ["write_report", "plot_returns", "plot_ranks", "pyplot", "named_ranks", "layer_label"]
+
+
+def pyplot():
+    """matplotlib's pyplot on the Agg backend (PNGs without a display). Imported here, on first use: the backend
+    must be chosen before pyplot is imported, and only reports draw."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _event_frames(run: RunDir) -> list[int]:
+    rows = metrics.series(run.scalars(), metrics.WARM_START_FRAMES)  # one row per event (older runs: rank.*)
+    return sorted({step for step, _ in rows})
+
+
+def plot_returns(run: RunDir, out: Path) -> Path | None:
+    """Training return (per finished episode batch) and evaluation mean ± std, rank events marked."""
+    train = metrics.series(run.scalars(), metrics.TRAIN_RETURN)
+    evals = run.read_eval()
+    if not train and not evals:
+        return None
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(7, 4))
+    if train:
+        ax.plot([s for s, _ in train], [v for _, v in train], lw=0.8, alpha=0.6, label="training return (perturbed)")
+    if evals:
+        x = [int(r["frames"]) for r in evals]
+        m = [float(r["mean"]) for r in evals]
+        sd = [float(r["std"]) for r in evals]
+        ax.errorbar(x, m, yerr=sd, fmt="o-", color="black", capsize=3, label="evaluation (nominal dynamics)")
+    for i, f in enumerate(_event_frames(run)):
+        ax.axvline(f, color="red", ls="--", lw=1, label="rank event" if i == 0 else None)
+    ax.set_xlabel("environment frames")
+    ax.set_ylabel("episode return")
+    ax.legend(loc="best", fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(out, dpi=120)
+    plt.close(fig)
+    return out
+
+
+def plot_ranks(run: RunDir, out: Path) -> Path | None:
+    """Rank of each low-rank layer against optimisation steps (a step plot through every event)."""
+    history = run.read_rank_history()
+    if not history:
+        return None
+    series: dict[str, list[tuple[int, int]]] = {}
+    for event in history:
+        step = int(event.get("step", 0))
+        for layer in event.get("layers", []):
+            name = layer_label(layer)
+            pts = series.setdefault(name, [(0, int(layer["old_rank"]))])
+            pts.append((step, int(layer["new_rank"])))
+    summary = run.path / "summary.json"
+    end = int(json.loads(summary.read_text()).get("updates", 0)) if summary.is_file() else 0
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for name, pts in series.items():
+        if end > pts[-1][0]:
+            pts = [*pts, (end, pts[-1][1])]
+        ax.step([p[0] for p in pts], [p[1] for p in pts], where="post", marker="o", ms=3, label=name)
+    ax.set_xlabel("optimisation steps")
+    ax.set_ylabel("rank")
+    ax.set_yscale("log", base=2)
+    ax.legend(loc="best", fontsize=7)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(out, dpi=120)
+    plt.close(fig)
+    return out
+
+
+def write_report(path: str | os.PathLike) -> Path | str:
+    """Write ``report.md`` and ``plots/*.png`` for the run folder at ``path``; returns the report's path.
+
+    ``path`` may be an fsspec URL (:mod:`adarl.runtime.results`): the report is made in a local copy of the run's files and
+    uploaded beside them; the URL of ``report.md`` is returned."""
+    if is_url(path):
+        with tempfile.TemporaryDirectory(prefix="adarl-report-") as tmp:
+            local = download_results(str(path), Path(tmp) / "run")
+            md = write_report(local)
+            upload_tree(local / "plots", join(str(path), "plots"))
+            write_atomic(join(str(path), "report.md"), md.read_bytes())
+        return join(str(path), "report.md")
+    run = RunDir(path)
+    plots = run.path / "plots"
+    plots.mkdir(exist_ok=True)
+    ret = plot_returns(run, plots / "return.png")
+    rk = plot_ranks(run, plots / "ranks.png")
+    summary_path = run.path / "summary.json"
+    summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
+    evals = run.read_eval()
+    history = run.read_rank_history()
+
+    lines = [f"# Run report: {summary.get('name', run.path.name)}", ""]
+    if summary:
+        lines += [
+            f"- frames: {summary.get('frames')}, optimisation steps: {summary.get('updates')}, "
+            f"episodes: {summary.get('episodes')}",
+            f"- wall time: {summary.get('wall_time_s', 0):.0f} s ({summary.get('updates_per_s', 0):.1f} updates/s)",
+            f"- rank events: {summary.get('rank_events')}; final ranks: {named_ranks(summary)}",
+        ]
+        per_frame = summary.get("simulator_steps_per_frame")
+        if per_frame is not None:
+            line = f"- simulator steps: {per_frame} per frame, {summary.get('simulator_steps')} in all"
+            if int(per_frame) > 1:
+                line += (f" (RNAC-DS probes {int(per_frame) - 1} noisy candidate next states before each real step: "
+                         f"at equal frames it used {per_frame}x the simulator steps of a one-step method)")
+            lines.append(line)
+        lines.append("")
+    if evals:
+        last = evals[-1]
+        lines += [
+            "## Evaluation on nominal dynamics",
+            "",
+            f"Final: **{float(last['mean']):.1f} ± {float(last['std']):.1f}** (std over {last['episodes']} episodes; "
+            f"95% CI ± {float(last['ci95']):.1f}) at {last['frames']} frames.",
+            "",
+            "| frames | updates | mean | std | episodes |",
+            "|---:|---:|---:|---:|---:|",
+        ]
+        lines += [f"| {r['frames']} | {r['updates']} | {float(r['mean']):.1f} | {float(r['std']):.1f} | {r['episodes']} |"
+                  for r in evals]
+        lines.append("")
+    if history:
+        lines += ["## Rank events", "",
+                  "The rule proposes a candidate; the acceptance step applies it only if the network's outputs on "
+                  "recent transitions change by at most the tolerance (relative output error), otherwise the layer "
+                  "keeps its rank. Energy and weight error are at the new rank (worst ensemble member).", "",
+                  "| step | network | layer | old rank | candidate | new rank | output error (candidate) | "
+                  "output error (new) | tolerance | retained energy | weight error | note |",
+                  "|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
+        for ev in history:
+            for layer in ev.get("layers", []):
+                err = layer.get("truncation_error")
+                err = max(err) if isinstance(err, list) else err
+                energy = layer.get("retained_energy")
+                energy = min(energy) if isinstance(energy, list) else energy
+                note = layer.get("note") or layer.get("skipped") or ""
+                lines.append(
+                    f"| {ev.get('step')} | {layer.get('network', '')} | {layer.get('name') or layer.get('layer', '')} "
+                    f"| {layer.get('old_rank')} "
+                    f"| {_int(layer.get('candidate'))} | {layer.get('new_rank')} | {_fmt(layer.get('candidate_error'))} "
+                    f"| {_fmt(layer.get('error'))} | {_fmt(layer.get('tolerance'))} | {_fmt(energy)} | {_fmt(err)} "
+                    f"| {note.replace('|', '/')} |"
+                )
+        lines.append("")
+    lines += ["## Plots", ""]
+    if ret:
+        lines += ["Training and evaluation return; red dashed lines mark rank events.", "", "![return](plots/return.png)", ""]
+    if rk:
+        lines += ["Rank per low-rank layer.", "", "![ranks](plots/ranks.png)", ""]
+    out = run.path / "report.md"
+    out.write_text("\n".join(lines) + "\n")
+    return out
+
+
+def named_ranks(summary: dict) -> dict:
+    """``summary.json``'s final ranks by human name (by module path for a run of an older adarl)."""
+    names = summary.get("layer_names") or {}
+    return {names.get(path, path): rank for path, rank in (summary.get("ranks") or {}).items()}
+
+
+def layer_label(layer: dict) -> str:
+    """What a person reads for a layer of ``ranks.json``: its human name (``actor.layer0``), or for a run folder
+    written before layers had names, ``<network>:<module path>``."""
+    return layer.get("name") or f"{layer.get('network', '')}:{layer.get('layer', '?')}"
+
+
+def _int(x) -> str:
+    return "-" if x is None else str(int(x))
+
+
+def _fmt(x) -> str:
+    try:
+        return f"{float(x):.4g}"
+    except (TypeError, ValueError):
+        return "-"

@@ -1,0 +1,760 @@
+"""The run folder: one directory per run with everything it produced.
+
+::
+
+    <run>/recipe.yaml            resolved recipe (what ran; `adarl resume` rebuilds from it)
+    <run>/.adarl.lock            claimed when the folder is created; locked while a process trains in it
+    <run>/metrics/scalars/       TorchRL CSVLogger scalars, one file per metric ("step,value", step = frames):
+                                 train/episode_return.csv, eval/return.csv, rank/actor.layer0.csv (adarl.runtime.metrics)
+    <run>/wandb_run_id           the wandb run this folder logs to (with logging.backends: [wandb]), for resume
+    <run>/eval.csv               nominal-dynamics evaluations (frames, updates, mean, std, ci95, episodes, ranks)
+    <run>/ranks.json, ranks.csv  rank history: per event and layer, old/new rank, spectrum, energy, error
+    <run>/checkpoints/           ckpt-<frames>.pt (torch.save, loaded with weights_only=True) [+ rb-<frames>/buffer.pt]
+    <run>/summary.json           final counters, ranks and evaluation
+    ---------------------------  the training records above; what other commands write beside them:
+    <run>/report.md, plots/      the report (training return with rank events, rank over time): `adarl report`
+    <run>/eval_nominal.json      `adarl eval`;  <run>/sweeps/  `adarl eval --sweep`
+
+Only training (``adarl run``, ``adarl resume``) writes the training records; evaluation and reports read them.
+Checkpoints are written to a temporary file, fsync'ed and renamed, so a crash or a full disk mid-write leaves the
+previous one intact; the last ``keep_last`` are kept. Each names the recipe fingerprint it was written under
+(:func:`recipe_fingerprint`), checked before any of its tensors is used.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import errno
+import json
+import math
+import os
+import shutil
+import socket
+import time
+import uuid
+import warnings
+from pathlib import Path
+
+import importlib.util
+import io
+import pickle
+import re
+
+import torch
+from torchrl.record import loggers as torchrl_loggers
+
+from adarl import __version__
+from adarl.errors import AdaRLError, CheckpointError, CheckpointFallbackWarning, describe_os_error
+from adarl.runtime.config import recipe_to_yaml
+
+try:  # POSIX: a lock the kernel drops when its process dies (kill -9 included)
+    import fcntl
+except ImportError:  # pragma: no cover - Windows: folders are still created exclusively, but not locked while in use
+    fcntl = None
+
+__all__ = ["RunDir", "CHECKPOINT_FORMAT", "CHECKPOINT_VERSION", "TRAINING_RECORDS", "recipe_fingerprint", "null_logger"]
+
+CHECKPOINT_FORMAT = "adarl.checkpoint"
+CHECKPOINT_VERSION = 1
+LOCK_FILE = ".adarl.lock"
+REPLAY_BUFFER_FILE = "buffer.pt"  # inside rb-<frames>/; older checkpoints hold TorchRL's dumps() layout there
+# What only training writes (`adarl eval` and `adarl report` must leave these byte-for-byte unchanged); the other
+# files of a run folder are report.md, plots/, eval_nominal.json and sweeps/.
+TRAINING_RECORDS = ("recipe.yaml", LOCK_FILE, "metrics/", "eval.csv", "ranks.json", "ranks.csv", "checkpoints/",
+                    "summary.json", "tensorboard/", "wandb/", "replay_storage/")
+_EVAL_FIELDS = ["frames", "updates", "mean", "std", "ci95", "episodes", "returns", "ranks"]
+_HELD_LOCKS: dict[str, int] = {}  # lock files this process holds (path -> fd): a lock excludes other processes only
+
+
+def recipe_fingerprint(recipe) -> dict:
+    """What fixes the shapes of a run's checkpoints: env, algorithm, network layout, critics, buffer size.
+
+    A checkpoint written under another value cannot be loaded into this run's networks and buffer; it is refused
+    by name before any tensor is used (keys absent on either side, from other adarl versions, are not compared)."""
+    fp = {"algorithm.name": recipe.algorithm.name, "env.id": recipe.env.id, "env.num_envs": recipe.env.num_envs,
+          "algorithm.num_qvalue_nets": recipe.algorithm.num_qvalue_nets,
+          "algorithm.fixed_alpha": recipe.algorithm.fixed_alpha,
+          "algorithm.parseval.diagonal": recipe.algorithm.parseval.diagonal,
+          "algorithm.parseval.input_scale": recipe.algorithm.parseval.input_scale,
+          "replay.size": recipe.replay.size}
+    for net in ("actor", "critic"):
+        m = getattr(recipe.network, net)
+        fp[f"network.{net}.num_cells"] = list(m.num_cells)
+        fp[f"network.{net}.low_rank_layers"] = list(m.low_rank_layers)
+        fp[f"network.{net}.rank"] = m.rank
+        fp[f"network.{net}.sparse"] = m.sparse.model_dump()
+    if recipe.algorithm.name == "ppo":
+        fp["algorithm.ppo.obs_norm"] = recipe.algorithm.ppo.obs_norm
+        fp["algorithm.ppo.policy"] = recipe.algorithm.ppo.policy
+    return fp
+
+
+class _Fanout:
+    """Send each scalar to every configured TorchRL logger (CSV always; tensorboard / wandb on request)."""
+
+    def __init__(self, loggers):
+        self.loggers = loggers
+
+    def log_scalar(self, name: str, value: float, step: int | None = None) -> None:
+        for lg in self.loggers:
+            lg.log_scalar(name, float(value), step=step)
+
+
+def null_logger() -> _Fanout:
+    """A logger that records nothing: a run loaded read-only, to evaluate it."""
+    return _Fanout([])
+
+
+class RunDir:
+    """A run folder; see the module docstring for its layout."""
+
+    def __init__(self, path: str | os.PathLike) -> None:
+        self.path = Path(path)
+
+    # ------------------------------------------------------------------ creation and locking
+    @classmethod
+    def create(cls, path: str | os.PathLike, *, overwrite: bool = False) -> RunDir:
+        """Make a new run folder and claim it; refuse an existing non-empty one unless ``overwrite`` (then it is
+        replaced, unless another process is training in it).
+
+        Why a claim: checking that the folder is empty and then writing into it lets two processes started at the
+        same instant (`adarl run -o SAME` twice) both pass the check. The claim is ``.adarl.lock`` created with
+        ``O_EXCL``: exactly one process creates it, the other is refused. It stays locked until training ends.
+        """
+        p = Path(path)
+        try:
+            p.mkdir(parents=True, exist_ok=True)
+        except FileExistsError:
+            raise AdaRLError(f"run folder {str(p)!r} exists and is not a folder; choose another output.dir") from None
+        except OSError as err:
+            raise AdaRLError(f"cannot create run folder {str(p)!r}: {_os_why(err, p)}; choose a writable place "
+                             f"with -o/--output or output.root") from None
+        if any(p.iterdir()):
+            if not overwrite:
+                raise AdaRLError(
+                    f"run folder {str(p)!r} already exists and is not empty; choose another output.dir, "
+                    f"resume it with `adarl resume {p}`, or pass --overwrite to replace it"
+                )
+            cls(p).lock()  # refuses when another process trains in it
+            _release_lock(p / LOCK_FILE)
+            aside = p.with_name(f".{p.name}.replaced-{uuid.uuid4().hex[:8]}")
+            with contextlib.suppress(FileNotFoundError):  # another --overwrite moved it first
+                os.rename(p, aside)
+            shutil.rmtree(aside, ignore_errors=True)
+            p.mkdir(parents=True, exist_ok=True)
+        run = cls(p)
+        try:
+            fd = os.open(p / LOCK_FILE, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o644)
+        except FileExistsError:
+            raise AdaRLError(f"run folder {str(p)!r} was just claimed by another process ({_holder(p / LOCK_FILE)}); "
+                             f"choose another output.dir") from None
+        except OSError as err:
+            raise AdaRLError(f"cannot create run folder {str(p)!r}: {_os_why(err, p)}; choose a writable place "
+                             f"with -o/--output or output.root") from None
+        _hold_lock(p / LOCK_FILE, fd)
+        return run
+
+    @classmethod
+    def open(cls, path: str | os.PathLike) -> RunDir:
+        p = Path(path)
+        if not (p / "recipe.yaml").is_file():
+            raise AdaRLError(f"{str(p)!r} is not an adarl run folder (no recipe.yaml in it)")
+        return cls(p)
+
+    def lock(self) -> None:
+        """Lock the folder for this process until :meth:`unlock` (a trainer's ``close()``) or the process ends: another
+        process that would train in it (`adarl resume` while `adarl run` still runs, two resumes) is refused.
+        Re-entrant in one process."""
+        lock = self.path / LOCK_FILE
+        key = str(lock.absolute())
+        fd = _HELD_LOCKS.get(key)
+        if fd is not None:
+            try:
+                if os.fstat(fd).st_ino == os.stat(lock).st_ino:
+                    return
+            except OSError:
+                pass
+            _release_lock(lock)
+        try:
+            fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as err:
+            raise AdaRLError(f"cannot lock run folder {str(self.path)!r} to train in it: "
+                             f"{_os_why(err, lock)}") from None
+        if not _hold_lock(lock, fd):
+            raise AdaRLError(f"run folder {str(self.path)!r} is in use by another process ({_holder(lock)}); wait "
+                             f"for it to finish or stop it first")
+
+    def unlock(self) -> None:
+        """Release this process's lock (training ended); another process may train in the folder again."""
+        _release_lock(self.path / LOCK_FILE)
+
+    def discard(self, *, keep_folder: bool = False) -> None:
+        """Undo :meth:`create` when nothing ran (a recipe that fails to build): the folder goes (or only its contents,
+        ``keep_folder``, when it existed before) and the lock is released."""
+        self.unlock()
+        if not keep_folder:
+            shutil.rmtree(self.path, ignore_errors=True)
+            return
+        for child in self.path.iterdir() if self.path.is_dir() else []:
+            shutil.rmtree(child, ignore_errors=True) if child.is_dir() else child.unlink(missing_ok=True)
+
+    @property
+    def recipe_path(self) -> Path:
+        return self.path / "recipe.yaml"
+
+    @property
+    def checkpoint_dir(self) -> Path:
+        return self.path / "checkpoints"
+
+    # ------------------------------------------------------------------ logging
+    @property
+    def wandb_id_path(self) -> Path:
+        """``wandb_run_id``: the wandb run this folder logs to, so that a resume continues that run."""
+        return self.path / "wandb_run_id"
+
+    def wandb_run_id(self) -> str:
+        """This run folder's wandb run id (made and saved on first use)."""
+        p = self.wandb_id_path
+        if p.is_file():
+            rid = p.read_text().strip()
+            if rid:
+                return rid
+        rid = uuid.uuid4().hex[:16]
+        _atomic_write_text(p, rid + "\n")
+        return rid
+
+    def make_logger(self, recipe, *, step: int | None = None) -> _Fanout:
+        """TorchRL loggers from ``recipe.logging``: CSV into ``metrics/``, optional tensorboard and wandb.
+
+        ``step``: the frames a resume continues from (None: a new run). TensorBoard then hides the events logged
+        after it (the work since the checkpoint, logged again), and wandb continues the folder's run (same id,
+        ``resume="allow"``) on the same step axis (frames; wandb cannot hide rows, so the lost work's rows stay).
+        wandb gets the resolved recipe as the run's config, TensorBoard as text."""
+        loggers = [torchrl_loggers.CSVLogger(exp_name="metrics", log_dir=str(self.path))]
+        backends = set(recipe.logging.backends)
+        if recipe.logging.wandb_mode == "disabled":
+            backends.discard("wandb")
+        for backend, package in (("tensorboard", "tensorboard"), ("wandb", "wandb")):
+            if backend in backends:
+                if importlib.util.find_spec(package) is None:
+                    raise AdaRLError(
+                        f"logging.backends includes {backend!r} but the {package!r} package is not installed; "
+                        f"install it (pip install 'adarl[{backend}]') or remove {backend!r} from logging.backends "
+                        f"(allowed without extras: ['csv'])"
+                    )
+        config = recipe.model_dump(mode="json") if hasattr(recipe, "model_dump") else None
+        if "tensorboard" in backends:
+            new = not (self.path / "tensorboard").exists()
+            tb = _tensorboard_logger(self.path, purge_step=None if step is None else int(step) + 1)
+            if new and config is not None:
+                tb.experiment.add_text("recipe", "```yaml\n" + recipe_to_yaml(recipe) + "```", global_step=0)
+            loggers.append(tb)
+        if "wandb" in backends:
+            loggers.append(torchrl_loggers.WandbLogger(exp_name=recipe.name, project=recipe.logging.wandb_project,
+                                       offline=recipe.logging.wandb_mode == "offline", save_dir=str(self.path),
+                                       id=self.wandb_run_id(), config=config))
+        return _Fanout(loggers)
+
+    def close_logger(self, logger: _Fanout) -> None:
+        for lg in logger.loggers:
+            exp = getattr(lg, "experiment", None)
+            if not hasattr(exp, "files"):  # wandb: finish (a resume or rollback re-opens the run by its id); TB
+                close = getattr(exp, "finish", None) or getattr(exp, "close", None)
+                if close is not None:
+                    close()
+                continue
+            for fd in getattr(exp, "files", {}).values():
+                try:
+                    fd.close()
+                except OSError:
+                    pass
+
+    def scalars(self) -> dict[str, list[tuple[int, float]]]:
+        """All CSV scalars as ``{name: [(step, value), ...]}``: ``train/episode_return`` from
+        ``metrics/scalars/train/episode_return.csv``, and a folder's older flat files by their own names
+        (``train.episode_return``; :func:`adarl.runtime.metrics.series` reads either)."""
+        out = {}
+        root = self.path / "metrics" / "scalars"
+        for f in sorted(root.rglob("*.csv")) if root.is_dir() else []:
+            rows = []
+            for line in f.read_text().splitlines():
+                parts = line.split(",")
+                if len(parts) == 2:
+                    try:
+                        rows.append((int(float(parts[0])), float(parts[1])))
+                    except ValueError:
+                        continue
+            out[f.relative_to(root).with_suffix("").as_posix()] = rows
+        return out
+
+    def truncate_metrics(self, frames: int) -> None:
+        """Drop metric rows logged after ``frames`` (work lost since the checkpoint being resumed)."""
+        root = self.path / "metrics" / "scalars"
+        for f in root.rglob("*.csv") if root.is_dir() else []:
+            keep = []
+            for line in f.read_text().splitlines():
+                parts = line.split(",")
+                try:  # a line cut short by a crash (no value, or no number) is dropped too
+                    float(parts[1])
+                    if len(parts) == 2 and int(float(parts[0])) <= frames:
+                        keep.append(line)
+                except (ValueError, IndexError):
+                    continue
+            _atomic_write_text(f, "".join(k + "\n" for k in keep))
+        ev = self.path / "eval.csv"
+        if ev.is_file():
+            rows = [r for r in self.read_eval() if int(r["frames"]) <= frames]
+            self._write_eval_rows(rows)
+
+    # ------------------------------------------------------------------ evaluation and ranks
+    def append_eval(self, frames: int, updates: int, result, ranks: dict) -> None:
+        path = self.path / "eval.csv"
+        new = not path.exists()
+        with path.open("a", newline="") as fh:
+            w = csv.DictWriter(fh, fieldnames=_EVAL_FIELDS)
+            if new:
+                w.writeheader()
+            w.writerow({"frames": frames, "updates": updates, "mean": result.mean, "std": result.std,
+                        "ci95": result.ci95, "episodes": len(result.returns),
+                        "returns": json.dumps(result.returns), "ranks": json.dumps(ranks)})
+            fh.flush()
+            os.fsync(fh.fileno())
+
+    def sync_metrics(self, logger: _Fanout) -> None:
+        """Flush and fsync the CSV metric files, so that what a checkpoint says was logged is on disk."""
+        for lg in logger.loggers:
+            for fd in list(getattr(getattr(lg, "experiment", None), "files", {}).values()):
+                try:
+                    fd.flush()
+                    os.fsync(fd.fileno())
+                except ValueError:  # closed file; an OSError (a full disk) propagates: the checkpoint would lie
+                    pass
+
+    def read_eval(self) -> list[dict]:
+        path = self.path / "eval.csv"
+        if not path.is_file():
+            return []
+        with path.open(newline="") as fh:
+            return list(csv.DictReader(fh))
+
+    def _write_eval_rows(self, rows: list[dict]) -> None:
+        buf = io.StringIO()
+        w = csv.DictWriter(buf, fieldnames=_EVAL_FIELDS)
+        w.writeheader()
+        w.writerows(rows)
+        _atomic_write_text(self.path / "eval.csv", buf.getvalue())
+
+    def last_eval(self) -> dict | None:
+        rows = self.read_eval()
+        if not rows:
+            return None
+        r = rows[-1]
+        return {"frames": int(r["frames"]), "mean": float(r["mean"]), "std": float(r["std"]),
+                "ci95": float(r["ci95"]), "episodes": int(r["episodes"])}
+
+    def write_rank_history(self, history: list, frames: int | None = None) -> None:
+        """Rank events as JSON (with spectra) and a flat CSV, one row per event and layer.
+
+        The CSV holds one value per cell: for a stacked critic ensemble, ``retained_energy`` is the smallest
+        member's and ``truncation_error`` the largest member's, ``member_ranks`` and ``tried`` (the ranks the
+        acceptance step measured, ``rank:error``) are ``;``-separated; spectra are in the JSON only.
+        """
+        records = [h if isinstance(h, dict) else h.as_dict() if hasattr(h, "as_dict") else vars(h) for h in history]
+        self.write_json("ranks.json", records)
+        flat = []
+        for rec in records:
+            for layer in rec.get("layers", [rec]):
+                row = {"step": rec.get("step")}
+                for k, v in layer.items():
+                    if k == "singular_values":
+                        continue
+                    if isinstance(v, list):
+                        if k == "retained_energy":
+                            v = min(v) if v else None
+                        elif k == "truncation_error":
+                            v = max(v) if v else None
+                        elif k == "tried":
+                            v = ";".join(f"{int(r)}:{float(e):.6g}" for r, e in v)
+                        else:
+                            v = ";".join(str(x) for x in v)
+                    elif isinstance(v, dict):
+                        continue
+                    row[k] = v
+                if "name" in row and "layer" in row:  # the human name beside the module path
+                    keys = [k for k in row if k != "name"]
+                    keys.insert(keys.index("layer") + 1, "name")
+                    row = {k: row[k] for k in keys}
+                flat.append(row)
+        if flat:
+            import io
+
+            keys = list(dict.fromkeys(k for row in flat for k in row))
+            buf = io.StringIO()
+            w = csv.DictWriter(buf, fieldnames=keys)
+            w.writeheader()
+            w.writerows(flat)
+            _atomic_write_text(self.path / "ranks.csv", buf.getvalue())
+
+    def read_rank_history(self) -> list[dict]:
+        p = self.path / "ranks.json"
+        return json.loads(p.read_text()) if p.is_file() else []
+
+    def write_json(self, name: str, obj) -> None:
+        """Write ``name`` atomically as strict JSON: NaN and infinities become ``null`` (JSON has no NaN)."""
+        _atomic_write_text(self.path / name, json.dumps(_plain(obj), indent=2, allow_nan=False) + "\n")
+
+    # ------------------------------------------------------------------ checkpoints
+    def checkpoints(self) -> list[Path]:
+        """Checkpoint files, oldest first."""
+        d = self.checkpoint_dir
+        return sorted(d.glob("ckpt-*.pt")) if d.is_dir() else []
+
+    @property
+    def best_checkpoint_path(self) -> Path:
+        """``checkpoints/best.pt``: the state at the best nominal evaluation so far (no replay buffer)."""
+        return self.checkpoint_dir / "best.pt"
+
+    def _payload(self, state: dict, frames: int, fingerprint: dict | None, **extra) -> dict:
+        return {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "adarl_version": __version__,
+                "frames": int(frames), "recipe_fingerprint": fingerprint, **extra, "state": state}
+
+    def save_checkpoint(self, state: dict, *, frames: int, keep_last: int = 3, replay_buffer=None,
+                        fingerprint: dict | None = None) -> Path:
+        """Write ``ckpt-<frames>.pt`` (and the replay buffer beside it) atomically, then delete the oldest.
+
+        Order: buffer to a temporary folder, renamed; checkpoint to a temporary file, fsync'ed, renamed; folder
+        fsync'ed; only then older checkpoints are removed. A crash or a full disk at any point leaves the previous
+        checkpoint loadable; on a write error the partial files are removed and :class:`CheckpointError` says so.
+        The buffer is written with ordinary writes (a full disk is an ``OSError``), never memory-mapped: TorchRL's
+        ``dumps()`` memory-maps its files, and a full disk then kills the process with SIGBUS, with no message.
+        ``fingerprint``: :func:`recipe_fingerprint` of the run, checked when the checkpoint is loaded.
+        """
+        path = self.checkpoint_dir / f"ckpt-{int(frames):012d}.pt"
+        rb_dir = self.checkpoint_dir / f"rb-{int(frames):012d}"
+        rb_tmp = rb_dir.with_name(rb_dir.name + ".tmp")
+        try:
+            self.checkpoint_dir.mkdir(parents=True, exist_ok=True)
+            if replay_buffer is not None:
+                shutil.rmtree(rb_tmp, ignore_errors=True)
+                _check_free_space(self.checkpoint_dir, _buffer_nbytes(replay_buffer) + _nbytes(state),
+                                  "the checkpoint with its replay buffer")
+                rb_tmp.mkdir()
+                _atomic_torch_save(replay_buffer.state_dict(), rb_tmp / REPLAY_BUFFER_FILE)
+                shutil.rmtree(rb_dir, ignore_errors=True)
+                os.replace(rb_tmp, rb_dir)
+            _atomic_torch_save(self._payload(state, frames, fingerprint, replay_buffer=replay_buffer is not None),
+                               path)
+            _fsync_dir(self.checkpoint_dir)
+        except OSError as err:
+            shutil.rmtree(rb_tmp, ignore_errors=True)
+            if replay_buffer is not None and not path.exists():
+                shutil.rmtree(rb_dir, ignore_errors=True)
+            prev = [p.name for p in self.checkpoints() if p != path]
+            full = err.errno in (errno.ENOSPC, errno.EDQUOT)
+            remedy = "free space" if full else f"make {str(self.path)!r} writable"
+            raise CheckpointError(
+                f"could not write checkpoint {path.name}{' (disk full)' if full else ''}: {err.strerror or err}; the "
+                f"run stopped. The previous checkpoint {prev[-1] if prev else '(none)'} is intact: {remedy} and "
+                f"`adarl resume {self.path}`", path=path, reason=err.strerror or str(err),
+            ) from None
+        for old in self.checkpoints()[:-keep_last]:
+            old.unlink(missing_ok=True)
+            shutil.rmtree(self._replay_buffer_dir(old), ignore_errors=True)
+        return path
+
+    def save_best(self, state: dict, *, frames: int, score: float, fingerprint: dict | None = None) -> Path | None:
+        """Replace ``checkpoints/best.pt`` (atomically); a write error keeps the old one and only warns."""
+        try:
+            self.checkpoint_dir.mkdir(parents=True, exist_ok=True)
+            _atomic_torch_save(self._payload(state, frames, fingerprint, score=float(score)), self.best_checkpoint_path)
+        except OSError as err:
+            warnings.warn(f"could not update {self.best_checkpoint_path}: {describe_os_error(err)}", stacklevel=2)
+            return None
+        return self.best_checkpoint_path
+
+    @staticmethod
+    def _replay_buffer_dir(checkpoint: Path, frames: int | None = None) -> Path:
+        """``rb-<frames>/`` beside the checkpoint file (wherever that file is)."""
+        if frames is None:
+            frames = int(checkpoint.name.split(".")[0].removeprefix("ckpt-"))
+        return checkpoint.parent / f"rb-{int(frames):012d}"
+
+    def load_checkpoint(self, path: str | os.PathLike, *, fingerprint: dict | None = None,
+                        replay_buffer: bool = True) -> dict:
+        """Load one checkpoint safely (``weights_only=True``: no code runs from the file) and check it fits.
+
+        ``fingerprint`` (:func:`recipe_fingerprint` of the run): a checkpoint written under another recipe is refused
+        before any tensor is used. ``replay_buffer``: require the buffer folder it was saved with, beside the file
+        (evaluation does not need it). The state gets ``checkpoint_file``, where the buffer is looked for."""
+        path = Path(path)
+
+        def refuse(reason: str) -> CheckpointError:
+            return CheckpointError(f"checkpoint {str(path)!r} {reason}", path=path, reason=reason)
+
+        try:
+            with warnings.catch_warnings():  # torch's pickle-protocol chatter about files it then refuses anyway
+                warnings.simplefilter("ignore")
+                payload = torch.load(path, map_location="cpu", weights_only=True)
+        except FileNotFoundError:
+            raise refuse("does not exist") from None
+        except Exception as err:  # truncated zip, pickle with code, garbage bytes
+            raise refuse(f"cannot be loaded safely: {_why_unloadable(err)}") from None
+        if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
+            raise refuse("is not an adarl checkpoint (format marker missing)")
+        state = payload.get("state")
+        try:  # the fields everything below relies on, of the right kinds (a file may hold anything plain)
+            version = int(payload.get("version", 0))
+            if version > CHECKPOINT_VERSION:  # a newer layout: say so before judging it by this one
+                raise refuse(f"was written by a newer adarl (checkpoint version {version}, this version reads up to "
+                             f"{CHECKPOINT_VERSION}); upgrade adarl to load it")
+            frames = int(payload.get("frames", state["counters"]["frames"]))
+            int(state["counters"]["frames"])
+        except (TypeError, ValueError, KeyError, IndexError):
+            raise refuse("is not an adarl checkpoint (no training state in it)") from None
+        theirs = payload.get("recipe_fingerprint")
+        if fingerprint is not None and isinstance(theirs, dict):
+            differ = [k for k in fingerprint if k in theirs and theirs[k] != fingerprint[k]]
+            if differ:
+                shown = "; ".join(f"{k}: {theirs[k]} in it, {fingerprint[k]} in this run" for k in differ[:3])
+                raise refuse(f"was written for another recipe ({shown}{'; ...' if len(differ) > 3 else ''}); it "
+                             f"cannot be loaded into this run's networks")
+        if replay_buffer and payload.get("replay_buffer"):
+            rb = self._replay_buffer_dir(path, frames)
+            if not rb.is_dir():
+                raise refuse(f"has lost its replay buffer: the folder {rb.name} is missing beside it")
+        state["checkpoint_file"] = str(path)
+        return state
+
+    def load_latest_checkpoint(self, *, quarantine: bool = False, fingerprint: dict | None = None,
+                               strict: bool = False, replay_buffer: bool = True) -> dict:
+        """The newest checkpoint that loads. A newer one that does not (damaged, or for another recipe) is skipped
+        with a :class:`~adarl.errors.CheckpointFallbackWarning` naming it and why, never silently.
+
+        ``strict=True`` (``--checkpoint latest``): the newest or a :class:`CheckpointError`, no fallback.
+        ``quarantine=True`` (resume) renames skipped ones to ``*.pt.corrupt`` (so rotation never keeps them in place
+        of good checkpoints) and deletes their replay-buffer folders (useless without them, and large).
+        """
+        errors, bad = [], []
+        for path in reversed(self.checkpoints()):
+            try:
+                state = self.load_checkpoint(path, fingerprint=fingerprint, replay_buffer=replay_buffer)
+            except CheckpointError as err:
+                if strict:
+                    raise CheckpointError(f"{err}; --checkpoint latest does not fall back to an older checkpoint "
+                                          f"(without it, the newest one that loads is used)",
+                                          path=err.path, reason=err.reason) from None
+                errors.append(str(err))
+                bad.append((path, err.reason))
+                continue
+            frames = int(state["counters"]["frames"])
+            for b, reason in bad:
+                note = ""
+                if quarantine:
+                    os.replace(b, b.with_name(b.name + ".corrupt"))
+                    shutil.rmtree(self._replay_buffer_dir(b), ignore_errors=True)
+                    note = f" (renamed {b.name}.corrupt)"
+                lost = _frames_of(b) - frames if _frames_of(b) is not None else None
+                warnings.warn(
+                    f"skipped checkpoint {b.name}{note}: {reason}; using {path.name} instead"
+                    + (f", {lost} frames earlier" if lost is not None and lost > 0 else "")
+                    + " (--checkpoint latest refuses instead)",
+                    CheckpointFallbackWarning, stacklevel=2)
+            return state
+        if errors:
+            raise CheckpointError("no loadable checkpoint in run folder: " + "; ".join(errors))
+        raise CheckpointError(f"no checkpoint in {str(self.checkpoint_dir)!r} to resume from")
+
+    def load_replay_buffer(self, replay_buffer, *, frames: int, checkpoint: str | os.PathLike | None = None) -> bool:
+        """Fill ``replay_buffer`` from ``rb-<frames>/`` beside ``checkpoint`` (default: in this run's checkpoints);
+        False when there is none. Reads this version's ``buffer.pt`` or an older checkpoint's ``dumps()`` folder."""
+        base = Path(checkpoint).parent if checkpoint is not None else self.checkpoint_dir
+        rb_dir = base / f"rb-{int(frames):012d}"
+        if not rb_dir.is_dir():
+            return False
+        if (rb_dir / REPLAY_BUFFER_FILE).is_file():
+            try:
+                sd = torch.load(rb_dir / REPLAY_BUFFER_FILE, map_location="cpu", weights_only=True)
+            except Exception as err:  # noqa: BLE001 - any unreadable file is refused the same way
+                raise CheckpointError(f"replay buffer {str(rb_dir / REPLAY_BUFFER_FILE)!r} cannot be loaded safely: "
+                                      f"{_why_unloadable(err)}", path=rb_dir, reason=_why_unloadable(err)) from None
+            replay_buffer.load_state_dict(sd)
+        else:
+            replay_buffer.loads(str(rb_dir))
+        return True
+
+
+def _tensorboard_logger(path: Path, *, purge_step: int | None):
+    """TorchRL's TensorboardLogger, with SummaryWriter's ``purge_step`` (events at or after it are hidden)."""
+
+    class _Tensorboard(torchrl_loggers.TensorboardLogger):
+        def _create_experiment(self):
+            from torch.utils.tensorboard import SummaryWriter  # the optional tensorboard package
+
+            return SummaryWriter(log_dir=os.path.join(self.log_dir, self.exp_name), purge_step=purge_step)
+
+    return _Tensorboard(exp_name="tensorboard", log_dir=str(path))
+
+
+def _hold_lock(lock: Path, fd: int) -> bool:
+    """Take the kernel lock on ``fd`` (False, fd closed, when another process holds it) and note who holds it."""
+    if fcntl is not None:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(fd)
+            return False
+    with contextlib.suppress(OSError):  # who holds it, for the message another process gets
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, json.dumps({"pid": os.getpid(), "host": socket.gethostname(),
+                                  "since": time.strftime("%Y-%m-%d %H:%M:%S")}).encode(), 0)
+    _HELD_LOCKS[str(lock.absolute())] = fd
+    return True
+
+
+def _release_lock(lock: Path) -> None:
+    fd = _HELD_LOCKS.pop(str(lock.absolute()), None)
+    if fd is not None:
+        with contextlib.suppress(OSError):
+            os.close(fd)  # closing the only descriptor drops the kernel lock
+
+
+def _holder(lock: Path) -> str:
+    try:
+        info = json.loads(lock.read_text())
+        return f"pid {info['pid']} on {info['host']}, since {info['since']}"
+    except (OSError, ValueError, KeyError, TypeError):
+        return "holder unknown"
+
+
+def _plain(obj):
+    """``obj`` as plain JSON values: tensors as lists, records as dicts, non-finite floats as None."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if obj is None or isinstance(obj, (str, int, bool)):
+        return obj
+    if isinstance(obj, dict):
+        return {str(k): _plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_plain(v) for v in obj]
+    if isinstance(obj, torch.Tensor):
+        return _plain(obj.tolist())
+    if hasattr(obj, "as_dict"):
+        return _plain(obj.as_dict())
+    if hasattr(obj, "item") and callable(obj.item):  # numpy scalars
+        return _plain(obj.item())
+    if hasattr(obj, "__dict__"):
+        return _plain(vars(obj))
+    return str(obj)
+
+
+def _os_why(err: OSError, path: Path) -> str:
+    """:func:`describe_os_error`, without the file name when it is ``path`` (already in the message)."""
+    if err.filename is not None and Path(os.fsdecode(err.filename)) == Path(path):
+        err = OSError(err.errno, err.strerror)
+    return describe_os_error(err)
+
+
+def _frames_of(checkpoint: Path) -> int | None:
+    try:
+        return int(checkpoint.name.split(".")[0].removeprefix("ckpt-"))
+    except ValueError:
+        return None
+
+
+def _why_unloadable(err: Exception) -> str:
+    """Why ``torch.load(weights_only=True)`` refused a file, in our words: torch's own message advises retrying
+    with ``weights_only=False``, which would run any code in the file, so it is never passed on."""
+    text = str(err)
+    if isinstance(err, EOFError) or not text.strip():
+        return "it is empty or cut short (truncated)"
+    if isinstance(err, pickle.UnpicklingError):
+        found = re.search(r"GLOBAL ([\w.]+)", text)
+        if found:
+            return (f"it holds a Python object ({found.group(1)}), not only tensors and plain containers; refused "
+                    f"unread, nothing in it ran")
+        return "it is corrupt or not a torch checkpoint (only tensors and plain containers are accepted)"
+    if "zip" in text.lower() or "PytorchStreamReader" in text:
+        return "it is truncated or corrupt (its zip archive is incomplete)"
+    return f"it is corrupt ({type(err).__name__})"
+
+
+def _buffer_nbytes(replay_buffer) -> int:
+    """Bytes of a replay buffer's storage tensors (what its dump will take), 0 when unknown."""
+    try:
+        data = replay_buffer._storage._storage
+        leaves = [data] if isinstance(data, torch.Tensor) else data.values(include_nested=True, leaves_only=True)
+        return sum(t.numel() * t.element_size() for t in leaves if isinstance(t, torch.Tensor))
+    except Exception:  # noqa: BLE001 - an estimate only; the write itself still reports a full disk
+        return 0
+
+
+def _nbytes(obj) -> int:
+    """Bytes of the tensors in a (nested) state dict."""
+    if isinstance(obj, torch.Tensor):
+        return obj.numel() * obj.element_size()
+    if isinstance(obj, dict):
+        return sum(_nbytes(v) for v in obj.values())
+    if isinstance(obj, (list, tuple)):
+        return sum(_nbytes(v) for v in obj)
+    return 0
+
+
+def _check_free_space(folder: Path, nbytes: int, what: str) -> None:
+    """Refuse before writing when ``what`` cannot fit (a clear message, nothing partial to clean up)."""
+    margin = 64 << 10  # file headers, pickled containers, metadata
+    free = shutil.disk_usage(folder).free
+    if nbytes + margin > free:
+        raise OSError(errno.ENOSPC, f"No space left on device ({what} needs {(nbytes + margin) / 1e6:.1f} MB, "
+                                    f"{free / 1e6:.1f} MB free)", str(folder))
+
+
+def _atomic_write_text(path: Path, text: str) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        with tmp.open("w") as fh:
+            fh.write(text)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException as err:
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
+        if isinstance(err, OSError) and err.filename == str(tmp):  # name the file the user knows
+            raise OSError(err.errno, err.strerror, str(path)) from None
+        raise
+
+
+def _atomic_torch_save(obj, path: Path) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        with tmp.open("wb") as fh:
+            try:
+                torch.save(obj, fh)
+            except RuntimeError as err:
+                # A failed write (ENOSPC) inside torch.save surfaces as torch's "unexpected pos" RuntimeError from
+                # closing the zip; the OSError that caused it is its context: report that one.
+                cause = err.__context__
+                while cause is not None and not isinstance(cause, OSError):
+                    cause = cause.__context__
+                if cause is None:
+                    raise
+                raise cause from None
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
+        raise
+
+
+def _fsync_dir(path: Path) -> None:
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)

@@ -1,0 +1,13 @@
+"""The trainers: one loop per algorithm on one base that owns everything else.
+
+* :mod:`~adarl.runtime.trainers.base` - :class:`BaseTrainer`: the run folder, logging, evaluation and checkpoint
+  cadence, divergence guards, signals, exact resume, summary and report; :func:`trainer_class`;
+* :mod:`~adarl.runtime.trainers.sac` - :class:`Trainer`: AdaRL-SAC and the SAC baselines;
+* :mod:`~adarl.runtime.trainers.ppo` - :class:`PPOTrainer`: the RNAC baselines' PPO loop.
+"""
+
+from adarl.runtime.trainers.base import BaseTrainer, trainer_class
+from adarl.runtime.trainers.ppo import PPOTrainer
+from adarl.runtime.trainers.sac import Trainer
+
+__all__ = ["BaseTrainer", "Trainer", "PPOTrainer", "trainer_class"]

@@ -1,0 +1,484 @@
+"""What every trainer does the same way, whatever the algorithm: :class:`BaseTrainer`.
+
+It owns the run folder (its lock, logger, checkpoints, records and report), the progress bar, the logging of
+episodes, losses and throughput, the evaluation and checkpoint cadence, the divergence guards (stop, or roll back
+to the last checkpoint with a lower learning rate), the first SIGINT/SIGTERM (a checkpoint, then
+:class:`~adarl.runtime.signals.RunInterrupted`), and exact resume (counters, RNGs, the live episode and the
+collector's state in every checkpoint). A subclass builds its components and consumes one collected batch:
+
+* :meth:`_build_components` - the components (``self.c``: ``env``, ``eval_env``, ``modules.actor``,
+  ``optimizers``, ``schedulers``, ``collector``, ``sampling_generator``) and the parameters the guard checks;
+* :meth:`_consume` - one batch: count its frames, log its episodes, run the updates; return the losses;
+* :meth:`_module_state` / :meth:`_load_module_state` - the networks (and what else only it knows) in a checkpoint.
+
+The loop (:meth:`train` and :meth:`_train_batches`) reads top to bottom: collect, consume, log, evaluate,
+checkpoint, stop on a signal or at the frame budget.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import signal
+import sys
+import time
+from pathlib import Path
+from typing import ClassVar
+
+import torch
+from tensordict import TensorDictBase
+from tqdm import auto as tqdm_auto
+
+from adarl.envs.factory import dynamics_state_dict, load_dynamics_state_dict
+from adarl.envs.state import env_state_dict, gym_rng_state_dict, load_env_state_dict, load_gym_rng_state_dict
+from adarl.errors import AdaRLError, AdaRLValueError, CheckpointError
+from adarl.fast.collector import LeanCollector
+from adarl.runtime import metrics
+from adarl.runtime.builders.common import policy_specs
+from adarl.runtime.config import load_recipe
+from adarl.runtime.evaluation import EvalResult, evaluate_policy
+from adarl.runtime.guards import NonFiniteError, NonFiniteGuard
+from adarl.runtime.report import write_report
+from adarl.runtime.run_dir import RunDir, null_logger, recipe_fingerprint
+from adarl.runtime.signals import GracefulInterrupt, RunInterrupted
+from adarl.runtime.state import collector_state_dict, load_collector_state_dict, rng_state, set_rng_state
+
+__all__ = ["BaseTrainer", "trainer_class"]
+
+
+class BaseTrainer:
+    """Runs one recipe in one run folder: train, evaluate on nominal dynamics, checkpoint, report.
+
+    ``Trainer(recipe, run_dir).train()`` for a new run; ``Trainer.resume(run_dir).train()`` to continue one (the
+    recipe's ``algorithm.name`` picks the subclass: :func:`trainer_class`). Subclasses declare the algorithm they
+    run: ``class PPOTrainer(BaseTrainer, algorithm="ppo")``.
+    """
+
+    #: the ``algorithm.name`` a subclass runs, and every subclass by it
+    algorithm: ClassVar[str | None] = None
+    _by_algorithm: ClassVar[dict[str, type[BaseTrainer]]] = {}
+
+    def __init_subclass__(cls, algorithm: str | None = None, **kwargs) -> None:
+        super().__init_subclass__(**kwargs)
+        if algorithm is not None:
+            cls.algorithm = algorithm
+            BaseTrainer._by_algorithm[algorithm] = cls
+
+    def __init__(self, recipe, run_dir: RunDir, *, quiet: bool = False, _resume_state: dict | None = None,
+                 _log_from: int | None = None, _read_only: bool = False) -> None:
+        if self.algorithm is not None and recipe.algorithm.name != self.algorithm:
+            raise AdaRLValueError(f"{type(self).__name__} runs algorithm.name: {self.algorithm!r}, the recipe has "
+                                  f"{recipe.algorithm.name!r}; use {trainer_class(recipe).__name__} (trainer_class)")
+        self.recipe = recipe
+        self.run_dir = run_dir
+        self.quiet = quiet
+        self.read_only = _read_only  # loaded for evaluation: nothing is written into the run folder
+        self.fingerprint = recipe_fingerprint(recipe)
+        self.frames = 0
+        self.updates = 0
+        self.episodes = 0
+        self.last_eval_frames = 0
+        self.last_ckpt_frames = 0
+        self.best_eval = -math.inf
+        self.last_return = float("nan")
+        self.rollbacks = 0
+        self.warm_start_frames = 0  # env frames collected by rank events' warm starts (SAC; counted in `frames` by default)
+        # training losses are averaged over logging.log_interval frames (sums kept in checkpoints: exact resume)
+        self._loss_sums: dict[str, float] = {}
+        self._loss_count = 0
+        self._last_log_frames = 0
+        self._bar = None
+        self._clock: tuple[float, int, int] | None = None
+        self._fps_frames: int | None = None
+        if not _read_only:
+            run_dir.lock()  # one process trains in a run folder at a time (released by close())
+        # _log_from: the frames a resumed run's logs continue from (None: a new run, or evaluation only)
+        self.logger = null_logger() if _read_only else run_dir.make_logger(recipe, step=_log_from)
+        self._build(_resume_state)
+
+    # ------------------------------------------------------------------ what a subclass provides
+    def _build_components(self, state: dict | None):
+        """Build the components ``self.c`` (to continue from checkpoint ``state`` when given) and return the
+        parameters the divergence guard checks, ``{readable name: tensor}``."""
+        raise NotImplementedError
+
+    def _consume(self, batch: TensorDictBase) -> list[dict[str, torch.Tensor]] | None:
+        """One collected batch: count its frames, log its episodes, run the updates it allows. Returns the
+        updates' losses (None when it ran none, as before the first update: nothing is logged then)."""
+        raise NotImplementedError
+
+    def _module_state(self) -> dict:
+        """The checkpoint entries only the subclass knows (networks, loss, adapter, ...)."""
+        raise NotImplementedError
+
+    def _load_module_state(self, state: dict) -> None:
+        """Load the networks of :meth:`_module_state` (before the optimisers are loaded)."""
+        raise NotImplementedError
+
+    def _load_extra_state(self, state: dict) -> None:
+        """Load the rest of :meth:`_module_state` (after the counters)."""
+
+    def _extra_counters(self) -> dict:
+        """Counters of the subclass's own, saved with the common ones."""
+        return {}
+
+    def _load_extra_counters(self, counters: dict) -> None:
+        """Read back :meth:`_extra_counters`."""
+
+    def _replay_buffer_to_save(self):
+        """The replay buffer saved beside a checkpoint (None: none)."""
+        return None
+
+    def _postfix(self) -> dict:
+        """The progress bar's postfix."""
+        return {"ret": f"{self.last_return:.1f}", "upd": self.updates}
+
+    @property
+    def adapter(self):
+        """The rank adapter of the run (None: no rank adaptation)."""
+        return None
+
+    # ------------------------------------------------------------------ construction
+    def _build(self, state: dict | None) -> None:
+        """Build the components (fresh, or to continue from checkpoint ``state``) and the divergence guard."""
+        self.guard = NonFiniteGuard(self._build_components(state))
+        if state is not None:
+            self._load_checked(state)
+
+    def _load_checked(self, state: dict) -> None:
+        """:meth:`_load_state`, with a checkpoint that does not fit (one written before checkpoints named their
+        recipe, for other networks) refused in one line instead of a traceback from deep inside torch."""
+        try:
+            self._load_state(state)
+        except AdaRLError:
+            raise
+        except (RuntimeError, KeyError, ValueError, IndexError, TypeError) as err:
+            first = (str(err).strip().splitlines() or [type(err).__name__])[0]
+            where = state.get("checkpoint_file", "the checkpoint")
+            raise CheckpointError(f"checkpoint {where!r} does not fit this run's recipe ({type(err).__name__}: "
+                                  f"{first[:200]}); it was written for other networks or is damaged") from None
+
+    @classmethod
+    def resume(cls, path: str | os.PathLike, *, quiet: bool = False, truncate_metrics: bool = True,
+               checkpoint: str | os.PathLike | None = None, read_only: bool | None = None) -> BaseTrainer:
+        """Continue the run in ``path`` from its latest loadable checkpoint (metrics after it are dropped first).
+
+        The trainer is the recipe's (:func:`trainer_class`: ``Trainer.resume`` of a PPO run gives a
+        :class:`~adarl.runtime.trainers.ppo.PPOTrainer`) unless ``cls`` is a subclass of it.
+        ``checkpoint``: None, the newest checkpoint that loads (a damaged or foreign newer one is skipped with a
+        :class:`~adarl.errors.CheckpointFallbackWarning` naming it and why); ``"latest"``, the newest or a
+        :class:`~adarl.errors.CheckpointError` (no fallback); ``"best"`` (the best nominal evaluation); or a
+        checkpoint file (its replay buffer is looked for beside it). Every checkpoint is checked against the run's
+        recipe (:func:`~adarl.runtime.run_dir.recipe_fingerprint`) before any tensor is used.
+        ``read_only`` (default: ``not truncate_metrics``, i.e. loading to evaluate): nothing in the run folder is
+        written, renamed or locked, and the replay buffer is not read; such a trainer evaluates, it does not train.
+        """
+        run_dir = RunDir.open(path)
+        recipe = load_recipe(str(run_dir.recipe_path))
+        target = trainer_class(recipe)
+        cls = cls if issubclass(cls, target) else target
+        read_only = not truncate_metrics if read_only is None else read_only
+        if not read_only:
+            run_dir.lock()  # one process trains in a run folder at a time
+        fingerprint = recipe_fingerprint(recipe)
+        if checkpoint is None or checkpoint == "latest":
+            state = run_dir.load_latest_checkpoint(quarantine=not read_only, fingerprint=fingerprint,
+                                                   strict=checkpoint == "latest", replay_buffer=not read_only)
+        else:
+            state = run_dir.load_checkpoint(run_dir.best_checkpoint_path if checkpoint == "best" else checkpoint,
+                                            fingerprint=fingerprint, replay_buffer=not read_only)
+        if truncate_metrics and not read_only:
+            run_dir.truncate_metrics(int(state["counters"]["frames"]))
+        log_from = int(state["counters"]["frames"]) if truncate_metrics and not read_only else None
+        return cls(recipe, run_dir, quiet=quiet, _resume_state=state, _log_from=log_from, _read_only=read_only)
+
+    # ------------------------------------------------------------------ the loop
+    def train(self) -> dict:
+        """Collect, update, evaluate and checkpoint until the frame budget is spent; write the summary and report.
+
+        The first SIGINT/SIGTERM checkpoints after the current batch and raises :class:`RunInterrupted`; NaN/inf
+        in training raises :class:`~adarl.runtime.guards.NonFiniteError` (or rolls back, per ``recipe.guards``).
+        """
+        rc = self.recipe
+        total = rc.collector.total_frames
+        bar = tqdm_auto.tqdm(total=total, initial=self.frames, unit="frame", disable=self.quiet, dynamic_ncols=True,
+                             desc=rc.name)
+        self._bar = bar
+        start = time.perf_counter()
+        self._clock = (start, self.frames, self.updates)  # time/fps counts this process's work only
+        try:
+            with GracefulInterrupt(quiet=self.quiet) as interrupt:
+                if not self.run_dir.checkpoints():
+                    self.save_checkpoint()  # frame 0: a run killed at any later moment can be resumed
+                while True:
+                    try:
+                        self._train_batches(bar, interrupt)
+                        break
+                    except NonFiniteError as err:
+                        self._on_nonfinite(err)
+                        bar.reset(total=total)
+                        bar.update(self.frames)
+                self._log_losses([], flush=True)  # the last partial logging interval
+                if self.last_eval_frames != self.frames:
+                    self._evaluate()
+                self.save_checkpoint()
+        finally:
+            self._sync_bar()
+            bar.close()
+            self._bar = None
+        summary = self._write_summary(time.perf_counter() - start)
+        write_report(self.run_dir.path)
+        self.close()
+        return summary
+
+    def _train_batches(self, bar, interrupt: GracefulInterrupt) -> None:
+        rc = self.recipe
+        total = rc.collector.total_frames
+        for batch in self.c.collector if self.frames < total else ():
+            losses = self._consume(batch)
+            if losses is not None:
+                self._log_losses(losses)
+            self._sync_bar()  # the batch and any warm-start frames that count towards the budget
+            if self.frames - self.last_eval_frames >= rc.eval.interval:
+                self._evaluate()
+            if self.frames - self.last_ckpt_frames >= rc.checkpoint.interval:
+                self.save_checkpoint()
+            bar.set_postfix(refresh=False, **self._postfix())
+            if interrupt.requested is not None and self.frames < total:
+                path = self.save_checkpoint(scheduled=False)
+                self.close()
+                name = signal.Signals(interrupt.requested).name
+                raise RunInterrupted(
+                    f"stopped on {name} at {self.frames} frames; checkpoint {path.name} saved, continue with "
+                    f"`adarl resume {self.run_dir.path}`", signum=interrupt.requested, checkpoint=path)
+            if self.frames >= total:
+                break
+
+    def _sync_bar(self) -> None:
+        """Move the progress bar to ``self.frames``: every frame the budget counts (warm starts included when
+        ``replay.warm_start.count_frames``), so that its percentage and ETA are right."""
+        bar = self._bar
+        if bar is not None and self.frames != bar.n:
+            bar.update(self.frames - bar.n)
+
+    # ------------------------------------------------------------------ divergence
+    def _on_nonfinite(self, err: NonFiniteError) -> None:
+        """Stop with a clear message, or roll back to the last checkpoint with a lower learning rate."""
+        g = self.recipe.guards
+        ckpts = self.run_dir.checkpoints()
+        last = ckpts[-1].name if ckpts else "none"
+        if g.on_nonfinite == "rollback" and self.rollbacks < g.max_rollbacks and ckpts:
+            self._rollback(err)
+            return
+        self.close()
+        why = (f"after {self.rollbacks} rollback(s) (guards.max_rollbacks={g.max_rollbacks})"
+               if g.on_nonfinite == "rollback" else "(guards.on_nonfinite=stop)")
+        raise NonFiniteError(
+            f"training diverged: {err} at {self.frames} frames; stopped {why} without writing a checkpoint. The last "
+            f"good checkpoint is {last}; continue it with `adarl resume {self.run_dir.path}`, or lower algorithm.lr, "
+            f"or set guards.on_nonfinite=rollback", stage=err.stage, what=err.what, update=err.update) from None
+
+    def _rollback(self, err: NonFiniteError) -> None:
+        g = self.recipe.guards
+        rollbacks = self.rollbacks + 1
+        state = self.run_dir.load_latest_checkpoint(fingerprint=self.fingerprint)
+        self.close()
+        self.run_dir.lock()  # close() released it; training goes on here
+        self.run_dir.truncate_metrics(int(state["counters"]["frames"]))
+        self.logger = self.run_dir.make_logger(self.recipe, step=int(state["counters"]["frames"]))
+        self._build(state)
+        self.rollbacks = rollbacks
+        for sched in self.c.schedulers.values():
+            sched.base_lrs = [lr * g.lr_factor for lr in sched.base_lrs]
+        for opt in self.c.optimizers.values():
+            for group in opt.param_groups:
+                group["lr"] *= g.lr_factor
+                if "initial_lr" in group:
+                    group["initial_lr"] *= g.lr_factor
+        self.logger.log_scalar(metrics.ROLLBACKS, self.rollbacks, step=self.frames)
+        if not self.quiet:
+            print(f"adarl: {err}; rolled back to {self.frames} frames with the learning rate x{g.lr_factor} "
+                  f"(rollback {self.rollbacks}/{g.max_rollbacks})", file=sys.stderr, flush=True)
+
+    def _clip_and_step(self) -> None:
+        """Per-optimiser gradient clipping (``algorithm.max_grad_norm``), then every optimiser's step."""
+        max_norm = self.recipe.algorithm.max_grad_norm
+        if max_norm is not None:
+            for opt in self.c.optimizers.values():
+                for group in opt.param_groups:
+                    torch.nn.utils.clip_grad_norm_(group["params"], max_norm)
+        for opt in self.c.optimizers.values():
+            opt.step()
+            opt.zero_grad(set_to_none=True)
+
+    # ------------------------------------------------------------------ logging and evaluation
+    def _log_episodes(self, batch: TensorDictBase) -> None:
+        done = batch["next", "done"].reshape(-1)
+        if not bool(done.any()):
+            return
+        returns = batch["next", "episode_reward"].reshape(-1)[done]
+        self.episodes += int(done.sum())
+        self.last_return = float(returns.mean())
+        self.logger.log_scalar(metrics.TRAIN_RETURN, self.last_return, step=self.frames)
+        if ("next", "step_count") in batch.keys(True):
+            lengths = batch["next", "step_count"].reshape(-1)[done]
+            self.logger.log_scalar(metrics.TRAIN_LENGTH, float(lengths.float().mean()), step=self.frames)
+        self.logger.log_scalar(metrics.TRAIN_EPISODES, self.episodes, step=self.frames)
+        key = self.recipe.env.perturbation.key
+        if key in batch.keys():
+            for name, value in batch[key].items():
+                if name != "episode":
+                    self.logger.log_scalar(metrics.dynamics(name), float(value.reshape(-1)[done].float().mean()),
+                                           step=self.frames)
+
+    def _log_losses(self, losses: list[dict[str, torch.Tensor]], *, flush: bool = False) -> None:
+        """Accumulate a batch's losses; every ``logging.log_interval`` frames log their means (and at the end)."""
+        if losses:
+            for k in losses[0]:
+                self._loss_sums[k] = self._loss_sums.get(k, 0.0) + float(torch.stack([d[k] for d in losses]).sum())
+            self._loss_count += len(losses)
+        if not flush and self.frames - self._last_log_frames < self.recipe.logging.log_interval:
+            return
+        self._last_log_frames = self.frames
+        if self._loss_count:
+            for k, total in self._loss_sums.items():
+                self.logger.log_scalar(metrics.train(k), total / self._loss_count, step=self.frames)
+            self.logger.log_scalar(metrics.TRAIN_UPDATES, self.updates, step=self.frames)
+            self.logger.log_scalar(metrics.TRAIN_LR, self.c.optimizers["actor"].param_groups[0]["lr"],
+                                   step=self.frames)
+        self._log_throughput()
+        self._loss_sums, self._loss_count = {}, 0
+
+    def _log_throughput(self) -> None:
+        """``time/fps`` and ``time/updates_per_s`` since this process started training (wall clock)."""
+        if self._clock is None or self._fps_frames == self.frames:  # once per step
+            return
+        self._fps_frames = self.frames
+        t0, frames0, updates0 = self._clock
+        elapsed = time.perf_counter() - t0
+        if elapsed > 0 and self.frames > frames0:
+            self.logger.log_scalar(metrics.FPS, (self.frames - frames0) / elapsed, step=self.frames)
+            self.logger.log_scalar(metrics.UPDATES_PER_S, (self.updates - updates0) / elapsed, step=self.frames)
+
+    def _evaluate(self) -> EvalResult:
+        e = self.recipe.eval
+        result = evaluate_policy(self.c.modules.actor, self.c.eval_env, episodes=e.episodes, max_steps=e.max_steps)
+        self.last_eval_frames = self.frames
+        self.logger.log_scalar(metrics.EVAL_RETURN, result.mean, step=self.frames)
+        self.logger.log_scalar(metrics.EVAL_RETURN_STD, result.std, step=self.frames)
+        self.run_dir.append_eval(self.frames, self.updates, result, ranks=self.adapter.ranks if self.adapter else {})
+        if result.mean > self.best_eval:
+            self.best_eval = result.mean
+            if self.recipe.checkpoint.keep_best:
+                self.run_dir.save_best(self.state_dict(), frames=self.frames, score=result.mean,
+                                       fingerprint=self.fingerprint)
+        return result
+
+    # ------------------------------------------------------------------ checkpoints
+    def _counters(self) -> dict:
+        return {"frames": self.frames, "updates": self.updates, "episodes": self.episodes,
+                "last_eval_frames": self.last_eval_frames, "best_eval": self.best_eval,
+                "last_ckpt_frames": self.last_ckpt_frames, "rollbacks": self.rollbacks,
+                **self._extra_counters(),
+                "loss_sums": dict(self._loss_sums), "loss_count": self._loss_count,
+                "last_log_frames": self._last_log_frames}
+
+    def state_dict(self) -> dict:
+        """Everything needed to continue this run (the replay buffer is dumped beside it when configured)."""
+        c = self.c
+        if isinstance(c.collector, LeanCollector):  # a batch being prefetched moves the env: snapshot after it
+            c.collector.drain(keep=True)
+        return {
+            "counters": self._counters(),
+            **self._module_state(),
+            "optimizers": {k: o.state_dict() for k, o in c.optimizers.items()},
+            "schedulers": {k: s.state_dict() for k, s in c.schedulers.items()},
+            "rng": rng_state(),
+            "dynamics": dynamics_state_dict(c.env),
+            "sampling_rng": c.sampling_generator.get_state(),
+            # The live episode (exact resume): simulator + gymnasium state, the collector's carrier and counters.
+            "env_state": env_state_dict(c.env),
+            "collector": collector_state_dict(c.collector),
+            "eval_rng": gym_rng_state_dict(c.eval_env),
+            "policy_specs": policy_specs(c.env),  # adarl.load_policy builds the actor from these, without an env
+        }
+
+    def save_checkpoint(self, *, scheduled: bool = True) -> Path:
+        """Write a checkpoint (atomically; metric files are fsync'ed first so they are as durable as it).
+
+        ``scheduled=False`` (an interrupt) does not move the checkpoint schedule, so resumed runs keep it.
+        """
+        if scheduled:
+            self.last_ckpt_frames = self.frames
+        self.run_dir.sync_metrics(self.logger)
+        rb = self._replay_buffer_to_save()
+        state = self.state_dict()
+        state["replay_buffer_saved"] = rb is not None
+        return self.run_dir.save_checkpoint(
+            state, frames=self.frames, keep_last=self.recipe.checkpoint.keep_last, replay_buffer=rb,
+            fingerprint=self.fingerprint,
+        )
+
+    def _load_state(self, state: dict) -> None:
+        c = self.c
+        self._load_module_state(state)
+        for k, o in c.optimizers.items():
+            o.load_state_dict(state["optimizers"][k])
+        for k, s in c.schedulers.items():
+            s.load_state_dict(state["schedulers"][k])
+        cnt = state["counters"]
+        self.frames, self.updates, self.episodes = int(cnt["frames"]), int(cnt["updates"]), int(cnt["episodes"])
+        self.last_eval_frames = int(cnt["last_eval_frames"])
+        self.last_ckpt_frames = int(cnt.get("last_ckpt_frames", self.frames))
+        self.best_eval = float(cnt["best_eval"])
+        self.rollbacks = int(cnt.get("rollbacks", 0))
+        self._loss_sums = {k: float(v) for k, v in cnt.get("loss_sums", {}).items()}
+        self._loss_count = int(cnt.get("loss_count", 0))
+        self._last_log_frames = int(cnt.get("last_log_frames", self.frames))
+        self._load_extra_counters(cnt)
+        self._load_extra_state(state)
+        load_dynamics_state_dict(c.env, state["dynamics"])
+        live_episode = load_env_state_dict(c.env, state.get("env_state"))
+        if state.get("collector") is not None:
+            load_collector_state_dict(c.collector, state["collector"], carrier=live_episode)
+        load_gym_rng_state_dict(c.eval_env, state.get("eval_rng"))
+        c.sampling_generator.set_state(state["sampling_rng"])
+        set_rng_state(state["rng"])  # last: nothing after it may draw random numbers
+
+    def _summary(self, elapsed: float) -> dict:
+        adapter, warm_start_frames = self.adapter, self.warm_start_frames
+        return {
+            "name": self.recipe.name,
+            "frames": self.frames,
+            "warm_start_frames": warm_start_frames,
+            "env_frames": self.frames + (0 if self.recipe.replay.warm_start.count_frames else warm_start_frames),
+            "updates": self.updates,
+            "episodes": self.episodes,
+            "wall_time_s": elapsed,
+            "updates_per_s": self.updates / elapsed if elapsed > 0 else float("nan"),
+            "ranks": adapter.ranks if adapter is not None else {},
+            "layer_names": adapter.names if adapter is not None else {},  # module path -> name
+            "rank_events": len(adapter.history) if adapter is not None else 0,
+            "final_eval": self.run_dir.last_eval(),
+            "best_eval_mean": self.best_eval,
+        }
+
+    def _write_summary(self, elapsed: float) -> dict:
+        summary = self._summary(elapsed)
+        self.run_dir.write_json("summary.json", summary)
+        return summary
+
+    def close(self) -> None:
+        """Close the collector, envs and logger, and release the run folder."""
+        self.c.close()
+        self.run_dir.close_logger(self.logger)
+        if not getattr(self, "read_only", True):  # an evaluator never held the lock (a trainer beside it may)
+            self.run_dir.unlock()
+
+
+def trainer_class(recipe) -> type[BaseTrainer]:
+    """The trainer that runs ``recipe``: the subclass declared for its ``algorithm.name``."""
+    name = recipe.algorithm.name
+    if name not in BaseTrainer._by_algorithm:
+        raise AdaRLValueError(f"no trainer runs algorithm.name: {name!r}; allowed: {sorted(BaseTrainer._by_algorithm)}")
+    return BaseTrainer._by_algorithm[name]

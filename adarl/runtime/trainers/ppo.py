@@ -1,0 +1,164 @@
+"""The PPO loop of the RNAC baselines (Zhou et al., 2023): :class:`PPOTrainer` runs a recipe with
+``algorithm.name: ppo`` on the same perturbed envs, with the same run folder, logging, evaluation, checkpoints,
+divergence guards, Ctrl-C checkpoint and exact resume as AdaRL-SAC (all of :class:`BaseTrainer`).
+
+Each collected batch: reward scaling, advantages (GAE, or RNAC-IPM's shifted GAE), the advantage standardised over
+the whole batch (RNAC's trainer), ``epochs`` passes of minibatch ``ClipPPOLoss`` updates (each guarded: losses,
+gradients, parameters), then the observation statistics absorb the batch and the learning rate decays.
+``algorithm.rnac.mode`` picks plain PPO, RNAC-IPM (:class:`~adarl.baselines.rnac.IPMAdvantage`) or RNAC-DS
+(:class:`~adarl.baselines.rnac.DoubleSamplingTransform`). The networks: :mod:`adarl.runtime.builders.ppo`.
+"""
+
+from __future__ import annotations
+
+import ast
+
+import torch
+from tensordict import TensorDictBase
+
+from adarl.baselines.rnac import IPMAdvantage
+from adarl.runtime.builders.ppo import build_ppo_components, simulator_steps_per_frame
+from adarl.runtime.trainers.base import BaseTrainer
+
+__all__ = ["PPOTrainer", "normalize_advantage_"]
+
+#: the PPO losses a minibatch update checks and returns (``loss_entropy`` when the entropy bonus is on)
+PPO_LOSSES = ("loss_objective", "loss_critic", "loss_entropy")
+
+
+@torch.no_grad()
+def normalize_advantage_(batch: TensorDictBase, key: str = "advantage", eps: float = 1e-5) -> TensorDictBase:
+    """Standardise ``batch[key]`` in place over the whole batch, ``(A - mean) / (std + eps)`` with the unbiased
+    std, as RNAC's trainer does once per 2048-frame batch before its epochs (TorchRL's ``ClipPPOLoss`` would do it
+    per minibatch). The value target, computed from the raw advantage, is left alone. A one-frame batch has no
+    spread: its advantage becomes 0.
+
+    >>> from tensordict import TensorDict
+    >>> normalize_advantage_(TensorDict({"advantage": torch.tensor([1.0, 3.0])}, [2]))["advantage"]
+    tensor([-0.7071,  0.7071])
+    """
+    adv = batch.get(key)
+    std = adv.std() if adv.numel() > 1 else torch.zeros((), dtype=adv.dtype, device=adv.device)
+    batch.set(key, (adv - adv.mean()) / (std + eps))
+    return batch
+
+
+class PPOTrainer(BaseTrainer, algorithm="ppo"):
+    """Runs a PPO/RNAC recipe in a run folder; same outputs as the SAC :class:`~adarl.runtime.trainers.sac.Trainer`
+    (and ``simulator_steps_per_frame``/``simulator_steps`` in the summary)."""
+
+    def __init__(self, recipe, run_dir, *, quiet: bool = False, _resume_state: dict | None = None,
+                 _log_from: int | None = None, _read_only: bool = False) -> None:
+        self.iterations = 0
+        super().__init__(recipe, run_dir, quiet=quiet, _resume_state=_resume_state, _log_from=_log_from,
+                         _read_only=_read_only)
+
+    def _build_components(self, state: dict | None) -> dict[str, torch.Tensor]:
+        self.c = build_ppo_components(self.recipe)
+        m = self.c.modules
+        named = {f"actor.{k}": p for k, p in m.actor.named_parameters()}
+        named.update({f"critic.{k}": p for k, p in m.critic.named_parameters()})
+        return named
+
+    # ------------------------------------------------------------------ one batch
+    def _consume(self, batch: TensorDictBase) -> list[dict[str, torch.Tensor]]:
+        if batch.ndim == 1:
+            batch = batch.unsqueeze(0)  # [n_envs, T]: GAE runs along the last dimension
+        flat = batch.reshape(-1)
+        self.frames += flat.numel()
+        self._log_episodes(flat)
+        return self._iteration(batch)
+
+    def _iteration(self, batch) -> list[dict[str, torch.Tensor]]:
+        """Reward scaling, advantages, then ``epochs`` passes of minibatch PPO updates; then the observation
+        statistics absorb the batch and the LR decays."""
+        c, ppo = self.c, self.recipe.algorithm.ppo
+        m = c.modules
+        if c.reward_scaler is not None:
+            batch.set(("next", "reward"), c.reward_scaler(batch.get(("next", "reward")), batch.get(("next", "done"))))
+        with torch.no_grad():
+            m.advantage(batch)
+        if ppo.normalize_advantage == "batch":
+            normalize_advantage_(batch)
+        flat = batch.reshape(-1)
+        n, mb = flat.numel(), ppo.minibatch_size
+        losses = []
+        for _ in range(ppo.epochs):
+            perm = torch.randperm(n, generator=c.sampling_generator)
+            for i in range(0, n, mb):
+                losses.append(self._update(flat[perm[i:i + mb]]))
+        for norm in m.obs_norms:
+            norm.update(flat.get("observation"))
+        for s in c.schedulers.values():
+            s.step()
+        self.iterations += 1
+        extra = {}
+        if isinstance(m.advantage, IPMAdvantage):
+            extra["ipm_reward_shift"] = torch.tensor(m.advantage.last_shift)
+        if c.double_sampling is not None:
+            ds = c.double_sampling
+            extra["ds_worst_fraction"] = torch.tensor(ds.worst_picks / max(1, ds.steps))
+        if extra:
+            losses[-1] = {**losses[-1], **extra}
+            for d in losses[:-1]:
+                d.update(extra)
+        return losses
+
+    def _update(self, minibatch) -> dict[str, torch.Tensor]:
+        """One guarded minibatch update: the loss (plus its terms), backward, clipping, the optimisers."""
+        c = self.c
+        td = c.modules.loss(minibatch)
+        self.guard.check_losses({k: td[k] for k in PPO_LOSSES if k in td.keys()}, self.updates)
+        loss = td["loss_objective"] + td["loss_critic"]
+        if "loss_entropy" in td.keys():
+            loss = loss + td["loss_entropy"]
+        for name, term in c.terms.items():
+            td = term.wrap_output(td)
+            loss = loss + td[f"loss_{name}"]
+        loss.backward()
+        self.guard.check_grads(self.updates)
+        self._clip_and_step()
+        self.guard.check_params(self.updates)
+        self.updates += 1
+        keys = (*PPO_LOSSES, *(f"loss_{name}" for name in c.terms))
+        return {k: td[k].detach() for k in keys if k in td.keys()}
+
+    # ------------------------------------------------------------------ summary and checkpoints
+    def _summary(self, elapsed: float) -> dict:
+        """The common summary plus the simulator's cost: RNAC-DS takes ``m + 1`` env steps per frame, so a comparison
+        at equal frames gives it ``m + 1`` times the simulator steps of the other methods."""
+        summary = super()._summary(elapsed)
+        per_frame = simulator_steps_per_frame(self.recipe)
+        summary["simulator_steps_per_frame"] = per_frame
+        summary["simulator_steps"] = self.frames * per_frame
+        return summary
+
+    def _extra_counters(self) -> dict:
+        return {"iterations": self.iterations}
+
+    def _load_extra_counters(self, counters: dict) -> None:
+        self.iterations = int(counters.get("iterations", 0))
+
+    def _module_state(self) -> dict:
+        c = self.c
+        ds = c.double_sampling
+        return {
+            "actor": c.modules.actor.state_dict(),
+            "critic": c.modules.critic.state_dict(),
+            "reward_scaler": c.reward_scaler.state_dict() if c.reward_scaler is not None else None,
+            "ds_rng": repr(ds.rng_state()) if ds is not None else None,
+            "ds_counts": [ds.worst_picks, ds.steps] if ds is not None else None,
+        }
+
+    def _load_module_state(self, state: dict) -> None:
+        self.c.modules.actor.load_state_dict(state["actor"])
+        self.c.modules.critic.load_state_dict(state["critic"])
+
+    def _load_extra_state(self, state: dict) -> None:
+        c = self.c
+        if c.reward_scaler is not None and state.get("reward_scaler") is not None:
+            c.reward_scaler.load_state_dict(state["reward_scaler"])
+        if c.double_sampling is not None and state.get("ds_rng"):
+            c.double_sampling.set_rng_state(ast.literal_eval(state["ds_rng"]))
+        if c.double_sampling is not None and state.get("ds_counts") is not None:
+            c.double_sampling.worst_picks, c.double_sampling.steps = (int(v) for v in state["ds_counts"])

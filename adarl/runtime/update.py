@@ -1,0 +1,106 @@
+"""One SAC optimisation step, behind one interface: TorchRL's ``SACLoss`` step or the fused one.
+
+:func:`~adarl.runtime.builders.sac.build_components` picks the step (``algorithm.fused``) and the trainer calls it,
+whichever it is: ``losses = components.update(guard, update=n)``. Both sample a batch from the replay buffer
+(the same indices from the same generator), compute SAC's three losses, back-propagate, clip, step the optimisers
+and LR schedules and update the target critics; both return the detached loss values by name. The divergence
+guard (:class:`~adarl.runtime.guards.NonFiniteGuard`), when given, checks the losses, gradients and parameters
+at the points each step can reach.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Mapping, Sequence
+
+import torch
+from torch import nn
+from torchrl.data import TensorDictReplayBuffer
+from torchrl.objectives import SoftUpdate
+
+from adarl.fast.replay import UniformTensorSampler
+from adarl.fast.sac import FusedSACUpdate
+from adarl.runtime.guards import NonFiniteGuard
+
+__all__ = ["UpdateStep", "LossStep", "FusedStep", "SAC_LOSSES"]
+
+#: the losses every SAC step checks and returns (with ``alpha``, and ``loss_<term>`` per loss term)
+SAC_LOSSES = ("loss_actor", "loss_qvalue", "loss_alpha")
+
+
+class UpdateStep(ABC):
+    """One optimisation step: sample, losses, backward, clipping, optimisers, LR schedules, target update.
+
+    ``step(guard, update=n)`` returns the detached losses by name; :meth:`on_rank_event` is an ``on_truncate``
+    callback of the rank adapter (the parameters changed shape in place)."""
+
+    @abstractmethod
+    def __call__(self, guard: NonFiniteGuard | None = None, *, update: int = 0) -> dict[str, torch.Tensor]:
+        """One step; ``guard`` (when given) checks it, ``update`` is the step's index in its messages."""
+
+    def on_rank_event(self, event=None) -> None:
+        """The parameters changed shape in place (a rank event): re-bind what depends on the shapes."""
+
+
+class LossStep(UpdateStep):
+    """The step with TorchRL's pieces: ``loss(rb.sample())``, ``backward()``, per-optimiser gradient clipping,
+    ``opt.step()``, the schedulers, then ``SoftUpdate.step()``.
+
+    ``terms``: loss terms (``{name: term}``, e.g. the Parseval regulariser) whose ``wrap_output(td)`` adds
+    ``loss_<name>`` to the loss's output; each is added to the total and returned."""
+
+    def __init__(self, loss: nn.Module, optimizers: Sequence[torch.optim.Optimizer], *,
+                 replay_buffer: TensorDictReplayBuffer, target_updater: SoftUpdate, schedulers: Sequence = (),
+                 max_grad_norm: float | None = None, terms: Mapping[str, nn.Module] | None = None) -> None:
+        self.loss, self.optimizers, self.schedulers = loss, list(optimizers), list(schedulers)
+        self.replay_buffer, self.target_updater = replay_buffer, target_updater
+        self.max_grad_norm, self.terms = max_grad_norm, dict(terms or {})
+
+    def __call__(self, guard: NonFiniteGuard | None = None, *, update: int = 0) -> dict[str, torch.Tensor]:
+        td = self.loss(self.replay_buffer.sample())
+        if guard is not None:
+            guard.check_losses({k: td[k] for k in SAC_LOSSES}, update)
+        total = td["loss_actor"] + td["loss_qvalue"] + td["loss_alpha"]
+        for name, term in self.terms.items():
+            td = term.wrap_output(td)
+            total = total + td[f"loss_{name}"]
+        total.backward()
+        if guard is not None:
+            guard.check_grads(update)
+        if self.max_grad_norm is not None:
+            for opt in self.optimizers:
+                for group in opt.param_groups:
+                    torch.nn.utils.clip_grad_norm_(group["params"], self.max_grad_norm)
+        for opt in self.optimizers:
+            opt.step()
+            opt.zero_grad(set_to_none=True)
+        for sched in self.schedulers:
+            sched.step()
+        self.target_updater.step()
+        if guard is not None:
+            guard.check_params(update)
+        out = {k: td[k].detach() for k in (*SAC_LOSSES, "alpha")}
+        for name in self.terms:
+            out[f"loss_{name}"] = td[f"loss_{name}"].detach()
+        return out
+
+
+class FusedStep(UpdateStep):
+    """The same step on plain tensors: a :class:`~adarl.fast.replay.UniformTensorSampler` draws the indices
+    ``rb.sample()`` would draw and :class:`~adarl.fast.sac.FusedSACUpdate` computes the step (no gradient check:
+    the manual backward never materialises a graph to check; the losses and parameters are checked)."""
+
+    def __init__(self, update: FusedSACUpdate, replay_buffer: TensorDictReplayBuffer,
+                 generator: torch.Generator | None = None) -> None:
+        self.fused = update
+        self.sampler = UniformTensorSampler(replay_buffer, update.keys, generator=generator)
+
+    def __call__(self, guard: NonFiniteGuard | None = None, *, update: int = 0) -> dict[str, torch.Tensor]:
+        out = self.fused.step(*self.sampler())
+        if guard is not None:
+            guard.check_losses({k: out[k] for k in SAC_LOSSES}, update)
+            guard.check_params(update)
+        return out
+
+    def on_rank_event(self, event=None) -> None:
+        self.fused.on_rank_event(event)

@@ -1,0 +1,190 @@
+"""The package reads as its architecture: no import cycles, no upward imports, imports at module top.
+
+The import graph is read from the source (``ast``), so the test needs nothing installed and sees every import,
+including those inside functions. Wings, bottom to top (a module may import its own wing and those listed for it):
+
+* ``errors`` - nothing of adarl;
+* ``core`` (the paper's components) and ``envs`` - ``errors`` (and core: torch, TorchRL, tensordict only);
+* ``baselines`` - ``core``; ``fast`` (the speed engine) - ``core``, ``envs``;
+* ``runtime`` - all of the above; ``experiments`` - ``runtime`` and below; ``cli`` - everything.
+
+``adarl/__init__.py`` and ``adarl/envs/__init__.py`` load their public names on first use (PEP 562, by name),
+so they hold no static import; modules may read ``adarl.__version__``.
+"""
+
+from __future__ import annotations
+
+import ast
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1] / "adarl"
+
+#: wing -> the wings its modules may import (besides their own)
+ALLOWED = {
+    "errors": set(),
+    "core": {"errors"},
+    "envs": {"errors"},
+    "baselines": {"errors", "core"},
+    "fast": {"errors", "core", "envs"},
+    "runtime": {"errors", "core", "envs", "baselines", "fast"},
+    "experiments": {"errors", "core", "envs", "baselines", "fast", "runtime"},
+    "cli": {"errors", "core", "envs", "baselines", "fast", "runtime", "experiments"},
+}
+#: third-party packages the paper's components may use
+CORE_THIRD_PARTY = {"torch", "torchrl", "tensordict"}
+#: modules that import adarl modules inside functions, and why (every other adarl import is at module top)
+LAZY_ADARL_IMPORTS = {
+    "adarl.cli": "each command imports the wing it runs: `adarl --help` answers without torch",
+    "adarl.experiments.bench": "the benchmark driver never imports torch; each measurement's worker process does",
+}
+#: third-party packages a module may import inside a function: optional extras (ray, submitit, stable-baselines3,
+#: tensorboard), MuJoCo (the env registry validates recipes without it), matplotlib (its backend is chosen first)
+LAZY_THIRD_PARTY = {"mujoco", "gymnasium", "matplotlib", "stable_baselines3", "ray", "submitit", "torch.utils.tensorboard"}
+
+
+def _modules() -> dict[str, Path]:
+    out = {}
+    for path in sorted(ROOT.rglob("*.py")):
+        rel = path.relative_to(ROOT.parent).with_suffix("")
+        parts = list(rel.parts)
+        if parts[-1] == "__init__":
+            parts.pop()
+        out[".".join(parts)] = path
+    return out
+
+
+MODULES = _modules()
+
+
+def _target(name: str) -> str:
+    """The adarl module an imported name refers to (``adarl.core.lowrank.LowRankLinear`` -> its module)."""
+    while name not in MODULES and "." in name:
+        name = name.rsplit(".", 1)[0]
+    return name
+
+
+def _imports(path: Path, module: str) -> list[tuple[str, bool, int]]:
+    """``(imported name, at module top, line)`` of every import in a file (relative imports resolved)."""
+    tree = ast.parse(path.read_text(), filename=str(path))
+    package = module if path.name == "__init__.py" else module.rsplit(".", 1)[0]
+    out = []
+
+    def visit(node, top: bool) -> None:
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, ast.Import):
+                out.extend((a.name, top, child.lineno) for a in child.names)
+            elif isinstance(child, ast.ImportFrom):
+                base = child.module or ""
+                if child.level:
+                    base = ".".join(package.split(".")[: len(package.split(".")) - child.level + 1] + ([base] if base else []))
+                out.extend((f"{base}.{a.name}" if base.startswith("adarl") else base, top, child.lineno)
+                           for a in child.names)
+            visit(child, top and not isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)))
+
+    visit(tree, True)
+    return out
+
+
+def _wing(module: str) -> str:
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 else "root"
+
+
+GRAPH = {m: sorted({_target(n) for n, _, _ in _imports(p, m) if n.startswith("adarl.") or n == "adarl"} - {m})
+         for m, p in MODULES.items()}
+
+
+def _cycles(graph: dict[str, list[str]]) -> list[list[str]]:
+    """Strongly connected components with more than one module (Tarjan)."""
+    index, low, stack, on, out = {}, {}, [], set(), []
+    sys.setrecursionlimit(max(10_000, sys.getrecursionlimit()))
+
+    def strong(v):
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in graph.get(v, ()):
+            if w not in index:
+                strong(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+
+    for v in graph:
+        if v not in index:
+            strong(v)
+    return out
+
+
+def test_every_wing_is_known():
+    assert {_wing(m) for m in MODULES} - {"root"} == set(ALLOWED)
+
+
+def test_the_import_graph_has_no_cycles():
+    assert _cycles(GRAPH) == []
+
+
+def test_no_upward_imports():
+    bad = []
+    for m, targets in GRAPH.items():
+        wing = _wing(m)
+        for t in targets:
+            if t == "adarl":  # adarl.__version__: the root holds no static import
+                continue
+            if wing == "root" or (_wing(t) != wing and _wing(t) not in ALLOWED[wing]):
+                bad.append(f"{m} -> {t}")
+    assert bad == []
+
+
+def test_the_lazy_front_doors_import_nothing_statically():
+    for module in ("adarl", "adarl.envs"):
+        assert GRAPH[module] == [], module
+
+
+def test_core_depends_on_torch_torchrl_and_errors_only():
+    stdlib = set(sys.stdlib_module_names)
+    bad = [f"{m}: {n}" for m, p in MODULES.items() if _wing(m) == "core" for n, _, _ in _imports(p, m)
+           if n.split(".")[0] not in stdlib | CORE_THIRD_PARTY | {"__future__"}
+           and not (n.startswith("adarl.core") or n.startswith("adarl.errors"))]
+    assert bad == []
+
+
+def test_imports_are_at_module_top():
+    """adarl modules are imported at the top of a module (except in the CLI's and the bench driver's lazy doors);
+    third-party packages too, except optional or heavy ones a function alone needs."""
+    bad = []
+    for m, p in MODULES.items():
+        for name, top, line in _imports(p, m):
+            if top:
+                continue
+            if name.startswith("adarl"):
+                if m not in LAZY_ADARL_IMPORTS:
+                    bad.append(f"{p.relative_to(ROOT.parent)}:{line}: {name}")
+            elif (name.split(".")[0] not in LAZY_THIRD_PARTY | set(sys.stdlib_module_names)
+                  and name not in LAZY_THIRD_PARTY and m not in LAZY_ADARL_IMPORTS):
+                bad.append(f"{p.relative_to(ROOT.parent)}:{line}: {name}")
+    assert bad == []
+
+
+@pytest.mark.parametrize("module", ["adarl.fast.sac", "adarl.fast.manual_backward", "adarl.fast.replay",
+                                    "adarl.fast.collector", "adarl.fast.direct_env", "adarl.fast.adam"])
+def test_each_fast_module_names_what_it_mirrors_and_the_test_that_proves_it(module):
+    doc = ast.get_docstring(ast.parse(MODULES[module].read_text())) or ""
+    assert "Mirrors:" in doc and "Equality:" in doc and "tests/test_" in doc, module
+    for ref in (w for w in doc.replace("``", " ").split() if w.startswith("tests/test_")):
+        file, _, name = ref.rstrip(",.;)").partition("::")
+        text = (ROOT.parent / file).read_text()
+        assert not name or f"def {name}(" in text, ref
