@@ -109,3 +109,75 @@ def test_rnac_resume_from_a_mid_episode_checkpoint_is_exact(mode, tmp_path):
         assert (full.path / "metrics" / "scalars" / name).read_text() == \
             (resumed.path / "metrics" / "scalars" / name).read_text(), name
 
+
+# ------------------------------------------------------------- the PPO loop's guards and interrupt (BaseTrainer)
+
+
+def _ppo_trainer(path: Path, *extra: str):
+    from adarl.runtime.config import load_recipe, save_resolved
+    from adarl.runtime.run_dir import RunDir
+    from adarl.runtime.trainers import PPOTrainer
+
+    recipe = load_recipe("baselines/hopper_rnac_ipm", [
+        "collector.total_frames=512", "collector.frames_per_batch=128", "algorithm.ppo.epochs=1",
+        "eval.interval=100000", "eval.episodes=1", "eval.max_steps=20", "checkpoint.interval=128", *extra])
+    run = RunDir.create(path)
+    save_resolved(recipe, run.recipe_path)
+    return PPOTrainer(recipe, run, quiet=True)
+
+
+def _on_loss_call(trainer, at_call: int, action) -> dict:
+    """Run ``action(out)`` on the PPO loss's output at its ``at_call``-th forward (two per 128-frame batch here)."""
+    calls = {"n": 0}
+
+    def hook(module, args, out):
+        calls["n"] += 1
+        if calls["n"] == at_call:
+            action(out)
+        return out
+
+    trainer.c.modules.loss.register_forward_hook(hook)
+    return calls
+
+
+@pytest.mark.parametrize("on_nonfinite", ["stop", "rollback"])
+def test_ppo_divergence_guard_stops_or_rolls_back(tmp_path, on_nonfinite):
+    import torch
+
+    from adarl.runtime.guards import NonFiniteError
+    from adarl.runtime.run_dir import RunDir
+
+    trainer = _ppo_trainer(tmp_path / "run", f"guards.on_nonfinite={on_nonfinite}", "guards.lr_factor=0.5")
+    base_lr = trainer.c.optimizers["actor"].param_groups[0]["lr"]
+    # the 5th minibatch: in the third batch, after the checkpoint at 256 frames
+    _on_loss_call(trainer, 5, lambda out: out.set("loss_critic", out.get("loss_critic") * float("nan")))
+    if on_nonfinite == "stop":
+        with pytest.raises(NonFiniteError) as info:
+            trainer.train()
+        assert "loss_critic" in str(info.value) and "adarl resume" in str(info.value)
+        state = RunDir.open(tmp_path / "run").load_latest_checkpoint()
+        assert state["counters"]["frames"] == 256 < trainer.frames  # nothing written after the NaN
+        assert all(torch.isfinite(v).all() for v in state["critic"].values())
+        assert not (tmp_path / "run" / "summary.json").exists()
+        return
+    summary = trainer.train()  # the rollback rebuilds the loss (without the hook) from the 256-frame checkpoint
+    assert trainer.rollbacks == 1 and summary["frames"] == 512
+    assert trainer.c.schedulers["actor"].base_lrs == [base_lr * 0.5]
+    assert RunDir.open(tmp_path / "run").load_latest_checkpoint()["counters"]["rollbacks"] == 1
+
+
+def test_ppo_first_sigint_checkpoints_and_the_run_resumes(tmp_path):
+    import os
+    import signal
+
+    from adarl.runtime.signals import RunInterrupted
+    from adarl.runtime.trainers import BaseTrainer, PPOTrainer
+
+    trainer = _ppo_trainer(tmp_path / "run", "checkpoint.interval=100000")
+    _on_loss_call(trainer, 3, lambda out: os.kill(os.getpid(), signal.SIGINT))  # during the second batch
+    with pytest.raises(RunInterrupted) as info:
+        trainer.train()
+    assert info.value.signum == signal.SIGINT and info.value.checkpoint.name == "ckpt-000000000256.pt"
+    resumed = BaseTrainer.resume(tmp_path / "run", quiet=True)
+    assert isinstance(resumed, PPOTrainer) and resumed.frames == 256
+    assert resumed.train()["frames"] == 512
