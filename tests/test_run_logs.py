@@ -254,10 +254,10 @@ def logged_run(tmp_path_factory):
         resumed.train()
         second = {"bar": _Bar.made[-1], "wandb": _FakeWandb.made[-1], "writer": _FakeWriter.made[-1],
                   "from": 800}
-        writers = len(_FakeWriter.made)
+        writers_before = len(_FakeWriter.made)
         evaluating = Trainer.resume(path, quiet=True, truncate_metrics=False, checkpoint="best")  # adarl eval
         evaluating.close()
-        second["eval_writers"] = len(_FakeWriter.made) - writers
+        second["eval_writers"] = _FakeWriter.made[writers_before:]
         yield {"path": path, "recipe": recipe, "summary": summary, "first": first, "second": second}
     finally:
         mp.undo()
@@ -324,4 +324,5 @@ def test_tensorboard_hides_the_steps_a_resume_logs_again(logged_run):
     first, second = logged_run["first"]["writer"], logged_run["second"]["writer"]
     assert first.purge_step is None and "collector" in first.texts["recipe"]
     assert second.purge_step == logged_run["second"]["from"] + 1
-    assert logged_run["second"]["eval_writers"] == 0  # an evaluation (read-only) opens no writer: it hides nothing
+    # an evaluation opens the run read-only: no TensorBoard writer at all, so it can hide no training step
+    assert logged_run["second"]["eval_writers"] == []
