@@ -35,7 +35,7 @@ from adarl.errors import AdaRLError, AdaRLValueError, CheckpointError
 from adarl.fast.collector import LeanCollector
 from adarl.runtime import metrics
 from adarl.runtime.builders.common import policy_specs
-from adarl.runtime.config import load_recipe
+from adarl.runtime.config import load_recipe, save_resolved
 from adarl.runtime.evaluation import EvalResult, evaluate_policy
 from adarl.runtime.guards import NonFiniteError, NonFiniteGuard
 from adarl.runtime.report import write_report
@@ -92,6 +92,8 @@ class BaseTrainer:
         self._fps_frames: int | None = None
         if not _read_only:
             run_dir.lock()  # one process trains in a run folder at a time (released by close())
+            if _resume_state is None and not run_dir.recipe_path.exists():
+                save_resolved(recipe, run_dir.recipe_path)  # a run started from Python resumes and loads like any
         # _log_from: the frames a resumed run's logs continue from (None: a new run, or evaluation only)
         self.logger = null_logger() if _read_only else run_dir.make_logger(recipe, step=_log_from)
         self._build(_resume_state)
