@@ -119,11 +119,22 @@ class ParsevalRegularizer(nn.Module):
     ``"loss_parseval"``. Shapes may change between calls (rank truncation replaces ``.data`` in place); the
     parameter objects are re-read every call.
 
-    Example::
+    With a loss: ``td = reg.wrap_output(sac_loss(batch))`` adds ``td["loss_parseval"]``, to be summed with the loss's
+    own ``loss_*`` entries. On a single network:
 
-        reg = ParsevalRegularizer(sac_loss, lam=1e-4)
-        td = reg.wrap_output(sac_loss(batch))          # adds td["loss_parseval"]
-        total = sum(v for k, v in td.items() if k.startswith("loss_"))
+    >>> from tensordict import TensorDict
+    >>> from torchrl.modules import MLP
+    >>> net = MLP(in_features=3, out_features=1, num_cells=[2, 2])
+    >>> reg = ParsevalRegularizer(net, lam=1e-4, base_width=2)
+    >>> reg.layers  # the hidden layers (the output head is left out)
+    ['network.0', 'network.2']
+    >>> for index in (0, 2):
+    ...     _ = nn.init.orthogonal_(net[index].weight, gain=2**0.5)
+    >>> round(reg().item(), 6)  # orthogonal rows of squared norm s = 2: no penalty
+    0.0
+    >>> td = reg.wrap_output(TensorDict({"loss_actor": torch.tensor(1.0)}, []))  # e.g. a SACLoss output
+    >>> sorted(td.keys())
+    ['loss_actor', 'loss_parseval']
     """
 
     def __init__(self, loss: nn.Module, lam: float = 1e-4, s: float = 2.0, base_width: int = 64,

@@ -108,6 +108,14 @@ class ProjectionAcceptance:
     The bisection assumes the error falls as the rank grows (it does for the weight, by Eckart-Young, and in
     practice for the outputs); every rank it measures is recorded, and the rank it returns was measured within
     the tolerance.
+
+    >>> acceptance = ProjectionAcceptance(actor_tol=0.05)
+    >>> errors = {2: 0.3, 3: 0.12, 4: 0.06, 5: 0.04, 6: 0.02, 7: 0.01}  # error_at(k): the network at rank k
+    >>> result = acceptance.resolve(candidate=2, current=8, error_at=errors.get, role="actor")
+    >>> result.rank, result.accepted, result.tried
+    (5, False, [(2, 0.3), (5, 0.04), (3, 0.12), (4, 0.06)])
+    >>> result.reason
+    'candidate 2 changes the actor by 0.3 > tolerance 0.05; rank 5 is within it (0.04)'
     """
 
     def __init__(self, actor_tol: float = 0.05, critic_tol: float = 0.02, *, search: bool = True) -> None:

@@ -686,6 +686,26 @@ class RankAdapter(TrainerHookBase):
     fail later, deep in Adam); and, at an event, a change to factors that another process maps in shared memory
     (a multi-process collector's workers would go on acting with the old factors next to the new biases) unless
     an ``on_truncate`` callback rebuilds that collector (:class:`adarl.core.collector_rebuild.CollectorRebuild`).
+
+    >>> from tensordict.nn import NormalParamExtractor, TensorDictModule
+    >>> from torchrl.modules import ProbabilisticActor, TanhNormal, ValueOperator
+    >>> from torchrl.objectives import SACLoss
+    >>> from adarl.core.lowrank import low_rank_mlp
+    >>> from adarl.core.rank import FixedRank
+    >>> actor = ProbabilisticActor(
+    ...     TensorDictModule(nn.Sequential(low_rank_mlp(3, 4), NormalParamExtractor()), ["observation"],
+    ...                      ["loc", "scale"]),
+    ...     in_keys=["loc", "scale"], distribution_class=TanhNormal)
+    >>> loss = SACLoss(actor, ValueOperator(low_rank_mlp(3 + 2, 1), in_keys=["observation", "action"]))
+    >>> optimizer = torch.optim.Adam(loss.parameters())
+    >>> adapter = RankAdapter(loss, optimizer, FixedRank(16), interval=1)
+    >>> adapter.named_ranks
+    {'actor.layer0': 3, 'actor.layer1': 64, 'critic.layer0': 5, 'critic.layer1': 64}
+    >>> event = adapter.step()  # after each optimisation step: every `interval` steps, a rank event
+    >>> event.step, event.changed
+    (1, True)
+    >>> [(r.name, r.old_rank, r.new_rank) for r in event.layers if r.new_rank != r.old_rank]
+    [('actor.layer1', 64, 16), ('critic.layer1', 64, 16)]
     """
 
     def __init__(

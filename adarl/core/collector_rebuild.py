@@ -41,6 +41,20 @@ class CollectorRebuild:
     ``rebuild()`` (or calling the object with the event, as ``on_truncate`` does) closes the current iterator, shuts
     the collector down and builds a new one; ``collector`` is the current one, ``rebuilds`` how many times it was
     rebuilt. Other attributes (``update_policy_weights_``, ``reset``, ``policy``...) are the current collector's.
+
+    >>> from torchrl.collectors import Collector
+    >>> from torchrl.envs import GymEnv
+    >>> from torchrl.envs.utils import RandomPolicy
+    >>> env = GymEnv("Pendulum-v1")
+    >>> collector = CollectorRebuild(lambda: Collector(env, RandomPolicy(env.action_spec), frames_per_batch=10,
+    ...                                                 total_frames=-1), total_frames=30)
+    >>> sizes = []
+    >>> for batch in collector:
+    ...     sizes.append(batch.numel())
+    ...     collector.rebuild()  # RankAdapter(..., on_truncate=[collector]) does this after a rank event
+    >>> sizes, collector.rebuilds
+    ([10, 10, 10], 3)
+    >>> collector.shutdown()
     """
 
     #: RankAdapter lets an event change factors held in shared memory when a callback declares this.

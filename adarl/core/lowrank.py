@@ -232,6 +232,14 @@ class LowRankLinear(nn.Module):
     The layer is a plain module with plain parameters, so it works as the ``layer_class`` of
     :class:`torchrl.modules.MLP`, inside ``TensorDictModule``/``ProbabilisticActor``/``ValueOperator`` and
     under ``torch.vmap`` with stacked parameters (the Q ensemble of ``SACLoss``).
+
+    >>> layer = LowRankLinear(11, 64, rank=8)
+    >>> layer.w1.shape, layer.w2.shape, layer.rank
+    (torch.Size([64, 8]), torch.Size([8, 11]), 8)
+    >>> layer(torch.randn(5, 11)).shape
+    torch.Size([5, 64])
+    >>> int(torch.linalg.matrix_rank(layer.weight))
+    8
     """
 
     def __init__(
@@ -428,6 +436,12 @@ def low_rank_mlp(
     ``low_rank_layers`` indexes the ``len(num_cells) + 1`` linear layers (default: the first two, as in the
     paper); the output head may not be low-rank (it stays a plain ``nn.Linear``). ``rank`` is the initial
     rank, one value for all chosen layers or one per chosen layer (``None`` = full rank).
+
+    >>> net = low_rank_mlp(11, 6, num_cells=(64, 64), rank=[11, 32])
+    >>> [type(m).__name__ for m in list(net)[::2]], net[0].rank, net[2].rank
+    (['LowRankLinear', 'LowRankLinear', 'Linear'], 11, 32)
+    >>> net(torch.randn(4, 11)).shape
+    torch.Size([4, 6])
     """
     n_layers = len(num_cells) + 1
     chosen = sorted(set(int(i) for i in low_rank_layers))

@@ -43,6 +43,19 @@ class WarmupCosine:
             ``0`` disables the ramp (then a restart does not change the learning rate).
         total_steps: length of the global cosine; ``None`` keeps the factor at 1 after the warm-up.
         min_factor: the cosine's floor, reached at ``total_steps`` and kept afterwards.
+
+    >>> optimizer = torch.optim.Adam([torch.nn.Parameter(torch.zeros(3))], lr=1e-3)
+    >>> scheduler = make_lr_scheduler(optimizer, warmup_steps=4)  # one WarmupCosine per parameter group
+    >>> lrs = []
+    >>> for _ in range(5):
+    ...     optimizer.step()
+    ...     scheduler.step()
+    ...     lrs.append(round(optimizer.param_groups[0]["lr"], 6))
+    >>> lrs
+    [0.00025, 0.0005, 0.00075, 0.001, 0.001]
+    >>> restart_lr_scheduler(scheduler)  # after a rank event (RankAdapter does it): the warm-up starts again
+    >>> optimizer.param_groups[0]["lr"]
+    0.0
     """
 
     def __init__(self, warmup_steps: int = 2000, total_steps: int | None = None, min_factor: float = 0.0) -> None:

@@ -126,7 +126,11 @@ class RankRule(ABC):
 
 
 class EnergyRule(RankRule):
-    """Paper Eq. 10 as written: ``max{l : sum_{i<=l} s_i / sum_i s_i <= beta}`` (ratchets: at most ``r - 1``)."""
+    """Paper Eq. 10 as written: ``max{l : sum_{i<=l} s_i / sum_i s_i <= beta}`` (ratchets: at most ``r - 1``).
+
+    >>> EnergyRule(beta=0.9)(torch.tensor([5.0, 3.0, 1.0, 0.5, 0.5]), current_rank=5)
+    RankDecision(rank=3, current_rank=5, retained_energy=0.9, skipped=None)
+    """
 
     name = "energy"
 

@@ -75,6 +75,16 @@ class ReplayWarmStart:
 
     Call it as ``warm_start(event)`` (the signature of ``on_truncate`` callbacks) or ``warm_start()``. Each call
     appends a :class:`WarmStartRecord` to :attr:`records` and returns it.
+
+    >>> from torchrl.data import ListStorage, ReplayBuffer
+    >>> from torchrl.envs import GymEnv
+    >>> from torchrl.envs.utils import RandomPolicy
+    >>> env = GymEnv("Pendulum-v1")
+    >>> buffer = ReplayBuffer(storage=ListStorage(1000))
+    >>> _ = buffer.extend(env.rollout(50))
+    >>> warm_start = ReplayWarmStart(buffer, (env, RandomPolicy(env.action_spec)), frames=20)
+    >>> warm_start()  # RankAdapter(..., on_truncate=[warm_start]) calls it after each rank event
+    WarmStartRecord(step=None, mode='refill', frames_added=20, size_before=50, size_after=20, emptied=True)
     """
 
     def __init__(self, replay_buffer, source, frames: int, mode: str = "refill", *, exploration_type=None) -> None:

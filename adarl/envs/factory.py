@@ -122,6 +122,11 @@ def make_env(
         device: the env's device.
         max_episode_steps: overrides gymnasium's time limit.
         perturb: False for plain dynamics (same as ``preset="none"``).
+
+    >>> env = make_env("Hopper-v5", preset="paper", seed=0)
+    >>> sorted(env.rollout(3)["next", "dynamics"].keys())  # the dynamics each step ran under
+    ['episode', 'foot_length', 'torso_length']
+    >>> env.close()
     """
     env_id = check_env_id(env_id)
     mode = check_mode(mode)

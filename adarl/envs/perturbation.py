@@ -99,6 +99,15 @@ class PerturbedDynamicsEnvTransform(Transform):
         out_key: where the values go (``(out_key, param)``); a string or a tuple for a nested key.
         seed: seeds the transform's own generator now (else it follows the wrapped gymnasium env's seed).
         worker_index, num_workers: this env's place among the workers of a batched env (see module docs).
+
+    >>> from torchrl.envs import GymEnv
+    >>> env = TransformedEnv(GymEnv("Hopper-v5"), PerturbedDynamicsEnvTransform("Hopper-v5", "paper", seed=0))
+    >>> first, second = env.reset()["dynamics"], env.reset()["dynamics"]  # new dynamics at every reset
+    >>> sorted(first.keys()), int(first["episode"]), int(second["episode"])
+    (['episode', 'foot_length', 'torso_length'], 0, 1)
+    >>> bool(first["torso_length"] != second["torso_length"])
+    True
+    >>> env.close()
     """
 
     def __init__(

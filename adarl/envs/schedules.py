@@ -141,6 +141,14 @@ class SinusoidSchedule(Schedule):
 
     ``frequency`` and ``phase`` are either one number for all parameters or a dict per parameter.
     Deterministic: the RNG is not used.
+
+    >>> schedule = SinusoidSchedule(center={"torso_length": 0.4}, amplitude={"torso_length": 0.1}, frequency=0.5)
+    >>> [round(schedule.sample(i)["torso_length"], 3) for i in range(4)]  # episodes 0..3
+    [0.4, 0.448, 0.484, 0.5]
+    >>> schedule.nominal()  # the centre of the uncertainty set: where evaluations run
+    {'torso_length': 0.4}
+    >>> schedule_from_dict(schedule.to_dict()) == schedule  # the recipe's ``schedule:`` mapping
+    True
     """
 
     kind = "sinusoid"

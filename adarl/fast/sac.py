@@ -226,6 +226,34 @@ class FusedSACUpdate:
     A loss setting the update does not compute as ``SACLoss`` does (a TD(lambda) estimator, ``reduction="sum"``,
     critics that do not read ``[observation, action]``, ...) raises :class:`~adarl.errors.AdaRLValueError` naming
     it (:func:`check_fusable`). :attr:`keys` are the tensordict keys a step reads, taken from the loss.
+
+    >>> from tensordict import TensorDict
+    >>> from tensordict.nn import TensorDictModule
+    >>> from torchrl.data import Bounded
+    >>> from torchrl.modules import ProbabilisticActor, ValueOperator
+    >>> from torchrl.objectives import ValueEstimators
+    >>> from adarl.core.lowrank import low_rank_mlp
+    >>> actor = ProbabilisticActor(
+    ...     TensorDictModule(nn.Sequential(low_rank_mlp(3, 4), NormalParamExtractor()), ["observation"],
+    ...                      ["loc", "scale"]),
+    ...     in_keys=["loc", "scale"], distribution_class=TanhNormal)
+    >>> critic = ValueOperator(low_rank_mlp(3 + 2, 1), in_keys=["observation", "action"])
+    >>> loss = SACLoss(actor, critic, action_spec=Bounded(-1.0, 1.0, (2,)))
+    >>> loss.make_value_estimator(ValueEstimators.TD0, gamma=0.99)
+    >>> loss.set_keys(reward="r")  # the keys are the loss's: read where SACLoss reads them
+    >>> update = FusedSACUpdate(loss, [torch.optim.Adam(loss.parameters(), lr=3e-4)], tau=0.005)
+    >>> update.keys
+    ('observation', 'action', ('next', 'r'), ('next', 'observation'), ('next', 'terminated'))
+    >>> batch = TensorDict({"observation": torch.randn(32, 3), "action": torch.rand(32, 2) * 2 - 1,
+    ...                     "next": {"observation": torch.randn(32, 3), "r": torch.randn(32, 1),
+    ...                              "terminated": torch.zeros(32, 1, dtype=torch.bool)}}, [32])
+    >>> sorted(update(batch))  # one step: losses, backward, Adam, the target critics' Polyak update
+    ['alpha', 'entropy', 'loss_actor', 'loss_alpha', 'loss_qvalue']
+    >>> loss.make_value_estimator(ValueEstimators.TDLambda, gamma=0.99, lmbda=0.95)
+    >>> FusedSACUpdate(loss, [], tau=0.005)
+    Traceback (most recent call last):
+        ...
+    adarl.errors.AdaRLValueError: the fused SAC update does not implement the value estimator TDLambdaEstimator: ...
     """
 
     def __init__(self, loss, optimizers: Sequence[torch.optim.Optimizer], *, tau: float,

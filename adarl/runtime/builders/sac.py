@@ -11,7 +11,8 @@ through :mod:`adarl.baselines.registry` (network variants, init schemes, loss te
 
 >>> from adarl import build_components, load_recipe
 >>> recipe = load_recipe("quickstart", ["collector.total_frames=500", "collector.init_random_frames=100",
-...                                     "collector.frames_per_batch=100", "replay.size=500"])
+...                                     "collector.frames_per_batch=100", "replay.size=500",
+...                                     "replay.warm_start.frames=100"])
 >>> c = build_components(recipe)
 >>> type(c.update).__name__, type(c.collector).__name__, c.adapter.named_ranks["actor.layer0"]
 ('FusedStep', 'LeanCollector', 11)

@@ -37,6 +37,19 @@ class Trainer(BaseTrainer, algorithm="sac"):
     """Runs a SAC recipe in one run folder: train, adapt ranks, evaluate on nominal dynamics, checkpoint, report.
 
     ``Trainer(recipe, run_dir).train()`` for a new run; ``Trainer.resume(run_dir).train()`` to continue one.
+
+    >>> from tensordict import TensorDict
+    >>> from adarl import load_policy, load_recipe
+    >>> from adarl.runtime.run_dir import RunDir
+    >>> recipe = load_recipe("quickstart", ["collector.total_frames=400", "collector.init_random_frames=200",
+    ...                                     "collector.frames_per_batch=100", "replay.size=400",
+    ...                                     "replay.warm_start.frames=100", "eval.episodes=1", "eval.max_steps=50"])
+    >>> summary = Trainer(recipe, RunDir.create("runs/tiny"), quiet=True).train()
+    >>> summary["frames"], summary["updates"]
+    (400, 200)
+    >>> policy = load_policy("runs/tiny")  # the trained actor, a TorchRL ProbabilisticActor
+    >>> policy(TensorDict(observation=torch.zeros(11)))["action"].shape
+    torch.Size([3])
     """
 
     def __init__(self, recipe, run_dir, *, quiet: bool = False, _resume_state: dict | None = None,
