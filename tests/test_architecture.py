@@ -164,7 +164,7 @@ def test_core_depends_on_torch_torchrl_and_errors_only():
 
 def test_imports_are_at_module_top():
     """adarl modules are imported at the top of a module (except in the CLI's and the bench driver's lazy doors);
-    third-party packages too, except optional or heavy ones a function alone needs."""
+    the standard library and third-party packages too, except optional or heavy ones a function alone needs."""
     bad = []
     for m, p in MODULES.items():
         for name, top, line in _imports(p, m):
@@ -173,8 +173,7 @@ def test_imports_are_at_module_top():
             if name.startswith("adarl"):
                 if m not in LAZY_ADARL_IMPORTS:
                     bad.append(f"{p.relative_to(ROOT.parent)}:{line}: {name}")
-            elif (name.split(".")[0] not in LAZY_THIRD_PARTY | set(sys.stdlib_module_names)
-                  and name not in LAZY_THIRD_PARTY and m not in LAZY_ADARL_IMPORTS):
+            elif name.split(".")[0] not in LAZY_THIRD_PARTY and name not in LAZY_THIRD_PARTY and m not in LAZY_ADARL_IMPORTS:
                 bad.append(f"{p.relative_to(ROOT.parent)}:{line}: {name}")
     assert bad == []
 

@@ -28,6 +28,8 @@ the overlap modes against each other in ``tests/test_lean_collector.py`` and ``t
 from __future__ import annotations
 
 import copy
+import copyreg
+import io
 import multiprocessing
 import pickle
 import threading
@@ -435,9 +437,6 @@ _NUMPY_DTYPES = {torch.float32, torch.float64, torch.float16, torch.int64, torch
 
 
 def _dumps(obj) -> bytes:
-    import copyreg
-    import io
-
     buf = io.BytesIO()
     pickler = pickle.Pickler(buf, protocol=pickle.HIGHEST_PROTOCOL)
     pickler.dispatch_table = {**copyreg.dispatch_table, torch.Tensor: _tensor_as_numpy,

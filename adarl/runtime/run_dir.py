@@ -387,8 +387,6 @@ class RunDir:
                     row = {k: row[k] for k in keys}
                 flat.append(row)
         if flat:
-            import io
-
             keys = list(dict.fromkeys(k for row in flat for k in row))
             buf = io.StringIO()
             w = csv.DictWriter(buf, fieldnames=keys)
