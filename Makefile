@@ -1,5 +1,6 @@
-# The README's two commands: `make run` (train + evaluate + report the default recipe) and `make test`.
-# Both create .venv on first use and install the project with the exact versions in constraints.txt.
+# The README's two commands: `make run` (train + evaluate + report the default recipe) and `make test` (ruff's
+# format check and lint, then the test suite; .ci/run runs it). Both create .venv on first use and install the
+# project with the exact versions in constraints.txt. `make format` applies ruff's formatting and safe fixes.
 PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
@@ -7,7 +8,7 @@ STAMP  := $(VENV)/.installed
 RECIPE ?= quickstart
 ARGS   ?=
 
-.PHONY: install run test clean
+.PHONY: install run test format clean
 
 install: $(STAMP)
 
@@ -23,7 +24,13 @@ run: $(STAMP)
 	MUJOCO_GL=egl $(BIN)/adarl run $(RECIPE) $(ARGS)
 
 test: $(STAMP)
+	$(BIN)/ruff format --check .
+	$(BIN)/ruff check .
 	$(BIN)/python -m pytest -q tests
+
+format: $(STAMP)
+	$(BIN)/ruff format .
+	$(BIN)/ruff check --fix .
 
 clean:
 	rm -rf $(VENV) runs

@@ -28,19 +28,45 @@ __version__ = "0.1.0"
 # public name -> the module that defines it (imported when the name is first read)
 _EXPORTS: dict[str, str] = {
     **dict.fromkeys(["AdaRLError", "AdaRLValueError", "CheckpointError", "RecipeError"], "adarl.errors"),
-    **dict.fromkeys(["LowRankLinear", "low_rank_mlp", "factor_svd", "refactorize", "truncation_error",
-                     "iter_low_rank"], "adarl.core.lowrank"),
+    **dict.fromkeys(
+        ["LowRankLinear", "low_rank_mlp", "factor_svd", "refactorize", "truncation_error", "iter_low_rank"],
+        "adarl.core.lowrank",
+    ),
     "reinit_low_rank_ensemble": "adarl.runtime.builders.sac",
-    **dict.fromkeys(["RankRule", "RankDecision", "EnergyRule", "InclusiveEnergyRule", "RatioRule", "FixedRank",
-                     "PolicyFitRule", "make_rule"], "adarl.core.rank"),
+    **dict.fromkeys(
+        [
+            "RankRule",
+            "RankDecision",
+            "EnergyRule",
+            "InclusiveEnergyRule",
+            "RatioRule",
+            "FixedRank",
+            "PolicyFitRule",
+            "make_rule",
+        ],
+        "adarl.core.rank",
+    ),
     **dict.fromkeys(["WarmupCosine", "make_lr_scheduler", "restart_lr_scheduler"], "adarl.core.lr_schedule"),
     **dict.fromkeys(["ProjectionAcceptance", "RecentTransitions", "recent_transitions"], "adarl.core.acceptance"),
-    **dict.fromkeys(["RankAdapter", "RankEvent", "LayerRecord", "find_low_rank_layers", "resize_to_ranks"],
-                    "adarl.core.adapter"),
+    **dict.fromkeys(
+        ["RankAdapter", "RankEvent", "LayerRecord", "find_low_rank_layers", "resize_to_ranks"], "adarl.core.adapter"
+    ),
     **dict.fromkeys(["ReplayWarmStart", "WarmStartRecord"], "adarl.core.warmstart"),
     "CollectorRebuild": "adarl.core.collector_rebuild",
-    **dict.fromkeys(["PerturbedDynamicsEnvTransform", "make_env", "make_eval_env", "make_schedule", "env_parameters",
-                     "SinusoidSchedule", "UniformSchedule", "FixedSchedule", "ListSchedule"], "adarl.envs"),
+    **dict.fromkeys(
+        [
+            "PerturbedDynamicsEnvTransform",
+            "make_env",
+            "make_eval_env",
+            "make_schedule",
+            "env_parameters",
+            "SinusoidSchedule",
+            "UniformSchedule",
+            "FixedSchedule",
+            "ListSchedule",
+        ],
+        "adarl.envs",
+    ),
     **dict.fromkeys(["load_recipe", "list_recipes"], "adarl.runtime.config"),
     **dict.fromkeys(["build_components", "Components"], "adarl.runtime.builders.sac"),
     "Trainer": "adarl.runtime.trainers.sac",

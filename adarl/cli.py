@@ -97,8 +97,10 @@ def _train(trainer) -> dict:
         if not isinstance(err, OSError) or err.errno not in STORAGE_ERRNOS:
             raise
         path = trainer.run_dir.path
-        raise AdaRLError(f"{describe_os_error(err)}; the run stopped, its last checkpoint is intact: free space (or "
-                         f"make {str(path)!r} writable) and `adarl resume {path}`") from None
+        raise AdaRLError(
+            f"{describe_os_error(err)}; the run stopped, its last checkpoint is intact: free space (or "
+            f"make {str(path)!r} writable) and `adarl resume {path}`"
+        ) from None
 
 
 def _print_summary(summary: dict, path: Path) -> None:
@@ -106,8 +108,10 @@ def _print_summary(summary: dict, path: Path) -> None:
 
     ev = summary.get("final_eval") or {}
     ranks = ", ".join(f"{name}={rank}" for name, rank in named_ranks(summary).items()) or "-"
-    print(f"run finished: {summary['frames']} frames, {summary['updates']} updates, "
-          f"{summary['rank_events']} rank events, final ranks {ranks}")
+    print(
+        f"run finished: {summary['frames']} frames, {summary['updates']} updates, "
+        f"{summary['rank_events']} rank events, final ranks {ranks}"
+    )
     if ev:
         print(f"nominal-dynamics evaluation: {ev['mean']:.1f} ± {ev['std']:.1f} over {ev['episodes']} episodes")
     print(f"results: {path}  (report: {path / 'report.md'})")
@@ -143,8 +147,13 @@ def cmd_eval(args) -> int:
     if args.sweep:
         from adarl.experiments.sweep import parse_sweep, sweep_run
 
-        result = sweep_run(args.run_dir, [parse_sweep(s) for s in args.sweep], episodes=args.episodes,
-                           name=args.name, checkpoint=args.checkpoint)
+        result = sweep_run(
+            args.run_dir,
+            [parse_sweep(s) for s in args.sweep],
+            episodes=args.episodes,
+            name=args.name,
+            checkpoint=args.checkpoint,
+        )
         print(result.describe())
         return 0
 
@@ -155,13 +164,16 @@ def cmd_eval(args) -> int:
     trainer = BaseTrainer.resume(args.run_dir, quiet=True, read_only=True, checkpoint=args.checkpoint)
     recipe = trainer.recipe
     episodes = args.episodes or recipe.eval.episodes
-    result = evaluate_policy(trainer.c.modules.actor, trainer.c.eval_env, episodes=episodes,
-                             max_steps=recipe.eval.max_steps)
+    result = evaluate_policy(
+        trainer.c.modules.actor, trainer.c.eval_env, episodes=episodes, max_steps=recipe.eval.max_steps
+    )
     trainer.close()
     out = Path(args.run_dir) / "eval_nominal.json"
     trainer.run_dir.write_json(out.name, {"frames": trainer.frames, "episodes": episodes, **result.as_dict()})
-    print(f"nominal-dynamics evaluation at {trainer.frames} frames: {result.mean:.1f} ± {result.std:.1f} "
-          f"(95% CI ± {result.ci95:.1f}) over {episodes} episodes -> {out}")
+    print(
+        f"nominal-dynamics evaluation at {trainer.frames} frames: {result.mean:.1f} ± {result.std:.1f} "
+        f"(95% CI ± {result.ci95:.1f}) over {episodes} episodes -> {out}"
+    )
     return 0
 
 
@@ -169,8 +181,16 @@ def cmd_play(args) -> int:
     from adarl.runtime.play import parse_perturb, play
 
     size = _size(args.size)
-    result = play(args.run, which=args.which, episodes=args.episodes, video=args.video,
-                  perturb=parse_perturb(args.perturb), max_steps=args.max_steps, seed=args.seed, size=size)
+    result = play(
+        args.run,
+        which=args.which,
+        episodes=args.episodes,
+        video=args.video,
+        perturb=parse_perturb(args.perturb),
+        max_steps=args.max_steps,
+        seed=args.seed,
+        size=size,
+    )
     dyn = ", ".join(f"{k}={v:g}" for k, v in result.dynamics.items()) or "the env's own"
     print(f"policy of {result.checkpoint} ({result.frames} frames), dynamics: {dyn}")
     for i, (ret, n) in enumerate(zip(result.returns, result.lengths)):
@@ -229,9 +249,19 @@ def cmd_experiment(args) -> int:
     if progress is None:  # a live board redraws often; plain lines every 30 s; a URL costs requests per refresh
         target = args.output if args.output is not None else load_experiment(args.spec).output
         progress = (10.0 if is_url(target) else 2.0) if live else 30.0
-    runs = run_experiment(args.spec, budget=args.budget, output=args.output, workers=args.workers,
-                          dry_run=args.dry_run, report=not args.no_report, launcher=args.launcher,
-                          launcher_options=options, progress_interval=progress, scratch=args.scratch, live=live)
+    runs = run_experiment(
+        args.spec,
+        budget=args.budget,
+        output=args.output,
+        workers=args.workers,
+        dry_run=args.dry_run,
+        report=not args.no_report,
+        launcher=args.launcher,
+        launcher_options=options,
+        progress_interval=progress,
+        scratch=args.scratch,
+        live=live,
+    )
     if not args.dry_run:
         counts: dict[str, int] = {}
         for r in runs:
@@ -267,9 +297,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--version", action="version", version=_version())
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=_IntermixedParser)
 
-    r = sub.add_parser("run", help="train a recipe in a new run folder, evaluate it and write a report",
-                       description="Train RECIPE (a shipped name, see `adarl recipes`, or a .yaml path). "
-                                   "Overrides are key=value in OmegaConf dotlist style, e.g. rank.beta=0.95.")
+    r = sub.add_parser(
+        "run",
+        help="train a recipe in a new run folder, evaluate it and write a report",
+        description="Train RECIPE (a shipped name, see `adarl recipes`, or a .yaml path). "
+        "Overrides are key=value in OmegaConf dotlist style, e.g. rank.beta=0.95.",
+    )
     r.add_argument("recipe")
     r.add_argument("overrides", nargs="*", metavar="key=value")
     r.add_argument("--output", "-o", help="run folder (default: output.dir, or output.root/<name>-<time>)")
@@ -277,107 +310,190 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
     r.set_defaults(func=cmd_run)
 
-    rs = sub.add_parser("resume", help="continue a run from its latest checkpoint",
-                        description="Continue the run in RUN_DIR from its latest loadable checkpoint.")
+    rs = sub.add_parser(
+        "resume",
+        help="continue a run from its latest checkpoint",
+        description="Continue the run in RUN_DIR from its latest loadable checkpoint.",
+    )
     rs.add_argument("run_dir")
-    rs.add_argument("--checkpoint", choices=["latest"], default=None,
-                    help="insist on the newest checkpoint: fail if it cannot be used, instead of skipping it (with a "
-                         "warning) for the newest one that loads")
+    rs.add_argument(
+        "--checkpoint",
+        choices=["latest"],
+        default=None,
+        help="insist on the newest checkpoint: fail if it cannot be used, instead of skipping it (with a "
+        "warning) for the newest one that loads",
+    )
     rs.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
     rs.set_defaults(func=cmd_resume)
 
     ls = sub.add_parser("recipes", help="list the shipped recipes", description="List the shipped recipes.")
     ls.set_defaults(func=cmd_recipes)
 
-    sh = sub.add_parser("show", help="print a recipe fully resolved (extends and overrides applied)",
-                        description="Print RECIPE resolved and validated, as YAML.")
+    sh = sub.add_parser(
+        "show",
+        help="print a recipe fully resolved (extends and overrides applied)",
+        description="Print RECIPE resolved and validated, as YAML.",
+    )
     sh.add_argument("recipe")
     sh.add_argument("overrides", nargs="*", metavar="key=value")
     sh.set_defaults(func=cmd_show)
 
-    ev = sub.add_parser("eval", help="evaluate a run's saved policy on the nominal dynamics",
-                        description="Evaluate the latest checkpoint of RUN_DIR deterministically on the nominal "
-                                    "dynamics (the centre of the uncertainty set); writes eval_nominal.json.")
+    ev = sub.add_parser(
+        "eval",
+        help="evaluate a run's saved policy on the nominal dynamics",
+        description="Evaluate the latest checkpoint of RUN_DIR deterministically on the nominal "
+        "dynamics (the centre of the uncertainty set); writes eval_nominal.json.",
+    )
     ev.add_argument("run_dir")
     ev.add_argument("--episodes", type=int, default=None, help="episodes (default: the recipe's eval.episodes)")
-    ev.add_argument("--checkpoint", default=None, metavar="latest|best|PATH",
-                    help="which checkpoint: the best nominal evaluation, a file, or the newest ('latest': fail if it "
-                         "cannot be used; default: the newest one that loads, a skipped newer one named in a warning)")
-    ev.add_argument("--sweep", action="append", metavar="PARAM=LO:HI:N",
-                    help="robustness sweep instead: evaluate on a grid of PARAM (others at nominal); give it twice "
-                         "for a 2-D grid. Writes sweeps/<name>.csv, .json and .png in RUN_DIR")
+    ev.add_argument(
+        "--checkpoint",
+        default=None,
+        metavar="latest|best|PATH",
+        help="which checkpoint: the best nominal evaluation, a file, or the newest ('latest': fail if it "
+        "cannot be used; default: the newest one that loads, a skipped newer one named in a warning)",
+    )
+    ev.add_argument(
+        "--sweep",
+        action="append",
+        metavar="PARAM=LO:HI:N",
+        help="robustness sweep instead: evaluate on a grid of PARAM (others at nominal); give it twice "
+        "for a 2-D grid. Writes sweeps/<name>.csv, .json and .png in RUN_DIR",
+    )
     ev.add_argument("--name", default=None, help="file stem of the sweep's outputs (default: the parameter names)")
     ev.set_defaults(func=cmd_eval)
 
-    pl = sub.add_parser("play", help="watch a run's policy act (headless), optionally recorded to an MP4 video",
-                        description="Run the policy of RUN (a run folder or a checkpoint file) deterministically on "
-                                    "the nominal dynamics (the evaluations' centre of the training schedule), or on "
-                                    "dynamics set with --perturb, and print each episode's return; with --video, "
-                                    "render headless (MUJOCO_GL=egl or osmesa) into one MP4 file (needs moviepy: "
-                                    "pip install 'adarl[video]').")
+    pl = sub.add_parser(
+        "play",
+        help="watch a run's policy act (headless), optionally recorded to an MP4 video",
+        description="Run the policy of RUN (a run folder or a checkpoint file) deterministically on "
+        "the nominal dynamics (the evaluations' centre of the training schedule), or on "
+        "dynamics set with --perturb, and print each episode's return; with --video, "
+        "render headless (MUJOCO_GL=egl or osmesa) into one MP4 file (needs moviepy: "
+        "pip install 'adarl[video]').",
+    )
     pl.add_argument("run", metavar="RUN")
     pl.add_argument("--video", default=None, metavar="OUT.mp4", help="record the episodes to this MP4 file")
     pl.add_argument("--episodes", "-n", type=int, default=1, help="episodes to play (default: 1)")
-    pl.add_argument("--perturb", action="append", default=[], metavar="PARAM=V",
-                    help="set a dynamics parameter (e.g. torso_length=0.5); give it again for another")
-    pl.add_argument("--which", choices=["latest", "best"], default="latest",
-                    help="with a run folder: its latest checkpoint (default) or the best evaluation's")
-    pl.add_argument("--max-steps", type=int, default=None, help="steps per episode (default: the recipe's eval.max_steps)")
+    pl.add_argument(
+        "--perturb",
+        action="append",
+        default=[],
+        metavar="PARAM=V",
+        help="set a dynamics parameter (e.g. torso_length=0.5); give it again for another",
+    )
+    pl.add_argument(
+        "--which",
+        choices=["latest", "best"],
+        default="latest",
+        help="with a run folder: its latest checkpoint (default) or the best evaluation's",
+    )
+    pl.add_argument(
+        "--max-steps", type=int, default=None, help="steps per episode (default: the recipe's eval.max_steps)"
+    )
     pl.add_argument("--seed", type=int, default=0, help="seed of the env's initial states (default: 0)")
     pl.add_argument("--size", default="480x480", metavar="WxH", help="video frame size (default: 480x480)")
     pl.set_defaults(func=cmd_play)
 
-    rp = sub.add_parser("report", help="write a run's report, or aggregate many runs into one report",
-                        description="One run folder: (re)write its report.md and plots/*.png. Several folders (run "
-                                    "folders, experiment folders, or folders holding runs), or --output: aggregate "
-                                    "them across seeds into report.md/report.html, PNG plots and CSV tables.")
+    rp = sub.add_parser(
+        "report",
+        help="write a run's report, or aggregate many runs into one report",
+        description="One run folder: (re)write its report.md and plots/*.png. Several folders (run "
+        "folders, experiment folders, or folders holding runs), or --output: aggregate "
+        "them across seeds into report.md/report.html, PNG plots and CSV tables.",
+    )
     rp.add_argument("run_dir", nargs="+", metavar="DIR", help="a folder, or an fsspec URL (s3://bucket/exp, ...)")
-    rp.add_argument("--output", "-o", default=None,
-                    help="folder (or fsspec URL) of the aggregate report (default: <DIR>/report for one experiment "
-                         "folder, else ./report)")
+    rp.add_argument(
+        "--output",
+        "-o",
+        default=None,
+        help="folder (or fsspec URL) of the aggregate report (default: <DIR>/report for one experiment "
+        "folder, else ./report)",
+    )
     rp.set_defaults(func=cmd_report)
 
-    bn = sub.add_parser("bench", help="side-by-side SAC speed benchmark (AdaRL-SAC, no-rank, stock TorchRL, SB3)",
-                        description="Interleaved, repeated (median) speed benchmark of AdaRL-SAC against the same loop "
-                        "without rank adaptation, a stock TorchRL SAC loop and Stable-Baselines3 SAC (when installed: "
-                        "pip install 'adarl[bench]'). Prints a table and writes a JSON report.")
+    bn = sub.add_parser(
+        "bench",
+        help="side-by-side SAC speed benchmark (AdaRL-SAC, no-rank, stock TorchRL, SB3)",
+        description="Interleaved, repeated (median) speed benchmark of AdaRL-SAC against the same loop "
+        "without rank adaptation, a stock TorchRL SAC loop and Stable-Baselines3 SAC (when installed: "
+        "pip install 'adarl[bench]'). Prints a table and writes a JSON report.",
+    )
     bench_arguments(bn)
     bn.set_defaults(func=cmd_bench)
-    ex = sub.add_parser("experiment", help="run a multi-run experiment spec (axes x seeds), resumably",
-                        description="Run every run of the experiment SPEC (a YAML file with kind: experiment, see "
-                                    "recipes/experiments/) one after another or in worker processes; finished runs "
-                                    "are skipped, interrupted ones resumed; then write the aggregate report.")
+    ex = sub.add_parser(
+        "experiment",
+        help="run a multi-run experiment spec (axes x seeds), resumably",
+        description="Run every run of the experiment SPEC (a YAML file with kind: experiment, see "
+        "recipes/experiments/) one after another or in worker processes; finished runs "
+        "are skipped, interrupted ones resumed; then write the aggregate report.",
+    )
     ex.add_argument("spec")
     ex.add_argument("--budget", "-b", default=None, help="a budget named in the spec (e.g. small)")
-    ex.add_argument("--output", "-o", default=None,
-                    help="output folder, or an fsspec URL (s3://bucket/exp, gs://..., file:///shared/exp; the "
-                         "backend package, e.g. s3fs, must be installed) that runs upload to (default: the spec's, or "
-                         "runs/experiments/<name>-<budget>)")
-    ex.add_argument("--scratch", default=None, metavar="DIR",
-                    help="with a URL output: local folder each run trains in before it is uploaded (default: "
-                         "$TMPDIR/adarl-scratch on the machine the run lands on)")
+    ex.add_argument(
+        "--output",
+        "-o",
+        default=None,
+        help="output folder, or an fsspec URL (s3://bucket/exp, gs://..., file:///shared/exp; the "
+        "backend package, e.g. s3fs, must be installed) that runs upload to (default: the spec's, or "
+        "runs/experiments/<name>-<budget>)",
+    )
+    ex.add_argument(
+        "--scratch",
+        default=None,
+        metavar="DIR",
+        help="with a URL output: local folder each run trains in before it is uploaded (default: "
+        "$TMPDIR/adarl-scratch on the machine the run lands on)",
+    )
     ex.add_argument("--workers", "-j", type=int, default=None, help="runs at a time (default: the spec's workers)")
     ex.add_argument("--dry-run", action="store_true", help="list the runs and their status; run nothing")
     ex.add_argument("--no-report", action="store_true", help="do not write the aggregate report")
-    ex.add_argument("--launcher", choices=["local", "ray", "submitit"], default="local",
-                    help="where runs execute: local processes (default), Ray tasks (pip install 'adarl[ray]'), or "
-                         "SLURM jobs through submitit (pip install 'adarl[slurm]'); see docs/launchers.md")
-    ex.add_argument("--ray-address", default=None,
-                    help="Ray cluster to join (e.g. auto, ray://head:10001; default: start a local Ray)")
-    ex.add_argument("--submitit-cluster", default=None, choices=["slurm", "local", "debug"],
-                    help="submitit executor (default: slurm when sbatch is found, else local)")
-    ex.add_argument("--submitit-folder", default=None, metavar="DIR",
-                    help="submitit's job files (default: <output>/submitit; needed with a URL output)")
+    ex.add_argument(
+        "--launcher",
+        choices=["local", "ray", "submitit"],
+        default="local",
+        help="where runs execute: local processes (default), Ray tasks (pip install 'adarl[ray]'), or "
+        "SLURM jobs through submitit (pip install 'adarl[slurm]'); see docs/launchers.md",
+    )
+    ex.add_argument(
+        "--ray-address",
+        default=None,
+        help="Ray cluster to join (e.g. auto, ray://head:10001; default: start a local Ray)",
+    )
+    ex.add_argument(
+        "--submitit-cluster",
+        default=None,
+        choices=["slurm", "local", "debug"],
+        help="submitit executor (default: slurm when sbatch is found, else local)",
+    )
+    ex.add_argument(
+        "--submitit-folder",
+        default=None,
+        metavar="DIR",
+        help="submitit's job files (default: <output>/submitit; needed with a URL output)",
+    )
     ex.add_argument("--cpus-per-run", type=float, default=None, help="CPUs per run (default: the spec's resources)")
     ex.add_argument("--gpus-per-run", type=float, default=None, help="GPUs per run (default: the spec's resources)")
-    ex.add_argument("--max-retries", type=int, default=3,
-                    help="times a run whose worker is lost is retried from its checkpoint (ray, submitit)")
-    ex.add_argument("--progress", type=float, default=None, metavar="SECONDS",
-                    help="refresh the progress board (one row per run, an aggregate bar) this often; 0: only report "
-                         "runs as they end (default: 30 for plain lines, 2 for the live board, 10 for it with a URL)")
-    ex.add_argument("--no-live", action="store_true",
-                    help="plain progress lines even on a terminal (the live board is used only when stdout is a "
-                         "terminal and CI is not set)")
+    ex.add_argument(
+        "--max-retries",
+        type=int,
+        default=3,
+        help="times a run whose worker is lost is retried from its checkpoint (ray, submitit)",
+    )
+    ex.add_argument(
+        "--progress",
+        type=float,
+        default=None,
+        metavar="SECONDS",
+        help="refresh the progress board (one row per run, an aggregate bar) this often; 0: only report "
+        "runs as they end (default: 30 for plain lines, 2 for the live board, 10 for it with a URL)",
+    )
+    ex.add_argument(
+        "--no-live",
+        action="store_true",
+        help="plain progress lines even on a terminal (the live board is used only when stdout is a "
+        "terminal and CI is not set)",
+    )
     ex.set_defaults(func=cmd_experiment)
     return p
 

@@ -7,8 +7,19 @@ import errno
 from collections.abc import Iterable
 from typing import Any
 
-__all__ = ["AdaRLError", "AdaRLValueError", "RecipeError", "CheckpointError", "AdaRLWarning",
-           "CheckpointFallbackWarning", "STORAGE_ERRNOS", "describe_os_error", "NO_VALUE", "one_of", "did_you_mean"]
+__all__ = [
+    "AdaRLError",
+    "AdaRLValueError",
+    "RecipeError",
+    "CheckpointError",
+    "AdaRLWarning",
+    "CheckpointFallbackWarning",
+    "STORAGE_ERRNOS",
+    "describe_os_error",
+    "NO_VALUE",
+    "one_of",
+    "did_you_mean",
+]
 
 
 class AdaRLError(Exception):
@@ -42,8 +53,14 @@ class CheckpointFallbackWarning(AdaRLWarning):
 
 
 # Failures of the file system rather than of adarl: the CLI reports these in one line instead of a traceback.
-STORAGE_ERRNOS = {errno.ENOSPC: "disk full", errno.EDQUOT: "disk quota exceeded", errno.EROFS: "read-only file system",
-                  errno.EACCES: "no permission", errno.EPERM: "no permission", errno.EIO: "input/output error"}
+STORAGE_ERRNOS = {
+    errno.ENOSPC: "disk full",
+    errno.EDQUOT: "disk quota exceeded",
+    errno.EROFS: "read-only file system",
+    errno.EACCES: "no permission",
+    errno.EPERM: "no permission",
+    errno.EIO: "input/output error",
+}
 
 
 def describe_os_error(err: OSError) -> str:

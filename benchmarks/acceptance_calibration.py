@@ -6,7 +6,8 @@ Each RUN_DIR is a finished run whose low-rank layers are still at full rank (``r
 ``off`` arm of recipes/experiments/rank_settling.yaml). From its last checkpoint, for every low-rank layer and a
 grid of ranks, with that one layer projected to the rank (the SVD projection a rank event applies):
 
-* actor layers: the relative output error the acceptance step measures (:func:`adarl.core.acceptance.relative_output_error`
+* actor layers: the relative output error the acceptance step measures
+(:func:`adarl.core.acceptance.relative_output_error`
   of the distribution parameters on the 2048 most recent transitions) and the return of the truncated
   deterministic policy on the nominal dynamics (``--episodes`` episodes, the same start states for every rank);
 * critic layers: the relative output error (worst of the two critics) and the critic loss (clipped double-Q TD
@@ -26,10 +27,10 @@ from pathlib import Path
 
 import torch
 
-from adarl.core.acceptance import recent_transitions, relative_output_error
+from adarl.core.acceptance import recent_transitions
 from adarl.core.adapter import _NetworkProbe, _padded_factors, find_low_rank_layers
-from adarl.runtime.evaluation import evaluate_policy
 from adarl.core.lowrank import factor_svd
+from adarl.runtime.evaluation import evaluate_policy
 from adarl.runtime.trainers import Trainer
 
 
@@ -74,8 +75,14 @@ def calibrate(run: Path, episodes: int, rows: list[dict]) -> None:
                 err = max(p.relative_error({key1: w1[m], key2: w2[m]}) for p, m in zip(probes, members))
                 site.w1.copy_(w1)  # the online factors only: the TD target keeps the trained target critics
                 site.w2.copy_(w2)
-                row = {"run": run.name, "layer": site.path, "network": site.role, "width": width, "rank": rank,
-                       "relative_error": err}
+                row = {
+                    "run": run.name,
+                    "layer": site.path,
+                    "network": site.role,
+                    "width": width,
+                    "rank": rank,
+                    "relative_error": err,
+                }
                 if site.role == "actor":
                     ret = nominal_return()
                     row |= {"return": ret, "return_ratio": ret / base_return if base_return else float("nan")}
@@ -85,9 +92,15 @@ def calibrate(run: Path, episodes: int, rows: list[dict]) -> None:
                 site.w1.copy_(old1)
                 site.w2.copy_(old2)
                 rows.append(row)
-                print(f"  {site.path} rank {rank:3d}: error {err:.4f} "
-                      + (f"return {row['return']:.1f}" if "return" in row else f"critic loss x{row['critic_loss_ratio']:.3f}"),
-                      flush=True)
+                print(
+                    f"  {site.path} rank {rank:3d}: error {err:.4f} "
+                    + (
+                        f"return {row['return']:.1f}"
+                        if "return" in row
+                        else f"critic loss x{row['critic_loss_ratio']:.3f}"
+                    ),
+                    flush=True,
+                )
         trainer.close()
 
 
@@ -98,11 +111,18 @@ def plot(rows: list[dict], out: Path, tolerances: tuple[float, float] | None = N
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-    for i, (ax, role, key, label) in enumerate(((axes[0], "actor", "return_ratio", "nominal return / untruncated"),
-                                                (axes[1], "critic", "critic_loss_ratio", "critic TD loss / untruncated"))):
+    for i, (ax, role, key, label) in enumerate(
+        (
+            (axes[0], "actor", "return_ratio", "nominal return / untruncated"),
+            (axes[1], "critic", "critic_loss_ratio", "critic TD loss / untruncated"),
+        )
+    ):
         for layer in sorted({r["layer"].split(".", 1)[1] for r in rows if r["network"] == role}):
-            pts = [(float(r["relative_error"]), float(r[key])) for r in rows
-                   if r["network"] == role and r["layer"].endswith(layer) and float(r["relative_error"]) > 1e-4]
+            pts = [
+                (float(r["relative_error"]), float(r[key]))
+                for r in rows
+                if r["network"] == role and r["layer"].endswith(layer) and float(r["relative_error"]) > 1e-4
+            ]
             if pts:
                 ax.scatter([p[0] for p in pts], [p[1] for p in pts], s=12, label=f"{role} {layer}")
         if tolerances is not None:

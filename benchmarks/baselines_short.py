@@ -17,9 +17,18 @@ from pathlib import Path
 
 import torch
 
-SAC_BUDGET = ["collector.total_frames={sac_frames}", "collector.init_random_frames=1000", "collector.frames_per_batch=250",
-              "algorithm.utd_ratio=0.5", "replay.size=20000", "eval.interval={sac_frames}", "checkpoint.interval={sac_frames}",
-              "lr_schedule.warmup_steps=200", "replay.warm_start.frames=500", "rank.interval=1000"]
+SAC_BUDGET = [
+    "collector.total_frames={sac_frames}",
+    "collector.init_random_frames=1000",
+    "collector.frames_per_batch=250",
+    "algorithm.utd_ratio=0.5",
+    "replay.size=20000",
+    "eval.interval={sac_frames}",
+    "checkpoint.interval={sac_frames}",
+    "lr_schedule.warmup_steps=200",
+    "replay.warm_start.frames=500",
+    "rank.interval=1000",
+]
 PPO_BUDGET = ["collector.total_frames={ppo_frames}", "eval.interval={ppo_frames}", "checkpoint.interval={ppo_frames}"]
 
 ALGORITHMS = {  # name: (recipe, extra overrides)
@@ -61,15 +70,23 @@ def main() -> None:
         if args.only and name not in args.only:
             continue
         is_ppo = "rnac" in recipe_name
-        budget = [b.format(sac_frames=args.sac_frames, ppo_frames=args.ppo_frames)
-                  for b in (PPO_BUDGET if is_ppo else SAC_BUDGET)]
+        budget = [
+            b.format(sac_frames=args.sac_frames, ppo_frames=args.ppo_frames)
+            for b in (PPO_BUDGET if is_ppo else SAC_BUDGET)
+        ]
         recipe = load_recipe(recipe_name, [*common, *budget, *extra])
         run_dir = RunDir.create(out / recipe.name, overwrite=True)
         t0 = time.perf_counter()
         summary = trainer_class(recipe)(recipe, run_dir, quiet=True).train()
         ev = summary["final_eval"]
-        results[name] = {"recipe": recipe_name, "frames": summary["frames"], "updates": summary["updates"],
-                         "mean": ev["mean"], "std": ev["std"], "wall_s": time.perf_counter() - t0}
+        results[name] = {
+            "recipe": recipe_name,
+            "frames": summary["frames"],
+            "updates": summary["updates"],
+            "mean": ev["mean"],
+            "std": ev["std"],
+            "wall_s": time.perf_counter() - t0,
+        }
         print(name, results[name], flush=True)
         results_path.write_text(json.dumps(results, indent=2))
 
@@ -80,16 +97,26 @@ def main() -> None:
         from adarl.runtime.builders.common import make_envs
 
         _, env = make_envs(recipe)  # the evaluation env: nominal dynamics, seed + 10000
-        ev = evaluate_policy(RandomPolicy(env.action_spec), env, episodes=args.episodes, max_steps=1000,
-                             deterministic=False)
-        results["random policy"] = {"recipe": "-", "frames": 0, "updates": 0, "mean": ev.mean, "std": ev.std,
-                                    "wall_s": 0.0}
+        ev = evaluate_policy(
+            RandomPolicy(env.action_spec), env, episodes=args.episodes, max_steps=1000, deterministic=False
+        )
+        results["random policy"] = {
+            "recipe": "-",
+            "frames": 0,
+            "updates": 0,
+            "mean": ev.mean,
+            "std": ev.std,
+            "wall_s": 0.0,
+        }
         results_path.write_text(json.dumps(results, indent=2))
 
     print(f"\n| algorithm | frames | updates | nominal return (mean ± std, {args.episodes} episodes) | wall time |")
     print("|---|---|---|---|---|")
     for name, r in results.items():
-        print(f"| {name} | {r['frames']} | {r['updates']} | {r['mean']:.1f} ± {r['std']:.1f} | {r['wall_s'] / 60:.1f} min |")
+        print(
+            f"| {name} | {r['frames']} | {r['updates']} | {r['mean']:.1f} ± {r['std']:.1f} "
+            f"| {r['wall_s'] / 60:.1f} min |"
+        )
 
 
 if __name__ == "__main__":

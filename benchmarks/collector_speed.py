@@ -12,9 +12,9 @@ import time
 
 import torch
 
-from adarl.runtime.config import load_recipe
 from adarl.fast.collector import LeanCollector
 from adarl.runtime.builders.sac import build_components
+from adarl.runtime.config import load_recipe
 
 p = argparse.ArgumentParser()
 p.add_argument("--frames", type=int, default=3000, help="frames per variant per round")
@@ -26,8 +26,11 @@ torch.set_num_threads(1)
 overrides = [f"collector.frames_per_batch={a.frames_per_batch}"]
 variants = {}
 if not a.skip_torchrl:
-    variants["torchrl Collector"] = iter(build_components(load_recipe("quickstart", overrides + ["collector.lean=false"]),
-                                                          init_random_frames=0).collector)
+    variants["torchrl Collector"] = iter(
+        build_components(
+            load_recipe("quickstart", overrides + ["collector.lean=false"]), init_random_frames=0
+        ).collector
+    )
 for direct in (False, True):
     c = build_components(load_recipe("quickstart", overrides), init_random_frames=0)
     lean = LeanCollector(c.env, c.modules.actor, frames_per_batch=a.frames_per_batch, direct=direct)

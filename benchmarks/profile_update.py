@@ -28,9 +28,17 @@ p.add_argument("--torch-profiler", action="store_true")
 a = p.parse_args()
 torch.set_num_threads(1)
 w = a.width
-c = build_components(load_recipe("quickstart", [f"env.id={a.env}", "env.perturbation.preset=none",
-                                                f"network.actor.num_cells=[{w},{w}]",
-                                                f"network.critic.num_cells=[{w},{w}]"]))
+c = build_components(
+    load_recipe(
+        "quickstart",
+        [
+            f"env.id={a.env}",
+            "env.perturbation.preset=none",
+            f"network.actor.num_cells=[{w},{w}]",
+            f"network.critic.num_cells=[{w},{w}]",
+        ],
+    )
+)
 c.replay_buffer.extend(c.env.rollout(1000, break_when_any_done=False).reshape(-1))
 update, sample = c.update.fused, c.update.sampler  # the run's FusedStep
 if update.backward != "manual":
@@ -50,6 +58,7 @@ def timed(label, fn, net_arg=None):
         key = label if net_arg is None else f"{label} {net_arg(args)}"
         spent[key] += time.perf_counter() - t
         return out
+
     return wrapper
 
 
@@ -74,8 +83,10 @@ print(f"| part of one update, {a.env} ({w}, {w}) | ms | share |\n|---|---|---|")
 for k, v in sorted(spent.items(), key=lambda kv: -kv[1]):
     print(f"| {k} | {1000 * v / a.updates:.3f} | {100 * v / total:.0f}% |")
 rest = total - sum(spent.values())
-print(f"| losses, targets, gradients into .grad, LR schedules, Polyak update | {1000 * rest / a.updates:.3f} | "
-      f"{100 * rest / total:.0f}% |")
+print(
+    f"| losses, targets, gradients into .grad, LR schedules, Polyak update | {1000 * rest / a.updates:.3f} | "
+    f"{100 * rest / total:.0f}% |"
+)
 print(f"| **total** | **{1000 * total / a.updates:.3f}** | 100% |")
 if a.torch_profiler:
     from torch.profiler import profile

@@ -1,6 +1,6 @@
 """Side-by-side SAC speed benchmark; the same as ``adarl bench`` (see docs/performance.md).
 
-    PYTHONPATH=. python benchmarks/sac_speed.py --envs Hopper-v5 --widths 64 256 --output benchmarks/results/hopper.json
+PYTHONPATH=. python benchmarks/sac_speed.py --envs Hopper-v5 --widths 64 256 --output benchmarks/results/hopper.json
 """
 
 import sys

@@ -24,8 +24,12 @@ p.add_argument("--no-compile", action="store_true")
 a = p.parse_args()
 torch.set_num_threads(1)
 w = a.width
-c = build_components(load_recipe("quickstart", ["algorithm.fused=false", f"network.actor.num_cells=[{w},{w}]",
-                                                f"network.critic.num_cells=[{w},{w}]"]))
+c = build_components(
+    load_recipe(
+        "quickstart",
+        ["algorithm.fused=false", f"network.actor.num_cells=[{w},{w}]", f"network.critic.num_cells=[{w},{w}]"],
+    )
+)
 c.replay_buffer.extend(c.env.rollout(1000, break_when_any_done=False).reshape(-1))
 loss = c.modules.loss
 
@@ -48,19 +52,23 @@ def fused(**kw):
     return lambda: f(c.replay_buffer.sample())
 
 
-variants = {"stock SACLoss + Adam + SoftUpdate": stock,
-            "fused update (autograd), for-loop Adam": fused(fused_adam=False, backward="autograd"),
-            "fused update (autograd) + fused Adam": fused(backward="autograd"),
-            "fused update (manual backward) + fused Adam": fused(backward="manual")}
+variants = {
+    "stock SACLoss + Adam + SoftUpdate": stock,
+    "fused update (autograd), for-loop Adam": fused(fused_adam=False, backward="autograd"),
+    "fused update (autograd) + fused Adam": fused(backward="autograd"),
+    "fused update (manual backward) + fused Adam": fused(backward="manual"),
+}
 if not a.no_compile:
     for backward in ("autograd", "manual"):
         comp = FusedSACUpdate(loss, adams(True), tau=0.005, compile=True, backward=backward)
         t = time.perf_counter()
         comp(c.replay_buffer.sample())
         print(f"torch.compile of the fused update ({backward}): {time.perf_counter() - t:.1f} s")
-        variants[f"fused update ({backward}) + fused Adam, torch.compile"] = (lambda f: lambda: f(c.replay_buffer.sample()))(comp)
+        variants[f"fused update ({backward}) + fused Adam, torch.compile"] = (
+            lambda f: lambda: f(c.replay_buffer.sample())
+        )(comp)
 rates = {k: [] for k in variants}
-for rep in range(a.repeats):
+for _rep in range(a.repeats):
     for k, f in variants.items():
         for _ in range(20):
             f()

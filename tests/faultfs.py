@@ -42,8 +42,11 @@ def can_mount() -> bool:
     """Whether this process may mount a tmpfs (tried once: root in a container may still lack CAP_SYS_ADMIN)."""
     global _CAN_MOUNT
     if _CAN_MOUNT is None:
-        if (os.environ.get("ADARL_TESTS_NO_MOUNT") or shutil.which("mount") is None
-                or not sys.platform.startswith("linux")):
+        if (
+            os.environ.get("ADARL_TESTS_NO_MOUNT")
+            or shutil.which("mount") is None
+            or not sys.platform.startswith("linux")
+        ):
             _CAN_MOUNT = False
         else:
             probe = Path(tempfile.mkdtemp(prefix="adarl-mount-probe-"))
@@ -157,8 +160,11 @@ class FaultFS:
         return _BudgetedFile(real(file, mode, *args, **kwargs), self, os.fsdecode(file))
 
     def _os_open(self, path, flags, mode=0o777, *, dir_fd=None):
-        fd = self._saved["os.open"](path, flags, mode, dir_fd=dir_fd) if not (
-            self.mode == "readonly" and flags & self._WRITE_FLAGS and self._under(path, dir_fd)) else None
+        fd = (
+            self._saved["os.open"](path, flags, mode, dir_fd=dir_fd)
+            if not (self.mode == "readonly" and flags & self._WRITE_FLAGS and self._under(path, dir_fd))
+            else None
+        )
         if fd is None:
             raise self._erofs(path)
         if self.mode == "full" and flags & self._WRITE_FLAGS and self._under(path, dir_fd):
@@ -214,10 +220,19 @@ class FaultFS:
 def adarl_under_faults(root, mode: str, budget: int, args: list[str], **run_kwargs) -> subprocess.CompletedProcess:
     """Run ``adarl ARGS`` in a subprocess with :class:`FaultFS` over ``root`` (the CLI variant of a fault test)."""
     repo = Path(__file__).resolve().parents[1]
-    env = {**os.environ, "PYTHONPATH": str(repo), "OMP_NUM_THREADS": "1",
-           "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
-    return subprocess.run([sys.executable, __file__, str(root), mode, str(budget), "--", *args], env=env,
-                          capture_output=True, text=True, **run_kwargs)
+    env = {
+        **os.environ,
+        "PYTHONPATH": str(repo),
+        "OMP_NUM_THREADS": "1",
+        "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"),
+    }
+    return subprocess.run(
+        [sys.executable, __file__, str(root), mode, str(budget), "--", *args],
+        env=env,
+        capture_output=True,
+        text=True,
+        **run_kwargs,
+    )
 
 
 if __name__ == "__main__":  # python tests/faultfs.py ROOT MODE BUDGET -- ARGS...: `adarl ARGS` under FaultFS

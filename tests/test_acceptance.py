@@ -8,14 +8,14 @@ import math
 import pytest
 import torch
 from tensordict import TensorDict
+from test_adapter import ACTOR_L0, ACTOR_L1, Q_L0, Q_L1, fake_batch, make_sac, train
 from torchrl.data import LazyTensorStorage, ReplayBuffer, TensorDictReplayBuffer
 from torchrl.data.replay_buffers.writers import TensorDictMaxValueWriter
 
 from adarl import ProjectionAcceptance, RankAdapter, RecentTransitions, recent_transitions
 from adarl.core.adapter import find_low_rank_layers
-from adarl.errors import AdaRLValueError
 from adarl.core.rank import EnergyRule
-from test_adapter import ACTOR_L0, ACTOR_L1, Q_L0, Q_L1, fake_batch, make_sac, train
+from adarl.errors import AdaRLValueError
 
 
 def _set_spectrum(site, singular_values, seed=0):
@@ -46,8 +46,9 @@ def _concentrated_actor(seed=0):
 def _ranks_over_events(loss, acceptance, events=14):
     opt = torch.optim.Adam(loss.parameters())
     batch = fake_batch(seed=11, n=512)
-    adapter = RankAdapter(loss, opt, EnergyRule(0.98), interval=1, scope="actor", acceptance=acceptance,
-                          fit_data=lambda: batch)
+    adapter = RankAdapter(
+        loss, opt, EnergyRule(0.98), interval=1, scope="actor", acceptance=acceptance, fit_data=lambda: batch
+    )
     return [adapter.adapt() for _ in range(events)], adapter
 
 
@@ -71,8 +72,15 @@ def test_a_damaging_candidate_is_refused():
     _set_spectrum(site, [1.0] * 16)  # flat: every direction carries as much as any other
     opt = torch.optim.Adam(loss.parameters())
     batch = fake_batch(seed=2, n=512)
-    adapter = RankAdapter(loss, opt, EnergyRule(0.98), interval=1, scope="actor",
-                          acceptance=ProjectionAcceptance(actor_tol=0.01, search=False), fit_data=lambda: batch)
+    adapter = RankAdapter(
+        loss,
+        opt,
+        EnergyRule(0.98),
+        interval=1,
+        scope="actor",
+        acceptance=ProjectionAcceptance(actor_tol=0.01, search=False),
+        fit_data=lambda: batch,
+    )
     rec = next(r for r in adapter.adapt().layers if r.layer == ACTOR_L1)
     assert rec.candidate == 15 and rec.new_rank == rec.old_rank == 16  # Eq. 10 proposed r - 1; refused
     assert rec.candidate_error > 0.01 and rec.error == 0.0 and rec.tolerance == 0.01
@@ -88,8 +96,9 @@ def test_the_default_never_takes_a_layer_that_needs_more_to_rank_one():
     loss = _concentrated_actor(3)
     opt = torch.optim.Adam(loss.parameters(), lr=1e-3)
     batch = fake_batch(seed=4, n=512)
-    adapter = RankAdapter(loss, opt, EnergyRule(0.98), interval=2, acceptance=ProjectionAcceptance(),
-                          fit_data=lambda: batch)
+    adapter = RankAdapter(
+        loss, opt, EnergyRule(0.98), interval=2, acceptance=ProjectionAcceptance(), fit_data=lambda: batch
+    )
     train(loss, opt, steps=40, adapter=adapter, seed=100)
     assert len(adapter.history) == 20
     assert adapter.ranks[ACTOR_L1] >= 3
@@ -106,7 +115,7 @@ def test_records_show_candidate_error_and_tolerance_for_actor_and_critic():
     event = adapter.adapt()
     recs = {r.layer: r for r in event.layers}
     assert set(recs) == {ACTOR_L0, ACTOR_L1, Q_L0, Q_L1}
-    for path, r in recs.items():
+    for r in recs.values():
         assert r.candidate is not None and r.candidate < r.old_rank
         assert r.candidate_error is not None and math.isfinite(r.candidate_error)
         assert r.tolerance == (0.07 if r.network == "actor" else 0.03)
@@ -133,8 +142,15 @@ def test_layers_of_one_network_share_the_tolerance():
 
     site = _site(loss, ACTOR_L0)
     reference = _NetworkProbe("actor_network", site.network, site.params, (), batch)
-    adapter = RankAdapter(loss, opt, EnergyRule(0.5), interval=1, scope="actor",
-                          acceptance=ProjectionAcceptance(actor_tol=0.2), fit_data=lambda: batch)
+    adapter = RankAdapter(
+        loss,
+        opt,
+        EnergyRule(0.5),
+        interval=1,
+        scope="actor",
+        acceptance=ProjectionAcceptance(actor_tol=0.2),
+        fit_data=lambda: batch,
+    )
     event = adapter.adapt()
     after = _NetworkProbe("actor_network", site.network, site.params, (), batch).reference
     from adarl.core.acceptance import relative_output_error
@@ -168,11 +184,18 @@ def test_acceptance_validation(kw):
 def test_acceptance_needs_data():
     loss = make_sac()
     with pytest.raises(AdaRLValueError, match="fit_data"):
-        RankAdapter(loss, torch.optim.Adam(loss.parameters()), EnergyRule(0.98), interval=1,
-                    acceptance=ProjectionAcceptance())
+        RankAdapter(
+            loss, torch.optim.Adam(loss.parameters()), EnergyRule(0.98), interval=1, acceptance=ProjectionAcceptance()
+        )
     with pytest.raises(AdaRLValueError, match="ProjectionAcceptance"):
-        RankAdapter(loss, torch.optim.Adam(loss.parameters()), EnergyRule(0.98), interval=1,
-                    acceptance=0.05, fit_data=lambda: fake_batch())
+        RankAdapter(
+            loss,
+            torch.optim.Adam(loss.parameters()),
+            EnergyRule(0.98),
+            interval=1,
+            acceptance=0.05,
+            fit_data=lambda: fake_batch(),
+        )
 
 
 def test_recent_transitions_after_an_empty_that_keeps_the_write_count():
@@ -213,8 +236,15 @@ def test_on_policy_loss_measures_on_the_last_batch(functional):
     opt = torch.optim.Adam(loss.parameters(), lr=1e-3)
     batches = ppo_batch_fn(loss)
     last = {"batch": batches(0)}
-    adapter = RankAdapter(loss, opt, EnergyRule(0.98), interval=2, acceptance=ProjectionAcceptance(0.05, 0.05),
-                          fit_data=lambda: last["batch"])
+    adapter = RankAdapter(
+        loss,
+        opt,
+        EnergyRule(0.98),
+        interval=2,
+        acceptance=ProjectionAcceptance(0.05, 0.05),
+        fit_data=lambda: last["batch"],
+    )
+
     def batch_fn(i):
         last["batch"] = batches(i)
         return last["batch"]
@@ -241,8 +271,9 @@ def test_td3_critic_outputs_are_compared():
     loss.make_value_estimator(ValueEstimators.TD0, gamma=0.99)
     opt = torch.optim.Adam(loss.parameters(), lr=1e-3)
     batch = transition_batch(3)
-    adapter = RankAdapter(loss, opt, EnergyRule(0.9), interval=1, acceptance=ProjectionAcceptance(0.02, 0.02),
-                          fit_data=lambda: batch)
+    adapter = RankAdapter(
+        loss, opt, EnergyRule(0.9), interval=1, acceptance=ProjectionAcceptance(0.02, 0.02), fit_data=lambda: batch
+    )
     event = adapter.adapt()
     roles = {r.network for r in event.layers}
     assert roles == {"actor", "critic"}

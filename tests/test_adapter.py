@@ -15,10 +15,10 @@ from torchrl.modules import ProbabilisticActor, TanhNormal, ValueOperator
 from torchrl.objectives import SACLoss, SoftUpdate, ValueEstimators
 
 from adarl.core.adapter import RankAdapter, find_low_rank_layers, resize_to_ranks
-from adarl.errors import AdaRLValueError, CheckpointError
 from adarl.core.lowrank import LowRankLinear, factor_svd, low_rank_mlp
 from adarl.core.lr_schedule import make_lr_scheduler
 from adarl.core.rank import EnergyRule, FixedRank, InclusiveEnergyRule, PolicyFitRule
+from adarl.errors import AdaRLValueError, CheckpointError
 
 warnings.filterwarnings("ignore", category=UserWarning)
 OBS, ACT, B = 5, 2, 16
@@ -128,7 +128,9 @@ def test_finds_layers_behind_functional_params():
     assert paths[Q_L0].batch_shape == (2,)
     assert paths[Q_L0].target_w1 is loss.target_qvalue_network_params.get(("module", "mlp", "0", "w1"))
     assert paths[ACTOR_L0].target_w1 is None  # SACLoss has no target actor by default
-    assert any(s.startswith("actor_network") for s in searched) and any(s.startswith("qvalue_network") for s in searched)
+    assert any(s.startswith("actor_network") for s in searched) and any(
+        s.startswith("qvalue_network") for s in searched
+    )
 
 
 @pytest.mark.parametrize("optim_kw", [{"fused": True}, {"foreach": True}, {"foreach": False}])
@@ -274,7 +276,10 @@ def test_scope_touches_only_its_layers(scope, changed):
     adapter = RankAdapter(loss, opt, FixedRank(3), interval=1, scope=scope)
     assert set(adapter.ranks) == changed
     adapter.adapt()
-    prefixes = tuple(p.replace("actor_network.", "actor_network_params.").replace("qvalue_network.", "qvalue_network_params.") for p in changed)
+    prefixes = tuple(
+        p.replace("actor_network.", "actor_network_params.").replace("qvalue_network.", "qvalue_network_params.")
+        for p in changed
+    )
     prefixes += tuple("target_" + p for p in prefixes if p.startswith("qvalue"))
     after = loss.state_dict()
     for k, v in snapshot.items():
@@ -365,7 +370,9 @@ def test_lr_restart_callbacks_and_logger():
         def log_scalar(self, name, value, step=None):
             logged.append((name, value, step))
 
-    adapter = RankAdapter(loss, opt, EnergyRule(0.98), interval=3, lr_schedulers=[sch], on_truncate=calls.append, logger=Logger())
+    adapter = RankAdapter(
+        loss, opt, EnergyRule(0.98), interval=3, lr_schedulers=[sch], on_truncate=calls.append, logger=Logger()
+    )
     for _ in range(3):
         train(loss, opt, steps=1)
         sch.step()
@@ -464,7 +471,7 @@ def test_checkpoint_round_trip_across_rank_change():
     fresh_opt = torch.optim.Adam(fresh.parameters(), lr=1e-3)
     fresh_sch = make_lr_scheduler(fresh_opt, warmup_steps=2)
     fresh_adapter = RankAdapter(fresh, fresh_opt, EnergyRule(0.95), interval=2, lr_schedulers=[fresh_sch])
-    with pytest.raises(Exception):
+    with pytest.raises((RuntimeError, ValueError), match="size|Failed to update"):  # torch's or tensordict's
         fresh.load_state_dict(ckpt["loss"])  # shapes differ: the reason for resize_to_ranks
     with pytest.raises(CheckpointError, match="resize_to_ranks"):
         fresh_adapter.load_state_dict(ckpt["adapter"])
@@ -521,7 +528,9 @@ def test_validation_errors():
             RankAdapter(loss, opt, rule, **kwargs)
     torch.manual_seed(0)
     dense_actor = ProbabilisticActor(
-        TensorDictModule(nn.Sequential(nn.Linear(OBS, 2 * ACT), NormalParamExtractor()), ["observation"], ["loc", "scale"]),
+        TensorDictModule(
+            nn.Sequential(nn.Linear(OBS, 2 * ACT), NormalParamExtractor()), ["observation"], ["loc", "scale"]
+        ),
         in_keys=["loc", "scale"],
         distribution_class=TanhNormal,
     )
@@ -590,8 +599,11 @@ def test_non_finite_factors_are_skipped_with_a_reason_and_the_rest_changes(bad, 
         sites[ACTOR_L1].w1[0, 0] = bad  # one actor layer diverged
         sites[Q_L0].w2[1, 0, 0] = bad  # one member of the critic ensemble diverged
     before = {p: (s.w1.detach().clone(), s.w2.detach().clone()) for p, s in sites.items()}
-    kwargs = {"acceptance": ProjectionAcceptance(1e9, 1e9), "fit_data": lambda: fake_batch(seed=4)} \
-        if with_acceptance else {}
+    kwargs = (
+        {"acceptance": ProjectionAcceptance(1e9, 1e9), "fit_data": lambda: fake_batch(seed=4)}
+        if with_acceptance
+        else {}
+    )
     adapter = RankAdapter(loss, opt, FixedRank(3), interval=1, **kwargs)
     event = adapter.adapt()  # no LinAlgError from the SVD
     recs = {r.layer: r for r in event.layers}
@@ -612,8 +624,11 @@ def test_optimizers_must_train_every_adapted_factor():
     actor_opt = torch.optim.Adam(loss.actor_network_params.flatten_keys().values())
     critic_opt = torch.optim.Adam(loss.qvalue_network_params.flatten_keys().values())
     # only the actor's optimiser: the critic's Adam state would keep the old shapes and fail at its next step
-    with pytest.raises(AdaRLValueError, match=r"do not train the factors of \['qvalue_network.module.mlp.0', "
-                                              r"'qvalue_network.module.mlp.2'\].*every optimizer"):
+    with pytest.raises(
+        AdaRLValueError,
+        match=r"do not train the factors of \['qvalue_network.module.mlp.0', "
+        r"'qvalue_network.module.mlp.2'\].*every optimizer",
+    ):
         RankAdapter(loss, actor_opt, FixedRank(3), interval=1)
     RankAdapter(loss, actor_opt, FixedRank(3), interval=1, scope="actor")  # what it trains is what it adapts
     adapter = RankAdapter(loss, [actor_opt, critic_opt], FixedRank(3), interval=1)
@@ -627,8 +642,7 @@ def test_integer_arguments_accept_numpy_integers():
     np = pytest.importorskip("numpy")
     loss = make_sac()
     opt = torch.optim.Adam(loss.parameters())
-    adapter = RankAdapter(loss, opt, FixedRank(3), interval=np.int64(2), min_rank=np.int32(1),
-                          num_threads=np.int64(1))
+    adapter = RankAdapter(loss, opt, FixedRank(3), interval=np.int64(2), min_rank=np.int32(1), num_threads=np.int64(1))
     assert type(adapter.interval) is int and adapter.interval == 2
     for kwargs in ({"interval": 2.0}, {"interval": 1.5}, {"interval": 2, "min_rank": 1.0}):
         with pytest.raises(AdaRLValueError, match="integer"):

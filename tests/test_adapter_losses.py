@@ -1,7 +1,7 @@
 """RankAdapter beyond SAC: every stock TorchRL loss (tested through a truncation, or refused by name), the Trainer hook.
 
-The truncation test runs every loss of ``adarl.core.adapter.SUPPORTED_LOSSES``; another test checks that every loss class
-TorchRL exports is in that registry or in ``UNSUPPORTED_LOSSES``, and that docs/rank-adapter.md's table is them.
+The truncation test runs every loss of ``adarl.core.adapter.SUPPORTED_LOSSES``; another test checks that every loss
+class TorchRL exports is in that registry or in ``UNSUPPORTED_LOSSES``, and that docs/rank-adapter.md's table is them.
 """
 
 import inspect
@@ -29,9 +29,9 @@ from torchrl.modules import (
 from torchrl.objectives import ClipPPOLoss, DiscreteSACLoss, SoftUpdate, TD3Loss, ValueEstimators
 
 from adarl.core.adapter import SUPPORTED_LOSSES, UNSUPPORTED_LOSSES, RankAdapter, check_loss_supported, resize_to_ranks
-from adarl.errors import AdaRLValueError
 from adarl.core.lowrank import low_rank_mlp
 from adarl.core.rank import EnergyRule, FixedRank, PolicyFitRule
+from adarl.errors import AdaRLValueError
 
 warnings.filterwarnings("ignore", category=UserWarning)
 OBS, ACT, B = 5, 2, 16
@@ -186,7 +186,7 @@ def test_clip_ppo_loss(functional):
     fresh.load_state_dict(loss.state_dict())
     if functional:
         assert critic.module[0].w1 is loss.critic_network_params.get(("module", "0", "w1"))
-        loss._cached_critic_network_params_detached  # cached (used when the loss computes advantages itself)
+        _ = loss._cached_critic_network_params_detached  # cached (used when the loss computes advantages itself)
         RankAdapter(loss, opt, FixedRank(1), interval=1, scope="critic").adapt()
         cached = loss._cached_critic_network_params_detached.get(("module", "0", "w1"))
         assert cached.shape == critic.module[0].w1.shape == (16, 1)
@@ -253,7 +253,7 @@ def test_trainer_hook_registration_and_checkpoint():
     trainer = FakeTrainer()
     adapter.register(trainer)
     assert trainer.modules == {"rank_adapter": adapter}
-    (dest, op), = trainer.ops
+    ((dest, op),) = trainer.ops
     assert dest == "post_optim"
     op(), op()  # the Trainer calls post_optim ops without arguments
     assert adapter.step_count == 2 and len(adapter.history) == 1 and set(adapter.ranks.values()) == {2}
@@ -282,8 +282,13 @@ SPEC = Bounded(-torch.ones(ACT), torch.ones(ACT), (ACT,))
 
 def _stochastic_actor(log_prob=False):
     net = nn.Sequential(low_rank_mlp(OBS, 2 * ACT, (16, 16)), NormalParamExtractor())
-    return ProbabilisticActor(TensorDictModule(net, ["observation"], ["loc", "scale"]), in_keys=["loc", "scale"],
-                              distribution_class=TanhNormal, return_log_prob=log_prob, spec=SPEC)
+    return ProbabilisticActor(
+        TensorDictModule(net, ["observation"], ["loc", "scale"]),
+        in_keys=["loc", "scale"],
+        distribution_class=TanhNormal,
+        return_log_prob=log_prob,
+        spec=SPEC,
+    )
 
 
 def _deterministic_actor():
@@ -291,8 +296,12 @@ def _deterministic_actor():
 
 
 def _discrete_actor():
-    return ProbabilisticActor(TensorDictModule(low_rank_mlp(OBS, N_ACT, (16, 16)), ["observation"], ["logits"]),
-                              in_keys=["logits"], distribution_class=OneHotCategorical, spec=OneHot(N_ACT))
+    return ProbabilisticActor(
+        TensorDictModule(low_rank_mlp(OBS, N_ACT, (16, 16)), ["observation"], ["logits"]),
+        in_keys=["logits"],
+        distribution_class=OneHotCategorical,
+        spec=OneHot(N_ACT),
+    )
 
 
 def _q(out=1):
@@ -328,8 +337,9 @@ def _distributional_q_actor():
         def forward(self, x):
             return self.mlp(x).unflatten(-1, (ATOMS, N_ACT)).log_softmax(-2)
 
-    return DistributionalQValueActor(Atoms(), in_keys=["observation"], spec=OneHot(N_ACT),
-                                     support=torch.linspace(-1, 1, ATOMS))
+    return DistributionalQValueActor(
+        Atoms(), in_keys=["observation"], spec=OneHot(N_ACT), support=torch.linspace(-1, 1, ATOMS)
+    )
 
 
 def _on_policy_fields(loss):
@@ -345,6 +355,7 @@ def _on_policy_fields(loss):
 
 def _td(value_estimator=True, **kw):
     """Build a loss and, when it takes one, give it the TD(0) estimator (as TorchRL's examples do)."""
+
     def make(cls, *args):
         loss = cls(*args, **kw)
         if value_estimator:
@@ -357,32 +368,60 @@ def _td(value_estimator=True, **kw):
 # name -> (build() -> (loss, the actor a collector runs or None), discrete actions, extra batch fields)
 LOSS_CASES = {
     "SACLoss": (lambda: _td(action_spec=SPEC)(objectives.SACLoss, _stochastic_actor(), _q()), False, None),
-    "DiscreteSACLoss": (lambda: _td(num_actions=N_ACT, action_space="one-hot")(
-        objectives.DiscreteSACLoss, _discrete_actor(), _discrete_q()), True, None),
-    "REDQLoss": (lambda: _td(action_spec=SPEC, num_qvalue_nets=4)(
-        objectives.REDQLoss, _stochastic_actor(True), _q()), False, None),
-    "TQCLoss": (lambda: _td(action_spec=SPEC, num_qvalue_nets=3)(
-        objectives.TQCLoss, _stochastic_actor(), _q(out=ATOMS)), False, None),
+    "DiscreteSACLoss": (
+        lambda: _td(num_actions=N_ACT, action_space="one-hot")(
+            objectives.DiscreteSACLoss, _discrete_actor(), _discrete_q()
+        ),
+        True,
+        None,
+    ),
+    "REDQLoss": (
+        lambda: _td(action_spec=SPEC, num_qvalue_nets=4)(objectives.REDQLoss, _stochastic_actor(True), _q()),
+        False,
+        None,
+    ),
+    "TQCLoss": (
+        lambda: _td(action_spec=SPEC, num_qvalue_nets=3)(objectives.TQCLoss, _stochastic_actor(), _q(out=ATOMS)),
+        False,
+        None,
+    ),
     "CrossQLoss": (lambda: _td(action_spec=SPEC)(objectives.CrossQLoss, _stochastic_actor(), _q()), False, None),
     "TD3Loss": (lambda: _td(action_spec=SPEC)(objectives.TD3Loss, _deterministic_actor(), _q()), False, None),
     "TD3BCLoss": (lambda: _td(action_spec=SPEC)(objectives.TD3BCLoss, _deterministic_actor(), _q()), False, None),
     "DDPGLoss": (lambda: _td()(objectives.DDPGLoss, _deterministic_actor(), _q()), False, None),
     "IQLLoss": (lambda: _td()(objectives.IQLLoss, _stochastic_actor(), _q(), _v()), False, None),
-    "DiscreteIQLLoss": (lambda: _td(action_space="one-hot")(
-        objectives.DiscreteIQLLoss, _discrete_actor(), _discrete_q("state_action_value"), _v()), True, None),
+    "DiscreteIQLLoss": (
+        lambda: _td(action_space="one-hot")(
+            objectives.DiscreteIQLLoss, _discrete_actor(), _discrete_q("state_action_value"), _v()
+        ),
+        True,
+        None,
+    ),
     "CQLLoss": (lambda: _td(action_spec=SPEC)(objectives.CQLLoss, _stochastic_actor(), _q()), False, None),
     "DiscreteCQLLoss": (lambda: _td(action_space="one-hot")(objectives.DiscreteCQLLoss, _q_actor()), True, None),
     "DQNLoss": (lambda: _td(action_space="one-hot")(objectives.DQNLoss, _q_actor()), True, None),
-    "DistributionalDQNLoss": (lambda: _td(False, gamma=0.99)(objectives.DistributionalDQNLoss,
-                                                             _distributional_q_actor()), True, None),
+    "DistributionalDQNLoss": (
+        lambda: _td(False, gamma=0.99)(objectives.DistributionalDQNLoss, _distributional_q_actor()),
+        True,
+        None,
+    ),
     "PPOLoss": (lambda: _td(False)(objectives.PPOLoss, _stochastic_actor(True), _v()), False, _on_policy_fields),
-    "ClipPPOLoss": (lambda: _td(False)(objectives.ClipPPOLoss, _stochastic_actor(True), _v()), False,
-                    _on_policy_fields),
-    "KLPENPPOLoss": (lambda: _td(False)(objectives.KLPENPPOLoss, _stochastic_actor(True), _v()), False,
-                     _on_policy_fields),
+    "ClipPPOLoss": (
+        lambda: _td(False)(objectives.ClipPPOLoss, _stochastic_actor(True), _v()),
+        False,
+        _on_policy_fields,
+    ),
+    "KLPENPPOLoss": (
+        lambda: _td(False)(objectives.KLPENPPOLoss, _stochastic_actor(True), _v()),
+        False,
+        _on_policy_fields,
+    ),
     "A2CLoss": (lambda: _td(False)(objectives.A2CLoss, _stochastic_actor(True), _v()), False, _on_policy_fields),
-    "ReinforceLoss": (lambda: _td(False)(objectives.ReinforceLoss, _stochastic_actor(True), _v()), False,
-                      _on_policy_fields),
+    "ReinforceLoss": (
+        lambda: _td(False)(objectives.ReinforceLoss, _stochastic_actor(True), _v()),
+        False,
+        _on_policy_fields,
+    ),
     "BCLoss": (lambda: _td(False, loss_function="l2")(objectives.BCLoss, _deterministic_actor()), False, None),
 }
 
@@ -398,8 +437,11 @@ def _expected_networks(description: str) -> dict[str, tuple[str, bool]]:
 
 def _loss_batch(i, discrete, extra):
     g = torch.Generator().manual_seed(100 + i)
-    action = (torch.nn.functional.one_hot(torch.randint(N_ACT, (B,), generator=g), N_ACT) if discrete
-              else torch.rand(B, ACT, generator=g) * 1.8 - 0.9)
+    action = (
+        torch.nn.functional.one_hot(torch.randint(N_ACT, (B,), generator=g), N_ACT)
+        if discrete
+        else torch.rand(B, ACT, generator=g) * 1.8 - 0.9
+    )
     td = transition_batch(i, action=action)
     if extra is not None:
         extra(td, g)
@@ -465,8 +507,9 @@ def test_truncation_through_every_supported_loss(name):
             assert event.changed
             changed = {r.layer for r in event.layers if r.changed}
             for s in adapter.sites:  # dropped at the event for exactly the resized factors
-                assert (s.w1 in opt.state, s.w2 in opt.state) == ((False, False) if s.path in changed
-                                                                  else (True, True)), s.path
+                assert (s.w1 in opt.state, s.w2 in opt.state) == (
+                    (False, False) if s.path in changed else (True, True)
+                ), s.path
             adapter.rule = FixedRank(4)
     assert set(adapter.ranks.values()) == {4} and len(adapter.history) == 2
     for s in adapter.sites:  # shapes: online, target and the module template agree
@@ -519,8 +562,11 @@ def test_refused_losses_are_refused_by_name():
     disc = ValueOperator(Net(), in_keys=["observation"], out_keys=["d_logits"])
     loss = objectives.GAILLoss(disc)
     opt = torch.optim.Adam(loss.parameters())
-    with pytest.raises(AdaRLValueError, match=r"does not support TorchRL's GAILLoss: trains a discriminator.*"
-                                              r"Supported TorchRL losses: \['A2CLoss'"):
+    with pytest.raises(
+        AdaRLValueError,
+        match=r"does not support TorchRL's GAILLoss: trains a discriminator.*"
+        r"Supported TorchRL losses: \['A2CLoss'",
+    ):
         RankAdapter(loss, opt, FixedRank(2), interval=1)
 
     class MyGAIL(objectives.GAILLoss):  # a subclass of a refused loss is refused
@@ -591,8 +637,12 @@ def test_registered_on_a_trainer_the_ranks_share_its_x_axis():
     env = GymEnv("Pendulum-v1")
     torch.manual_seed(0)
     net = nn.Sequential(low_rank_mlp(3, 2, (16, 16)), NormalParamExtractor())
-    actor = ProbabilisticActor(TensorDictModule(net, ["observation"], ["loc", "scale"]), in_keys=["loc", "scale"],
-                               distribution_class=TanhNormal, spec=env.action_spec)
+    actor = ProbabilisticActor(
+        TensorDictModule(net, ["observation"], ["loc", "scale"]),
+        in_keys=["loc", "scale"],
+        distribution_class=TanhNormal,
+        spec=env.action_spec,
+    )
 
     class Q(nn.Module):
         def __init__(self):
@@ -606,11 +656,18 @@ def test_registered_on_a_trainer_the_ranks_share_its_x_axis():
         loss = SACLoss(actor, ValueOperator(Q(), in_keys=["observation", "action"]), action_spec=env.action_spec)
         opt = torch.optim.Adam(loss.parameters(), lr=1e-3)
         logger = Recording()
-        trainer = Trainer(collector=Collector(env, actor, frames_per_batch=16, total_frames=64), total_frames=64,
-                          frame_skip=1, optim_steps_per_batch=3, loss_module=loss, optimizer=opt, logger=logger,
-                          progress_bar=False, log_interval=0)
-        adapter = RankAdapter(loss, opt, FixedRank(3), interval=4, scope="actor",
-                              logger=logger if own_logger else None)
+        trainer = Trainer(
+            collector=Collector(env, actor, frames_per_batch=16, total_frames=64),
+            total_frames=64,
+            frame_skip=1,
+            optim_steps_per_batch=3,
+            loss_module=loss,
+            optimizer=opt,
+            logger=logger,
+            progress_bar=False,
+            log_interval=0,
+        )
+        adapter = RankAdapter(loss, opt, FixedRank(3), interval=4, scope="actor", logger=logger if own_logger else None)
         adapter.register(trainer)
         trainer.train()
         ranks = [step for name, step in logger.logged if name.startswith("rank/")]

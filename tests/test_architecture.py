@@ -42,7 +42,15 @@ LAZY_ADARL_IMPORTS = {
 }
 #: third-party packages a module may import inside a function: optional extras (ray, submitit, stable-baselines3,
 #: tensorboard), MuJoCo (the env registry validates recipes without it), matplotlib (its backend is chosen first)
-LAZY_THIRD_PARTY = {"mujoco", "gymnasium", "matplotlib", "stable_baselines3", "ray", "submitit", "torch.utils.tensorboard"}
+LAZY_THIRD_PARTY = {
+    "mujoco",
+    "gymnasium",
+    "matplotlib",
+    "stable_baselines3",
+    "ray",
+    "submitit",
+    "torch.utils.tensorboard",
+}
 
 
 def _modules() -> dict[str, Path]:
@@ -79,9 +87,12 @@ def _imports(path: Path, module: str) -> list[tuple[str, bool, int]]:
             elif isinstance(child, ast.ImportFrom):
                 base = child.module or ""
                 if child.level:
-                    base = ".".join(package.split(".")[: len(package.split(".")) - child.level + 1] + ([base] if base else []))
-                out.extend((f"{base}.{a.name}" if base.startswith("adarl") else base, top, child.lineno)
-                           for a in child.names)
+                    base = ".".join(
+                        package.split(".")[: len(package.split(".")) - child.level + 1] + ([base] if base else [])
+                    )
+                out.extend(
+                    (f"{base}.{a.name}" if base.startswith("adarl") else base, top, child.lineno) for a in child.names
+                )
             visit(child, top and not isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)))
 
     visit(tree, True)
@@ -93,8 +104,10 @@ def _wing(module: str) -> str:
     return parts[1] if len(parts) > 1 else "root"
 
 
-GRAPH = {m: sorted({_target(n) for n, _, _ in _imports(p, m) if n.startswith("adarl.") or n == "adarl"} - {m})
-         for m, p in MODULES.items()}
+GRAPH = {
+    m: sorted({_target(n) for n, _, _ in _imports(p, m) if n.startswith("adarl.") or n == "adarl"} - {m})
+    for m, p in MODULES.items()
+}
 
 
 def _cycles(graph: dict[str, list[str]]) -> list[list[str]]:
@@ -156,9 +169,14 @@ def test_the_lazy_front_doors_import_nothing_statically():
 
 def test_core_depends_on_torch_torchrl_and_errors_only():
     stdlib = set(sys.stdlib_module_names)
-    bad = [f"{m}: {n}" for m, p in MODULES.items() if _wing(m) == "core" for n, _, _ in _imports(p, m)
-           if n.split(".")[0] not in stdlib | CORE_THIRD_PARTY | {"__future__"}
-           and not (n.startswith("adarl.core") or n.startswith("adarl.errors"))]
+    bad = [
+        f"{m}: {n}"
+        for m, p in MODULES.items()
+        if _wing(m) == "core"
+        for n, _, _ in _imports(p, m)
+        if n.split(".")[0] not in stdlib | CORE_THIRD_PARTY | {"__future__"}
+        and not (n.startswith("adarl.core") or n.startswith("adarl.errors"))
+    ]
     assert bad == []
 
 
@@ -173,13 +191,26 @@ def test_imports_are_at_module_top():
             if name.startswith("adarl"):
                 if m not in LAZY_ADARL_IMPORTS:
                     bad.append(f"{p.relative_to(ROOT.parent)}:{line}: {name}")
-            elif name.split(".")[0] not in LAZY_THIRD_PARTY and name not in LAZY_THIRD_PARTY and m not in LAZY_ADARL_IMPORTS:
+            elif (
+                name.split(".")[0] not in LAZY_THIRD_PARTY
+                and name not in LAZY_THIRD_PARTY
+                and m not in LAZY_ADARL_IMPORTS
+            ):
                 bad.append(f"{p.relative_to(ROOT.parent)}:{line}: {name}")
     assert bad == []
 
 
-@pytest.mark.parametrize("module", ["adarl.fast.sac", "adarl.fast.manual_backward", "adarl.fast.replay",
-                                    "adarl.fast.collector", "adarl.fast.direct_env", "adarl.fast.adam"])
+@pytest.mark.parametrize(
+    "module",
+    [
+        "adarl.fast.sac",
+        "adarl.fast.manual_backward",
+        "adarl.fast.replay",
+        "adarl.fast.collector",
+        "adarl.fast.direct_env",
+        "adarl.fast.adam",
+    ],
+)
 def test_each_fast_module_names_what_it_mirrors_and_the_test_that_proves_it(module):
     doc = ast.get_docstring(ast.parse(MODULES[module].read_text())) or ""
     assert "Mirrors:" in doc and "Equality:" in doc and "tests/test_" in doc, module

@@ -21,9 +21,9 @@ from adarl.baselines import (
 )
 from adarl.baselines.normalization import RewardScaler, RunningObsNorm
 from adarl.baselines.rnac import mujoco_state
-from adarl.runtime.config import list_recipes, load_recipe
-from adarl.errors import AdaRLValueError, RecipeError
 from adarl.core.lowrank import LowRankLinear
+from adarl.errors import AdaRLValueError, RecipeError
+from adarl.runtime.config import list_recipes, load_recipe
 
 # ------------------------------------------------------------------------------------------------ Parseval
 
@@ -54,14 +54,16 @@ def test_parseval_counts_low_rank_layers_by_their_product_and_has_gradients():
     lr = LowRankLinear(5, 4, rank=2)
     net = nn.Sequential(lr, nn.ReLU(), nn.Linear(4, 1))
     dense = _net_with(lr.weight.detach().clone())
-    assert ParsevalRegularizer(net, lam=1.0)().item() == pytest.approx(ParsevalRegularizer(dense, lam=1.0)().item(), rel=1e-5)
+    assert ParsevalRegularizer(net, lam=1.0)().item() == pytest.approx(
+        ParsevalRegularizer(dense, lam=1.0)().item(), rel=1e-5
+    )
     ParsevalRegularizer(net, lam=1.0)().backward()
     assert lr.w1.grad is not None and lr.w2.grad is not None and net[2].weight.grad is None
 
 
 def test_parseval_reads_the_stacked_critics_of_sacloss():
-    from adarl.runtime.builders import make_sac_modules
     from adarl.envs import make_env
+    from adarl.runtime.builders import make_sac_modules
 
     recipe = load_recipe("baselines/hopper_parseval", ["env.id=InvertedPendulum-v5"])
     env = make_env("InvertedPendulum-v5", preset="none")
@@ -105,14 +107,14 @@ def test_parseval_recipes_use_the_originals_orthogonal_init(env):
     for net, head in (("actor", 0.01), ("critic", 1.0)):
         init = getattr(r.network, net).init
         assert (init.scheme, init.gain, init.head_gain) == ("orthogonal", pytest.approx(2**0.5), head)
-    assert r.algorithm.parseval.s == pytest.approx(r.network.critic.init.gain ** 2)  # W W^T starts at s I
+    assert r.algorithm.parseval.s == pytest.approx(r.network.critic.init.gain**2)  # W W^T starts at s I
 
 
 def test_parseval_sac_networks_start_where_the_originals_do():
     """Every hidden layer of actor and of each critic has the original's init statistics (mean diag(W W^T) = 2 for
     the 64x64 layers, all singular values sqrt(2)); the heads have gain 0.01 (policy) and 1 (value)."""
-    from adarl.runtime.builders import make_sac_modules
     from adarl.envs import make_env
+    from adarl.runtime.builders import make_sac_modules
 
     torch.manual_seed(0)
     recipe = load_recipe("baselines/hopper_parseval")
@@ -185,8 +187,8 @@ def test_sparsification_layer_activations_are_k_sparse():
 
 
 def test_recipe_sparse_network_is_wide_and_sparse():
-    from adarl.runtime.builders import make_sac_modules
     from adarl.envs import make_env
+    from adarl.runtime.builders import make_sac_modules
 
     recipe = load_recipe("baselines/hopper_sparse")
     env = make_env("Hopper-v5", preset="none")
@@ -203,8 +205,18 @@ def test_recipe_sparse_network_is_wide_and_sparse():
 
 
 def test_baseline_mlp_variants_layout():
-    net = make_baseline_mlp(4, 2, [8, 8], low_rank_layers=[0], rank=2, sparse_layer=1, sparse_width=32, sparse_k=4,
-                            diagonal_scale=True, input_scale=True)
+    net = make_baseline_mlp(
+        4,
+        2,
+        [8, 8],
+        low_rank_layers=[0],
+        rank=2,
+        sparse_layer=1,
+        sparse_width=32,
+        sparse_k=4,
+        diagonal_scale=True,
+        input_scale=True,
+    )
     assert net(torch.randn(3, 4)).shape == (3, 2)
     assert net(torch.randn(3, 3), torch.randn(3, 1)).shape == (3, 2)  # inputs concatenated like torchrl's MLP
     with pytest.raises(AdaRLValueError, match="both low-rank"):
@@ -214,8 +226,9 @@ def test_baseline_mlp_variants_layout():
 
     diag = [m for m in net.modules() if isinstance(m, DiagonalScale)]
     assert len(diag) == 2
-    assert all(torch.equal(d.scale, torch.ones_like(d.scale)) and torch.equal(d.bias, torch.zeros_like(d.bias))
-               for d in diag)
+    assert all(
+        torch.equal(d.scale, torch.ones_like(d.scale)) and torch.equal(d.bias, torch.zeros_like(d.bias)) for d in diag
+    )
     x = torch.randn(3, 8)
     with torch.no_grad():
         diag[0].scale.fill_(2.0), diag[0].bias.fill_(0.5)
@@ -248,8 +261,15 @@ def test_ipm_advantage_matches_a_hand_computation():
     nxt = torch.tensor([[0.0, 1.0], [1.0, 1.0], [2.0, 0.0]])
     reward = torch.tensor([[1.0], [2.0], [3.0]])
     done = torch.tensor([[False], [False], [True]])
-    td = TensorDict({"observation": obs, "done": torch.zeros_like(done), "terminated": torch.zeros_like(done), "next": {"observation": nxt, "reward": reward, "done": done,
-                                                   "terminated": done}}, batch_size=[3])
+    td = TensorDict(
+        {
+            "observation": obs,
+            "done": torch.zeros_like(done),
+            "terminated": torch.zeros_like(done),
+            "next": {"observation": nxt, "reward": reward, "done": done, "terminated": done},
+        },
+        batch_size=[3],
+    )
     ipm = IPMAdvantage(gamma=gamma, lmbda=0.0, value_network=critic, kappa=kappa)
     ipm(td)
     v = lambda o: o @ torch.tensor([3.0, 4.0]) + 0.5  # noqa: E731
@@ -279,17 +299,25 @@ def test_rnac_recipes_resolve_to_the_original_trainer(env, mode):
     assert (c.scheme, c.gain, c.head_gain) == ("orthogonal", 1.0, 1.0)
     assert r.network.actor.activation == r.network.critic.activation == "tanh"
     # the tanh policy stays available, and old boolean values keep their meaning
-    assert load_recipe(f"baselines/{env}_rnac_{mode}", ["algorithm.ppo.policy=tanh_gaussian"]).algorithm.ppo.policy \
+    assert (
+        load_recipe(f"baselines/{env}_rnac_{mode}", ["algorithm.ppo.policy=tanh_gaussian"]).algorithm.ppo.policy
         == "tanh_gaussian"
-    assert load_recipe("baselines/hopper_rnac_ipm", ["algorithm.ppo.normalize_advantage=true"]) \
-        .algorithm.ppo.normalize_advantage == "minibatch"
+    )
+    assert (
+        load_recipe(
+            "baselines/hopper_rnac_ipm", ["algorithm.ppo.normalize_advantage=true"]
+        ).algorithm.ppo.normalize_advantage
+        == "minibatch"
+    )
 
 
 def _ppo_components(*overrides):
     from adarl.runtime.builders.ppo import build_ppo_components
 
-    recipe = load_recipe("baselines/hopper_rnac_ipm", ["collector.total_frames=256", "collector.frames_per_batch=128",
-                                                       "algorithm.ppo.epochs=1", *overrides])
+    recipe = load_recipe(
+        "baselines/hopper_rnac_ipm",
+        ["collector.total_frames=256", "collector.frames_per_batch=128", "algorithm.ppo.epochs=1", *overrides],
+    )
     return recipe, build_ppo_components(recipe)
 
 
@@ -343,8 +371,9 @@ def test_clipped_normal_and_box_tanh():
     assert bool((d.rsample().abs() <= high).all())
     torch.testing.assert_close(d.log_prob(a), torch.distributions.Normal(loc, scale).log_prob(a).sum(-1))
     torch.testing.assert_close(d.entropy(), torch.distributions.Normal(loc, scale).entropy().sum(-1))
-    torch.testing.assert_close(ClippedNormal(torch.full((2,), 3.0), torch.ones(2), low, high).deterministic_sample,
-                               high)
+    torch.testing.assert_close(
+        ClippedNormal(torch.full((2,), 3.0), torch.ones(2), low, high).deterministic_sample, high
+    )
     with pytest.raises(ValueError, match="low <= high"):
         ClippedNormal(loc, scale, low=high, high=low)
 
@@ -356,9 +385,16 @@ def _advantage_seen_by_the_loss(tmp_path, how: str) -> tuple[torch.Tensor, torch
     from adarl.runtime.trainers import PPOTrainer
 
     torch.manual_seed(0)
-    recipe = load_recipe("baselines/hopper_rnac_ipm", [
-        "collector.total_frames=256", "collector.frames_per_batch=128", "algorithm.ppo.epochs=1",
-        f"algorithm.ppo.normalize_advantage={how}", "algorithm.rnac.mode=none"])
+    recipe = load_recipe(
+        "baselines/hopper_rnac_ipm",
+        [
+            "collector.total_frames=256",
+            "collector.frames_per_batch=128",
+            "algorithm.ppo.epochs=1",
+            f"algorithm.ppo.normalize_advantage={how}",
+            "algorithm.rnac.mode=none",
+        ],
+    )
     trainer = PPOTrainer(recipe, RunDir.create(tmp_path / how), quiet=True)
     m = trainer.c.modules
     raw = torch.arange(128, dtype=torch.float32).reshape(1, 128, 1)
@@ -544,9 +580,17 @@ def test_baseline_recipes_say_what_they_run(env):
         ("baselines/hopper_sparse", ["network.critic.sparse.layer=2"], "must index a hidden layer"),
         ("baselines/hopper_sparse", ["network.critic.sparse.k=4096"], "must be <= width (1024)"),
         ("baselines/hopper_rnac_ipm", ["algorithm.ppo.policy=gaussian"], "one of 'clipped_gaussian', 'tanh_gaussian'"),
-        ("baselines/hopper_rnac_ipm", ["algorithm.ppo.normalize_advantage=global"], "one of 'batch', 'minibatch', 'none'"),
+        (
+            "baselines/hopper_rnac_ipm",
+            ["algorithm.ppo.normalize_advantage=global"],
+            "one of 'batch', 'minibatch', 'none'",
+        ),
         ("baselines/hopper_parseval", ["network.critic.init.scheme=xavier"], "one of 'default', 'orthogonal'"),
-        ("baselines/hopper_parseval", ["network.actor.init.gain=-1"], "network.actor.init.gain = -1: must be a number > 0"),
+        (
+            "baselines/hopper_parseval",
+            ["network.actor.init.gain=-1"],
+            "network.actor.init.gain = -1: must be a number > 0",
+        ),
     ],
 )
 def test_bad_baseline_settings_are_recipe_errors(recipe, overrides, expected):

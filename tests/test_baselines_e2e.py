@@ -14,15 +14,38 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def adarl(*args: str) -> subprocess.CompletedProcess:
-    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1", "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
-    return subprocess.run([sys.executable, "-m", "adarl.cli", *args], cwd=REPO, env=env, capture_output=True,
-                          text=True, timeout=600)
+    env = {
+        **os.environ,
+        "PYTHONPATH": str(REPO),
+        "OMP_NUM_THREADS": "1",
+        "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"),
+    }
+    return subprocess.run(
+        [sys.executable, "-m", "adarl.cli", *args], cwd=REPO, env=env, capture_output=True, text=True, timeout=600
+    )
 
-SAC_TINY = ["collector.total_frames=300", "collector.init_random_frames=200", "collector.frames_per_batch=100",
-            "algorithm.batch_size=32", "replay.size=1000", "eval.interval=300", "eval.episodes=1",
-            "eval.max_steps=30", "checkpoint.interval=300", "algorithm.update_after=null"]
-PPO_TINY = ["collector.total_frames=256", "collector.frames_per_batch=128", "algorithm.ppo.epochs=1",
-            "eval.interval=256", "eval.episodes=1", "eval.max_steps=30", "checkpoint.interval=256"]
+
+SAC_TINY = [
+    "collector.total_frames=300",
+    "collector.init_random_frames=200",
+    "collector.frames_per_batch=100",
+    "algorithm.batch_size=32",
+    "replay.size=1000",
+    "eval.interval=300",
+    "eval.episodes=1",
+    "eval.max_steps=30",
+    "checkpoint.interval=300",
+    "algorithm.update_after=null",
+]
+PPO_TINY = [
+    "collector.total_frames=256",
+    "collector.frames_per_batch=128",
+    "algorithm.ppo.epochs=1",
+    "eval.interval=256",
+    "eval.episodes=1",
+    "eval.max_steps=30",
+    "checkpoint.interval=256",
+]
 
 
 def _run(recipe: str, overrides: list[str], out: Path) -> dict:
@@ -78,10 +101,20 @@ def test_rnac_resume_from_a_mid_episode_checkpoint_is_exact(mode, tmp_path):
     from adarl.runtime.run_dir import RunDir
     from adarl.runtime.trainers import PPOTrainer, Trainer
 
-    recipe = load_recipe(f"baselines/hopper_rnac_{mode}", [
-        "collector.total_frames=384", "collector.frames_per_batch=128", "algorithm.ppo.epochs=1",
-        "eval.interval=100000", "eval.episodes=1", "eval.max_steps=20", "checkpoint.interval=128",
-        "checkpoint.keep_last=5", "logging.log_interval=200"])
+    recipe = load_recipe(
+        f"baselines/hopper_rnac_{mode}",
+        [
+            "collector.total_frames=384",
+            "collector.frames_per_batch=128",
+            "algorithm.ppo.epochs=1",
+            "eval.interval=100000",
+            "eval.episodes=1",
+            "eval.max_steps=20",
+            "checkpoint.interval=128",
+            "checkpoint.keep_last=5",
+            "logging.log_interval=200",
+        ],
+    )
     full = RunDir.create(tmp_path / "full")
     save_resolved(recipe, full.recipe_path)
     PPOTrainer(recipe, full, quiet=True).train()
@@ -106,8 +139,9 @@ def test_rnac_resume_from_a_mid_episode_checkpoint_is_exact(mode, tmp_path):
     for name in metrics:  # losses averaged over log_interval: a line at 256 frames and the final one at 384
         if name.startswith("time/"):
             continue  # wall-clock throughput
-        assert (full.path / "metrics" / "scalars" / name).read_text() == \
-            (resumed.path / "metrics" / "scalars" / name).read_text(), name
+        assert (full.path / "metrics" / "scalars" / name).read_text() == (
+            resumed.path / "metrics" / "scalars" / name
+        ).read_text(), name
 
 
 # ------------------------------------------------------------- the PPO loop's guards and interrupt (BaseTrainer)
@@ -118,9 +152,19 @@ def _ppo_trainer(path: Path, *extra: str):
     from adarl.runtime.run_dir import RunDir
     from adarl.runtime.trainers import PPOTrainer
 
-    recipe = load_recipe("baselines/hopper_rnac_ipm", [
-        "collector.total_frames=512", "collector.frames_per_batch=128", "algorithm.ppo.epochs=1",
-        "eval.interval=100000", "eval.episodes=1", "eval.max_steps=20", "checkpoint.interval=128", *extra])
+    recipe = load_recipe(
+        "baselines/hopper_rnac_ipm",
+        [
+            "collector.total_frames=512",
+            "collector.frames_per_batch=128",
+            "algorithm.ppo.epochs=1",
+            "eval.interval=100000",
+            "eval.episodes=1",
+            "eval.max_steps=20",
+            "checkpoint.interval=128",
+            *extra,
+        ],
+    )
     run = RunDir.create(path)
     save_resolved(recipe, run.recipe_path)
     return PPOTrainer(recipe, run, quiet=True)

@@ -6,8 +6,8 @@ import importlib.util
 
 import pytest
 
-from adarl.experiments.bench import format_table, measure
 from adarl.cli import main
+from adarl.experiments.bench import format_table, measure
 
 
 def test_bench_rejects_bad_options(tmp_path, capsys):
@@ -24,8 +24,16 @@ def test_bench_rejects_bad_options(tmp_path, capsys):
 
 
 def test_overrides_apply_to_our_loops_only():
-    out = measure("adarl_norank", "Hopper-v5", 16, warmup=50, steps=20, skip=5, batch=32,
-                  overrides=("network.actor.rank=3", "network.critic.rank=2"))
+    out = measure(
+        "adarl_norank",
+        "Hopper-v5",
+        16,
+        warmup=50,
+        steps=20,
+        skip=5,
+        batch=32,
+        overrides=("network.actor.rank=3", "network.critic.rank=2"),
+    )
     assert out["updates_per_s"] > 0
     from adarl.experiments.bench import _recipe
 
@@ -48,10 +56,19 @@ def test_measure_sb3():
 def test_table_lists_variants_and_ratios():
     v = {"updates_per_s": 100.0, "env_steps_per_s": 100.0, "peak_rss_mb": 400.0, "rank_event_ms": 4.0, "runs": []}
     w = dict(v, updates_per_s=50.0, rank_event_ms=None)
-    report = {"results": [{"env": "Hopper-v5", "width": 64, "variants": {"adarl": v, "torchrl": w},
-                           "ratios": {"adarl/torchrl": 2.0}, "rank_overhead_at_paper_interval": 4e-7}],
-              "rank_events_standalone": [{"width": 64, "threads": 1, "ms": 3.0}],
-              "skipped": ["sb3"]}
+    report = {
+        "results": [
+            {
+                "env": "Hopper-v5",
+                "width": 64,
+                "variants": {"adarl": v, "torchrl": w},
+                "ratios": {"adarl/torchrl": 2.0},
+                "rank_overhead_at_paper_interval": 4e-7,
+            }
+        ],
+        "rank_events_standalone": [{"width": 64, "threads": 1, "ms": 3.0}],
+        "skipped": ["sb3"],
+    }
     table = format_table(report)
     assert "| Hopper-v5 | (64, 64) | adarl | 100.0 |" in table and "2.00x" in table and "sb3" in table
     assert "| 64 | 1 | 3.0 |" in table

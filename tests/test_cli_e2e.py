@@ -31,9 +31,20 @@ TINY = [
 
 
 def adarl(*args: str, cwd: Path | None = None, timeout: int = 600) -> subprocess.CompletedProcess:
-    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1", "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
-    return subprocess.run([sys.executable, "-m", "adarl.cli", *args], cwd=cwd or REPO, env=env,
-                          capture_output=True, text=True, timeout=timeout)
+    env = {
+        **os.environ,
+        "PYTHONPATH": str(REPO),
+        "OMP_NUM_THREADS": "1",
+        "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"),
+    }
+    return subprocess.run(
+        [sys.executable, "-m", "adarl.cli", *args],
+        cwd=cwd or REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
 
 
 def _steps(csv_path: Path) -> list[int]:
@@ -51,15 +62,32 @@ def tiny_run(tmp_path_factory) -> Path:
 
 @pytest.mark.slow
 def test_run_folder_has_every_output(tiny_run: Path):
-    for name in ("recipe.yaml", "eval.csv", "ranks.json", "ranks.csv", "summary.json", "report.md",
-                 "plots/return.png", "plots/ranks.png"):
+    for name in (
+        "recipe.yaml",
+        "eval.csv",
+        "ranks.json",
+        "ranks.csv",
+        "summary.json",
+        "report.md",
+        "plots/return.png",
+        "plots/ranks.png",
+    ):
         assert (tiny_run / name).is_file(), name
     for png in ("plots/return.png", "plots/ranks.png"):
         assert (tiny_run / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     scalars = tiny_run / "metrics" / "scalars"
-    for metric in ("train/episode_return", "train/episode_length", "train/loss_qvalue", "train/loss_actor",
-                   "eval/return", "dynamics/torso_length", "warm_start/frames", "rank/actor.layer0",
-                   "rank/critic.layer1", "time/fps"):
+    for metric in (
+        "train/episode_return",
+        "train/episode_length",
+        "train/loss_qvalue",
+        "train/loss_actor",
+        "eval/return",
+        "dynamics/torso_length",
+        "warm_start/frames",
+        "rank/actor.layer0",
+        "rank/critic.layer1",
+        "time/fps",
+    ):
         assert (scalars / f"{metric}.csv").is_file(), metric
     # The perturbation really varied the dynamics seen in training.
     torso = [float(line.split(",")[1]) for line in (scalars / "dynamics/torso_length.csv").read_text().splitlines()]
@@ -148,8 +176,9 @@ def test_resume_continues_without_duplicated_metrics(tmp_path: Path):
         steps = _steps(csv)
         group = csv.relative_to(scalars).parts[0]  # rank events: two in one batch share its frame
         assert steps == sorted(steps), f"{csv.name} has steps out of order after resume"
-        assert len(steps) == len(set(steps)) or group in ("rank", "rank_error", "warm_start"), \
+        assert len(steps) == len(set(steps)) or group in ("rank", "rank_error", "warm_start"), (
             f"{csv.name} has duplicated steps"
+        )
 
 
 @pytest.mark.slow

@@ -12,29 +12,53 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-HEAVY = ("torch", "torchrl", "tensordict", "mujoco", "gymnasium", "pydantic", "omegaconf", "matplotlib", "pandas",
-         "scipy")
+HEAVY = (
+    "torch",
+    "torchrl",
+    "tensordict",
+    "mujoco",
+    "gymnasium",
+    "pydantic",
+    "omegaconf",
+    "matplotlib",
+    "pandas",
+    "scipy",
+)
 
 
 def _python(code: str, cwd: Path | None = None, timeout: int = 120) -> subprocess.CompletedProcess:
     env = {**os.environ, "PYTHONPATH": str(REPO)}
-    return subprocess.run([sys.executable, "-c", code], cwd=cwd or REPO, env=env, capture_output=True, text=True,
-                          timeout=timeout)
+    return subprocess.run(
+        [sys.executable, "-c", code], cwd=cwd or REPO, env=env, capture_output=True, text=True, timeout=timeout
+    )
 
 
 def _adarl(*args: str, cwd: Path | None = None, timeout: int = 600) -> subprocess.CompletedProcess:
     env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
-    return subprocess.run([sys.executable, "-m", "adarl.cli", *args], cwd=cwd or REPO, env=env,
-                          capture_output=True, text=True, timeout=timeout)
+    return subprocess.run(
+        [sys.executable, "-m", "adarl.cli", *args],
+        cwd=cwd or REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
 
 
-@pytest.mark.parametrize("argv, recipe, output, overrides", [
-    (["run", "quickstart", "-o", "DIR", "seed=1"], "quickstart", "DIR", ["seed=1"]),
-    (["run", "-o", "DIR", "quickstart", "seed=1"], "quickstart", "DIR", ["seed=1"]),
-    (["run", "quickstart", "seed=1", "--quiet", "rank.beta=0.9", "--output", "DIR"], "quickstart", "DIR",
-     ["seed=1", "rank.beta=0.9"]),
-    (["run", "quickstart", "seed=1", "rank.beta=0.9"], "quickstart", None, ["seed=1", "rank.beta=0.9"]),
-])
+@pytest.mark.parametrize(
+    "argv, recipe, output, overrides",
+    [
+        (["run", "quickstart", "-o", "DIR", "seed=1"], "quickstart", "DIR", ["seed=1"]),
+        (["run", "-o", "DIR", "quickstart", "seed=1"], "quickstart", "DIR", ["seed=1"]),
+        (
+            ["run", "quickstart", "seed=1", "--quiet", "rank.beta=0.9", "--output", "DIR"],
+            "quickstart",
+            "DIR",
+            ["seed=1", "rank.beta=0.9"],
+        ),
+        (["run", "quickstart", "seed=1", "rank.beta=0.9"], "quickstart", None, ["seed=1", "rank.beta=0.9"]),
+    ],
+)
 def test_options_and_overrides_in_any_order(argv, recipe, output, overrides):
     from adarl.cli import build_parser
 
@@ -66,11 +90,13 @@ def test_version():
 
 
 def test_help_imports_nothing_heavy_and_answers_within_a_second():
-    code = ("import sys, adarl.cli\n"
-            "p = adarl.cli.build_parser(); p.format_help()\n"
-            "for name in ('run', 'play', 'eval', 'bench', 'experiment'):\n"
-            "    p._subparsers._group_actions[0].choices[name].format_help()\n"
-            f"print(sorted({{m.split('.')[0] for m in sys.modules}} & set({HEAVY!r})))")
+    code = (
+        "import sys, adarl.cli\n"
+        "p = adarl.cli.build_parser(); p.format_help()\n"
+        "for name in ('run', 'play', 'eval', 'bench', 'experiment'):\n"
+        "    p._subparsers._group_actions[0].choices[name].format_help()\n"
+        f"print(sorted({{m.split('.')[0] for m in sys.modules}} & set({HEAVY!r})))"
+    )
     proc = _python(code)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.strip() == "[]", f"--help imported {proc.stdout.strip()}"
@@ -84,11 +110,13 @@ def test_help_imports_nothing_heavy_and_answers_within_a_second():
 
 
 def test_import_adarl_is_light_and_names_load_on_use():
-    proc = _python("import sys, adarl\n"
-                   f"print(sorted({{m.split('.')[0] for m in sys.modules}} & set({HEAVY!r})))\n"
-                   "from adarl import LowRankLinear, load_recipe, load_policy, AdaRLError\n"
-                   "assert set(adarl.__all__) <= set(dir(adarl))\n"
-                   "print(LowRankLinear.__module__, load_policy.__module__)")
+    proc = _python(
+        "import sys, adarl\n"
+        f"print(sorted({{m.split('.')[0] for m in sys.modules}} & set({HEAVY!r})))\n"
+        "from adarl import LowRankLinear, load_recipe, load_policy, AdaRLError\n"
+        "assert set(adarl.__all__) <= set(dir(adarl))\n"
+        "print(LowRankLinear.__module__, load_policy.__module__)"
+    )
     assert proc.returncode == 0, proc.stderr
     heavy, modules = proc.stdout.strip().splitlines()
     assert heavy == "[]"
@@ -113,13 +141,16 @@ def test_unavailable_device_is_one_clear_line(tmp_path):
 def test_device_index_beyond_the_visible_gpus(monkeypatch):
     import torch
 
-    from adarl.runtime.builders import check_device
     from adarl.errors import AdaRLValueError
+    from adarl.runtime.builders import check_device
 
     assert check_device("cpu") == torch.device("cpu")
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
     assert check_device("cuda:1") == torch.device("cuda:1")
-    with pytest.raises(AdaRLValueError, match=r"device 'cuda:3' is not available: this machine has 2 CUDA .*"
-                                              r"'cpu', 'cuda', 'cuda:0', 'cuda:1'"):
+    with pytest.raises(
+        AdaRLValueError,
+        match=r"device 'cuda:3' is not available: this machine has 2 CUDA .*"
+        r"'cpu', 'cuda', 'cuda:0', 'cuda:1'",
+    ):
         check_device("cuda:3")

@@ -25,10 +25,10 @@ from torchrl.objectives import TD3Loss, ValueEstimators
 
 from adarl.core.adapter import RankAdapter
 from adarl.core.collector_rebuild import CollectorRebuild
-from adarl.errors import AdaRLValueError
 from adarl.core.lowrank import low_rank_mlp
 from adarl.core.rank import FixedRank
 from adarl.core.warmstart import ReplayWarmStart
+from adarl.errors import AdaRLValueError
 
 warnings.filterwarnings("ignore", category=UserWarning)
 DOC = Path(__file__).resolve().parents[1] / "docs" / "rank-adapter.md"
@@ -135,13 +135,14 @@ def test_collector_writing_into_the_buffer():
     env = make_env()
     actor, loss, opt = make_agent(env)
     rb = ReplayBuffer(storage=LazyTensorStorage(500))
-    collector = Collector(env, actor, frames_per_batch=FPB, total_frames=-1, init_random_frames=4 * FPB,
-                          replay_buffer=rb)
+    collector = Collector(
+        env, actor, frames_per_batch=FPB, total_frames=-1, init_random_frames=4 * FPB, replay_buffer=rb
+    )
     warm = ReplayWarmStart(rb, collector, frames=2 * FPB)
     adapter = RankAdapter(loss, opt, FixedRank(2), interval=1, scope="actor", on_truncate=[warm])
     for i, _ in enumerate(collector):  # the collector writes each batch into rb and yields None
         if i == 7:  # the first batch after the event: the policy's, not the random phase's
-            assert_policy_actions(actor, rb[len(rb) - FPB: len(rb)])
+            assert_policy_actions(actor, rb[len(rb) - FPB : len(rb)])
             assert actor_rank(actor) == 2
             break
         if i >= 5:
@@ -189,8 +190,9 @@ def test_collector_running_a_policy_copy():
     assert actor_rank(actor) == 16 and len(rb) == FPB and adapter.history == []
     copier.shutdown()
     # the training loop with a copying collector: rebuilt after each event, so the copy has the new ranks
-    collector = CollectorRebuild(lambda: Collector(env, copy.deepcopy(actor), frames_per_batch=FPB,
-                                                   total_frames=-1), total_frames=6 * FPB)
+    collector = CollectorRebuild(
+        lambda: Collector(env, copy.deepcopy(actor), frames_per_batch=FPB, total_frames=-1), total_frames=6 * FPB
+    )
     adapter = RankAdapter(loss, opt, FixedRank(2), interval=1, scope="actor", on_truncate=[collector])
     batches = []
     for i, batch in enumerate(collector):
@@ -299,8 +301,7 @@ def test_process_collector():
                 with pytest.raises(AdaRLValueError, match="shared memory"):
                     bare.adapt()
                 assert actor_rank(actor) == 16
-                adapter = RankAdapter(loss, opt, FixedRank(2), interval=1, scope="actor",
-                                      on_truncate=[collector, warm])
+                adapter = RankAdapter(loss, opt, FixedRank(2), interval=1, scope="actor", on_truncate=[collector, warm])
                 adapter.adapt()
                 assert actor_rank(actor) == 2 and collector.rebuilds == 1 and warm.records[-1].frames_added == FPB
                 assert all(p.is_shared() for p in actor.parameters())  # the new workers map the new tensors

@@ -13,8 +13,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-import adarl
 import adarl.envs as envs
+from adarl.errors import RecipeError
 from adarl.runtime.config import (
     SCHEMA_VERSION,
     Recipe,
@@ -26,13 +26,10 @@ from adarl.runtime.config import (
     save_resolved,
     validate_recipe,
 )
-from adarl.errors import AdaRLValueError, RecipeError
 
 REPO = Path(__file__).resolve().parent.parent
 SHIPPED = sorted(p.stem for p in (REPO / "recipes").glob("*.yaml"))
 PAPER_RECIPES = ["hopper_adarl", "walker2d_adarl", "ant_adarl", "humanoid_adarl"]
-
-
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -177,19 +174,28 @@ def test_override_null_clears_an_optional_value():
 
 def test_schedule_override_replaces_and_subkeys_merge():
     sched = "{kind: uniform, low: {torso_length: 0.3}, high: {torso_length: 0.5}}"
-    r = load_recipe("quickstart", [f"env.perturbation.schedule={sched}", "env.perturbation.schedule.high.torso_length=0.45"])
-    assert r.env.perturbation.schedule == {"kind": "uniform", "low": {"torso_length": 0.3}, "high": {"torso_length": 0.45}}
+    r = load_recipe(
+        "quickstart", [f"env.perturbation.schedule={sched}", "env.perturbation.schedule.high.torso_length=0.45"]
+    )
+    assert r.env.perturbation.schedule == {
+        "kind": "uniform",
+        "low": {"torso_length": 0.3},
+        "high": {"torso_length": 0.45},
+    }
     # a whole new schedule replaces the old one (no sinusoid keys left over in a fixed schedule)
     r = load_recipe(
         "quickstart",
         [
-            "env.perturbation.schedule={kind: sinusoid, center: {torso_length: 0.4}, amplitude: {torso_length: 0.1}, frequency: 0.2}",
+            "env.perturbation.schedule={kind: sinusoid, center: {torso_length: 0.4}, "
+            "amplitude: {torso_length: 0.1}, frequency: 0.2}",
             "env.perturbation.schedule={kind: fixed, values: {torso_length: 0.3}}",
         ],
     )
     assert r.env.perturbation.schedule == {"kind": "fixed", "values": {"torso_length": 0.3}}
     # and keys can be set one by one into an unset schedule
-    r = load_recipe("quickstart", ["env.perturbation.schedule.kind=fixed", "env.perturbation.schedule.values.foot_length=0.3"])
+    r = load_recipe(
+        "quickstart", ["env.perturbation.schedule.kind=fixed", "env.perturbation.schedule.values.foot_length=0.3"]
+    )
     assert r.env.perturbation.schedule == {"kind": "fixed", "values": {"foot_length": 0.3}}
 
 
@@ -342,10 +348,15 @@ def test_unknown_perturbation_parameter_is_rejected():
         ("{values: {torso_length: 0.3}}", ["env.perturbation.schedule.kind", "is required", "'sinusoid'"]),
         ("{kind: sine, values: {}}", ["env.perturbation.schedule.kind", "'sine'", "'sinusoid'"]),
         ("{kind: fixed, value: {torso_length: 0.3}}", ["schedule.value", "did you mean 'values'", "schedule.values"]),
-        ("{kind: uniform, low: {torso_length: 0.5}, high: {torso_length: 0.3}}", ["schedule.high.torso_length", ">= low"]),
+        (
+            "{kind: uniform, low: {torso_length: 0.5}, high: {torso_length: 0.3}}",
+            ["schedule.high.torso_length", ">= low"],
+        ),
         ("{kind: uniform, low: {torso_length: 0.3}, high: {foot_length: 0.5}}", ["schedule.high", "same parameters"]),
-        ("{kind: sinusoid, center: {torso_length: 0.4}, amplitude: {torso_length: x}, frequency: 0.2}",
-         ["schedule.amplitude.torso_length", "'x'", "finite number"]),
+        (
+            "{kind: sinusoid, center: {torso_length: 0.4}, amplitude: {torso_length: x}, frequency: 0.2}",
+            ["schedule.amplitude.torso_length", "'x'", "finite number"],
+        ),
         ("{kind: list, values: [], cycle: true}", ["schedule.values", "non-empty list"]),
         ("{kind: list, values: [{torso_length: 0.3}], cycle: 2}", ["schedule.cycle", "true or false"]),
     ],
@@ -358,8 +369,10 @@ def test_bad_schedules(schedule, parts):
 
 def test_good_schedules(env_api):
     for sched in [
-        "{kind: sinusoid, center: {torso_length: 0.4, foot_length: 0.39}, amplitude: {torso_length: 0.1, foot_length: 0.1}, frequency: 0.2}",
-        "{kind: sinusoid, center: {torso_length: 0.4}, amplitude: {torso_length: 0.1}, frequency: {torso_length: 0.2}, phase: 1.0}",
+        "{kind: sinusoid, center: {torso_length: 0.4, foot_length: 0.39}, "
+        "amplitude: {torso_length: 0.1, foot_length: 0.1}, frequency: 0.2}",
+        "{kind: sinusoid, center: {torso_length: 0.4}, amplitude: {torso_length: 0.1}, "
+        "frequency: {torso_length: 0.2}, phase: 1.0}",
         "{kind: uniform, low: {torso_length: 0.31}, high: {torso_length: 0.49}}",
         "{kind: fixed, values: {foot_length: 0.3}}",
         "{kind: list, values: [{torso_length: 0.3}, {torso_length: 0.5}], cycle: false}",
@@ -472,7 +485,10 @@ def test_extends_merges_dicts_and_replaces_lists(tmp_path):
 
 
 def test_extends_relative_path_and_nested_chain(tmp_path):
-    _write(tmp_path / "a" / "base2.yaml", "extends: base\ncollector: {total_frames: 1234, init_random_frames: 0}\nseed: 3\n")
+    _write(
+        tmp_path / "a" / "base2.yaml",
+        "extends: base\ncollector: {total_frames: 1234, init_random_frames: 0}\nseed: 3\n",
+    )
     _write(tmp_path / "b" / "mid.yaml", "extends: ../a/base2.yaml\nseed: 4\n")
     p = _write(tmp_path / "b" / "leaf.yaml", "extends: mid\nname: leafy\n")
     r = load_recipe(str(p))
@@ -515,7 +531,8 @@ def test_child_schedule_replaces_the_base_schedule(tmp_path):
     )
     p = _write(
         tmp_path / "schild.yaml",
-        "extends: sbase\nenv:\n  perturbation:\n    schedule: {kind: uniform, low: {torso_length: 0.3}, high: {torso_length: 0.5}}\n",
+        "extends: sbase\nenv:\n  perturbation:\n"
+        "    schedule: {kind: uniform, low: {torso_length: 0.3}, high: {torso_length: 0.5}}\n",
     )
     assert load_recipe(str(p)).env.perturbation.schedule == {
         "kind": "uniform",
@@ -529,8 +546,14 @@ def test_child_schedule_replaces_the_base_schedule(tmp_path):
 
 def test_recipes_path_env_var(tmp_path, monkeypatch):
     _write(tmp_path / "mine.yaml", "extends: quickstart\ndescription: my own\n")
-    _write(tmp_path / "baselines" / "plain_sac.yaml", "extends: quickstart\ndescription: no rank control\nrank: {enabled: false}\n")
-    _write(tmp_path / "quickstart.yaml", "extends: base\ndescription: shadowing quickstart\ncollector: {total_frames: 20000}\n")
+    _write(
+        tmp_path / "baselines" / "plain_sac.yaml",
+        "extends: quickstart\ndescription: no rank control\nrank: {enabled: false}\n",
+    )
+    _write(
+        tmp_path / "quickstart.yaml",
+        "extends: base\ndescription: shadowing quickstart\ncollector: {total_frames: 20000}\n",
+    )
     other = tmp_path / "other"
     _write(other / "x.yaml", "extends: quickstart\ndescription: from the second folder\n")
     monkeypatch.setenv("ADARL_RECIPES_PATH", os.pathsep.join([str(tmp_path), str(other)]))
@@ -640,7 +663,9 @@ def test_save_resolved_unwritable(tmp_path):
 
 
 def test_validate_recipe_on_mappings():
-    r = validate_recipe({"name": "m", "env": {"id": "Hopper-v5"}, "collector": {"total_frames": 5000, "init_random_frames": 0}})
+    r = validate_recipe(
+        {"name": "m", "env": {"id": "Hopper-v5"}, "collector": {"total_frames": 5000, "init_random_frames": 0}}
+    )
     assert r.network.actor.num_cells == [64, 64] and r.rank.beta == 0.98
     with pytest.raises(RecipeError, match="top level must be a mapping"):
         validate_recipe([1, 2])

@@ -6,12 +6,12 @@ import pytest
 import torch
 from torchrl.envs import RewardScaling
 
-from adarl.runtime.builders import make_sac_actor
-from adarl.fast.direct_env import direct_stepper
-from adarl.envs.state import env_state_dict, load_env_state_dict
 from adarl.envs import dynamics_state_dict, load_dynamics_state_dict, make_env
+from adarl.envs.state import env_state_dict, load_env_state_dict
 from adarl.errors import AdaRLValueError
 from adarl.fast.collector import LeanCollector, _tanh_normal_action
+from adarl.fast.direct_env import direct_stepper
+from adarl.runtime.builders import make_sac_actor
 
 
 def _parts(env_id="Hopper-v5", preset="paper", max_episode_steps=30, seed=3):
@@ -32,8 +32,11 @@ def _reference(env, actor, batches, frames_per_batch, init_random_frames, td=Non
             if td is None:
                 td = env.reset()
             with torch.no_grad():
-                action = (env.action_spec.rand() if frames < init_random_frames
-                          else _tanh_normal_action(net, td.get("observation"), None, box))
+                action = (
+                    env.action_spec.rand()
+                    if frames < init_random_frames
+                    else _tanh_normal_action(net, td.get("observation"), None, box)
+                )
             td.set("action", action)
             frame, td = env.step_and_maybe_reset(td)
             steps.append(frame)
@@ -94,8 +97,12 @@ def test_a_direct_checkpoint_resumes_into_the_same_batches(direct):
     it = iter(lean)
     for _ in range(12):
         next(it)
-    state = {"dynamics": dynamics_state_dict(env), "env": env_state_dict(env), "collector": lean.state_dict(),
-             "rng": torch.get_rng_state()}
+    state = {
+        "dynamics": dynamics_state_dict(env),
+        "env": env_state_dict(env),
+        "collector": lean.state_dict(),
+        "rng": torch.get_rng_state(),
+    }
     tail = [next(it) for _ in range(30)]
     env2, actor2 = _parts(seed=11)  # another seed: everything comes from the checkpoint
     actor2.load_state_dict(actor.state_dict())

@@ -72,7 +72,7 @@ def extract_blocks(text: str) -> list[Block]:
         j = i + 1
         while j < len(lines) and not close.match(lines[j]):
             line = lines[j]
-            body.append(line[len(indent):] if line.startswith(indent) else line.lstrip(" \t"))
+            body.append(line[len(indent) :] if line.startswith(indent) else line.lstrip(" \t"))
             j += 1
         blocks.append(Block(line=i + 2, source=textwrap.dedent("\n".join(body)) + "\n", info=info))
         i = j + 1
@@ -150,8 +150,18 @@ def test_doc_examples_run(path: Path, tmp_path: Path):
 
 
 # Losses that stack their critics into an ensemble (TorchRL resamples the stacked factors uniformly)
-ENSEMBLE_LOSSES = ("SACLoss", "DiscreteSACLoss", "TD3Loss", "TD3BCLoss", "REDQLoss", "CQLLoss", "CrossQLoss",
-                   "IQLLoss", "DiscreteIQLLoss", "TQCLoss")
+ENSEMBLE_LOSSES = (
+    "SACLoss",
+    "DiscreteSACLoss",
+    "TD3Loss",
+    "TD3BCLoss",
+    "REDQLoss",
+    "CQLLoss",
+    "CrossQLoss",
+    "IQLLoss",
+    "DiscreteIQLLoss",
+    "TQCLoss",
+)
 
 
 def test_examples_with_low_rank_critic_ensembles_call_reinit_low_rank_ensemble():

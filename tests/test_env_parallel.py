@@ -19,4 +19,3 @@ def test_parallel_env_matches_serial_env():
     assert torch.equal(roll["next", "dynamics", "torso_length"], serial["next", "dynamics", "torso_length"])
     assert roll["next", "dynamics", "episode"][:, -1].tolist() == [2, 2]
     assert state["worker1"]["_extra_state"]["episode"] == 3
-

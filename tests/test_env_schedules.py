@@ -33,7 +33,9 @@ def test_sinusoid_is_the_paper_formula():
     assert w == pytest.approx({"torso_length": 0.2 + 0.1 * math.sin(0.9), "foot_length": 0.1 + 0.05 * math.sin(0.9)})
     assert s.nominal() == {"torso_length": 0.4, "foot_length": 0.39}
     assert s.bounds()["torso_length"] == pytest.approx((0.2, 0.6))
-    per_param = SinusoidSchedule({"a": 1.0, "b": 2.0}, {"a": 1.0, "b": 1.0}, {"a": 0.5, "b": 1.0}, phase={"a": 0.0, "b": 1.0})
+    per_param = SinusoidSchedule(
+        {"a": 1.0, "b": 2.0}, {"a": 1.0, "b": 1.0}, {"a": 0.5, "b": 1.0}, phase={"a": 0.0, "b": 1.0}
+    )
     assert per_param.sample(2, None)["b"] == pytest.approx(2.0 + math.sin(3.0))
 
 

@@ -69,7 +69,10 @@ def test_linear_cartpole_through_make_env_follows_the_schedule():
 def test_parse_sweep():
     from adarl.experiments.sweep import parse_sweep
 
-    assert parse_sweep("torso_length=0.25:0.55:7") == ("torso_length", pytest.approx([0.25 + 0.05 * i for i in range(7)]))
+    assert parse_sweep("torso_length=0.25:0.55:7") == (
+        "torso_length",
+        pytest.approx([0.25 + 0.05 * i for i in range(7)]),
+    )
     assert parse_sweep("wind=0,1.5") == ("wind", [0.0, 1.5])
     for bad in ("torso_length", "=1:2:3", "x=1:2", "x=a:b:3", "x=1:2:0", "x=nan,1"):
         with pytest.raises(AdaRLValueError, match="sweep"):
@@ -78,8 +81,13 @@ def test_parse_sweep():
 
 # ------------------------------------------------------------------------------------------- experiment specs
 def _spec(tmp_path: Path, **extra) -> Path:
-    data = {"kind": "experiment", "name": "t", "recipe": "linear_cartpole_sac",
-            "axes": {"algo": [{"name": "a"}, {"name": "b", "overrides": ["rank.enabled=false"]}]}, "seeds": [0, 1]}
+    data = {
+        "kind": "experiment",
+        "name": "t",
+        "recipe": "linear_cartpole_sac",
+        "axes": {"algo": [{"name": "a"}, {"name": "b", "overrides": ["rank.enabled=false"]}]},
+        "seeds": [0, 1],
+    }
     data.update(extra)
     p = tmp_path / "spec.yaml"
     p.write_text(yaml.safe_dump(data))
@@ -104,9 +112,13 @@ def test_experiment_spec_errors_name_the_key(tmp_path):
 def test_plan_runs_product_budget_and_templates(tmp_path):
     from adarl.experiments.spec import load_experiment, plan_runs
 
-    spec = load_experiment(_spec(tmp_path, overrides=["name=run_{algo}_{seed}"],
-                                 budgets={"small": {"seeds": [5], "axes": {"algo": ["b"]},
-                                                    "overrides": ["collector.total_frames=100"]}}))
+    spec = load_experiment(
+        _spec(
+            tmp_path,
+            overrides=["name=run_{algo}_{seed}"],
+            budgets={"small": {"seeds": [5], "axes": {"algo": ["b"]}, "overrides": ["collector.total_frames=100"]}},
+        )
+    )
     runs = plan_runs(spec, tmp_path / "out")
     assert [r.run_id for r in runs] == ["algo=a__seed=0", "algo=a__seed=1", "algo=b__seed=0", "algo=b__seed=1"]
     assert runs[2].overrides == ["name=run_b_0", "rank.enabled=false", "seed=0"]
@@ -121,12 +133,18 @@ def test_plan_runs_product_budget_and_templates(tmp_path):
 
 
 def test_shipped_experiment_specs_validate_and_are_not_recipes():
-    from adarl.runtime.config import list_recipes, load_recipe
     from adarl.experiments.spec import load_experiment, plan_runs
+    from adarl.runtime.config import list_recipes, load_recipe
 
     specs = sorted((REPO / "recipes" / "experiments").glob("*.yaml"))
-    assert {p.stem for p in specs} >= {"table1", "table2", "cartpole_rank_sweep", "warmstart_ablation",
-                                       "rule_ablation", "hopper_sweep"}
+    assert {p.stem for p in specs} >= {
+        "table1",
+        "table2",
+        "cartpole_rank_sweep",
+        "warmstart_ablation",
+        "rule_ablation",
+        "hopper_sweep",
+    }
     assert not any(name.startswith("experiments/") for name, _ in list_recipes())
     for p in specs:
         spec = load_experiment(p)
@@ -143,8 +161,16 @@ def test_shipped_experiment_specs_validate_and_are_not_recipes():
 def _fake_run(root: Path, name: str, seed: int, rank: int, evals: list[tuple[int, float]]) -> Path:
     p = root / name
     p.mkdir(parents=True)
-    (p / "recipe.yaml").write_text(yaml.safe_dump({"name": "fake", "seed": seed, "env": {"id": "LinearCartPole-v0"},
-                                                   "collector": {"total_frames": evals[-1][0]}}))
+    (p / "recipe.yaml").write_text(
+        yaml.safe_dump(
+            {
+                "name": "fake",
+                "seed": seed,
+                "env": {"id": "LinearCartPole-v0"},
+                "collector": {"total_frames": evals[-1][0]},
+            }
+        )
+    )
     with (p / "eval.csv").open("w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(["frames", "updates", "mean", "std", "ci95", "episodes", "returns", "ranks"])
@@ -164,12 +190,29 @@ def test_aggregate_table_matches_runs(tmp_path):
         for seed, v in enumerate(vals):
             rid = f"rank={rank}__seed={seed}"
             _fake_run(exp, rid, seed, rank, [(100, 1.0), (200, v)])
-            runs.append({"run_id": rid, "axes": {"rank": str(rank)}, "seed": seed, "recipe": "fake",
-                         "path": str(exp / rid), "status": "finished"})
-    runs.append({"run_id": "rank=2__seed=0", "axes": {"rank": "2"}, "seed": 0, "recipe": "nope",
-                 "path": str(exp / "x"), "status": "missing-recipe"})
-    (exp / "experiment.json").write_text(json.dumps({"name": "fake", "axes": ["rank"], "runs": runs,
-                                                     "report": {"x_axis": "rank", "intrinsic_rank": 4}}))
+            runs.append(
+                {
+                    "run_id": rid,
+                    "axes": {"rank": str(rank)},
+                    "seed": seed,
+                    "recipe": "fake",
+                    "path": str(exp / rid),
+                    "status": "finished",
+                }
+            )
+    runs.append(
+        {
+            "run_id": "rank=2__seed=0",
+            "axes": {"rank": "2"},
+            "seed": 0,
+            "recipe": "nope",
+            "path": str(exp / "x"),
+            "status": "missing-recipe",
+        }
+    )
+    (exp / "experiment.json").write_text(
+        json.dumps({"name": "fake", "axes": ["rank"], "runs": runs, "report": {"x_axis": "rank", "intrinsic_rank": 4}})
+    )
     agg = aggregate_runs([exp])
     for rank, vals in finals.items():
         g = agg.group(rank=rank)
@@ -190,29 +233,52 @@ def test_aggregate_table_matches_runs(tmp_path):
 
 
 # ------------------------------------------------------------------------------------------- end to end
-TINY = ["collector.total_frames=600", "collector.init_random_frames=200", "collector.frames_per_batch=100",
-        "algorithm.batch_size=32", "rank.interval=150", "replay.size=2000", "replay.warm_start.frames=100",
-        "lr_schedule.warmup_steps=20", "eval.interval=300", "eval.episodes=2", "eval.max_steps=50",
-        "checkpoint.interval=300"]
+TINY = [
+    "collector.total_frames=600",
+    "collector.init_random_frames=200",
+    "collector.frames_per_batch=100",
+    "algorithm.batch_size=32",
+    "rank.interval=150",
+    "replay.size=2000",
+    "replay.warm_start.frames=100",
+    "lr_schedule.warmup_steps=20",
+    "eval.interval=300",
+    "eval.episodes=2",
+    "eval.max_steps=50",
+    "checkpoint.interval=300",
+]
 
 
 def adarl(*args: str, timeout: int = 900) -> subprocess.CompletedProcess:
     import os
 
     env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
-    return subprocess.run([sys.executable, "-m", "adarl.cli", *args], cwd=REPO, env=env, capture_output=True,
-                          text=True, timeout=timeout)
+    return subprocess.run(
+        [sys.executable, "-m", "adarl.cli", *args], cwd=REPO, env=env, capture_output=True, text=True, timeout=timeout
+    )
 
 
 @pytest.mark.slow
 def test_experiment_end_to_end_two_seeds_two_algorithms(tmp_path):
-    spec = {"kind": "experiment", "name": "tiny", "recipe": "linear_cartpole_sac", "overrides": TINY,
-            "axes": {"algorithm": [{"name": "adarl"},
-                                   {"name": "fixed4", "overrides": ["rank.enabled=false", "network.actor.rank=4",
-                                                                    "network.critic.rank=4"]},
-                                   {"name": "notyet", "recipe": "baselines/linear_cartpole_nothing"}]},
-            "seeds": [0, 1], "workers": 2,
-            "sweeps": [{"params": ["pole_length=0.4,0.6"], "episodes": 1, "name": "pole"}]}
+    spec = {
+        "kind": "experiment",
+        "name": "tiny",
+        "recipe": "linear_cartpole_sac",
+        "overrides": TINY,
+        "axes": {
+            "algorithm": [
+                {"name": "adarl"},
+                {
+                    "name": "fixed4",
+                    "overrides": ["rank.enabled=false", "network.actor.rank=4", "network.critic.rank=4"],
+                },
+                {"name": "notyet", "recipe": "baselines/linear_cartpole_nothing"},
+            ]
+        },
+        "seeds": [0, 1],
+        "workers": 2,
+        "sweeps": [{"params": ["pole_length=0.4,0.6"], "episodes": 1, "name": "pole"}],
+    }
     path = tmp_path / "tiny.yaml"
     path.write_text(yaml.safe_dump(spec))
     out = tmp_path / "exp"
@@ -251,16 +317,17 @@ def test_experiment_end_to_end_two_seeds_two_algorithms(tmp_path):
     assert "4 already finished, 0 to run" in said[-1]
     # Aggregating the run folders directly (no experiment.json) groups them by recipe name, and runs of one
     # recipe with other settings apart (a variant naming the keys that differ): not four replicates of one setting
-    loose = write_aggregate_report([r["path"] for r in state["runs"] if r["status"] == "finished"],
-                                   tmp_path / "loose").read_text()
+    loose = write_aggregate_report(
+        [r["path"] for r in state["runs"] if r["status"] == "finished"], tmp_path / "loose"
+    ).read_text()
     assert "(n=4)" not in loose and loose.count("(n=2)") >= 2 and "rank.enabled=False" in loose
 
 
 @pytest.mark.slow
 def test_hopper_sweep_writes_fig8_plot_and_worst_case(tmp_path):
+    from adarl.experiments.sweep import parse_sweep, sweep_run
     from adarl.runtime.config import load_recipe, save_resolved
     from adarl.runtime.run_dir import RunDir
-    from adarl.experiments.sweep import parse_sweep, sweep_run
     from adarl.runtime.trainers import Trainer
 
     run = tmp_path / "hopper"

@@ -10,12 +10,12 @@ import torch
 from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
-from adarl.runtime.config import load_recipe, save_resolved
-from adarl.errors import AdaRLValueError
-from adarl.runtime.run_dir import RunDir
-from adarl.runtime.builders.sac import planned_updates, update_after
-from adarl.runtime.trainers import Trainer
 from adarl.core.warmstart import ReplayWarmStart
+from adarl.errors import AdaRLValueError
+from adarl.runtime.builders.sac import planned_updates, update_after
+from adarl.runtime.config import load_recipe, save_resolved
+from adarl.runtime.run_dir import RunDir
+from adarl.runtime.trainers import Trainer
 
 SMALL = [
     "collector.total_frames=600",
@@ -97,8 +97,10 @@ def test_uncounted_warm_start_frames_give_equal_optimisation_steps(tmp_path):
 
 
 def test_update_after_starts_updates_before_the_random_phase_ends():
-    r = load_recipe("quickstart", ["collector.init_random_frames=10000", "algorithm.update_after=1000",
-                                   "collector.total_frames=30000"])
+    r = load_recipe(
+        "quickstart",
+        ["collector.init_random_frames=10000", "algorithm.update_after=1000", "collector.total_frames=30000"],
+    )
     assert update_after(r) == 1000 and planned_updates(r) == 29000
     r = load_recipe("quickstart", ["collector.init_random_frames=10000", "collector.total_frames=30000"])
     assert update_after(r) == 10000 and planned_updates(r) == 20000
@@ -125,7 +127,9 @@ def test_reproduction_specs_compare_what_the_paper_compares():
     sweep = load_experiment("hopper_sweep")
     assert {"adarl", "sac_full", "sparse"} <= set(names(sweep, "algorithm"))  # Fig. 8: Tiwari et al. beside SAC
     t1 = load_experiment("table1")
-    assert {"adarl", "sac_full", "sac_fixed", "parseval", "sparse", "rnac_ipm", "rnac_ds"} == set(names(t1, "algorithm"))
+    assert {"adarl", "sac_full", "sac_fixed", "parseval", "sparse", "rnac_ipm", "rnac_ds"} == set(
+        names(t1, "algorithm")
+    )
     assert {s.name for s in t1.sweeps} == {"torso_length", "foot_length"} and t1.report.reference == "adarl"
     lam = load_experiment("parseval_lambda")
     assert names(lam, "lam") == ["1.0e-3", "1.0e-4", "1.0e-5"]

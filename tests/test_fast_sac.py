@@ -9,11 +9,11 @@ import pytest
 import torch
 from torchrl.objectives import ValueEstimators
 
-from adarl.runtime.config import load_recipe
 from adarl.errors import AdaRLValueError
 from adarl.fast.adam import make_adam
 from adarl.fast.sac import FusedSACUpdate, wants_fused
 from adarl.runtime.builders.sac import build_components
+from adarl.runtime.config import load_recipe
 from adarl.runtime.update import FusedStep, LossStep
 
 OVR = ["collector.total_frames=2000", "collector.init_random_frames=500", "replay.size=2000", "algorithm.batch_size=64"]
@@ -38,8 +38,11 @@ def _grads(params):
 
 
 def _params(loss):
-    return ([loss.log_alpha] + list(loss.actor_network_params.flatten_keys().values())
-            + list(loss.qvalue_network_params.flatten_keys().values()))
+    return (
+        [loss.log_alpha]
+        + list(loss.actor_network_params.flatten_keys().values())
+        + list(loss.qvalue_network_params.flatten_keys().values())
+    )
 
 
 def _fused_losses(fu, batch):
@@ -59,10 +62,16 @@ CONFIGS = {
     # truncated ranks: the low-rank layers stay factored (x W2^T W1^T) instead of merged
     "truncated-ranks": ["network.actor.rank=4", "network.critic.rank=3"],
     # other activations and critic losses
-    "tanh-elu-smooth_l1": ["network.actor.activation=tanh", "network.critic.activation=elu",
-                           "algorithm.loss_function=smooth_l1"],
-    "gelu-softplus-l1": ["network.actor.activation=gelu", "network.critic.activation=softplus",
-                         "algorithm.loss_function=l1"],
+    "tanh-elu-smooth_l1": [
+        "network.actor.activation=tanh",
+        "network.critic.activation=elu",
+        "algorithm.loss_function=smooth_l1",
+    ],
+    "gelu-softplus-l1": [
+        "network.actor.activation=gelu",
+        "network.critic.activation=softplus",
+        "algorithm.loss_function=l1",
+    ],
     # an action box other than [-1, 1] (InvertedPendulum: [-3, 3]): the affine squashing
     "box-3": ["env.id=InvertedPendulum-v5", "env.perturbation.preset=none", "network.actor.rank=1"],
 }
@@ -98,8 +107,9 @@ def test_losses_and_gradients_match_sacloss(config):
         torch.manual_seed(11)
         out = _fused_losses(fu, batch)
         for name, value in zip(["loss_actor", "loss_qvalue", "loss_alpha", "alpha", "entropy"], out):
-            torch.testing.assert_close(value.detach(), ref[name].detach(), rtol=1e-5, atol=1e-6,
-                                       msg=f"{backward}: {name}")
+            torch.testing.assert_close(
+                value.detach(), ref[name].detach(), rtol=1e-5, atol=1e-6, msg=f"{backward}: {name}"
+            )
         for g, r in zip(_grads(params), ref_grads):
             assert g is not None and r is not None
             torch.testing.assert_close(g, r, rtol=1e-4, atol=1e-6, msg=backward)
@@ -110,15 +120,21 @@ def test_losses_and_gradients_match_sacloss(config):
     c.close()
 
 
-@pytest.mark.parametrize("change, named", [
-    (lambda loss: loss.make_value_estimator(ValueEstimators.TDLambda, gamma=0.99, lmbda=0.95), "TDLambdaEstimator"),
-    (lambda loss: loss.make_value_estimator(ValueEstimators.TD0, gamma=0.99, average_rewards=True),
-     "average_rewards=True"),
-    (lambda loss: setattr(loss, "reduction", "sum"), "reduction='sum'"),
-    (lambda loss: setattr(loss, "skip_done_states", True), "skip_done_states=True"),
-    (lambda loss: loss.set_keys(action="act"), "loss.tensor_keys.action='act'"),
-    (lambda loss: loss.actor_network.module[1].distribution_kwargs.update(tanh_loc=True), "tanh_loc=True"),
-], ids=["td-lambda", "average-rewards", "reduction-sum", "skip-done-states", "action-key", "tanh-loc"])
+@pytest.mark.parametrize(
+    "change, named",
+    [
+        (lambda loss: loss.make_value_estimator(ValueEstimators.TDLambda, gamma=0.99, lmbda=0.95), "TDLambdaEstimator"),
+        (
+            lambda loss: loss.make_value_estimator(ValueEstimators.TD0, gamma=0.99, average_rewards=True),
+            "average_rewards=True",
+        ),
+        (lambda loss: setattr(loss, "reduction", "sum"), "reduction='sum'"),
+        (lambda loss: setattr(loss, "skip_done_states", True), "skip_done_states=True"),
+        (lambda loss: loss.set_keys(action="act"), "loss.tensor_keys.action='act'"),
+        (lambda loss: loss.actor_network.module[1].distribution_kwargs.update(tanh_loc=True), "tanh_loc=True"),
+    ],
+    ids=["td-lambda", "average-rewards", "reduction-sum", "skip-done-states", "action-key", "tanh-loc"],
+)
 def test_fused_update_refuses_what_it_does_not_implement(filled, change, named):
     """A SACLoss setting the fused update would silently compute otherwise is refused, naming the setting."""
     loss = copy.deepcopy(filled[0].modules.loss)
@@ -166,9 +182,11 @@ def test_full_step_matches_plain_step(filled, backward):
             loss.log_alpha.copy_(start["log_alpha"])
 
     def opts(fused):
-        return [make_adam(list(loss.actor_network_params.flatten_keys().values()), 3e-3, fused=fused),
-                make_adam(list(loss.qvalue_network_params.flatten_keys().values()), 3e-3, fused=fused),
-                make_adam([loss.log_alpha], 3e-4, fused=fused)]
+        return [
+            make_adam(list(loss.actor_network_params.flatten_keys().values()), 3e-3, fused=fused),
+            make_adam(list(loss.qvalue_network_params.flatten_keys().values()), 3e-3, fused=fused),
+            make_adam([loss.log_alpha], 3e-4, fused=fused),
+        ]
 
     plain_opts = opts(False)
     torch.manual_seed(5)
@@ -277,8 +295,8 @@ def test_prepared_layers_merge_near_full_rank_with_the_same_output_and_gradients
     # one update reuses a merged W1 W2 across passes; it must equal the factored product (values and grads)
     from torch import nn
 
-    from adarl.fast.sac import _StackedMLP
     from adarl.core.lowrank import low_rank_mlp
+    from adarl.fast.sac import _StackedMLP
 
     torch.manual_seed(0)
     net = low_rank_mlp(5, 3, (32, 32), low_rank_layers=[0, 1])
@@ -329,8 +347,7 @@ def test_uniform_tensor_sampler_rejects_buffers_it_cannot_reproduce():
 
     from adarl.fast.replay import UniformTensorSampler
 
-    rb = TensorDictReplayBuffer(storage=LazyTensorStorage(10), sampler=SamplerWithoutReplacement(),
-                                batch_size=4)
+    rb = TensorDictReplayBuffer(storage=LazyTensorStorage(10), sampler=SamplerWithoutReplacement(), batch_size=4)
     with pytest.raises(AdaRLValueError, match="RandomSampler"):
         UniformTensorSampler(rb, ["observation"])
     rb = TensorDictReplayBuffer(storage=LazyTensorStorage(10), batch_size=4)

@@ -75,8 +75,11 @@ def _warnings(proc: subprocess.CompletedProcess) -> list[str]:
 
 
 def _tree(path: Path) -> dict[str, str]:
-    return {f.relative_to(path).as_posix(): hashlib.sha256(f.read_bytes()).hexdigest()
-            for f in sorted(path.rglob("*")) if f.is_file()}
+    return {
+        f.relative_to(path).as_posix(): hashlib.sha256(f.read_bytes()).hexdigest()
+        for f in sorted(path.rglob("*"))
+        if f.is_file()
+    }
 
 
 def _is_training_record(rel: str) -> bool:
@@ -170,12 +173,15 @@ def test_foreign_checkpoint_without_fingerprint_is_one_line(finished, tmp_path):
 # ------------------------------------------------------------------------------------------ evaluation and reports
 
 
-@pytest.mark.parametrize("command, allowed", [
-    (["eval", "--checkpoint", "best", "--episodes", "1"], {"eval_nominal.json"}),
-    (["eval", "--episodes", "1"], {"eval_nominal.json"}),
-    (["eval", "--sweep", "torso_length=0.3:0.5:2", "--episodes", "1"], {"sweeps/"}),
-    (["report"], {"report.md", "plots/return.png", "plots/ranks.png"}),
-])
+@pytest.mark.parametrize(
+    "command, allowed",
+    [
+        (["eval", "--checkpoint", "best", "--episodes", "1"], {"eval_nominal.json"}),
+        (["eval", "--episodes", "1"], {"eval_nominal.json"}),
+        (["eval", "--sweep", "torso_length=0.3:0.5:2", "--episodes", "1"], {"sweeps/"}),
+        (["report"], {"report.md", "plots/return.png", "plots/ranks.png"}),
+    ],
+)
 def test_eval_and_report_leave_training_records_unchanged(finished, tmp_path, command, allowed):
     run = _copy(finished, tmp_path / "run")
     before = _tree(run)
@@ -185,7 +191,9 @@ def test_eval_and_report_leave_training_records_unchanged(finished, tmp_path, co
     after = _tree(run)
     changed = {k for k in before.keys() | after.keys() if before.get(k) != after.get(k)}
     assert all(any(k == a or k.startswith(a) for k in after) for a in allowed), "its output is missing"
-    unexpected = {k for k in changed if k not in allowed and not any(a.endswith("/") and k.startswith(a) for a in allowed)}
+    unexpected = {
+        k for k in changed if k not in allowed and not any(a.endswith("/") and k.startswith(a) for a in allowed)
+    }
     assert not unexpected, unexpected
     assert not any(_is_training_record(k) for k in changed)
     assert {k for k in after if _is_training_record(k)} == {k for k in before if _is_training_record(k)}
@@ -197,9 +205,16 @@ def test_eval_and_report_leave_training_records_unchanged(finished, tmp_path, co
 def test_two_runs_started_at_once_cannot_share_a_folder(tmp_path):
     out = tmp_path / "same"
     env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
-    procs = [subprocess.Popen([sys.executable, "-m", "adarl.cli", "run", "quickstart", *FAST, f"seed={seed}", "-o",
-                               str(out), "--quiet"], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                              text=True) for seed in (0, 7)]
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-m", "adarl.cli", "run", "quickstart", *FAST, f"seed={seed}", "-o", str(out), "--quiet"],
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for seed in (0, 7)
+    ]
     results = [(p.wait(timeout=300), p.stderr.read()) for p in procs]
     codes = sorted(rc for rc, _ in results)
     assert codes == [0, 1], results
@@ -213,9 +228,18 @@ def test_two_runs_started_at_once_cannot_share_a_folder(tmp_path):
 
 def test_resume_refuses_a_folder_another_process_trains_in(finished, tmp_path):
     run = _copy(finished, tmp_path / "run")
-    holder = subprocess.Popen([sys.executable, "-c", "import sys, time; from adarl.runtime.run_dir import RunDir; "
-                               "RunDir(sys.argv[1]).lock(); print('locked', flush=True); time.sleep(120)", str(run)],
-                              env={**os.environ, "PYTHONPATH": str(REPO)}, stdout=subprocess.PIPE, text=True)
+    holder = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import sys, time; from adarl.runtime.run_dir import RunDir; "
+            "RunDir(sys.argv[1]).lock(); print('locked', flush=True); time.sleep(120)",
+            str(run),
+        ],
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     try:
         assert holder.stdout.readline().strip() == "locked"
         proc = adarl("resume", str(run), "--quiet")
@@ -255,15 +279,21 @@ def test_disk_full_tmpfs_stops_with_one_line_and_resumes(tmp_path):
 
 def test_disk_full_injected_stops_with_one_line(tmp_path):
     run = tmp_path / "run"  # 1.2 MB of writes: the run folder, the frame-0 checkpoint, then the buffer at 100 frames
-    proc = adarl_under_faults(tmp_path, "full", 1_200_000,
-                              ["run", "quickstart", *FAST, "replay.size=6000", "-o", str(run), "--quiet"], timeout=300)
+    proc = adarl_under_faults(
+        tmp_path,
+        "full",
+        1_200_000,
+        ["run", "quickstart", *FAST, "replay.size=6000", "-o", str(run), "--quiet"],
+        timeout=300,
+    )
     _check_stopped_cleanly(run, proc)
 
 
 def test_disk_full_while_logging_metrics_is_one_line(tmp_path):
     run = tmp_path / "run"  # the metric files' disk is full from the start: the first row fails
-    proc = adarl_under_faults(run / "metrics", "full", 0,
-                              ["run", "quickstart", *FAST, "-o", str(run), "--quiet"], timeout=300)
+    proc = adarl_under_faults(
+        run / "metrics", "full", 0, ["run", "quickstart", *FAST, "-o", str(run), "--quiet"], timeout=300
+    )
     line = _one_error_line(proc, "metrics/scalars/", "disk full", "its last checkpoint is intact", "adarl resume")
     assert "No space left on device" in line
     assert [p.name for p in RunDir(run).checkpoints()] == ["ckpt-000000000000.pt"]
@@ -293,8 +323,13 @@ except CheckpointError as err:
 @pytest.mark.parametrize("check", ["check", "write"])
 def test_replay_buffer_dump_on_a_full_tmpfs_is_an_error_not_sigbus(tmp_path, check):
     with small_fs("3m", tmp=tmp_path) as fs:
-        proc = subprocess.run([sys.executable, "-c", _DUMP, str(fs), check], capture_output=True, text=True,
-                              env={**os.environ, "PYTHONPATH": str(REPO)}, timeout=120)
+        proc = subprocess.run(
+            [sys.executable, "-c", _DUMP, str(fs), check],
+            capture_output=True,
+            text=True,
+            env={**os.environ, "PYTHONPATH": str(REPO)},
+            timeout=120,
+        )
         assert proc.returncode == 0, (proc.returncode, proc.stderr[-2000:])  # 135 = SIGBUS
         assert "REFUSED" in proc.stdout and "disk full" in proc.stdout
         assert sorted(p.name for p in (fs / "run" / "checkpoints").iterdir()) == ["ckpt-000000000001.pt"]
@@ -321,9 +356,11 @@ def test_replay_buffer_dump_injected_full_disk(tmp_path):
 
 
 def _readonly_cases(ro: Path) -> dict[str, subprocess.CompletedProcess]:
-    return {"run": adarl("run", "quickstart", *FAST, "-o", str(ro / "new"), "--quiet"),
-            "resume": adarl("resume", str(ro / "run"), "--quiet"),
-            "eval": adarl("eval", str(ro / "run"), "--episodes", "1")}
+    return {
+        "run": adarl("run", "quickstart", *FAST, "-o", str(ro / "new"), "--quiet"),
+        "resume": adarl("resume", str(ro / "run"), "--quiet"),
+        "eval": adarl("eval", str(ro / "run"), "--episodes", "1"),
+    }
 
 
 def _check_readonly(ro: Path, procs: dict[str, subprocess.CompletedProcess]) -> None:
@@ -341,9 +378,11 @@ def test_read_only_tmpfs_is_one_line(finished, tmp_path):
 def test_read_only_injected_is_one_line(finished, tmp_path):
     ro = tmp_path / "ro"
     _copy(finished, ro / "run")
-    procs = {"run": adarl_under_faults(ro, "readonly", 0, ["run", "quickstart", *FAST, "-o", str(ro / "new"), "-q"]),
-             "resume": adarl_under_faults(ro, "readonly", 0, ["resume", str(ro / "run"), "--quiet"]),
-             "eval": adarl_under_faults(ro, "readonly", 0, ["eval", str(ro / "run"), "--episodes", "1"])}
+    procs = {
+        "run": adarl_under_faults(ro, "readonly", 0, ["run", "quickstart", *FAST, "-o", str(ro / "new"), "-q"]),
+        "resume": adarl_under_faults(ro, "readonly", 0, ["resume", str(ro / "run"), "--quiet"]),
+        "eval": adarl_under_faults(ro, "readonly", 0, ["eval", str(ro / "run"), "--episodes", "1"]),
+    }
     _check_readonly(ro, procs)
 
 
@@ -354,8 +393,10 @@ def test_experiment_axis_that_changes_nothing_is_warned_about(tmp_path):
     from adarl.experiments.spec import load_experiment, plan_runs
 
     spec = tmp_path / "exp.yaml"
-    spec.write_text("kind: experiment\nname: x\nrecipe: quickstart\nseeds: [0]\n"
-                    "axes:\n  rank: [4, 8]\n  replicate: [a, b]\noverrides: ['network.actor.rank={rank}']\n")
+    spec.write_text(
+        "kind: experiment\nname: x\nrecipe: quickstart\nseeds: [0]\n"
+        "axes:\n  rank: [4, 8]\n  replicate: [a, b]\noverrides: ['network.actor.rank={rank}']\n"
+    )
     with pytest.warns(AdaRLWarning, match="axis 'replicate' changes nothing") as caught:
         runs = plan_runs(load_experiment(spec), tmp_path / "out")
     assert len(runs) == 4 and not any("'rank'" in str(w.message) for w in caught)
@@ -387,4 +428,3 @@ def test_fault_table_rows_are_tests():
         assert names, f"fault table row without a test: {row}"
         for name in names:
             assert name in defined, f"{name} (docs/resuming.md) is not a test"
-

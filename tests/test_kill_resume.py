@@ -56,8 +56,14 @@ def _env() -> dict:
 
 
 def _start(*args: str) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "adarl.cli", *args], cwd=REPO, env=_env(),
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen(
+        [sys.executable, "-m", "adarl.cli", *args],
+        cwd=REPO,
+        env=_env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
 
 
 def _finish(proc: subprocess.Popen, timeout: float = 300) -> tuple[int, str]:
@@ -65,8 +71,9 @@ def _finish(proc: subprocess.Popen, timeout: float = 300) -> tuple[int, str]:
     return proc.returncode, err
 
 
-def _wait_for_checkpoint(path: Path, proc: subprocess.Popen, newer_than: set[str] = frozenset(),
-                         timeout: float = 120) -> bool:
+def _wait_for_checkpoint(
+    path: Path, proc: subprocess.Popen, newer_than: set[str] = frozenset(), timeout: float = 120
+) -> bool:
     end = time.monotonic() + timeout
     while time.monotonic() < end:
         names = {p.name for p in (path / "checkpoints").glob("ckpt-*.pt")} if (path / "checkpoints").is_dir() else set()
@@ -81,8 +88,11 @@ def _wait_for_checkpoint(path: Path, proc: subprocess.Popen, newer_than: set[str
 def _results(run: Path) -> dict[str, str]:
     """Every metric file and the evaluation/rank records, as text (timing fields left out)."""
     root = run / "metrics" / "scalars"
-    out = {f"metrics/{p.relative_to(root).as_posix()}": p.read_text() for p in sorted(root.rglob("*.csv"))
-           if p.relative_to(root).parts[0] != "time"}  # time/fps: wall clock
+    out = {
+        f"metrics/{p.relative_to(root).as_posix()}": p.read_text()
+        for p in sorted(root.rglob("*.csv"))
+        if p.relative_to(root).parts[0] != "time"
+    }  # time/fps: wall clock
     assert "metrics/train/episode_return.csv" in out
     out["eval.csv"] = (run / "eval.csv").read_text()
     if (run / "ranks.json").is_file():  # rank records (AdaRL); the PPO loop has none
@@ -95,11 +105,15 @@ def _results(run: Path) -> dict[str, str]:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("recipe, base, extra, ref_extra", [
-    ("quickstart", RUN, [], []),
-    ("quickstart", RUN, ["collector.overlap=process"], ["collector.overlap=thread"]),
-    ("baselines/hopper_rnac_ipm", PPO_RUN, [], []),
-], ids=["default", "overlap", "ppo"])
+@pytest.mark.parametrize(
+    "recipe, base, extra, ref_extra",
+    [
+        ("quickstart", RUN, [], []),
+        ("quickstart", RUN, ["collector.overlap=process"], ["collector.overlap=thread"]),
+        ("baselines/hopper_rnac_ipm", PPO_RUN, [], []),
+    ],
+    ids=["default", "overlap", "ppo"],
+)
 def test_kill_9_at_random_moments_then_resume_matches_an_uninterrupted_run(tmp_path, recipe, base, extra, ref_extra):
     # "overlap": the killed run collects in a worker process (killed with it), the reference in a thread; both
     # overlap modes must give the very same run. "ppo": the RNAC baselines' loop (same BaseTrainer resume).
@@ -112,7 +126,9 @@ def test_kill_9_at_random_moments_then_resume_matches_an_uninterrupted_run(tmp_p
     kills = []
     proc = _start("run", recipe, *run, "-o", str(killed), "--quiet")
     for _ in range(5):
-        seen = {p.name for p in (killed / "checkpoints").glob("ckpt-*.pt")} if (killed / "checkpoints").is_dir() else set()
+        seen = (
+            {p.name for p in (killed / "checkpoints").glob("ckpt-*.pt")} if (killed / "checkpoints").is_dir() else set()
+        )
         # Kill after a random delay once the process is past start-up (it has written a new checkpoint or a
         # resumed one is training), so that every kill lands somewhere in the training loop.
         assert _wait_for_checkpoint(killed, proc, newer_than=seen if kills else set()), proc.communicate()[1][-3000:]

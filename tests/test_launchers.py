@@ -19,25 +19,49 @@ import yaml
 
 from adarl.errors import AdaRLError, AdaRLValueError
 from adarl.experiments.execute import read_attempts
-from adarl.experiments.orchestrate import run_experiment
-from adarl.experiments.spec import load_experiment, plan_runs
 from adarl.experiments.launchers import make_launcher
+from adarl.experiments.orchestrate import run_experiment
 from adarl.experiments.progress import ProgressBoard
+from adarl.experiments.spec import load_experiment, plan_runs
 
 REPO = Path(__file__).resolve().parents[1]
 # ~8 s per run on one core; a checkpoint every 50 frames so a killed run resumes from mid-run.
-TINY = ["collector.lean=false", "collector.total_frames=600", "collector.init_random_frames=100",
-        "collector.frames_per_batch=50", "algorithm.batch_size=32", "rank.interval=150", "replay.size=2000",
-        "replay.warm_start.frames=50", "lr_schedule.warmup_steps=20", "eval.interval=200", "eval.episodes=1",
-        "eval.max_steps=30", "checkpoint.interval=50", "checkpoint.keep_last=2"]
+TINY = [
+    "collector.lean=false",
+    "collector.total_frames=600",
+    "collector.init_random_frames=100",
+    "collector.frames_per_batch=50",
+    "algorithm.batch_size=32",
+    "rank.interval=150",
+    "replay.size=2000",
+    "replay.warm_start.frames=50",
+    "lr_schedule.warmup_steps=20",
+    "eval.interval=200",
+    "eval.episodes=1",
+    "eval.max_steps=30",
+    "checkpoint.interval=50",
+    "checkpoint.keep_last=2",
+]
 
 
 def _spec(tmp_path: Path) -> Path:
-    spec = {"kind": "experiment", "name": "tiny", "recipe": "quickstart", "overrides": TINY,
-            "axes": {"algorithm": [{"name": "adarl"},
-                                   {"name": "fixed4", "overrides": ["rank.enabled=false", "network.actor.rank=4",
-                                                                    "network.critic.rank=4"]}]},
-            "seeds": [0, 1], "workers": 2}
+    spec = {
+        "kind": "experiment",
+        "name": "tiny",
+        "recipe": "quickstart",
+        "overrides": TINY,
+        "axes": {
+            "algorithm": [
+                {"name": "adarl"},
+                {
+                    "name": "fixed4",
+                    "overrides": ["rank.enabled=false", "network.actor.rank=4", "network.critic.rank=4"],
+                },
+            ]
+        },
+        "seeds": [0, 1],
+        "workers": 2,
+    }
     path = tmp_path / "tiny.yaml"
     path.write_text(yaml.safe_dump(spec))
     return path
@@ -80,8 +104,22 @@ def test_make_launcher_rejects_unknown_names_and_bad_sizes():
 
 
 def test_cli_rejects_an_unknown_launcher(tmp_path):
-    proc = subprocess.run([sys.executable, "-m", "adarl.cli", "experiment", str(_spec(tmp_path)), "--launcher", "k8s",
-                           "-o", str(tmp_path / "o")], capture_output=True, text=True, cwd=REPO)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "adarl.cli",
+            "experiment",
+            str(_spec(tmp_path)),
+            "--launcher",
+            "k8s",
+            "-o",
+            str(tmp_path / "o"),
+        ],
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+    )
     assert proc.returncode != 0 and "invalid choice: 'k8s'" in proc.stderr
     assert not (tmp_path / "o").exists()
 
@@ -120,8 +158,9 @@ def test_ray_launcher_survives_a_killed_worker_and_matches_local(tmp_path, local
     killer = threading.Thread(target=kill_one_worker_mid_run, daemon=True)
     killer.start()
     said: list[str] = []
-    runs = run_experiment(spec, output=out, launcher="ray", log=said.append,
-                          launcher_options={"max_retries": 2}, progress_interval=1)
+    runs = run_experiment(
+        spec, output=out, launcher="ray", log=said.append, launcher_options={"max_retries": 2}, progress_interval=1
+    )
     killer.join()
     assert killed, "no worker was killed mid-run"
     assert sorted(r.status for r in runs) == ["finished"] * 4, said
@@ -141,9 +180,27 @@ def test_submitit_local_executor_matches_local(tmp_path, local_reference):
     pytest.importorskip("submitit")
     _, ref_report = local_reference
     out = tmp_path / "exp"
-    proc = subprocess.run([sys.executable, "-m", "adarl.cli", "experiment", str(_spec(tmp_path)), "-o", str(out),
-                           "--launcher", "submitit", "--submitit-cluster", "local", "--progress", "2"],
-                          capture_output=True, text=True, cwd=REPO, timeout=600)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "adarl.cli",
+            "experiment",
+            str(_spec(tmp_path)),
+            "-o",
+            str(out),
+            "--launcher",
+            "submitit",
+            "--submitit-cluster",
+            "local",
+            "--progress",
+            "2",
+        ],
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+        timeout=600,
+    )
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
     assert "4 finished" in proc.stdout
     runs = plan_runs(load_experiment(_spec(tmp_path)), out)
@@ -212,8 +269,12 @@ def test_url_results_resume_on_a_fresh_scratch_and_match_local(tmp_path, local_r
     assert sorted(r.status for r in runs) == ["finished"] + ["skipped-finished"] * 3
     _assert_each_finished_once(url, runs)
     attempts = read_attempts(url, killed[0])
-    assert [(e["event"], e["action"]) for e in attempts] == [("start", "ran"), ("end", "ran"), ("start", "resumed"),
-                                                             ("end", "resumed")]
+    assert [(e["event"], e["action"]) for e in attempts] == [
+        ("start", "ran"),
+        ("end", "ran"),
+        ("start", "resumed"),
+        ("end", "resumed"),
+    ]
     assert attempts[2]["scratch"].startswith(str(scratch_b)) and attempts[1]["status"] == "failed"
     assert not (bucket / "exp" / f"{killed[0]}.log").exists()
     assert not [p for p in scratch_b.rglob("*") if p.is_file()]
@@ -223,8 +284,12 @@ def test_url_results_resume_on_a_fresh_scratch_and_match_local(tmp_path, local_r
     for r in runs:
         ckpts = bucket / "exp" / r.run_id / "checkpoints"
         frames = json.loads((ckpts / "LATEST").read_text())["frames"]
-        assert sorted(p.name for p in ckpts.iterdir()) == ["LATEST", "best.pt", f"ckpt-{frames:012d}.pt",
-                                                            f"rb-{frames:012d}"]
+        assert sorted(p.name for p in ckpts.iterdir()) == [
+            "LATEST",
+            "best.pt",
+            f"ckpt-{frames:012d}.pt",
+            f"rb-{frames:012d}",
+        ]
     # exact resume from the downloaded checkpoint: the same evaluations and table as the local launcher
     assert _report_content(bucket / "exp") == ref_report
     # adarl report on the URL, while nothing runs (it reads the URL through fsspec, writes the report there)

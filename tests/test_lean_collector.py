@@ -6,13 +6,17 @@ import pytest
 import torch
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from adarl.runtime.config import load_recipe
 from adarl.errors import AdaRLValueError
 from adarl.fast.collector import LeanCollector, _layer_chain, wants_lean
 from adarl.runtime.builders.sac import build_components
+from adarl.runtime.config import load_recipe
 
-OVR = ["collector.total_frames=2000", "collector.init_random_frames=10", "collector.frames_per_batch=40",
-       "replay.size=2000"]
+OVR = [
+    "collector.total_frames=2000",
+    "collector.init_random_frames=10",
+    "collector.frames_per_batch=40",
+    "replay.size=2000",
+]
 
 
 @pytest.fixture(scope="module")
@@ -60,14 +64,14 @@ def test_batches_equal_torchrl_collectors(direct):
     from adarl.runtime.builders.common import train_env_factory
     from adarl.runtime.builders.sac import make_sac_modules
 
-    recipe = load_recipe("quickstart", ["collector.total_frames=2000", "collector.init_random_frames=60",
-                                        "replay.size=2000"])
+    recipe = load_recipe(
+        "quickstart", ["collector.total_frames=2000", "collector.init_random_frames=60", "replay.size=2000"]
+    )
     factory = train_env_factory(recipe)
     env_lean, env_torchrl = factory(), factory()  # the same seed: the same episodes and dynamics draws
     torch.manual_seed(0)
     actor = make_sac_modules(recipe, env_lean).actor
-    lean = LeanCollector(env_lean, actor, frames_per_batch=60, init_random_frames=60, total_frames=240,
-                         direct=direct)
+    lean = LeanCollector(env_lean, actor, frames_per_batch=60, init_random_frames=60, total_frames=240, direct=direct)
     ref = Collector(env_torchrl, actor, frames_per_batch=60, total_frames=240, init_random_frames=60)
     batches = {}
     for name, collector in (("lean", lean), ("torchrl", ref)):
@@ -88,8 +92,15 @@ def test_batches_are_consistent_transitions(comps):
     batches = list(lean)
     assert [b.shape[0] for b in batches] == [40, 40, 40] and lean.frames == 120
     data = torch.cat(batches)
-    for key in ("observation", "action", ("next", "observation"), ("next", "reward"), ("next", "terminated"),
-                ("next", "done"), ("next", "episode_reward")):
+    for key in (
+        "observation",
+        "action",
+        ("next", "observation"),
+        ("next", "reward"),
+        ("next", "terminated"),
+        ("next", "done"),
+        ("next", "episode_reward"),
+    ):
         assert key in data.keys(True), key
     done = data["next", "done"].squeeze(-1)
     same = torch.isclose(data["next", "observation"][:-1], data["observation"][1:]).all(-1)
@@ -100,8 +111,9 @@ def test_batches_are_consistent_transitions(comps):
 def test_trainer_wiring_and_fallbacks():
     comps = build_components(load_recipe("quickstart", OVR + ["collector.lean=false"]))
     assert not isinstance(comps.collector, LeanCollector)
-    disc = build_components(load_recipe("cartpole_adarl", ["collector.total_frames=1000",
-                                                           "collector.init_random_frames=250"]))
+    disc = build_components(
+        load_recipe("cartpole_adarl", ["collector.total_frames=1000", "collector.init_random_frames=250"])
+    )
     assert not isinstance(disc.collector, LeanCollector)
     with pytest.raises(AdaRLValueError, match="collector.lean"):
         wants_lean(True, disc.env, disc.modules.actor)
@@ -182,8 +194,16 @@ def _run_overlapped(mode, seed=5, batches=12, state_at=None, direct="auto"):
     env, actor, factory = _parts(seed)
     torch.manual_seed(0)
     # a short episode cap: several episode ends (and perturbation redraws) inside the batches
-    x = LeanCollector(env, actor, frames_per_batch=30, init_random_frames=20, overlap=mode, noise_seed=9,
-                      env_factory=factory, direct=direct)
+    x = LeanCollector(
+        env,
+        actor,
+        frames_per_batch=30,
+        init_random_frames=20,
+        overlap=mode,
+        noise_seed=9,
+        env_factory=factory,
+        direct=direct,
+    )
     assert x.direct == (direct == "auto")
     out, state = [], None
     for k, batch in enumerate(x):
@@ -224,12 +244,13 @@ def test_process_overlap_hands_out_the_thread_modes_batches_and_env_state():
 def test_process_overlap_resumes_from_a_state_dict():
     # what the Trainer checkpoints: the collector's state (which finishes the prefetched batch first), then the
     # env's live state, which the worker's final state was loaded into
-    from adarl.envs.state import env_state_dict, load_env_state_dict
     from adarl.envs import dynamics_state_dict, load_dynamics_state_dict
+    from adarl.envs.state import env_state_dict, load_env_state_dict
 
     env, actor, factory = _parts(6)
-    x = LeanCollector(env, actor, frames_per_batch=20, init_random_frames=0, overlap="process", noise_seed=1,
-                      env_factory=factory)
+    x = LeanCollector(
+        env, actor, frames_per_batch=20, init_random_frames=0, overlap="process", noise_seed=1, env_factory=factory
+    )
     it = iter(x)
     next(it)  # batch 1 handed over, batch 2 being collected by the worker
     state = x.state_dict()
@@ -241,8 +262,9 @@ def test_process_overlap_resumes_from_a_state_dict():
     actor2.load_state_dict(actor.state_dict())  # the policy batch 3 was collected with (after batch 2's prefetch)
     load_dynamics_state_dict(env2, dynamics)
     load_env_state_dict(env2, live)
-    y = LeanCollector(env2, actor2, frames_per_batch=20, init_random_frames=0, overlap="process", noise_seed=1,
-                      env_factory=factory2)
+    y = LeanCollector(
+        env2, actor2, frames_per_batch=20, init_random_frames=0, overlap="process", noise_seed=1, env_factory=factory2
+    )
     y.load_state_dict(state)
     it = iter(y)
     assert torch.equal(next(it).get("action"), batch2.get("action"))
@@ -270,8 +292,14 @@ def test_a_failing_worker_raises_with_its_traceback(comps):
 
     from adarl.envs import make_env
 
-    x = LeanCollector(comps.env, comps.modules.actor, frames_per_batch=10, init_random_frames=0, overlap="process",
-                      env_factory=functools.partial(make_env, "NoSuchEnv-v9"))
+    x = LeanCollector(
+        comps.env,
+        comps.modules.actor,
+        frames_per_batch=10,
+        init_random_frames=0,
+        overlap="process",
+        env_factory=functools.partial(make_env, "NoSuchEnv-v9"),
+    )
     it = iter(x)
     next(it)  # collected here; the worker (which cannot build its env) gets the next batch
     with pytest.raises(RuntimeError, match="collector worker process failed(.|\n)*NoSuchEnv-v9"):

@@ -16,7 +16,6 @@ import pytest
 import torch
 from torch import nn
 
-from adarl.errors import AdaRLValueError
 from adarl.core.lowrank import (
     LowRankLinear,
     factor_svd,
@@ -25,6 +24,7 @@ from adarl.core.lowrank import (
     refactorize,
     truncation_error,
 )
+from adarl.errors import AdaRLValueError
 
 FP32_ATOL = 1e-5  # outputs of O(1) computed through two fp32 matmuls instead of one
 
@@ -35,7 +35,7 @@ def _seed():
 
 
 def dense64(layer: LowRankLinear) -> torch.Tensor:
-    return (layer.w1.detach().double() @ layer.w2.detach().double())
+    return layer.w1.detach().double() @ layer.w2.detach().double()
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -672,8 +672,12 @@ def test_in_place_writes_to_weight_go_through():
         layer.weight[0] = 0.0
         layer.weight.data.mul_(3.0)
     assert float(layer.weight.detach()[0].abs().max()) < 1e-6
-    torch.testing.assert_close(layer.weight.detach().double()[1:] @ layer.weight.detach().double()[1:].T,
-                               36 * torch.eye(5, dtype=torch.float64), atol=1e-4, rtol=0)
+    torch.testing.assert_close(
+        layer.weight.detach().double()[1:] @ layer.weight.detach().double()[1:].T,
+        36 * torch.eye(5, dtype=torch.float64),
+        atol=1e-4,
+        rtol=0,
+    )
     x = torch.randn(4, 8)
     torch.testing.assert_close(layer(x), x @ layer.weight.T + layer.bias, atol=FP32_ATOL, rtol=1e-5)
     # results that are not the weight are plain tensors; the weight still carries gradients to the factors

@@ -5,8 +5,8 @@ import math
 import pytest
 import torch
 
-from adarl.errors import AdaRLValueError
 from adarl.core.lr_schedule import WarmupCosine, make_lr_scheduler, restart_lr_scheduler
+from adarl.errors import AdaRLValueError
 
 
 def _cos(step, total, floor=0.0):
@@ -50,7 +50,9 @@ def test_lambdalr_values_restart_and_immediate_zero():
         opt.step()
         sch.step()
         lrs.append(opt.param_groups[0]["lr"])
-    assert lrs[:4] == pytest.approx([2 * 0.25 * _cos(1, 40), 2 * 0.5 * _cos(2, 40), 2 * 0.75 * _cos(3, 40), 2 * _cos(4, 40)])
+    assert lrs[:4] == pytest.approx(
+        [2 * 0.25 * _cos(1, 40), 2 * 0.5 * _cos(2, 40), 2 * 0.75 * _cos(3, 40), 2 * _cos(4, 40)]
+    )
     assert lrs[9] == pytest.approx(2 * _cos(10, 40))
     restart_lr_scheduler(sch)
     assert opt.param_groups[0]["lr"] == 0.0 and sch.get_last_lr() == [0.0]

@@ -15,10 +15,20 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 RECIPES = sorted(p.relative_to(REPO / "recipes").as_posix() for p in (REPO / "recipes").rglob("*.yaml"))
-TINY = ["collector.total_frames=600", "collector.init_random_frames=200", "collector.frames_per_batch=100",
-        "algorithm.batch_size=32", "rank.interval=200", "replay.size=2000", "replay.warm_start.frames=100",
-        "lr_schedule.warmup_steps=20", "eval.interval=600", "eval.episodes=1", "eval.max_steps=30",
-        "checkpoint.interval=600"]
+TINY = [
+    "collector.total_frames=600",
+    "collector.init_random_frames=200",
+    "collector.frames_per_batch=100",
+    "algorithm.batch_size=32",
+    "rank.interval=200",
+    "replay.size=2000",
+    "replay.warm_start.frames=100",
+    "lr_schedule.warmup_steps=20",
+    "eval.interval=600",
+    "eval.episodes=1",
+    "eval.max_steps=30",
+    "checkpoint.interval=600",
+]
 
 
 def _subpackages() -> list[str]:
@@ -65,8 +75,13 @@ def test_wheel_ships_recipes_and_runs_from_another_folder(tmp_path: Path):
         isolation = ["--no-build-isolation"] if int(setuptools.__version__.split(".")[0]) >= 77 else []
     except (ImportError, ValueError):
         isolation = []
-    proc = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", *isolation, "-w", str(dist), str(src)],
-                          capture_output=True, text=True, env=env, timeout=300)
+    proc = subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", "--no-deps", *isolation, "-w", str(dist), str(src)],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
     wheel = next(dist.glob("adarl-*.whl"))
     names = set(zipfile.ZipFile(wheel).namelist())
@@ -79,30 +94,52 @@ def test_wheel_ships_recipes_and_runs_from_another_folder(tmp_path: Path):
     venv = tmp_path / "venv"
     subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True, timeout=300, env=env)
     py = venv / "bin" / "python"
-    site = subprocess.run([str(py), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
-                          capture_output=True, text=True, check=True, env=env).stdout.strip()
+    site = subprocess.run(
+        [str(py), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+        capture_output=True,
+        text=True,
+        check=True,
+        env=env,
+    ).stdout.strip()
     deps = {sysconfig.get_paths()["purelib"], sysconfig.get_paths()["platlib"]}
     (Path(site) / "adarl_test_deps.pth").write_text("".join(f"{d}\n" for d in sorted(deps)))
-    proc = subprocess.run([str(py), "-m", "pip", "install", "--no-deps", "--no-index", str(wheel)],
-                          capture_output=True, text=True, env=env, timeout=300)
+    proc = subprocess.run(
+        [str(py), "-m", "pip", "install", "--no-deps", "--no-index", str(wheel)],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
 
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
     adarl = str(venv / "bin" / "adarl")
-    proc = subprocess.run([str(py), "-c", "import adarl.runtime.config as c; print(c.__file__); print(c.recipes_dir()[-1])"],
-                          cwd=elsewhere, capture_output=True, text=True, env=env, timeout=120)
+    proc = subprocess.run(
+        [str(py), "-c", "import adarl, adarl.runtime.config as c; print(adarl.__file__); print(c.recipes_dir()[-1])"],
+        cwd=elsewhere,
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=120,
+    )
     module_file, recipes = proc.stdout.split()
     assert Path(module_file).is_relative_to(venv), module_file
-    assert Path(recipes) == Path(module_file).parent / "recipes"
+    assert Path(recipes) == Path(module_file).parent / "recipes"  # adarl/recipes in the installed package
     proc = subprocess.run([adarl, "recipes"], cwd=elsewhere, capture_output=True, text=True, env=env, timeout=120)
     assert proc.returncode == 0, proc.stderr
     listed = {line.split()[0] for line in proc.stdout.splitlines() if line.strip()}
-    assert {r[:-len(".yaml")] for r in RECIPES if not r.startswith("experiments/")} == listed
+    assert {r[: -len(".yaml")] for r in RECIPES if not r.startswith("experiments/")} == listed
 
     run_env = {**env, "OMP_NUM_THREADS": "1", "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
-    proc = subprocess.run([adarl, "run", "quickstart", "-o", "out", *TINY, "--quiet"], cwd=elsewhere,
-                          capture_output=True, text=True, env=run_env, timeout=600)
+    proc = subprocess.run(
+        [adarl, "run", "quickstart", "-o", "out", *TINY, "--quiet"],
+        cwd=elsewhere,
+        capture_output=True,
+        text=True,
+        env=run_env,
+        timeout=600,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert (elsewhere / "out" / "summary.json").is_file()
     assert "run finished" in proc.stdout

@@ -71,8 +71,17 @@ def test_consistent_mode_matches_a_model_compiled_from_the_edited_xml():
     for foot in ("foot_geom", "foot_left_geom"):
         spec.geom(foot).size = [0.06, 0.15, 0]
     fresh = spec.compile()
-    for field in ("body_pos", "body_mass", "body_inertia", "body_ipos", "geom_size", "geom_rbound",
-                  "body_subtreemass", "dof_invweight0", "body_invweight0"):
+    for field in (
+        "body_pos",
+        "body_mass",
+        "body_inertia",
+        "body_ipos",
+        "geom_size",
+        "geom_rbound",
+        "body_subtreemass",
+        "dof_invweight0",
+        "body_invweight0",
+    ):
         np.testing.assert_allclose(getattr(live, field), getattr(fresh, field), atol=1e-9, err_msg=field)
 
 
@@ -93,10 +102,27 @@ def test_long_foot_still_touches_the_floor(mode):
 
 
 def test_nominal_episode_restores_the_compiled_model_exactly():
-    env = make_env("Hopper-v5", schedule=ListSchedule([
-        {"torso_length": 0.5, "foot_length": 0.3, "mass_scale": 1.5, "friction_scale": 0.5, "mass_scale:foot": 2.0},
-        {"torso_length": 0.2, "foot_length": 0.195, "mass_scale": 1.0, "friction_scale": 1.0, "mass_scale:foot": 1.0},
-    ]))
+    env = make_env(
+        "Hopper-v5",
+        schedule=ListSchedule(
+            [
+                {
+                    "torso_length": 0.5,
+                    "foot_length": 0.3,
+                    "mass_scale": 1.5,
+                    "friction_scale": 0.5,
+                    "mass_scale:foot": 2.0,
+                },
+                {
+                    "torso_length": 0.2,
+                    "foot_length": 0.195,
+                    "mass_scale": 1.0,
+                    "friction_scale": 1.0,
+                    "mass_scale:foot": 1.0,
+                },
+            ]
+        ),
+    )
     fresh = mujoco.MjModel.from_xml_path(default_xml_path("Hopper-v5"))
     m = _model(env)
     env.reset()
@@ -192,8 +218,9 @@ def test_values_at_reset_and_every_step_declared_and_not_in_the_observation():
 
 
 def test_custom_out_key():
-    env = TransformedEnv(GymEnv("Hopper-v5"), PerturbedDynamicsEnvTransform(
-        "Hopper-v5", "nominal", out_key=("info", "dyn")))
+    env = TransformedEnv(
+        GymEnv("Hopper-v5"), PerturbedDynamicsEnvTransform("Hopper-v5", "nominal", out_key=("info", "dyn"))
+    )
     td = env.rollout(3)
     assert float(td["next", "info", "dyn", "foot_length"][-1]) == pytest.approx(0.39)
     assert ("info", "dyn", "episode") in env.observation_spec.keys(True)
@@ -243,7 +270,8 @@ def test_serial_env_two_workers_draw_their_own_sequences():
     torso = roll["dynamics", "torso_length"]
     assert not torch.equal(torso[0], torso[1])
     again = make_env("Hopper-v5", preset="high", num_envs=2, seed=0, max_episode_steps=5).rollout(
-        12, break_when_any_done=False)
+        12, break_when_any_done=False
+    )
     assert torch.equal(again["dynamics", "torso_length"], torso)
     # the paper's sinusoid is interleaved across workers: worker w plays episodes w, w + 2, ...
     sine = make_env("Hopper-v5", num_envs=2, max_episode_steps=5).rollout(6, break_when_any_done=False)
@@ -291,14 +319,17 @@ def test_make_eval_env_fixes_the_nominal_dynamics():
 
 def test_registry_and_presets():
     assert {"Hopper-v5", "Walker2d-v5", "Ant-v5", "Humanoid-v5", "CartPole-v1", "InvertedPendulum-v5"} <= set(
-        SUPPORTED_ENVS)
+        SUPPORTED_ENVS
+    )
     hopper = env_parameters("Hopper-v5")
     assert hopper["torso_length"].default == 0.2 and hopper["foot_length"].default == 0.195
     assert {"mass_scale", "friction_scale", "mass_scale:torso", "mass_scale:foot"} <= set(hopper)
     assert set(env_parameters("CartPole-v1")) == {"pole_length"}
     assert make_schedule("Hopper-v5", "low").to_dict() == {
-        "kind": "uniform", "low": {"foot_length": 0.305, "torso_length": 0.31},
-        "high": {"foot_length": 0.485, "torso_length": 0.49}}
+        "kind": "uniform",
+        "low": {"foot_length": 0.305, "torso_length": 0.31},
+        "high": {"foot_length": 0.485, "torso_length": 0.49},
+    }
     assert make_schedule("Walker2d-v5", "high").bounds() == {"foot_length": (0.03, 0.17), "torso_length": (0.06, 0.34)}
     assert make_schedule("Humanoid-v5", "paper").bounds()["wind"] == pytest.approx((0.5, 1.5))
     assert make_schedule("Hopper-v5", "nominal").nominal() == {"torso_length": 0.4, "foot_length": 0.39}
@@ -328,31 +359,54 @@ def test_error_paths_name_the_allowed_values():
     _raises(["'Foo-v0'", "Hopper-v5", "CartPole-v1"], make_env, "Foo-v0")
     _raises(["'Hopper-v4'", "use 'Hopper-v5'"], make_env, "Hopper-v4")
     _raises(["'CartPole-v0'", "use 'CartPole-v1'"], env_parameters, "CartPole-v0")
-    _raises(["'gravity'", "Hopper-v5", "torso_length", "mass_scale:torso"],
-            make_env, "Hopper-v5", schedule=FixedSchedule({"gravity": 9.81}))
-    _raises(["'mass_scale:wing'", "torso_length"], PerturbedDynamicsEnvTransform, "Hopper-v5",
-            FixedSchedule({"mass_scale:wing": 2.0}))
+    _raises(
+        ["'gravity'", "Hopper-v5", "torso_length", "mass_scale:torso"],
+        make_env,
+        "Hopper-v5",
+        schedule=FixedSchedule({"gravity": 9.81}),
+    )
+    _raises(
+        ["'mass_scale:wing'", "torso_length"],
+        PerturbedDynamicsEnvTransform,
+        "Hopper-v5",
+        FixedSchedule({"mass_scale:wing": 2.0}),
+    )
     for bad in (-0.1, 0.0):
         _raises([repr(bad), "> 0"], make_env, "Hopper-v5", schedule=FixedSchedule({"torso_length": bad}))
     for bad in (float("nan"), float("inf")):
         _raises(["finite"], FixedSchedule, {"torso_length": bad})
     # a schedule whose range leaves the valid set is refused up front
-    _raises(["torso_length", "-0.1", "> 0"], make_env, "Hopper-v5",
-            schedule={"kind": "sinusoid", "center": {"torso_length": 0.1}, "amplitude": {"torso_length": 0.2},
-                      "frequency": 0.2})
+    _raises(
+        ["torso_length", "-0.1", "> 0"],
+        make_env,
+        "Hopper-v5",
+        schedule={
+            "kind": "sinusoid",
+            "center": {"torso_length": 0.1},
+            "amplitude": {"torso_length": 0.2},
+            "frequency": 0.2,
+        },
+    )
     _raises(["'medium'", "paper", "low", "high", "nominal", "none"], make_env, "Hopper-v5", preset="medium")
     _raises(["'paper'", "low", "high"], make_schedule, "HalfCheetah-v5", "paper")
-    _raises(["'gaussian'", "sinusoid", "uniform", "fixed", "list"], make_env, "Hopper-v5",
-            schedule={"kind": "gaussian"})
+    _raises(
+        ["'gaussian'", "sinusoid", "uniform", "fixed", "list"], make_env, "Hopper-v5", schedule={"kind": "gaussian"}
+    )
     _raises(["'mode'", "kind"], make_env, "Hopper-v5", schedule={"kind": "uniform", "low": {}, "high": {}, "mode": 1})
     _raises(["'exact'", "consistent", "ompo"], make_env, "Hopper-v5", mode="exact")
     _raises(["low", "high"], UniformSchedule, {"torso_length": 0.5}, {"torso_length": 0.3})
     _raises(["same parameters"], UniformSchedule, {"torso_length": 0.3}, {"foot_length": 0.5})
     _raises(["num_envs"], make_env, "Hopper-v5", num_envs=0)
-    _raises(["batched", "worker"], lambda: TransformedEnv(
-        SerialEnv(2, lambda: GymEnv("Hopper-v5")), PerturbedDynamicsEnvTransform("Hopper-v5")).reset())
-    _raises(["'Hopper-v5'", "'Walker2d-v5'"], lambda: TransformedEnv(
-        GymEnv("Walker2d-v5"), PerturbedDynamicsEnvTransform("Hopper-v5")).reset())
+    _raises(
+        ["batched", "worker"],
+        lambda: TransformedEnv(
+            SerialEnv(2, lambda: GymEnv("Hopper-v5")), PerturbedDynamicsEnvTransform("Hopper-v5")
+        ).reset(),
+    )
+    _raises(
+        ["'Hopper-v5'", "'Walker2d-v5'"],
+        lambda: TransformedEnv(GymEnv("Walker2d-v5"), PerturbedDynamicsEnvTransform("Hopper-v5")).reset(),
+    )
 
 
 def test_applier_validates_body_names_against_the_live_model():

@@ -16,18 +16,34 @@ import torch
 from tensordict import TensorDict
 
 REPO = Path(__file__).resolve().parents[1]
-TINY = ["collector.total_frames=1600", "collector.init_random_frames=300", "collector.frames_per_batch=100",
-        "algorithm.batch_size=64", "rank.interval=400", "replay.size=5000", "replay.warm_start.frames=100",
-        "lr_schedule.warmup_steps=50", "eval.interval=800", "eval.episodes=2", "eval.max_steps=60",
-        "checkpoint.interval=500"]
+TINY = [
+    "collector.total_frames=1600",
+    "collector.init_random_frames=300",
+    "collector.frames_per_batch=100",
+    "algorithm.batch_size=64",
+    "rank.interval=400",
+    "replay.size=5000",
+    "replay.warm_start.frames=100",
+    "lr_schedule.warmup_steps=50",
+    "eval.interval=800",
+    "eval.episodes=2",
+    "eval.max_steps=60",
+    "checkpoint.interval=500",
+]
 
 
 def adarl(*args: str, cwd: Path | None = None, gl: str | None = None, timeout: int = 600):
     env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
     if gl is not None:
         env["MUJOCO_GL"] = gl
-    return subprocess.run([sys.executable, "-m", "adarl.cli", *args], cwd=cwd or REPO, env=env,
-                          capture_output=True, text=True, timeout=timeout)
+    return subprocess.run(
+        [sys.executable, "-m", "adarl.cli", *args],
+        cwd=cwd or REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -149,13 +165,20 @@ def test_load_policy_best_a_checkpoint_file_and_an_older_checkpoint(tiny, tmp_pa
 
 def _headless_backend() -> str | None:
     """The MUJOCO_GL backend that renders here (EGL first, then OSMesa), or None."""
-    code = ("import gymnasium as gym\n"
-            "e = gym.make('Hopper-v5', render_mode='rgb_array', width=32, height=32)\n"
-            "e.reset(seed=0)\n"
-            "assert e.render().shape == (32, 32, 3)\n")
+    code = (
+        "import gymnasium as gym\n"
+        "e = gym.make('Hopper-v5', render_mode='rgb_array', width=32, height=32)\n"
+        "e.reset(seed=0)\n"
+        "assert e.render().shape == (32, 32, 3)\n"
+    )
     for gl in ("egl", "osmesa"):
-        proc = subprocess.run([sys.executable, "-c", code], env={**os.environ, "MUJOCO_GL": gl},
-                              capture_output=True, text=True, timeout=120)
+        proc = subprocess.run(
+            [sys.executable, "-c", code],
+            env={**os.environ, "MUJOCO_GL": gl},
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
         if proc.returncode == 0:
             return gl
     return None
@@ -168,8 +191,22 @@ def test_play_renders_headless_to_one_video(tiny, tmp_path):
         pytest.skip("MuJoCo cannot render headless here: neither MUJOCO_GL=egl (libEGL) nor osmesa (libOSMesa)")
     out, _ = tiny
     video = tmp_path / "videos" / "hopper.mp4"
-    proc = adarl("play", str(out), "--video", str(video), "--episodes", "2", "--max-steps", "10", "--size",
-                 "64x48", "--perturb", "torso_length=0.5", cwd=tmp_path, gl=gl)
+    proc = adarl(
+        "play",
+        str(out),
+        "--video",
+        str(video),
+        "--episodes",
+        "2",
+        "--max-steps",
+        "10",
+        "--size",
+        "64x48",
+        "--perturb",
+        "torso_length=0.5",
+        cwd=tmp_path,
+        gl=gl,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "torso_length=0.5" in proc.stdout and "episode 1: return" in proc.stdout and str(video) in proc.stdout
     from moviepy import VideoFileClip
@@ -189,10 +226,12 @@ def test_play_without_video_and_its_errors(tiny, tmp_path):
     proc = adarl("play", str(out), "--max-steps", "5", "--which", "best", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "episode 0: return" in proc.stdout and "best.pt" in proc.stdout
-    for args, words in ((["--perturb", "bogus_length=1"], ["bogus_length", "torso_length"]),
-                        (["--perturb", "torso_length"], ["PARAM=VALUE"]),
-                        (["--video", "out.avi"], [".mp4"]),
-                        (["--episodes", "0"], ["episodes", ">= 1"])):
+    for args, words in (
+        (["--perturb", "bogus_length=1"], ["bogus_length", "torso_length"]),
+        (["--perturb", "torso_length"], ["PARAM=VALUE"]),
+        (["--video", "out.avi"], [".mp4"]),
+        (["--episodes", "0"], ["episodes", ">= 1"]),
+    ):
         proc = adarl("play", str(out), *args, cwd=tmp_path)
         assert proc.returncode == 2, (args, proc.stderr[-2000:])
         assert "Traceback" not in proc.stderr
@@ -200,14 +239,38 @@ def test_play_without_video_and_its_errors(tiny, tmp_path):
             assert word in proc.stderr, (word, proc.stderr)
 
 
-@pytest.mark.parametrize("recipe, overrides, obs_dim", [
-    ("baselines/hopper_rnac_ipm", ["collector.total_frames=256", "collector.frames_per_batch=128",
-                                   "algorithm.ppo.epochs=1", "eval.interval=256", "eval.episodes=1",
-                                   "eval.max_steps=20", "checkpoint.interval=256"], 11),
-    ("cartpole_adarl", ["collector.total_frames=400", "collector.init_random_frames=200",
-                        "collector.frames_per_batch=100", "rank.interval=100", "replay.warm_start.frames=100",
-                        "eval.interval=400", "eval.episodes=1", "eval.max_steps=20"], 4),
-])
+@pytest.mark.parametrize(
+    "recipe, overrides, obs_dim",
+    [
+        (
+            "baselines/hopper_rnac_ipm",
+            [
+                "collector.total_frames=256",
+                "collector.frames_per_batch=128",
+                "algorithm.ppo.epochs=1",
+                "eval.interval=256",
+                "eval.episodes=1",
+                "eval.max_steps=20",
+                "checkpoint.interval=256",
+            ],
+            11,
+        ),
+        (
+            "cartpole_adarl",
+            [
+                "collector.total_frames=400",
+                "collector.init_random_frames=200",
+                "collector.frames_per_batch=100",
+                "rank.interval=100",
+                "replay.warm_start.frames=100",
+                "eval.interval=400",
+                "eval.episodes=1",
+                "eval.max_steps=20",
+            ],
+            4,
+        ),
+    ],
+)
 def test_load_policy_of_a_ppo_run_and_a_discrete_run(recipe, overrides, obs_dim, tmp_path):
     from adarl.runtime.policy import load_policy, load_policy_with_info
 

@@ -14,7 +14,6 @@ import torch
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from adarl.errors import AdaRLValueError
 from adarl.core.rank import (
     RULES,
     EnergyRule,
@@ -26,6 +25,7 @@ from adarl.core.rank import (
     energy_share,
     make_rule,
 )
+from adarl.errors import AdaRLValueError
 
 S4321 = torch.tensor([4.0, 3.0, 2.0, 1.0])  # shares 0.4, 0.7, 0.9, 1.0
 

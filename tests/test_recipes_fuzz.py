@@ -16,10 +16,9 @@ import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-import adarl
 import adarl.envs as envs
+from adarl.errors import RecipeError
 from adarl.runtime.config import Recipe, describe_schema, load_recipe, recipe_to_yaml, validate_recipe
-from adarl.errors import AdaRLValueError, RecipeError
 
 # ADARL_FUZZ_EXAMPLES=5000 for a long hunt; the default keeps the whole file near 15 s
 FUZZ = settings(
@@ -28,8 +27,6 @@ FUZZ = settings(
     suppress_health_check=list(HealthCheck),
     database=None,
 )
-
-
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -68,7 +65,9 @@ scalars = st.one_of(
     st.integers(-(10**12), 10**12),
     st.floats(allow_nan=True, allow_infinity=True),
     st.text(max_size=12),
-    st.sampled_from(["auto", "Hopper-v5", "CartPole-v1", "energy", "fixed", "???", "${seed}", "${oc.env:HOME}", "\\${x}"]),
+    st.sampled_from(
+        ["auto", "Hopper-v5", "CartPole-v1", "energy", "fixed", "???", "${seed}", "${oc.env:HOME}", "\\${x}"]
+    ),
 )
 nested = st.recursive(
     scalars, lambda ch: st.one_of(st.lists(ch, max_size=4), st.dictionaries(keys, ch, max_size=4)), max_leaves=20
@@ -77,10 +76,40 @@ value_texts = st.one_of(
     st.text(max_size=15),
     st.sampled_from(
         [
-            "0", "1", "-1", "0.5", "1e-3", "3.5e6", "null", "true", "[]", "[32, 32]", "[0, 1]", "{}", "{beta: 0.9}",
-            "{kind: fixed, values: {torso_length: 0.3}}", "{kind: uniform, low: {x: 1}, high: {x: 0}}", ".inf",
-            ".nan", "'???'", "${seed}", "${oc.env:HOME}", "${", "}", "[", "{", "!!python/name:os.system", "&a [*a]",
-            "fixed", "auto", "Hopper-v5", "cuda:0", "'quoted'", "- a", "a: b", "\\${x}",
+            "0",
+            "1",
+            "-1",
+            "0.5",
+            "1e-3",
+            "3.5e6",
+            "null",
+            "true",
+            "[]",
+            "[32, 32]",
+            "[0, 1]",
+            "{}",
+            "{beta: 0.9}",
+            "{kind: fixed, values: {torso_length: 0.3}}",
+            "{kind: uniform, low: {x: 1}, high: {x: 0}}",
+            ".inf",
+            ".nan",
+            "'???'",
+            "${seed}",
+            "${oc.env:HOME}",
+            "${",
+            "}",
+            "[",
+            "{",
+            "!!python/name:os.system",
+            "&a [*a]",
+            "fixed",
+            "auto",
+            "Hopper-v5",
+            "cuda:0",
+            "'quoted'",
+            "- a",
+            "a: b",
+            "\\${x}",
         ]
     ),
 )

@@ -14,8 +14,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from adarl.runtime.config import load_recipe, save_resolved
 from adarl.errors import CheckpointError, CheckpointFallbackWarning, RecipeError
+from adarl.runtime.config import load_recipe, save_resolved
 from adarl.runtime.guards import DeadLayerError, NonFiniteError, NonFiniteGuard, check_live_layers
 from adarl.runtime.run_dir import RunDir
 from adarl.runtime.signals import GracefulInterrupt
@@ -242,7 +242,9 @@ def test_nan_in_a_loss_stops_the_run_and_keeps_the_last_good_checkpoint(tmp_path
 
 
 def test_rollback_lowers_the_lr_and_finishes(tmp_path):
-    trainer = _trainer(tmp_path / "run", "guards.on_nonfinite=rollback", "guards.lr_factor=0.25", "algorithm.fused=false")
+    trainer = _trainer(
+        tmp_path / "run", "guards.on_nonfinite=rollback", "guards.lr_factor=0.25", "algorithm.fused=false"
+    )
     base = list(trainer.c.schedulers["actor"].base_lrs)
     calls = _inject_nan(trainer, at_call=120)
     summary = trainer.train()
@@ -302,8 +304,14 @@ def test_first_signal_is_recorded_second_stops_now():
 # ------------------------------------------------------------------------------------------ recipes run no code
 
 
-@pytest.mark.parametrize("tag", ["!!python/object/apply:os.system ['touch {m}']", "!!python/name:os.system",
-                                 "!!python/object/new:os.system ['touch {m}']"])
+@pytest.mark.parametrize(
+    "tag",
+    [
+        "!!python/object/apply:os.system ['touch {m}']",
+        "!!python/name:os.system",
+        "!!python/object/new:os.system ['touch {m}']",
+    ],
+)
 def test_recipe_cannot_run_python(tmp_path, tag):
     marker = tmp_path / "pwned"
     p = tmp_path / "evil.yaml"

@@ -16,8 +16,8 @@ import pytest
 
 from adarl.errors import AdaRLValueError
 from adarl.experiments.execute import _record_attempt, read_attempts, run_is_finished
-from adarl.experiments.spec import PlannedRun
 from adarl.experiments.progress import LiveBoard, ProgressBoard, read_progress, use_live
+from adarl.experiments.spec import PlannedRun
 from adarl.runtime.results import LATEST, RunMirror, filesystem, read_text, scratch_folder
 
 
@@ -84,7 +84,10 @@ def test_push_uploads_checkpoint_then_latest_and_prunes(tmp_path, fake_s3):
     assert not mirror.has_new_checkpoint()
     files = _remote_files(root)
     assert [f for f in files if f.startswith("checkpoints/")] == [
-        "checkpoints/LATEST", "checkpoints/ckpt-000000000100.pt", "checkpoints/rb-000000000100/storage/obs.memmap"]
+        "checkpoints/LATEST",
+        "checkpoints/ckpt-000000000100.pt",
+        "checkpoints/rb-000000000100/storage/obs.memmap",
+    ]
     assert not any(".part-" in f or f.endswith(".tmp") for f in files)
     assert (root / "metrics" / "scalars" / "train.updates.csv").read_text() == "50,10\n100,60\n"
     assert "summary.json" not in files
@@ -110,8 +113,9 @@ def test_retry_on_a_fresh_scratch_downloads_the_latest_checkpoint(tmp_path, fake
     assert fresh.prepare() == "resume"
     assert [f for f, _ in fresh.local_checkpoints()] == [100]  # LATEST's only
     got = sorted(p.relative_to(fresh.local).as_posix() for p in fresh.local.rglob("*") if p.is_file())
-    assert got == sorted(p.relative_to(first).as_posix() for p in first.rglob("*") if p.is_file()
-                         and "000000000050" not in p.as_posix())
+    assert got == sorted(
+        p.relative_to(first).as_posix() for p in first.rglob("*") if p.is_file() and "000000000050" not in p.as_posix()
+    )
     assert (fresh.local / "checkpoints" / "rb-000000000100" / "storage" / "obs.memmap").read_bytes() == b"rb100"
     fake_s3.writes.clear()
     fresh.push()
@@ -216,7 +220,7 @@ def test_live_board_draws_one_row_per_run_and_the_bar(tmp_path):
     assert "\x1b[" in buf.getvalue()  # drawn for a terminal
     assert "[finished] algo=a__seed=0 (8 s)" in text
     assert "1/3 runs done, 44% of frames" in text
-    last = text[text.rindex("1/3 runs done"):]
+    last = text[text.rindex("1/3 runs done") :]
     for state, run_id in (("finished", "algo=a__seed=0"), ("running", "algo=a__seed=1"), ("pending", "algo=a__seed=2")):
         row = next(line for line in last.splitlines() if run_id in line)
         assert row.split()[:3] == [state, run_id, "100/600"] and "12.5" in row
@@ -244,8 +248,8 @@ def test_live_only_on_a_terminal_outside_ci():
 
 
 def test_launchers_that_cannot_use_the_url_say_so(tmp_path):
-    from adarl.experiments.orchestrate import run_experiment
     from adarl.experiments.launchers import make_launcher
+    from adarl.experiments.orchestrate import run_experiment
 
     with pytest.raises(AdaRLValueError, match="--submitit-folder"):
         make_launcher("submitit", output="s3://bucket/exp")

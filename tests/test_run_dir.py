@@ -26,8 +26,9 @@ def test_create_refuses_existing_non_empty(tmp_path):
 def test_checkpoint_round_trip_and_rotation(tmp_path):
     run = RunDir.create(tmp_path / "run")
     for frames in (100, 200, 300, 400):
-        run.save_checkpoint({"counters": {"frames": frames}, "x": torch.full((3,), float(frames))},
-                            frames=frames, keep_last=2)
+        run.save_checkpoint(
+            {"counters": {"frames": frames}, "x": torch.full((3,), float(frames))}, frames=frames, keep_last=2
+        )
     assert [p.name for p in run.checkpoints()] == ["ckpt-000000000300.pt", "ckpt-000000000400.pt"]
     state = run.load_latest_checkpoint()
     assert state["counters"]["frames"] == 400 and torch.equal(state["x"], torch.full((3,), 400.0))
@@ -83,8 +84,10 @@ def test_truncate_metrics_drops_rows_after_checkpoint(tmp_path):
 @pytest.mark.skipif(importlib.util.find_spec("tensorboard") is not None, reason="tensorboard is installed")
 def test_missing_logger_extra_is_a_clear_error(tmp_path):
     run = RunDir.create(tmp_path / "run")
-    recipe = types.SimpleNamespace(logging=types.SimpleNamespace(backends=["csv", "tensorboard"], wandb_mode="offline",
-                                                                 wandb_project="adarl"), name="x")
+    recipe = types.SimpleNamespace(
+        logging=types.SimpleNamespace(backends=["csv", "tensorboard"], wandb_mode="offline", wandb_project="adarl"),
+        name="x",
+    )
     with pytest.raises(AdaRLError, match=r"adarl\[tensorboard\]"):
         run.make_logger(recipe)
 
@@ -140,8 +143,10 @@ def test_write_json_is_strict_json(tmp_path):
     import math
 
     run = RunDir.create(tmp_path / "run")
-    run.write_json("summary.json", {"a": float("nan"), "b": [1.0, float("inf")],
-                                    "c": torch.tensor([float("-inf"), 2.0]), "d": {"e": math.pi}})
+    run.write_json(
+        "summary.json",
+        {"a": float("nan"), "b": [1.0, float("inf")], "c": torch.tensor([float("-inf"), 2.0]), "d": {"e": math.pi}},
+    )
     text = (run.path / "summary.json").read_text()
     data = json.loads(text, parse_constant=lambda c: pytest.fail(f"{c} in JSON"))
     assert data == {"a": None, "b": [1.0, None], "c": [None, 2.0], "d": {"e": math.pi}}
@@ -164,8 +169,9 @@ def test_replay_buffer_round_trip_and_older_dumps_folders(tmp_path):
     from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
     def buffer():
-        return TensorDictReplayBuffer(storage=LazyTensorStorage(100), batch_size=4,
-                                      generator=torch.Generator().manual_seed(0))
+        return TensorDictReplayBuffer(
+            storage=LazyTensorStorage(100), batch_size=4, generator=torch.Generator().manual_seed(0)
+        )
 
     rb = buffer()
     rb.extend(TensorDict({"obs": torch.randn(30, 3)}, [30]))
@@ -180,12 +186,15 @@ def test_replay_buffer_round_trip_and_older_dumps_folders(tmp_path):
     assert run.load_replay_buffer(old, frames=60) and len(old) == 30
 
 
-@pytest.mark.parametrize("payload", [
-    {"format": "adarl.checkpoint", "version": 1, "state": {"counters": 5}},
-    {"format": "adarl.checkpoint", "version": "x", "state": {"counters": {"frames": 1}}},
-    {"format": "adarl.checkpoint", "version": 1, "state": [1, 2]},
-    {"format": "adarl.checkpoint", "version": 1, "frames": "soon", "state": {"counters": {"frames": 1}}},
-])
+@pytest.mark.parametrize(
+    "payload",
+    [
+        {"format": "adarl.checkpoint", "version": 1, "state": {"counters": 5}},
+        {"format": "adarl.checkpoint", "version": "x", "state": {"counters": {"frames": 1}}},
+        {"format": "adarl.checkpoint", "version": 1, "state": [1, 2]},
+        {"format": "adarl.checkpoint", "version": 1, "frames": "soon", "state": {"counters": {"frames": 1}}},
+    ],
+)
 def test_malformed_checkpoint_is_refused_not_a_traceback(tmp_path, payload):
     run = RunDir.create(tmp_path / "run")
     run.checkpoint_dir.mkdir()

@@ -21,10 +21,21 @@ from torchrl.objectives import SACLoss
 
 from adarl.runtime import metrics
 
-TINY = ["collector.total_frames=1200", "collector.init_random_frames=300", "collector.frames_per_batch=100",
-        "algorithm.batch_size=64", "rank.interval=300", "replay.size=5000", "replay.warm_start.frames=100",
-        "lr_schedule.warmup_steps=50", "eval.interval=600", "eval.episodes=1", "eval.max_steps=40",
-        "checkpoint.interval=400", "logging.log_interval=200"]
+TINY = [
+    "collector.total_frames=1200",
+    "collector.init_random_frames=300",
+    "collector.frames_per_batch=100",
+    "algorithm.batch_size=64",
+    "rank.interval=300",
+    "replay.size=5000",
+    "replay.warm_start.frames=100",
+    "lr_schedule.warmup_steps=50",
+    "eval.interval=600",
+    "eval.episodes=1",
+    "eval.max_steps=40",
+    "checkpoint.interval=400",
+    "logging.log_interval=200",
+]
 ACTOR_PATH = "actor_network.module.0.module.0.0"
 
 
@@ -48,10 +59,14 @@ def _sac_loss(num_cells=(16, 16)):
 
     obs, act = 5, 2
     net = nn.Sequential(low_rank_mlp(obs, 2 * act, num_cells, low_rank_layers=(0, 1)), NormalParamExtractor())
-    actor = ProbabilisticActor(TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"]),
-                               in_keys=["loc", "scale"], distribution_class=TanhNormal)
-    critic = ValueOperator(low_rank_mlp(obs + act, 1, num_cells, low_rank_layers=(1,)),
-                           in_keys=["observation", "action"])
+    actor = ProbabilisticActor(
+        TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"]),
+        in_keys=["loc", "scale"],
+        distribution_class=TanhNormal,
+    )
+    critic = ValueOperator(
+        low_rank_mlp(obs + act, 1, num_cells, low_rank_layers=(1,)), in_keys=["observation", "action"]
+    )
     return SACLoss(actor, critic)
 
 
@@ -60,9 +75,11 @@ def test_layers_get_human_names_with_the_recipe_layer_index():
 
     loss = _sac_loss()
     adapter = RankAdapter(loss, [torch.optim.Adam(loss.parameters())], EnergyRule(0.9), interval=1)
-    assert adapter.names == {"actor_network.module.0.module.0.0": "actor.layer0",
-                             "actor_network.module.0.module.0.2": "actor.layer1",
-                             "qvalue_network.module.2": "critic.layer1"}
+    assert adapter.names == {
+        "actor_network.module.0.module.0.0": "actor.layer0",
+        "actor_network.module.0.module.0.2": "actor.layer1",
+        "qvalue_network.module.2": "critic.layer1",
+    }
     assert adapter.named_ranks == {"actor.layer0": 5, "actor.layer1": 16, "critic.layer1": 16}
     event = adapter.adapt()
     assert [r.name for r in event.layers] == ["actor.layer0", "actor.layer1", "critic.layer1"]
@@ -81,8 +98,10 @@ def test_two_critics_of_one_loss_are_told_apart():
 
     net = MLP(in_features=3, out_features=1, num_cells=[4, 4])
     assert layer_indices(net) == {"0": 0, "2": 1, "4": 2}
-    sites = [LowRankSite(f"{n}.2", n, "critic", "2", net, None, None, None, None, None, None, None)
-             for n in ("qvalue_network", "value_network")]
+    sites = [
+        LowRankSite(f"{n}.2", n, "critic", "2", net, None, None, None, None, None, None, None)
+        for n in ("qvalue_network", "value_network")
+    ]
     _name_sites(sites)
     assert [s.name for s in sites] == ["qvalue.layer1", "value.layer1"]
 
@@ -94,8 +113,10 @@ def _old_style_run(path: Path) -> Path:
     """A run folder as adarl wrote it before issue 20: dotted flat metric files, layers by module path only."""
     from adarl.runtime.config import load_recipe, save_resolved
 
-    save_resolved(load_recipe("quickstart", ["collector.total_frames=1000", "collector.init_random_frames=100"]),
-                  path / "recipe.yaml")
+    save_resolved(
+        load_recipe("quickstart", ["collector.total_frames=1000", "collector.init_random_frames=100"]),
+        path / "recipe.yaml",
+    )
     scalars = path / "metrics" / "scalars"
     scalars.mkdir(parents=True)
     files = {
@@ -108,15 +129,36 @@ def _old_style_run(path: Path) -> Path:
     }
     for name, text in files.items():
         (scalars / f"{name}.csv").write_text(text)
-    (path / "eval.csv").write_text("frames,updates,mean,std,ci95,episodes,returns,ranks\n"
-                                   f"500,300,30.0,1.0,2.0,2,\"[29.0, 31.0]\",\"{{\"\"{ACTOR_PATH}\"\": 9}}\"\n")
-    layer = {"step": 150, "layer": ACTOR_PATH, "network": "actor", "old_rank": 11, "new_rank": 9,
-             "singular_values": [1.0] * 11, "retained_energy": 0.99, "truncation_error": 0.1}
+    (path / "eval.csv").write_text(
+        "frames,updates,mean,std,ci95,episodes,returns,ranks\n"
+        f'500,300,30.0,1.0,2.0,2,"[29.0, 31.0]","{{""{ACTOR_PATH}"": 9}}"\n'
+    )
+    layer = {
+        "step": 150,
+        "layer": ACTOR_PATH,
+        "network": "actor",
+        "old_rank": 11,
+        "new_rank": 9,
+        "singular_values": [1.0] * 11,
+        "retained_energy": 0.99,
+        "truncation_error": 0.1,
+    }
     (path / "ranks.json").write_text(json.dumps([{"step": 150, "index": 0, "layers": [layer]}]))
-    (path / "summary.json").write_text(json.dumps({"name": "quickstart", "frames": 1000, "updates": 800,
-                                                   "episodes": 4, "wall_time_s": 5.0, "updates_per_s": 160.0,
-                                                   "ranks": {ACTOR_PATH: 9}, "rank_events": 1,
-                                                   "final_eval": {"frames": 500, "mean": 30.0}}))
+    (path / "summary.json").write_text(
+        json.dumps(
+            {
+                "name": "quickstart",
+                "frames": 1000,
+                "updates": 800,
+                "episodes": 4,
+                "wall_time_s": 5.0,
+                "updates_per_s": 160.0,
+                "ranks": {ACTOR_PATH: 9},
+                "rank_events": 1,
+                "final_eval": {"frames": 500, "mean": 30.0},
+            }
+        )
+    )
     return path
 
 
@@ -147,8 +189,11 @@ def test_reports_aggregates_and_progress_read_an_old_style_run_folder(tmp_path):
     for f in run.iterdir():
         if f.is_file():
             (new / f.name).write_bytes(f.read_bytes())
-    for name, text in {"train/episode_return": "200,10.0\n400,30.0\n", "warm_start/frames": "300,100\n",
-                       "train/updates": "200,0\n400,200\n"}.items():
+    for name, text in {
+        "train/episode_return": "200,10.0\n400,30.0\n",
+        "warm_start/frames": "300,100\n",
+        "train/updates": "200,0\n400,200\n",
+    }.items():
         p = new / "metrics" / "scalars" / f"{name}.csv"
         p.parent.mkdir(parents=True, exist_ok=True)
         p.write_text(text)
@@ -227,9 +272,13 @@ def logged_run(tmp_path_factory):
 
     mp = pytest.MonkeyPatch()
     real_find_spec = importlib.util.find_spec
-    mp.setattr(importlib.util, "find_spec",
-               lambda name, *a: types.SimpleNamespace(name=name) if name in ("wandb", "tensorboard")
-               else real_find_spec(name, *a))
+    mp.setattr(
+        importlib.util,
+        "find_spec",
+        lambda name, *a: (
+            types.SimpleNamespace(name=name) if name in ("wandb", "tensorboard") else real_find_spec(name, *a)
+        ),
+    )
     import torchrl.record.loggers as loggers
 
     mp.setattr(loggers, "WandbLogger", _FakeWandb)
@@ -252,8 +301,7 @@ def logged_run(tmp_path_factory):
                 ckpt.unlink()
         resumed = Trainer.resume(path, quiet=False)
         resumed.train()
-        second = {"bar": _Bar.made[-1], "wandb": _FakeWandb.made[-1], "writer": _FakeWriter.made[-1],
-                  "from": 800}
+        second = {"bar": _Bar.made[-1], "wandb": _FakeWandb.made[-1], "writer": _FakeWriter.made[-1], "from": 800}
         writers_before = len(_FakeWriter.made)
         evaluating = Trainer.resume(path, quiet=True, truncate_metrics=False, checkpoint="best")  # adarl eval
         evaluating.close()
@@ -275,10 +323,25 @@ def test_progress_bar_counts_every_frame_of_the_budget(logged_run):
 def test_metrics_have_conventional_names(logged_run):
     root = logged_run["path"] / "metrics" / "scalars"
     names = {p.relative_to(root).with_suffix("").as_posix() for p in root.rglob("*.csv")}
-    for name in ("train/episode_return", "train/episode_length", "train/episodes", "train/loss_actor",
-                 "train/updates", "train/lr", "eval/return", "eval/return_std", "warm_start/frames",
-                 "rank/actor.layer0", "rank/actor.layer1", "rank/critic.layer0", "rank/critic.layer1",
-                 "rank_error/actor.layer0", "dynamics/torso_length", "time/fps", "time/updates_per_s"):
+    for name in (
+        "train/episode_return",
+        "train/episode_length",
+        "train/episodes",
+        "train/loss_actor",
+        "train/updates",
+        "train/lr",
+        "eval/return",
+        "eval/return_std",
+        "warm_start/frames",
+        "rank/actor.layer0",
+        "rank/actor.layer1",
+        "rank/critic.layer0",
+        "rank/critic.layer1",
+        "rank_error/actor.layer0",
+        "dynamics/torso_length",
+        "time/fps",
+        "time/updates_per_s",
+    ):
         assert name in names, name
     assert not [n for n in names if "." in n.split("/")[0] or "module" in n], names
     lengths = [float(line.split(",")[1]) for line in (root / "train" / "episode_length.csv").read_text().split()]

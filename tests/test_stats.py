@@ -1,4 +1,5 @@
-"""adarl.experiments.stats (IQM, stratified bootstrap, probability of improvement) and the aggregate report's statistics."""
+"""adarl.experiments.stats (IQM, stratified bootstrap, probability of improvement) and the aggregate report's
+statistics."""
 
 from __future__ import annotations
 
@@ -7,9 +8,15 @@ import json
 
 import numpy as np
 import pytest
-
-from adarl.experiments.stats import interval_estimate, iqm, poi_estimate, probability_of_improvement, stratified_bootstrap
 from test_evaluation_experiments import _fake_run
+
+from adarl.experiments.stats import (
+    interval_estimate,
+    iqm,
+    poi_estimate,
+    probability_of_improvement,
+    stratified_bootstrap,
+)
 
 
 def test_iqm_is_the_mean_of_the_middle_half():
@@ -29,8 +36,9 @@ def test_bootstrap_is_stratified_reproducible_and_covers_the_point():
     rng = np.random.default_rng(0)
     a, b = rng.normal(100, 10, 5), rng.normal(1000, 10, 5)
     # within-task resampling never mixes tasks: each resample keeps 5 runs of each
-    seen = stratified_bootstrap([a, b], lambda ts: float(len(ts[0]) == 5 and len(ts[1]) == 5
-                                                          and ts[0].max() < 500 < ts[1].min()), reps=200)
+    seen = stratified_bootstrap(
+        [a, b], lambda ts: float(len(ts[0]) == 5 and len(ts[1]) == 5 and ts[0].max() < 500 < ts[1].min()), reps=200
+    )
     assert seen.min() == 1.0
     p1 = interval_estimate(a, "iqm", seed=3)
     assert p1 == interval_estimate(a, "iqm", seed=3)  # fixed seed: the same report every time
@@ -54,15 +62,38 @@ def test_aggregate_report_statistics_reference_duplicates_and_iterations(tmp_pat
         for seed, v in enumerate(vals):
             rid = f"algorithm={algo}__seed={seed}"
             _fake_run(exp, rid, seed, 0, [(100, v / 3), (200, v / 2), (300, v)])
-            runs.append({"run_id": rid, "axes": {"algorithm": algo}, "seed": seed, "recipe": "fake",
-                         "path": str(exp / rid), "status": "finished"})
+            runs.append(
+                {
+                    "run_id": rid,
+                    "axes": {"algorithm": algo},
+                    "seed": seed,
+                    "recipe": "fake",
+                    "path": str(exp / rid),
+                    "status": "finished",
+                }
+            )
     # the same seed again (e.g. copied in from another experiment): counted once
     _fake_run(exp, "dup", 0, 0, [(100, 1.0), (300, 9999.0)])
-    runs.append({"run_id": "dup", "axes": {"algorithm": "sac"}, "seed": 0, "recipe": "fake",
-                 "path": str(exp / "dup"), "status": "finished"})
-    (exp / "experiment.json").write_text(json.dumps({
-        "name": "fake", "axes": ["algorithm"], "runs": runs,
-        "report": {"columns": "algorithm", "reference": "adarl", "at_updates": [200, 300]}}))
+    runs.append(
+        {
+            "run_id": "dup",
+            "axes": {"algorithm": "sac"},
+            "seed": 0,
+            "recipe": "fake",
+            "path": str(exp / "dup"),
+            "status": "finished",
+        }
+    )
+    (exp / "experiment.json").write_text(
+        json.dumps(
+            {
+                "name": "fake",
+                "axes": ["algorithm"],
+                "runs": runs,
+                "report": {"columns": "algorithm", "reference": "adarl", "at_updates": [200, 300]},
+            }
+        )
+    )
     md = write_aggregate_report([exp]).read_text()
     out = exp / "report"
     stats = {r["algorithm"]: r for r in csv.DictReader((out / "statistics.csv").open())}
@@ -79,10 +110,17 @@ def test_rank_settling_reads_the_last_change_and_the_events_after_it(tmp_path):
     from adarl.experiments.aggregate import _load_run, rank_settling
 
     run = _fake_run(tmp_path, "r", 0, 0, [(100, 1.0), (200, 2.0)])
-    history = [{"step": s, "index": i, "layers": [
-        {"layer": "a", "network": "actor", "old_rank": o, "new_rank": n},
-        {"layer": "c", "network": "critic", "old_rank": 8, "new_rank": 8}]}
-        for i, (s, o, n) in enumerate([(10, 11, 9), (20, 9, 7), (30, 7, 7), (40, 7, 7)])]
+    history = [
+        {
+            "step": s,
+            "index": i,
+            "layers": [
+                {"layer": "a", "network": "actor", "old_rank": o, "new_rank": n},
+                {"layer": "c", "network": "critic", "old_rank": 8, "new_rank": 8},
+            ],
+        }
+        for i, (s, o, n) in enumerate([(10, 11, 9), (20, 9, 7), (30, 7, 7), (40, 7, 7)])
+    ]
     (run / "ranks.json").write_text(json.dumps(history))
     d = rank_settling(_load_run(run, None))
     assert d["actor:a"] == {"initial": 11, "final": 7, "min": 7, "last_change": 20, "events_after": 2}

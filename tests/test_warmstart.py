@@ -14,10 +14,10 @@ from torchrl.modules import ProbabilisticActor, TanhNormal, ValueOperator
 from torchrl.objectives import SACLoss, SoftUpdate, ValueEstimators
 
 from adarl.core.adapter import RankAdapter
-from adarl.errors import AdaRLValueError
 from adarl.core.lowrank import low_rank_mlp
 from adarl.core.rank import FixedRank
 from adarl.core.warmstart import ReplayWarmStart
+from adarl.errors import AdaRLValueError
 
 warnings.filterwarnings("ignore", category=UserWarning)
 
@@ -50,6 +50,7 @@ def stored(rb):
 def test_refill_from_collector_with_the_new_policy():
     env = make_env()
     actor = make_actor(env)
+
     class Q(nn.Module):  # Q(obs, act) for SACLoss
         def __init__(self):
             super().__init__()

@@ -26,8 +26,8 @@ from tensordict import TensorDictBase
 from torch import nn
 
 from adarl.baselines.registry import register_init
-from adarl.errors import AdaRLValueError
 from adarl.core.lowrank import LowRankLinear, refactorize
+from adarl.errors import AdaRLValueError
 
 __all__ = ["linear_layers", "orthogonal_weight", "orthogonal_init_", "orthogonal_init_loss_"]
 
@@ -45,8 +45,9 @@ def _check_gain(name: str, gain) -> float:
 
 
 @torch.no_grad()
-def orthogonal_weight(out_features: int, in_features: int, gain: float = 1.0, *, dtype=torch.float32,
-                      device=None) -> torch.Tensor:
+def orthogonal_weight(
+    out_features: int, in_features: int, gain: float = 1.0, *, dtype=torch.float32, device=None
+) -> torch.Tensor:
     """An ``(out, in)`` matrix drawn by ``torch.nn.init.orthogonal_``: every singular value equals ``gain``."""
     w = torch.empty(out_features, in_features, dtype=dtype, device=device)
     return nn.init.orthogonal_(w, gain=gain)

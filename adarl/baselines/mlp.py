@@ -20,8 +20,8 @@ from torch import nn
 from adarl.baselines.parseval import DiagonalScale, InputScale
 from adarl.baselines.registry import register_variant_builder
 from adarl.baselines.sparse import SparsificationLayer
-from adarl.errors import AdaRLValueError
 from adarl.core.lowrank import LowRankLinear
+from adarl.errors import AdaRLValueError
 
 __all__ = ["BaselineMLP", "make_baseline_mlp"]
 

@@ -55,7 +55,7 @@ class RunningObsNorm(RunningMeanStd):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if float(self.count) == 0:
             return x
-        return ((x - self.mean.to(x.dtype)) / (self.std.to(x.dtype) + self.eps))
+        return (x - self.mean.to(x.dtype)) / (self.std.to(x.dtype) + self.eps)
 
 
 class RewardScaler:

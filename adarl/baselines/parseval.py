@@ -25,12 +25,19 @@ import torch
 from tensordict import TensorDictBase
 from torch import nn
 
-from adarl.errors import AdaRLValueError
 from adarl.baselines.registry import register_loss_term, register_network_variant
 from adarl.core.adapter import network_candidates
 from adarl.core.lowrank import LowRankLinear
+from adarl.errors import AdaRLValueError
 
-__all__ = ["ParsevalWeight", "parseval_weights", "parseval_penalty", "ParsevalRegularizer", "DiagonalScale", "InputScale"]
+__all__ = [
+    "ParsevalWeight",
+    "parseval_weights",
+    "parseval_penalty",
+    "ParsevalRegularizer",
+    "DiagonalScale",
+    "InputScale",
+]
 
 
 @dataclass
@@ -137,12 +144,20 @@ class ParsevalRegularizer(nn.Module):
     ['loss_actor', 'loss_parseval']
     """
 
-    def __init__(self, loss: nn.Module, lam: float = 1e-4, s: float = 2.0, base_width: int = 64,
-                 networks: Iterable[str] | None = None) -> None:
+    def __init__(
+        self,
+        loss: nn.Module,
+        lam: float = 1e-4,
+        s: float = 2.0,
+        base_width: int = 64,
+        networks: Iterable[str] | None = None,
+    ) -> None:
         super().__init__()
         for name, value, ok in (("lam", lam, lam >= 0), ("s", s, s > 0), ("base_width", base_width, base_width >= 1)):
             if isinstance(value, bool) or not ok:
-                raise AdaRLValueError(f"ParsevalRegularizer: {name} must be {'>= 0' if name == 'lam' else '> 0'}, got {value!r}")
+                raise AdaRLValueError(
+                    f"ParsevalRegularizer: {name} must be {'>= 0' if name == 'lam' else '> 0'}, got {value!r}"
+                )
         self.lam, self.s, self.base_width = float(lam), float(s), int(base_width)
         # not registered as submodules: the loss owns these tensors (and its state_dict saves them)
         self._weights = parseval_weights(loss, networks)

@@ -24,8 +24,19 @@ from torch import nn
 
 from adarl.errors import AdaRLValueError, one_of
 
-__all__ = ["Init", "register_network_variant", "register_variant_builder", "register_init", "register_loss_term",
-           "network_kwargs", "build_variant_network", "init_scheme", "init_schemes", "loss_terms", "loss_term_names"]
+__all__ = [
+    "Init",
+    "register_network_variant",
+    "register_variant_builder",
+    "register_init",
+    "register_loss_term",
+    "network_kwargs",
+    "build_variant_network",
+    "init_scheme",
+    "init_schemes",
+    "loss_terms",
+    "loss_term_names",
+]
 
 #: ``(mlp_config, algorithm_config, action_dim) -> dict``: the keyword arguments of the variant builder a recipe's
 #: ``network.<net>`` section asks for (``{}``: none).
@@ -83,8 +94,10 @@ def network_kwargs(mlp_config, algorithm_config, action_dim: int) -> dict:
 def build_variant_network(*args, **kwargs) -> nn.Module:
     """Build a network with variants (:func:`register_variant_builder`)."""
     if not _variant_builder:
-        raise AdaRLValueError(f"network variants {sorted(kwargs)} asked for, but no variant builder is registered "
-                              "(import adarl.baselines)")
+        raise AdaRLValueError(
+            f"network variants {sorted(kwargs)} asked for, but no variant builder is registered "
+            "(import adarl.baselines)"
+        )
     return _variant_builder[0](*args, **kwargs)
 
 

@@ -111,8 +111,15 @@ class DoubleSamplingTransform(Transform):
     :attr:`worst_picks` / :attr:`steps` count how often the pessimistic candidate was taken.
     """
 
-    def __init__(self, num_candidates: int = 2, noise: float = 5e-3, value_network: nn.Module | None = None,
-                 seed: int | None = None, obs_key: str = "observation", action_key: str = "action") -> None:
+    def __init__(
+        self,
+        num_candidates: int = 2,
+        noise: float = 5e-3,
+        value_network: nn.Module | None = None,
+        seed: int | None = None,
+        obs_key: str = "observation",
+        action_key: str = "action",
+    ) -> None:
         if isinstance(num_candidates, bool) or not isinstance(num_candidates, int) or num_candidates < 1:
             raise AdaRLValueError(f"num_candidates must be an integer >= 1, got {num_candidates!r}")
         if isinstance(noise, bool) or not isinstance(noise, (int, float)) or noise < 0:
@@ -172,7 +179,9 @@ class DoubleSamplingTransform(Transform):
     def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get(self.action_key)
         if action.ndim != 1:
-            raise AdaRLValueError(f"DoubleSamplingTransform works on one env; got an action of shape {tuple(action.shape)}")
+            raise AdaRLValueError(
+                f"DoubleSamplingTransform works on one env; got an action of shape {tuple(action.shape)}"
+            )
         actions, observations = self.probe(action)
         m = self.num_candidates
         if self.value_network is not None and self.rng.random() < 1.0 / (m + 1):

@@ -63,8 +63,9 @@ class SparsificationLayer(nn.Sequential):
     Its ``nn.Linear`` is a plain hidden layer to everything else (Parseval regularisation and the optimiser see
     it as such); only ``k`` of its ``width`` outputs are non-zero for any input."""
 
-    def __init__(self, in_features: int, width: int = 1024, k: int = 32, activation: type[nn.Module] = nn.ReLU,
-                 device=None) -> None:
+    def __init__(
+        self, in_features: int, width: int = 1024, k: int = 32, activation: type[nn.Module] = nn.ReLU, device=None
+    ) -> None:
         if isinstance(width, bool) or not isinstance(width, int) or width < 1:
             raise AdaRLValueError(f"width must be an integer >= 1, got {width!r}")
         if isinstance(k, int) and not isinstance(k, bool) and k > width:

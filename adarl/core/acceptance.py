@@ -15,10 +15,10 @@ and candidate rank ``k``, the **relative output error** of the layer's network w
 on a batch of recent transitions (:class:`RecentTransitions`): the actor's distribution parameters (``loc`` and
 ``scale`` of SAC's TanhNormal) on recent states, or each critic's Q-values on recent (state, action) pairs
 (an ensemble is as good as its worst member). The change is measured against how much the outputs vary over the
-batch, so a constant offset (Q-values in the hundreds) does not hide it. The candidate is accepted when ``error <= tol`` of the network's
-role (``actor_tol`` / ``critic_tol``). Otherwise, with ``search=True`` (default), the ranks between the candidate
-and ``r - 1`` are searched (bisection) for the smallest one within the tolerance, and if even ``r - 1`` is not,
-the layer keeps ``r``. Layers of one network are decided in order, each measured with the truncations already
+batch, so a constant offset (Q-values in the hundreds) does not hide it. The candidate is accepted when ``error <= tol``
+of the network's role (``actor_tol`` / ``critic_tol``). Otherwise, with ``search=True`` (default), the ranks between the
+candidate and ``r - 1`` are searched (bisection) for the smallest one within the tolerance, and if even ``r - 1`` is
+not, the layer keeps ``r``. Layers of one network are decided in order, each measured with the truncations already
 accepted for the earlier layers in place, so the tolerance bounds the whole network's change at the event.
 """
 
@@ -34,8 +34,14 @@ from torchrl.data.replay_buffers.writers import RoundRobinWriter
 
 from adarl.errors import AdaRLValueError
 
-__all__ = ["ProjectionAcceptance", "AcceptanceResult", "RecentTransitions", "recent_transitions",
-           "relative_output_error", "ACCEPT_MODES"]
+__all__ = [
+    "ProjectionAcceptance",
+    "AcceptanceResult",
+    "RecentTransitions",
+    "recent_transitions",
+    "relative_output_error",
+    "ACCEPT_MODES",
+]
 
 #: Recipe values of ``rank.accept.mode``: ``projection`` (Algorithm 1 as the text describes it) or ``always``
 #: (every candidate of the rule is applied: Eq. 10 alone, the literal ratchet).
@@ -63,8 +69,10 @@ def relative_output_error(output: torch.Tensor, reference: torch.Tensor) -> floa
 
 def _check_tol(name: str, value) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
-        raise AdaRLValueError(f"ProjectionAcceptance: {name} must be a finite number >= 0 (a relative output error, "
-                              f"e.g. 0.05 = 5%), got {value!r}")
+        raise AdaRLValueError(
+            f"ProjectionAcceptance: {name} must be a finite number >= 0 (a relative output error, "
+            f"e.g. 0.05 = 5%), got {value!r}"
+        )
     return float(value)
 
 
@@ -151,8 +159,9 @@ class ProjectionAcceptance:
             return AcceptanceResult(candidate, candidate, current, cand_err, cand_err, tol, tried)
         why = f"candidate {candidate} changes the {role} by {cand_err:.3g} > tolerance {tol:.3g}"
         if not self.search or candidate == current - 1:
-            return AcceptanceResult(current, candidate, current, cand_err, 0.0, tol, tried,
-                                    f"{why}; kept rank {current}")
+            return AcceptanceResult(
+                current, candidate, current, cand_err, 0.0, tol, tried, f"{why}; kept rank {current}"
+            )
         lo, hi, hi_err = candidate, current, 0.0  # err(lo) > tol, err(hi) <= tol (hi = current: no change)
         while hi - lo > 1:
             mid = (lo + hi) // 2
@@ -162,10 +171,19 @@ class ProjectionAcceptance:
             else:
                 lo = mid
         if hi == current:
-            return AcceptanceResult(current, candidate, current, cand_err, 0.0, tol, tried,
-                                    f"{why}, and so does every rank up to {current - 1}; kept rank {current}")
-        return AcceptanceResult(hi, candidate, current, cand_err, hi_err, tol, tried,
-                                f"{why}; rank {hi} is within it ({hi_err:.3g})")
+            return AcceptanceResult(
+                current,
+                candidate,
+                current,
+                cand_err,
+                0.0,
+                tol,
+                tried,
+                f"{why}, and so does every rank up to {current - 1}; kept rank {current}",
+            )
+        return AcceptanceResult(
+            hi, candidate, current, cand_err, hi_err, tol, tried, f"{why}; rank {hi} is within it ({hi_err:.3g})"
+        )
 
     def __repr__(self) -> str:
         return f"ProjectionAcceptance(actor_tol={self.actor_tol}, critic_tol={self.critic_tol}, search={self.search})"
@@ -185,7 +203,8 @@ def recent_transitions(replay_buffer, n: int) -> TensorDictBase:
     if not isinstance(writer, RoundRobinWriter):
         raise AdaRLValueError(
             f"recent_transitions needs a replay buffer with TorchRL's RoundRobinWriter (the default) to know which "
-            f"transitions are recent; got writer {type(writer).__name__}. Pass your own callable as fit_data instead")
+            f"transitions are recent; got writer {type(writer).__name__}. Pass your own callable as fit_data instead"
+        )
     size = len(replay_buffer)
     if size == 0:
         raise AdaRLValueError("recent_transitions: the replay buffer is empty (nothing to measure the truncation on)")

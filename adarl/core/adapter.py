@@ -39,11 +39,11 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.trainers.trainers import TrainerHookBase
 
 from adarl.core.acceptance import ProjectionAcceptance, relative_output_error
-from adarl.errors import AdaRLValueError, CheckpointError
 from adarl.core.lowrank import LowRankLinear, factor_svd, is_integer, refactorize, truncation_error
 from adarl.core.lowrank import replace_data as _set_data
 from adarl.core.lr_schedule import restart_lr_scheduler, warmup_cosine_lambdas
 from adarl.core.rank import RankRule, energy_share
+from adarl.errors import AdaRLValueError, CheckpointError
 
 __all__ = [
     "RankAdapter",
@@ -282,7 +282,8 @@ def find_low_rank_layers(loss_module: nn.Module, scope: str = "both") -> tuple[l
                 if w1 is None or w2 is None:
                     raise AdaRLValueError(
                         f"cannot map LowRankLinear {path!r} to keys of {name}_params (looked for "
-                        f"{key + ('w1',)} and {key + ('w2',)}; available: {sorted(map(str, params.keys(True, True)))[:8]}...)"
+                        f"{key + ('w1',)} and {key + ('w2',)}; "
+                        f"available: {sorted(map(str, params.keys(True, True)))[:8]}...)"
                     )
             else:
                 w1, w2 = layer.w1, layer.w2
@@ -303,9 +304,7 @@ def find_low_rank_layers(loss_module: nn.Module, scope: str = "both") -> tuple[l
             extra = None
             if layer.w1 is not w1 and isinstance(layer.w1, nn.Parameter) and id(layer.w1) not in seen_params:
                 extra = (layer.w1, layer.w2)
-            sites.append(
-                LowRankSite(path, name, role, module_path, network, layer, params, w1, w2, tw1, tw2, extra)
-            )
+            sites.append(LowRankSite(path, name, role, module_path, network, layer, params, w1, w2, tw1, tw2, extra))
     _name_sites(sites)
     return sites, searched
 
@@ -532,7 +531,9 @@ def _resized(w1: torch.Tensor, w2: torch.Tensor, rank: int) -> tuple[torch.Tenso
 
 def _ranks_from_source(source: Mapping, sites: list[LowRankSite]) -> dict[str, int]:
     if not isinstance(source, Mapping):
-        raise CheckpointError(f"ranks must be a mapping (ranks, adapter state_dict or loss state_dict), got {type(source)}")
+        raise CheckpointError(
+            f"ranks must be a mapping (ranks, adapter state_dict or loss state_dict), got {type(source)}"
+        )
     if "ranks" in source and isinstance(source["ranks"], Mapping):
         source = source["ranks"]
     if any(isinstance(v, torch.Tensor) for v in source.values()):
@@ -543,7 +544,9 @@ def _ranks_from_source(source: Mapping, sites: list[LowRankSite]) -> dict[str, i
             if key in source:
                 out[site.path] = int(source[key].shape[-2])
         if not out:
-            raise CheckpointError("the state_dict holds no LowRankLinear factor of this model (no '...w2' keys matched)")
+            raise CheckpointError(
+                "the state_dict holds no LowRankLinear factor of this model (no '...w2' keys matched)"
+            )
         return out
     bad = {k: v for k, v in source.items() if isinstance(v, bool) or not isinstance(v, numbers.Integral)}
     if bad:
@@ -573,8 +576,9 @@ class _NetworkProbe:
     order, each with the earlier layers' accepted truncations in place.
     """
 
-    def __init__(self, network_name: str, network: nn.Module, params: TensorDictBase | None, member: tuple,
-                 batch: TensorDictBase) -> None:
+    def __init__(
+        self, network_name: str, network: nn.Module, params: TensorDictBase | None, member: tuple, batch: TensorDictBase
+    ) -> None:
         self.network_name = network_name
         self.network = network
         if params is not None:
@@ -600,8 +604,10 @@ class _NetworkProbe:
                 keys = list(getattr(net, "out_keys", []))
         keys = _float_keys(out, keys)
         if not keys:
-            raise AdaRLValueError(f"network {self.network_name!r} produced no float outputs to compare (out keys "
-                                  f"{list(getattr(net, 'out_keys', []))})")
+            raise AdaRLValueError(
+                f"network {self.network_name!r} produced no float outputs to compare (out keys "
+                f"{list(getattr(net, 'out_keys', []))})"
+            )
         n = out.batch_size.numel()
         return torch.cat([out.get(k).reshape(n, -1).to(torch.float64) for k in keys], -1)
 
@@ -729,9 +735,13 @@ class RankAdapter(TrainerHookBase):
     ) -> None:
         check_loss_supported(loss_module)
         if num_threads is not None and (not is_integer(num_threads) or num_threads < 1):
-            raise AdaRLValueError(f"num_threads must be an integer >= 1 or None (keep the process's), got {num_threads!r}")
+            raise AdaRLValueError(
+                f"num_threads must be an integer >= 1 or None (keep the process's), got {num_threads!r}"
+            )
         if not is_integer(interval) or interval < 1:
-            raise AdaRLValueError(f"interval must be an integer >= 1 (optimisation steps between events), got {interval!r}")
+            raise AdaRLValueError(
+                f"interval must be an integer >= 1 (optimisation steps between events), got {interval!r}"
+            )
         if scope not in SCOPES:
             raise AdaRLValueError(f"scope must be one of {list(SCOPES)}, got {scope!r}")
         if target_mode not in TARGET_MODES:
@@ -739,10 +749,14 @@ class RankAdapter(TrainerHookBase):
         if not is_integer(min_rank) or min_rank < 1:
             raise AdaRLValueError(f"min_rank must be an integer >= 1, got {min_rank!r}")
         if log_step is not None and not callable(log_step):
-            raise AdaRLValueError(f"log_step must be a callable returning the x-axis value (e.g. collected frames) or "
-                                  f"None (the optimisation step), got {type(log_step).__name__}")
+            raise AdaRLValueError(
+                f"log_step must be a callable returning the x-axis value (e.g. collected frames) or "
+                f"None (the optimisation step), got {type(log_step).__name__}"
+            )
         if not isinstance(rule, RankRule):
-            raise AdaRLValueError(f"rule must be an adarl.core.rank.RankRule (e.g. EnergyRule(0.98)), got {type(rule).__name__}")
+            raise AdaRLValueError(
+                f"rule must be an adarl.core.rank.RankRule (e.g. EnergyRule(0.98)), got {type(rule).__name__}"
+            )
         if isinstance(optimizers, torch.optim.Optimizer):
             optimizers = [optimizers]
         optimizers = list(optimizers)
@@ -769,10 +783,14 @@ class RankAdapter(TrainerHookBase):
             if not callable(cb):
                 raise AdaRLValueError(f"on_event entries must be callables fn(event), got {type(cb).__name__}")
         if acceptance is not None and not isinstance(acceptance, ProjectionAcceptance):
-            raise AdaRLValueError(f"acceptance must be an adarl.ProjectionAcceptance or None (apply every candidate), "
-                                  f"got {type(acceptance).__name__}")
-        for needs, what in ((rule.needs_fit, f"{type(rule).__name__} measures"),
-                            (acceptance is not None, "the acceptance step measures")):
+            raise AdaRLValueError(
+                f"acceptance must be an adarl.ProjectionAcceptance or None (apply every candidate), "
+                f"got {type(acceptance).__name__}"
+            )
+        for needs, what in (
+            (rule.needs_fit, f"{type(rule).__name__} measures"),
+            (acceptance is not None, "the acceptance step measures"),
+        ):
             if needs and fit_data is None:
                 raise AdaRLValueError(
                     f"{what} the network's outputs: pass fit_data (a callable returning a TensorDict batch, e.g. "
@@ -858,8 +876,7 @@ class RankAdapter(TrainerHookBase):
     def _check_optimizers(self, sites: Sequence[LowRankSite]) -> None:
         """Every trainable factor must be in one of ``optimizers``: an event must drop its stale Adam state."""
         given = {id(p) for opt in self.optimizers for group in opt.param_groups for p in group["params"]}
-        missing = [s.path for s in sites
-                   if any(t.requires_grad and id(t) not in given for t in (s.w1, s.w2))]
+        missing = [s.path for s in sites if any(t.requires_grad and id(t) not in given for t in (s.w1, s.w2))]
         if missing:
             raise AdaRLValueError(
                 f"RankAdapter: the optimizers given ({len(self.optimizers)}) do not train the factors of {missing}; an "
@@ -870,14 +887,17 @@ class RankAdapter(TrainerHookBase):
 
     def _check_shared(self, plans) -> None:
         """Refuse to resize factors another process maps in shared memory, unless a callback rebuilds that process."""
-        shared = [site.path for site, record, _ in plans if record.changed and any(
-            t.device.type == "cpu" and t.is_shared() for t in (site.w1, site.w2))]
+        shared = [
+            site.path
+            for site, record, _ in plans
+            if record.changed and any(t.device.type == "cpu" and t.is_shared() for t in (site.w1, site.w2))
+        ]
         if shared and not any(getattr(cb, "rebuilds_collector", False) for cb in self.on_truncate):
             raise AdaRLValueError(
                 f"RankAdapter: the factors of {shared} are in shared memory, which a multi-process collector "
                 f"(MultiSyncCollector, MultiAsyncCollector, AsyncCollector, Collector(num_collectors=...)) maps for "
-                f"its workers; a rank change gives them new tensors the workers never see, so they would act with the old "
-                f"factors next to the new biases. Nothing was changed. Rebuild the collector after each event: "
+                f"its workers; a rank change gives them new tensors the workers never see, so they would act with the "
+                f"old factors next to the new biases. Nothing was changed. Rebuild the collector after each event: "
                 f"collector = adarl.CollectorRebuild(lambda: MultiSyncCollector(...)), iterate it instead of the "
                 f"collector and pass it in on_truncate (docs/rank-adapter.md, 'Supported collectors')"
             )
@@ -960,9 +980,18 @@ class RankAdapter(TrainerHookBase):
         nonfinite = [name for name, t in (("w1", site.w1), ("w2", site.w2)) if not bool(torch.isfinite(t).all())]
         if nonfinite:  # the SVD would raise; the event must not act on a diverged layer
             reason = f"non-finite values in {' and '.join(nonfinite)} (training diverged?); rank kept"
-            return LayerRecord(step=step, layer=site.path, network=site.role, old_rank=current, new_rank=current,
-                               singular_values=[], retained_energy=float("nan"), truncation_error=float("nan"),
-                               skipped=reason, name=site.name), None
+            return LayerRecord(
+                step=step,
+                layer=site.path,
+                network=site.role,
+                old_rank=current,
+                new_rank=current,
+                singular_values=[],
+                retained_energy=float("nan"),
+                truncation_error=float("nan"),
+                skipped=reason,
+                name=site.name,
+            ), None
         u, s, vh = factor_svd(site.w1, site.w2)
         members = list(itertools.product(*[range(n) for n in lead]))  # [()] for a single network
         choices, reasons = [], []
@@ -994,8 +1023,13 @@ class RankAdapter(TrainerHookBase):
 
             broken = not all(bool(torch.isfinite(p.reference).all()) for p in member_probes)
             if broken and self.acceptance is not None:  # nothing to compare against: keep the rank, say why
-                new, note = current, (f"the {site.role}'s outputs on fit_data are non-finite (NaN/inf weights "
-                                      f"elsewhere in the network, or in the batch); rank kept")
+                new, note = (
+                    current,
+                    (
+                        f"the {site.role}'s outputs on fit_data are non-finite (NaN/inf weights "
+                        f"elsewhere in the network, or in the batch); rank kept"
+                    ),
+                )
             elif self.acceptance is not None:
                 result = self.acceptance.resolve(candidate, current, error_at, site.role)
                 new, cand_err, err_new = result.rank, result.candidate_error, result.error

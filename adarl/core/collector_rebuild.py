@@ -22,8 +22,8 @@ from __future__ import annotations
 from collections.abc import Callable, Iterator
 from typing import Any
 
-from adarl.errors import AdaRLValueError
 from adarl.core.lowrank import is_integer
+from adarl.errors import AdaRLValueError
 
 __all__ = ["CollectorRebuild"]
 
@@ -62,11 +62,14 @@ class CollectorRebuild:
 
     def __init__(self, make_collector: Callable[[], Any], total_frames: int = -1) -> None:
         if not callable(make_collector):
-            raise AdaRLValueError(f"CollectorRebuild: make_collector must be a callable returning a collector (e.g. "
-                                  f"lambda: MultiSyncCollector(...)), got {type(make_collector).__name__}")
+            raise AdaRLValueError(
+                f"CollectorRebuild: make_collector must be a callable returning a collector (e.g. "
+                f"lambda: MultiSyncCollector(...)), got {type(make_collector).__name__}"
+            )
         if not is_integer(total_frames) or (total_frames < 1 and total_frames != -1):
-            raise AdaRLValueError(f"CollectorRebuild: total_frames must be an integer >= 1, or -1 (no limit), got "
-                                  f"{total_frames!r}")
+            raise AdaRLValueError(
+                f"CollectorRebuild: total_frames must be an integer >= 1, or -1 (no limit), got {total_frames!r}"
+            )
         self.make_collector = make_collector
         self.total_frames = int(total_frames)
         self.frames = 0
@@ -77,8 +80,10 @@ class CollectorRebuild:
     def _build(self):
         collector = self.make_collector()
         if not callable(getattr(collector, "__iter__", None)) or not callable(getattr(collector, "shutdown", None)):
-            raise AdaRLValueError(f"CollectorRebuild: make_collector() must return a TorchRL collector (iterable, with "
-                                  f"shutdown()), got {type(collector).__name__}")
+            raise AdaRLValueError(
+                f"CollectorRebuild: make_collector() must return a TorchRL collector (iterable, with "
+                f"shutdown()), got {type(collector).__name__}"
+            )
         return collector
 
     def __call__(self, event: Any = None) -> None:

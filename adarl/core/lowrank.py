@@ -85,8 +85,11 @@ def _gram_svd(m: torch.Tensor, r: int) -> tuple[torch.Tensor, torch.Tensor, torc
     order = s.argsort(dim=-1, descending=True)
     s = s.gather(-1, order)
     # s_1 > 0 too: a zero product passes the ratio test (0 >= 0) and would divide 0 by 0 below.
-    if (not bool((s[..., 0] > 0).all()) or not bool((s[..., -1] >= _GRAM_MIN_RATIO * s[..., 0]).all())
-            or not bool(torch.isfinite(s).all())):
+    if (
+        not bool((s[..., 0] > 0).all())
+        or not bool((s[..., -1] >= _GRAM_MIN_RATIO * s[..., 0]).all())
+        or not bool(torch.isfinite(s).all())
+    ):
         return None
     b = b.gather(-1, order.unsqueeze(-2).expand_as(b))
     v = v.gather(-1, order.unsqueeze(-2).expand_as(v))
@@ -147,9 +150,24 @@ def truncation_error(s: torch.Tensor, rank: int) -> torch.Tensor:
 
 # In-place methods that do not write the tensor's values (nothing to store in the factors).
 _NOT_WRITES = frozenset({"requires_grad_", "share_memory_", "retain_grad", "register_hook", "record_stream"})
-_INPLACE_DUNDERS = frozenset({"__setitem__", "__iadd__", "__isub__", "__imul__", "__itruediv__", "__ifloordiv__",
-                              "__imod__", "__ipow__", "__imatmul__", "__iand__", "__ior__", "__ixor__",
-                              "__ilshift__", "__irshift__"})
+_INPLACE_DUNDERS = frozenset(
+    {
+        "__setitem__",
+        "__iadd__",
+        "__isub__",
+        "__imul__",
+        "__itruediv__",
+        "__ifloordiv__",
+        "__imod__",
+        "__ipow__",
+        "__imatmul__",
+        "__iand__",
+        "__ior__",
+        "__ixor__",
+        "__ilshift__",
+        "__irshift__",
+    }
+)
 
 
 def _shares_storage(a: torch.Tensor, b: torch.Tensor) -> bool:
@@ -179,8 +197,9 @@ class _ProductWeight(torch.Tensor):
     def __torch_function__(cls, func, types, args=(), kwargs=None):
         kwargs = kwargs or {}
         name = getattr(func, "__name__", "")
-        inplace = name in _INPLACE_DUNDERS or (name.endswith("_") and not name.endswith("__")
-                                               and name not in _NOT_WRITES)
+        inplace = name in _INPLACE_DUNDERS or (
+            name.endswith("_") and not name.endswith("__") and name not in _NOT_WRITES
+        )
         written = []
         if inplace and args and isinstance(args[0], cls):
             written.append(args[0])
@@ -197,8 +216,12 @@ class _ProductWeight(torch.Tensor):
         if written:
             return result
         src = next((a for a in args if isinstance(a, cls)), None)
-        if src is not None and isinstance(result, torch.Tensor) and not isinstance(result, cls) \
-                and _shares_storage(result, src):
+        if (
+            src is not None
+            and isinstance(result, torch.Tensor)
+            and not isinstance(result, cls)
+            and _shares_storage(result, src)
+        ):
             layer = src._layer_ref()
             if layer is not None:
                 return cls.wrap(result, layer, src._root)
@@ -352,8 +375,9 @@ class LowRankLinear(nn.Module):
         return factor_svd(self.w1, self.w2)[1]
 
     @torch.no_grad()
-    def truncate_(self, rank: int, optimizers: torch.optim.Optimizer | Iterable[torch.optim.Optimizer] = ()
-                  ) -> LowRankLinear:
+    def truncate_(
+        self, rank: int, optimizers: torch.optim.Optimizer | Iterable[torch.optim.Optimizer] = ()
+    ) -> LowRankLinear:
         """Project the weight onto rank ``rank`` in place and re-factorise it balanced.
 
         The parameters keep their identity (``.data`` is replaced), so modules, collectors and loss modules
@@ -364,11 +388,15 @@ class LowRankLinear(nn.Module):
         current rank; factors holding NaN or inf are refused.
         """
         if not is_integer(rank) or not 1 <= rank <= self.rank:
-            raise AdaRLValueError(f"truncate_ rank must be an integer in [1, {self.rank}] (the current rank), got {rank!r}")
+            raise AdaRLValueError(
+                f"truncate_ rank must be an integer in [1, {self.rank}] (the current rank), got {rank!r}"
+            )
         bad = [n for n, t in (("w1", self.w1), ("w2", self.w2)) if not bool(torch.isfinite(t).all())]
         if bad:
-            raise AdaRLValueError(f"truncate_: {' and '.join(bad)} hold NaN or inf (training diverged?); nothing to "
-                                  f"project. Re-initialise the layer (reset_parameters) or restore a checkpoint")
+            raise AdaRLValueError(
+                f"truncate_: {' and '.join(bad)} hold NaN or inf (training diverged?); nothing to "
+                f"project. Re-initialise the layer (reset_parameters) or restore a checkpoint"
+            )
         if isinstance(optimizers, torch.optim.Optimizer):
             optimizers = [optimizers]
         optimizers = list(optimizers)
@@ -415,8 +443,9 @@ def iter_low_rank(module: nn.Module, prefix: str = "") -> Iterator[tuple[str, Lo
             yield name, sub
 
 
-def _layer_factory(in_features: int, out_features: int, bias: bool = True, rank: int | None | str = "dense",
-                   device=None, dtype=None) -> nn.Module:
+def _layer_factory(
+    in_features: int, out_features: int, bias: bool = True, rank: int | None | str = "dense", device=None, dtype=None
+) -> nn.Module:
     if rank == "dense":
         return nn.Linear(in_features, out_features, bias=bias, device=device, dtype=dtype)
     return LowRankLinear(in_features, out_features, rank=rank, bias=bias, device=device, dtype=dtype)

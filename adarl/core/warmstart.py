@@ -92,7 +92,9 @@ class ReplayWarmStart:
             raise AdaRLValueError(f"ReplayWarmStart: mode must be one of {list(WARM_START_MODES)}, got {mode!r}")
         minimum = 0 if mode in ("keep", "reset") else 1
         if isinstance(frames, bool) or not isinstance(frames, int) or frames < minimum:
-            raise AdaRLValueError(f"ReplayWarmStart: frames must be an integer >= {minimum} for mode {mode!r}, got {frames!r}")
+            raise AdaRLValueError(
+                f"ReplayWarmStart: frames must be an integer >= {minimum} for mode {mode!r}, got {frames!r}"
+            )
         for attr in ("extend", "empty", "__len__"):
             if not hasattr(replay_buffer, attr):
                 raise AdaRLValueError(
@@ -102,9 +104,12 @@ class ReplayWarmStart:
         if isinstance(source, tuple) and len(source) == 2:
             env, policy = source
             if not callable(getattr(env, "rollout", None)) or not callable(policy):
-                raise AdaRLValueError("ReplayWarmStart: an (env, policy) source needs a TorchRL env and a callable policy")
+                raise AdaRLValueError(
+                    "ReplayWarmStart: an (env, policy) source needs a TorchRL env and a callable policy"
+                )
         elif getattr(source, "rebuilds_collector", False) or (
-                callable(getattr(source, "reset", None)) and not callable(getattr(source, "rollout", None))):
+            callable(getattr(source, "reset", None)) and not callable(getattr(source, "rollout", None))
+        ):
             raise AdaRLValueError(
                 f"ReplayWarmStart: a {type(source).__name__} cannot be the warm start's source (a multi-process or "
                 f"rebuilt collector cannot collect one batch on demand with the loss's own actor); give the warm start "
@@ -170,10 +175,13 @@ class ReplayWarmStart:
         foreign = [name or "<policy>" for name, layer in layers if id(layer.w1) not in known]
         changed_actor = [r.layer for r in event.layers if r.changed and r.network == "actor"]
         if foreign or (changed_actor and not layers):
-            what = (f"holds LowRankLinear layers that are not the loss's ({foreign[:3]}): a copy of the actor (a "
-                    f"deepcopy, a policy moved to another device) keeps the ranks and weights it had before the "
-                    f"event" if foreign else
-                    f"({type(policy).__name__}) holds no LowRankLinear layer, while the event changed {changed_actor}")
+            what = (
+                f"holds LowRankLinear layers that are not the loss's ({foreign[:3]}): a copy of the actor (a "
+                f"deepcopy, a policy moved to another device) keeps the ranks and weights it had before the "
+                f"event"
+                if foreign
+                else f"({type(policy).__name__}) holds no LowRankLinear layer, while the event changed {changed_actor}"
+            )
             raise AdaRLValueError(
                 f"ReplayWarmStart: the warm start's policy {what}, so the buffer would be refilled with the old "
                 f"policy. "
@@ -196,7 +204,7 @@ class ReplayWarmStart:
         rb = self.replay_buffer
         if entries <= 0 or len(rb) == 0:
             return entries
-        last = rb[len(rb) - 1: len(rb)]
+        last = rb[len(rb) - 1 : len(rb)]
         per_entry = last.batch_size.numel() if isinstance(last, TensorDictBase) else 1
         return entries * int(per_entry)
 

@@ -19,10 +19,58 @@ import importlib
 # public name -> the module that defines it (imported when the name is first read)
 _EXPORTS: dict[str, str] = {
     **dict.fromkeys(["PerturbedDynamicsEnvTransform", "find_gym_env", "EPISODE_KEY"], "adarl.envs.perturbation"),
-    **dict.fromkeys(["make_env", "make_eval_env", "resolve_schedule", "perturbation_transform", "dynamics_state_dict", "load_dynamics_state_dict"], "adarl.envs.factory"),
-    **dict.fromkeys(["Schedule", "SinusoidSchedule", "UniformSchedule", "FixedSchedule", "ListSchedule", "SCHEDULE_KINDS", "schedule_from_dict", "as_schedule", "grid_schedule"], "adarl.envs.schedules"),
-    **dict.fromkeys(["SUPPORTED_ENVS", "PAPER_ENVS", "MODES", "PRESETS", "AIR_DENSITY", "AIR_VISCOSITY", "ParameterInfo", "check_env_id", "env_parameters", "validate_values", "validate_schedule", "make_schedule", "preset_names", "DynamicsApplier", "MujocoDynamics", "CartPoleDynamics", "LinearCartPoleDynamics", "make_applier", "quiet_mujoco"], "adarl.envs.parameters"),
-    **dict.fromkeys(["LinearCartPoleEnv", "LINEAR_CARTPOLE_ID", "linear_cartpole_matrices"], "adarl.envs.linear_cartpole"),
+    **dict.fromkeys(
+        [
+            "make_env",
+            "make_eval_env",
+            "resolve_schedule",
+            "perturbation_transform",
+            "dynamics_state_dict",
+            "load_dynamics_state_dict",
+        ],
+        "adarl.envs.factory",
+    ),
+    **dict.fromkeys(
+        [
+            "Schedule",
+            "SinusoidSchedule",
+            "UniformSchedule",
+            "FixedSchedule",
+            "ListSchedule",
+            "SCHEDULE_KINDS",
+            "schedule_from_dict",
+            "as_schedule",
+            "grid_schedule",
+        ],
+        "adarl.envs.schedules",
+    ),
+    **dict.fromkeys(
+        [
+            "SUPPORTED_ENVS",
+            "PAPER_ENVS",
+            "MODES",
+            "PRESETS",
+            "AIR_DENSITY",
+            "AIR_VISCOSITY",
+            "ParameterInfo",
+            "check_env_id",
+            "env_parameters",
+            "validate_values",
+            "validate_schedule",
+            "make_schedule",
+            "preset_names",
+            "DynamicsApplier",
+            "MujocoDynamics",
+            "CartPoleDynamics",
+            "LinearCartPoleDynamics",
+            "make_applier",
+            "quiet_mujoco",
+        ],
+        "adarl.envs.parameters",
+    ),
+    **dict.fromkeys(
+        ["LinearCartPoleEnv", "LINEAR_CARTPOLE_ID", "linear_cartpole_matrices"], "adarl.envs.linear_cartpole"
+    ),
 }
 
 __all__ = list(_EXPORTS)

@@ -36,8 +36,14 @@ __all__ = ["LinearCartPoleEnv", "linear_cartpole_matrices", "LINEAR_CARTPOLE_ID"
 LINEAR_CARTPOLE_ID = "LinearCartPole-v0"
 
 
-def linear_cartpole_matrices(pole_length: float | torch.Tensor, *, masspole: float = 0.1, masscart: float = 1.0,
-                             gravity: float = 9.8, dtype: torch.dtype = torch.float64) -> tuple[torch.Tensor, torch.Tensor]:
+def linear_cartpole_matrices(
+    pole_length: float | torch.Tensor,
+    *,
+    masspole: float = 0.1,
+    masscart: float = 1.0,
+    gravity: float = 9.8,
+    dtype: torch.dtype = torch.float64,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """``A(l)`` (``[..., 4, 4]``) and ``B(l)`` (``[..., 4]``) of Eq. 17 for a (batch of) half pole length(s)."""
     l = torch.as_tensor(pole_length, dtype=dtype)
     m, M, g = masspole, masscart, gravity
@@ -68,15 +74,26 @@ class LinearCartPoleEnv(EnvBase):
     #: lets :func:`adarl.envs.find_gym_env` hand this env itself to the dynamics applier
     adarl_native = True
 
-    def __init__(self, pole_length: float = 0.5, *, pole_length_range: Sequence[float] | None = None,
-                 max_episode_steps: int = 500, batch_size: Sequence[int] = (), device: str | torch.device = "cpu",
-                 tau: float = 0.02, force_mag: float = 10.0, seed: int | None = None) -> None:
+    def __init__(
+        self,
+        pole_length: float = 0.5,
+        *,
+        pole_length_range: Sequence[float] | None = None,
+        max_episode_steps: int = 500,
+        batch_size: Sequence[int] = (),
+        device: str | torch.device = "cpu",
+        tau: float = 0.02,
+        force_mag: float = 10.0,
+        seed: int | None = None,
+    ) -> None:
         if not (isinstance(pole_length, (int, float)) and math.isfinite(pole_length) and pole_length > 0):
             raise AdaRLValueError(f"pole_length must be a finite number > 0, got {pole_length!r}")
         if pole_length_range is not None:
             lo, hi = (float(v) for v in pole_length_range)
             if not (0 < lo <= hi and math.isfinite(hi)):
-                raise AdaRLValueError(f"pole_length_range must be (lo, hi) with 0 < lo <= hi, got {pole_length_range!r}")
+                raise AdaRLValueError(
+                    f"pole_length_range must be (lo, hi) with 0 < lo <= hi, got {pole_length_range!r}"
+                )
             pole_length_range = (lo, hi)
         if isinstance(max_episode_steps, bool) or not isinstance(max_episode_steps, int) or max_episode_steps < 1:
             raise AdaRLValueError(f"max_episode_steps must be an integer >= 1, got {max_episode_steps!r}")
@@ -87,13 +104,19 @@ class LinearCartPoleEnv(EnvBase):
         self.tau, self.force_mag = float(tau), float(force_mag)
         self.x_threshold, self.theta_threshold = 2.4, 12 * 2 * math.pi / 360
         bs = self.batch_size
-        self.observation_spec = Composite(observation=Unbounded(shape=(*bs, 4), dtype=torch.float32, device=self.device),
-                                          shape=bs, device=self.device)
+        self.observation_spec = Composite(
+            observation=Unbounded(shape=(*bs, 4), dtype=torch.float32, device=self.device), shape=bs, device=self.device
+        )
         self.action_spec = OneHot(2, shape=(*bs, 2), device=self.device)
         self.reward_spec = Unbounded(shape=(*bs, 1), dtype=torch.float32, device=self.device)
         self.full_done_spec = Composite(
-            {k: Categorical(2, shape=(*bs, 1), dtype=torch.bool, device=self.device)
-             for k in ("done", "terminated", "truncated")}, shape=bs, device=self.device)
+            {
+                k: Categorical(2, shape=(*bs, 1), dtype=torch.bool, device=self.device)
+                for k in ("done", "terminated", "truncated")
+            },
+            shape=bs,
+            device=self.device,
+        )
         self._state = torch.zeros(*bs, 4, dtype=torch.float64, device=self.device)
         self._length = torch.full(tuple(bs), self.default_length, dtype=torch.float64, device=self.device)
         self._fixed_length: float | None = None
@@ -120,9 +143,14 @@ class LinearCartPoleEnv(EnvBase):
     # ------------------------------------------------------------------ EnvBase
     def snapshot(self) -> dict:
         """The live episode (state, pole lengths, step counts) and the generator, for exact resume."""
-        return {"state": self._state.clone(), "length": self._length.clone(), "steps": self._steps.clone(),
-                "rng": self._np_random.get_state(), "fixed_length": self._fixed_length,
-                "seed": getattr(self, "np_random_seed", None)}
+        return {
+            "state": self._state.clone(),
+            "length": self._length.clone(),
+            "steps": self._steps.clone(),
+            "rng": self._np_random.get_state(),
+            "fixed_length": self._fixed_length,
+            "seed": getattr(self, "np_random_seed", None),
+        }
 
     def restore(self, snap: dict) -> None:
         self._state, self._length, self._steps = snap["state"].clone(), snap["length"].clone(), snap["steps"].clone()
@@ -164,8 +192,16 @@ class LinearCartPoleEnv(EnvBase):
             self._length = torch.where(mask, new_len, self._length)
             self._steps = torch.where(mask, torch.zeros_like(self._steps), self._steps)
         false = torch.zeros(*bs, 1, dtype=torch.bool, device=self.device)
-        return TensorDict({"observation": self._state.float(), "done": false, "terminated": false.clone(),
-                           "truncated": false.clone()}, batch_size=self.batch_size, device=self.device)
+        return TensorDict(
+            {
+                "observation": self._state.float(),
+                "done": false,
+                "terminated": false.clone(),
+                "truncated": false.clone(),
+            },
+            batch_size=self.batch_size,
+            device=self.device,
+        )
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get("action")
@@ -180,13 +216,21 @@ class LinearCartPoleEnv(EnvBase):
         terminated = (x.abs() > self.x_threshold) | (th.abs() > self.theta_threshold)
         truncated = (self._steps >= self.max_episode_steps) & ~terminated
         terminated, truncated = terminated.unsqueeze(-1), truncated.unsqueeze(-1)
-        return TensorDict({
-            "observation": self._state.float(),
-            "reward": torch.ones(*self.batch_size, 1, dtype=torch.float32, device=self.device),
-            "done": terminated | truncated, "terminated": terminated, "truncated": truncated,
-        }, batch_size=self.batch_size, device=self.device)
+        return TensorDict(
+            {
+                "observation": self._state.float(),
+                "reward": torch.ones(*self.batch_size, 1, dtype=torch.float32, device=self.device),
+                "done": terminated | truncated,
+                "terminated": terminated,
+                "truncated": truncated,
+            },
+            batch_size=self.batch_size,
+            device=self.device,
+        )
 
     def __repr__(self) -> str:
         rng = f", pole_length_range={self.pole_length_range}" if self.pole_length_range else ""
-        return (f"{type(self).__name__}(pole_length={self.default_length}{rng}, batch_size={list(self.batch_size)}, "
-                f"max_episode_steps={self.max_episode_steps})")
+        return (
+            f"{type(self).__name__}(pole_length={self.default_length}{rng}, batch_size={list(self.batch_size)}, "
+            f"max_episode_steps={self.max_episode_steps})"
+        )

@@ -33,7 +33,7 @@ import os
 from collections import OrderedDict
 from collections.abc import Iterator, Mapping
 from dataclasses import asdict, dataclass
-from functools import lru_cache
+from functools import cache
 from typing import Any
 
 import numpy as np
@@ -259,7 +259,7 @@ def quiet_mujoco() -> Iterator[None]:
         mujoco.set_mju_user_warning(previous)
 
 
-@lru_cache(maxsize=None)
+@cache
 def _body_names(env_id: str) -> tuple[str, ...]:
     import mujoco
 
@@ -368,15 +368,23 @@ def _presets() -> dict[str, dict[str, Schedule]]:
         "Hopper-v5": {
             "paper": hopper_paper,
             # paper Table 2
-            "low": UniformSchedule({"torso_length": 0.31, "foot_length": 0.305}, {"torso_length": 0.49, "foot_length": 0.485}),
-            "high": UniformSchedule({"torso_length": 0.25, "foot_length": 0.245}, {"torso_length": 0.55, "foot_length": 0.545}),
+            "low": UniformSchedule(
+                {"torso_length": 0.31, "foot_length": 0.305}, {"torso_length": 0.49, "foot_length": 0.485}
+            ),
+            "high": UniformSchedule(
+                {"torso_length": 0.25, "foot_length": 0.245}, {"torso_length": 0.55, "foot_length": 0.545}
+            ),
             "nominal": FixedSchedule(hopper_paper.nominal()),
         },
         "Walker2d-v5": {
             "paper": walker_paper,
             # paper Table 2
-            "low": UniformSchedule({"torso_length": 0.1, "foot_length": 0.05}, {"torso_length": 0.3, "foot_length": 0.15}),
-            "high": UniformSchedule({"torso_length": 0.06, "foot_length": 0.03}, {"torso_length": 0.34, "foot_length": 0.17}),
+            "low": UniformSchedule(
+                {"torso_length": 0.1, "foot_length": 0.05}, {"torso_length": 0.3, "foot_length": 0.15}
+            ),
+            "high": UniformSchedule(
+                {"torso_length": 0.06, "foot_length": 0.03}, {"torso_length": 0.34, "foot_length": 0.17}
+            ),
             "nominal": FixedSchedule(walker_paper.nominal()),
         },
         "Ant-v5": _paper_and_boxes(
@@ -458,8 +466,10 @@ class LinearCartPoleDynamics(DynamicsApplier):
 
     def __init__(self, env: Any, env_id: str = "LinearCartPole-v0") -> None:
         if not hasattr(env, "set_pole_length"):
-            raise AdaRLValueError(f"{env_id}: the live environment {type(env).__name__} has no set_pole_length(); "
-                                  "expected adarl.envs.LinearCartPoleEnv")
+            raise AdaRLValueError(
+                f"{env_id}: the live environment {type(env).__name__} has no set_pole_length(); "
+                "expected adarl.envs.LinearCartPoleEnv"
+            )
         self.env_id = env_id
         self.env = env
         self.params = ("pole_length",)

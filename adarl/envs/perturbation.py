@@ -70,8 +70,8 @@ def find_gym_env(env: EnvBase) -> Any:
         base = base.base_env
     if isinstance(base, BatchedEnvBase):
         raise AdaRLValueError(
-            f"PerturbedDynamicsEnvTransform sits on a batched env ({type(base).__name__}); it must live inside each worker's "
-            "env (put it in the env factory passed to SerialEnv/ParallelEnv, as adarl.envs.make_env does)"
+            f"PerturbedDynamicsEnvTransform sits on a batched env ({type(base).__name__}); it must live inside each "
+            "worker's env (put it in the env factory passed to SerialEnv/ParallelEnv, as adarl.envs.make_env does)"
         )
     gym_env = getattr(base, "_env", None)
     if gym_env is None and getattr(base, "adarl_native", False):

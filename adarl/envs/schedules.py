@@ -196,7 +196,9 @@ class SinusoidSchedule(Schedule):
         return dict(self.center)
 
     def bounds(self) -> dict[str, tuple[float, float]]:
-        return {p: (self.center[p] - abs(self.amplitude[p]), self.center[p] + abs(self.amplitude[p])) for p in self.params}
+        return {
+            p: (self.center[p] - abs(self.amplitude[p]), self.center[p] + abs(self.amplitude[p])) for p in self.params
+        }
 
     def to_dict(self) -> dict:
         out = {
@@ -301,7 +303,9 @@ class ListSchedule(Schedule):
     def __init__(self, values: Sequence[Mapping[str, float]], cycle: bool = True) -> None:
         name = type(self).__name__
         if isinstance(values, (str, bytes, Mapping)) or not isinstance(values, Sequence) or len(values) == 0:
-            raise AdaRLValueError(f"{name}: values must be a non-empty list of {{parameter: value}} dicts, got {values!r}")
+            raise AdaRLValueError(
+                f"{name}: values must be a non-empty list of {{parameter: value}} dicts, got {values!r}"
+            )
         self.values = [_values(v, f"{name}: values[{k}]") for k, v in enumerate(values)]
         for k, v in enumerate(self.values[1:], start=1):
             _same_keys(self.values[0], v, "values[0]", f"values[{k}]", name)
@@ -426,7 +430,11 @@ def schedule_problems(s: Mapping) -> list[tuple[str, Any, str]]:
     for k in s:
         if k not in allowed:
             problems.append(
-                (str(k), s[k], f"unknown key for a {kind} schedule; allowed: {one_of(allowed)}{did_you_mean(str(k), allowed)}")
+                (
+                    str(k),
+                    s[k],
+                    f"unknown key for a {kind} schedule; allowed: {one_of(allowed)}{did_you_mean(str(k), allowed)}",
+                )
             )
     for k in required:
         if k not in s:
@@ -445,7 +453,9 @@ def schedule_problems(s: Mapping) -> list[tuple[str, Any, str]]:
                 if _check_param_map(key, v, problems) and ok_c:
                     _same_params(key, v, s["center"], "center", problems)
             elif not _is_finite_number(v):
-                problems.append((key, v, "must be a finite number (radians per episode) or a mapping {parameter: number}"))
+                problems.append(
+                    (key, v, "must be a finite number (radians per episode) or a mapping {parameter: number}")
+                )
     elif kind == "uniform":
         ok_lo = _check_param_map("low", s["low"], problems)
         if _check_param_map("high", s["high"], problems) and ok_lo:

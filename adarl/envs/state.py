@@ -11,8 +11,8 @@ would change every later transition, so for an exact resume :func:`env_state_dic
   restored state (see :func:`load_env_state_dict`).
 
 The TorchRL side (observation, ``episode_reward``, ``step_count``, trajectory ids) lives in the collector's
-carrier TensorDict, saved with the collector (:func:`adarl.runtime.state.collector_state_dict`). Everything is plain tensors, numbers and strings, so
-it loads with ``torch.load(weights_only=True)``.
+carrier TensorDict, saved with the collector (:func:`adarl.runtime.state.collector_state_dict`). Everything is plain
+tensors, numbers and strings, so it loads with ``torch.load(weights_only=True)``.
 
 Envs in worker processes (``ParallelEnv``) cannot be reached from the trainer: :func:`env_state_dict` returns
 None for them and a resumed run starts fresh episodes there (documented in docs/resuming.md).
@@ -24,14 +24,18 @@ from typing import Any
 
 import numpy as np
 import torch
-from tensordict import TensorDict
 from torchrl.envs import EnvBase, ParallelEnv, SerialEnv, TransformedEnv
 
 from adarl.envs.factory import perturbation_transform
 from adarl.errors import CheckpointError
 
-__all__ = ["env_state_dict", "load_env_state_dict", "gym_rng_state_dict", "load_gym_rng_state_dict",
-           "exact_resume_supported"]
+__all__ = [
+    "env_state_dict",
+    "load_env_state_dict",
+    "gym_rng_state_dict",
+    "load_gym_rng_state_dict",
+    "exact_resume_supported",
+]
 
 _VERSION = 1
 
@@ -123,8 +127,11 @@ def _worker_state(env: EnvBase) -> dict:
         mujoco.mj_getState(model, data, buf, spec)
         state["sim"] = {"kind": "mujoco", "state": torch.from_numpy(buf)}
     elif getattr(unwrapped, "state", None) is not None:
-        state["sim"] = {"kind": "array", "state": torch.as_tensor(np.asarray(unwrapped.state, dtype=np.float64)),
-                        "steps_beyond_terminated": getattr(unwrapped, "steps_beyond_terminated", None)}
+        state["sim"] = {
+            "kind": "array",
+            "state": torch.as_tensor(np.asarray(unwrapped.state, dtype=np.float64)),
+            "steps_beyond_terminated": getattr(unwrapped, "steps_beyond_terminated", None),
+        }
     else:
         raise CheckpointError(f"cannot snapshot {type(unwrapped).__name__}: no MuJoCo data and no `state` array")
     return state
@@ -158,8 +165,10 @@ def _load_worker_state(env: EnvBase, state: dict) -> None:
         spec = mujoco.mjtState.mjSTATE_INTEGRATION
         buf = sim["state"].numpy()
         if buf.size != mujoco.mj_stateSize(model, spec):
-            raise CheckpointError(f"saved MuJoCo state has {buf.size} numbers, this model needs "
-                                  f"{mujoco.mj_stateSize(model, spec)} (different env?)")
+            raise CheckpointError(
+                f"saved MuJoCo state has {buf.size} numbers, this model needs "
+                f"{mujoco.mj_stateSize(model, spec)} (different env?)"
+            )
         mujoco.mj_setState(model, data, buf, spec)
         mujoco.mj_forward(model, data)
     else:

@@ -26,21 +26,38 @@ from pathlib import Path
 
 import yaml
 
-from adarl.runtime import metrics
 from adarl.errors import AdaRLError
 from adarl.experiments.execute import run_is_finished
 from adarl.experiments.stats import interval_estimate, poi_estimate
 from adarl.experiments.sweep import read_sweep
+from adarl.runtime import metrics
 from adarl.runtime.report import layer_label, pyplot
 from adarl.runtime.results import download_results, exists, is_url, join, upload_tree
 from adarl.runtime.run_dir import RunDir
 
-__all__ = ["RunRecord", "Group", "Aggregate", "collect_runs", "aggregate_runs", "write_aggregate_report",
-           "is_single_run", "intrinsic_rank", "ACTION_DIMS"]
+__all__ = [
+    "RunRecord",
+    "Group",
+    "Aggregate",
+    "collect_runs",
+    "aggregate_runs",
+    "write_aggregate_report",
+    "is_single_run",
+    "intrinsic_rank",
+    "ACTION_DIMS",
+]
 
 #: Action dimension of the paper's environments: the intrinsic rank of Tiwari et al. is 2 * d_a + 1.
-ACTION_DIMS = {"Hopper-v5": 3, "Walker2d-v5": 6, "Ant-v5": 8, "Humanoid-v5": 17, "HalfCheetah-v5": 6,
-               "InvertedPendulum-v5": 1, "CartPole-v1": 1, "LinearCartPole-v0": 1}
+ACTION_DIMS = {
+    "Hopper-v5": 3,
+    "Walker2d-v5": 6,
+    "Ant-v5": 8,
+    "Humanoid-v5": 17,
+    "HalfCheetah-v5": 6,
+    "InvertedPendulum-v5": 1,
+    "CartPole-v1": 1,
+    "LinearCartPole-v0": 1,
+}
 
 
 def intrinsic_rank(env_id: str) -> int | None:
@@ -162,8 +179,19 @@ def _load_run(path: Path, axes: dict[str, str] | None) -> RunRecord | None:
             sweeps[f.stem] = read_sweep(f)
     if axes is None:
         axes = {"recipe": str(recipe.get("name", path.name))}
-    return RunRecord(path, axes, int(recipe.get("seed", 0)), str(recipe.get("env", {}).get("id", "?")), recipe,
-                     evals, events, run.read_rank_history(), int(summary.get("updates", 0)), sweeps, eval_updates)
+    return RunRecord(
+        path,
+        axes,
+        int(recipe.get("seed", 0)),
+        str(recipe.get("env", {}).get("id", "?")),
+        recipe,
+        evals,
+        events,
+        run.read_rank_history(),
+        int(summary.get("updates", 0)),
+        sweeps,
+        eval_updates,
+    )
 
 
 def collect_runs(dirs: list[str | os.PathLike]) -> tuple[list[RunRecord], dict]:
@@ -180,13 +208,15 @@ def collect_runs(dirs: list[str | os.PathLike]) -> tuple[list[RunRecord], dict]:
     for d in dirs:
         p = Path(d)
         if not p.is_dir():
-            raise AdaRLError(f"{str(p)!r} is not a folder (expected a run folder, an experiment folder, or a folder "
-                             "of runs)")
+            raise AdaRLError(
+                f"{str(p)!r} is not a folder (expected a run folder, an experiment folder, or a folder of runs)"
+            )
         exp = p / "experiment.json"
         if exp.is_file():
             state = json.loads(exp.read_text())
-            info["experiments"].append({k: state.get(k) for k in ("name", "description", "budget", "command", "axes",
-                                                                  "report")})
+            info["experiments"].append(
+                {k: state.get(k) for k in ("name", "description", "budget", "command", "axes", "report")}
+            )
             for r in state.get("runs", []):
                 if is_url(r["path"]):  # an experiment at a URL, read from a local copy (write_aggregate_report)
                     r = {**r, "path": str(p / r["path"].rstrip("/").rsplit("/", 1)[-1])}
@@ -283,8 +313,9 @@ def _table(agg: Aggregate) -> tuple[list[str], list[list[str]], list[tuple[int, 
     if col_axis is not None and len(agg.axes) >= 2:
         row_axes = [a for a in agg.axes if a != col_axis]
         cols = sorted({dict(g.key)[col_axis] for g in agg.groups}, key=_num_key)
-        rows_keys = sorted({tuple(dict(g.key)[a] for a in row_axes) for g in agg.groups},
-                           key=lambda t: [_num_key(x) for x in t])
+        rows_keys = sorted(
+            {tuple(dict(g.key)[a] for a in row_axes) for g in agg.groups}, key=lambda t: [_num_key(x) for x in t]
+        )
         by = {tuple(dict(g.key)[a] for a in row_axes) + (dict(g.key)[col_axis],): g for g in agg.groups}
         header = [" / ".join(row_axes)] + cols
         rows, bold = [], []
@@ -364,8 +395,9 @@ def plot_learning_curves(agg: Aggregate, out: Path) -> tuple[Path | None, str]:
                 ss.append(statistics.stdev(vals) if len(vals) > 1 else 0.0)
                 rows.append([g.label, f, ms[-1], ss[-1], len(vals)])
             ax.plot(xs, ms, "o-", ms=3, color=color, label=_line_label(g, col_axis))
-            ax.fill_between(xs, [m - s for m, s in zip(ms, ss)], [m + s for m, s in zip(ms, ss)], color=color,
-                            alpha=0.15)
+            ax.fill_between(
+                xs, [m - s for m, s in zip(ms, ss)], [m + s for m, s in zip(ms, ss)], color=color, alpha=0.15
+            )
             for f in g.runs[0].events:
                 ax.axvline(f, color=color, ls=":", lw=1)
         ax.set_title(title or "nominal-dynamics evaluation", fontsize=9)
@@ -410,8 +442,15 @@ def plot_rank_trajectories(agg: Aggregate, out: Path) -> Path | None:
         for r in g.runs:
             for name, pts in _rank_series(r).items():
                 c = colors.setdefault(name, cmap(len(colors) % 10))
-                ax.step([p[0] for p in pts], [p[1] for p in pts], where="post", color=c, alpha=0.7, lw=1,
-                        label=name if r is g.runs[0] else None)
+                ax.step(
+                    [p[0] for p in pts],
+                    [p[1] for p in pts],
+                    where="post",
+                    color=c,
+                    alpha=0.7,
+                    lw=1,
+                    label=name if r is g.runs[0] else None,
+                )
                 rows += [[g.label, r.seed, name, s, k] for s, k in pts]
         ref = agg.report.get("intrinsic_rank") or intrinsic_rank(g.runs[0].env_id)
         if ref:
@@ -438,8 +477,15 @@ def rank_settling(run: RunRecord) -> dict[str, dict]:
         step = int(ev.get("step", 0))
         for layer in ev.get("layers", []):
             name = layer_label(layer)
-            d = out.setdefault(name, {"initial": int(layer["old_rank"]), "final": int(layer["old_rank"]),
-                                      "min": int(layer["old_rank"]), "last_change": None})
+            d = out.setdefault(
+                name,
+                {
+                    "initial": int(layer["old_rank"]),
+                    "final": int(layer["old_rank"]),
+                    "min": int(layer["old_rank"]),
+                    "last_change": None,
+                },
+            )
             new = int(layer["new_rank"])
             if new != d["final"]:
                 d["last_change"] = step
@@ -451,33 +497,76 @@ def rank_settling(run: RunRecord) -> dict[str, dict]:
 
 
 def _rank_settling_blocks(agg: Aggregate, out: Path) -> list[tuple]:
-    groups = [g for g in sorted(agg.groups, key=lambda g: [_num_key(v) for _, v in g.key])
-              if any(r.rank_history for r in g.scored)]
+    groups = [
+        g
+        for g in sorted(agg.groups, key=lambda g: [_num_key(v) for _, v in g.key])
+        if any(r.rank_history for r in g.scored)
+    ]
     rows, crow = [], []
     for g in groups:
         per_layer: dict[str, list] = {}
         for r in g.scored:
             for name, d in rank_settling(r).items():
                 per_layer.setdefault(name, []).append((r.seed, d))
-                crow.append([*[v for _, v in g.key], r.seed, name, d["initial"], d["final"], d["min"],
-                             d["last_change"], d["events_after"], len(r.rank_history)])
+                crow.append(
+                    [
+                        *[v for _, v in g.key],
+                        r.seed,
+                        name,
+                        d["initial"],
+                        d["final"],
+                        d["min"],
+                        d["last_change"],
+                        d["events_after"],
+                        len(r.rank_history),
+                    ]
+                )
         for name, ds in per_layer.items():
             ds.sort()
-            rows.append([g.label, name, str(ds[0][1]["initial"]), ", ".join(str(d["final"]) for _, d in ds),
-                         ", ".join(str(d["min"]) for _, d in ds),
-                         ", ".join("never" if d["last_change"] is None else f"{d['last_change']:,}" for _, d in ds),
-                         ", ".join(str(d["events_after"]) for _, d in ds)])
+            rows.append(
+                [
+                    g.label,
+                    name,
+                    str(ds[0][1]["initial"]),
+                    ", ".join(str(d["final"]) for _, d in ds),
+                    ", ".join(str(d["min"]) for _, d in ds),
+                    ", ".join("never" if d["last_change"] is None else f"{d['last_change']:,}" for _, d in ds),
+                    ", ".join(str(d["events_after"]) for _, d in ds),
+                ]
+            )
     if not rows:
         return []
-    (out / "rank_settling.csv").write_text(_csv(crow, [*agg.axes, "seed", "layer", "initial_rank", "final_rank",
-                                                       "min_rank", "last_change_step", "events_after_last_change",
-                                                       "events"]))
-    return [("h", 2, "Do the ranks settle?"),
-            ("p", "Per layer, one value per seed (seeds in increasing order): the final rank, the smallest rank it "
-                  "reached, the optimisation step of its last change, and the number of rank events after that "
-                  "change that left it unchanged. Data in rank_settling.csv."),
-            ("table", ["setting", "layer", "initial", "final rank", "lowest rank", "last change at step",
-                       "events since"], rows, [])]
+    (out / "rank_settling.csv").write_text(
+        _csv(
+            crow,
+            [
+                *agg.axes,
+                "seed",
+                "layer",
+                "initial_rank",
+                "final_rank",
+                "min_rank",
+                "last_change_step",
+                "events_after_last_change",
+                "events",
+            ],
+        )
+    )
+    return [
+        ("h", 2, "Do the ranks settle?"),
+        (
+            "p",
+            "Per layer, one value per seed (seeds in increasing order): the final rank, the smallest rank it "
+            "reached, the optimisation step of its last change, and the number of rank events after that "
+            "change that left it unchanged. Data in rank_settling.csv.",
+        ),
+        (
+            "table",
+            ["setting", "layer", "initial", "final rank", "lowest rank", "last change at step", "events since"],
+            rows,
+            [],
+        ),
+    ]
 
 
 def plot_return_vs(agg: Aggregate, axis: str, out: Path) -> Path | None:
@@ -538,8 +627,9 @@ def plot_sweeps(agg: Aggregate, out: Path) -> list[tuple[str, Path, list[list]]]
                 ws.append(min(res.points[i].worst for res in results))
                 rows.append([g.label, param, xs[i], ms[-1], ss[-1], ws[-1], len(vals)])
             line = ax.plot(xs, ms, "o-", ms=3, label=g.label)[0]
-            ax.fill_between(xs, [m - s for m, s in zip(ms, ss)], [m + s for m, s in zip(ms, ss)],
-                            color=line.get_color(), alpha=0.15)
+            ax.fill_between(
+                xs, [m - s for m, s in zip(ms, ss)], [m + s for m, s in zip(ms, ss)], color=line.get_color(), alpha=0.15
+            )
             ax.plot(xs, ws, "*", color="red", ms=9)
             summary.append([g.label, len(results), statistics.fmean(ms), min(ms), min(ws)])
             ax.set_xlabel(param)
@@ -568,10 +658,12 @@ def _md_table(header: list[str], rows: list[list[str]], bold: list[tuple[int, in
 
 
 def _html(blocks: list[tuple]) -> str:
-    parts = ["<!doctype html><html><head><meta charset='utf-8'><title>adarl report</title><style>"
-             "body{font-family:sans-serif;max-width:1100px;margin:2em auto}table{border-collapse:collapse}"
-             "td,th{border:1px solid #ccc;padding:4px 8px;text-align:right}td:first-child{text-align:left}"
-             "img{max-width:100%}</style></head><body>"]
+    parts = [
+        "<!doctype html><html><head><meta charset='utf-8'><title>adarl report</title><style>"
+        "body{font-family:sans-serif;max-width:1100px;margin:2em auto}table{border-collapse:collapse}"
+        "td,th{border:1px solid #ccc;padding:4px 8px;text-align:right}td:first-child{text-align:left}"
+        "img{max-width:100%}</style></head><body>"
+    ]
     for b in blocks:
         kind = b[0]
         if kind == "h":
@@ -584,8 +676,9 @@ def _html(blocks: list[tuple]) -> str:
             header, rows, bold = b[1], b[2], set(b[3])
             parts.append("<table><tr>" + "".join(f"<th>{html.escape(h)}</th>" for h in header) + "</tr>")
             for i, r in enumerate(rows):
-                cells = [f"<b>{html.escape(str(c))}</b>" if (i, j) in bold else html.escape(str(c))
-                         for j, c in enumerate(r)]
+                cells = [
+                    f"<b>{html.escape(str(c))}</b>" if (i, j) in bold else html.escape(str(c)) for j, c in enumerate(r)
+                ]
                 parts.append("<tr>" + "".join(f"<td>{c}</td>" for c in cells) + "</tr>")
             parts.append("</table>")
         elif kind == "img":
@@ -610,12 +703,13 @@ def _markdown(blocks: list[tuple]) -> str:
     return "\n".join(lines)
 
 
-def write_aggregate_report(dirs: list[str | os.PathLike], output: str | os.PathLike | None = None,
-                           *, command: str | None = None) -> Path | str:
+def write_aggregate_report(
+    dirs: list[str | os.PathLike], output: str | os.PathLike | None = None, *, command: str | None = None
+) -> Path | str:
     """Aggregate the runs in ``dirs`` and write the report folder; returns the path of its ``report.md``.
 
-    ``dirs`` and ``output`` may be fsspec URLs (:mod:`adarl.runtime.results`): the runs' files (not their checkpoints) are
-    copied to a temporary folder, the report is made there and uploaded (default output: ``<URL>/report`` for one
+    ``dirs`` and ``output`` may be fsspec URLs (:mod:`adarl.runtime.results`): the runs' files (not their checkpoints)
+    are copied to a temporary folder, the report is made there and uploaded (default output: ``<URL>/report`` for one
     experiment at a URL); ``runs.csv`` names the runs by their URL, and the URL of ``report.md`` is returned."""
     if any(is_url(d) for d in dirs) or is_url(output):
         return _write_report_via_copy(dirs, output, command=command)
@@ -632,10 +726,15 @@ def write_aggregate_report(dirs: list[str | os.PathLike], output: str | os.PathL
     for e in exps:
         if e.get("description"):
             blocks.append(("p", f"{e['description']} (budget: {e.get('budget') or 'default'})."))
-    blocks.append(("p", f"{n_runs} runs in {len(agg.groups)} settings; seeds are replicates. Every number is read "
-                        "from the run folders listed in runs.csv. Score of a run: its last evaluation on the nominal "
-                        "dynamics (mean over its evaluation episodes); table cells: mean ± sample std of that score "
-                        "across seeds, n = number of seeds; best mean of each row in bold."))
+    blocks.append(
+        (
+            "p",
+            f"{n_runs} runs in {len(agg.groups)} settings; seeds are replicates. Every number is read "
+            "from the run folders listed in runs.csv. Score of a run: its last evaluation on the nominal "
+            "dynamics (mean over its evaluation episodes); table cells: mean ± sample std of that score "
+            "across seeds, n = number of seeds; best mean of each row in bold.",
+        )
+    )
     commands = [command] if command else [e["command"] for e in exps if e.get("command")]
     if commands:
         blocks += [("p", "Produced by:"), ("code", "\n".join(commands))]
@@ -645,14 +744,40 @@ def write_aggregate_report(dirs: list[str | os.PathLike], output: str | os.PathL
         blocks.append(("p", "Not run (recipe missing): " + "; ".join(agg.info["missing"])))
     header, rows, bold = _table(agg)
     blocks += [("h", 2, "Final return on nominal dynamics"), ("table", header, rows, bold)]
-    table_rows = [[*[v for _, v in g.key], len(g.finals), g.mean, g.std, min(g.finals, default=math.nan),
-                   max(g.finals, default=math.nan), json.dumps(g.seeds), json.dumps(g.finals)] for g in agg.groups]
-    (out / "table.csv").write_text(_csv(table_rows, [*agg.axes, "n_seeds", "mean", "std", "min", "max", "seeds",
-                                                     "finals"]))
-    (out / "runs.csv").write_text(_csv(
-        [[str(r.path), *[r.axes.get(a, "-") for a in agg.axes], r.seed, r.env_id, r.final, r.evals[-1][0] if r.evals
-          else None, r.updates] for g in agg.groups for r in g.runs],
-        ["path", *agg.axes, "seed", "env", "final_return", "frames", "updates"]))
+    table_rows = [
+        [
+            *[v for _, v in g.key],
+            len(g.finals),
+            g.mean,
+            g.std,
+            min(g.finals, default=math.nan),
+            max(g.finals, default=math.nan),
+            json.dumps(g.seeds),
+            json.dumps(g.finals),
+        ]
+        for g in agg.groups
+    ]
+    (out / "table.csv").write_text(
+        _csv(table_rows, [*agg.axes, "n_seeds", "mean", "std", "min", "max", "seeds", "finals"])
+    )
+    (out / "runs.csv").write_text(
+        _csv(
+            [
+                [
+                    str(r.path),
+                    *[r.axes.get(a, "-") for a in agg.axes],
+                    r.seed,
+                    r.env_id,
+                    r.final,
+                    r.evals[-1][0] if r.evals else None,
+                    r.updates,
+                ]
+                for g in agg.groups
+                for r in g.runs
+            ],
+            ["path", *agg.axes, "seed", "env", "final_return", "frames", "updates"],
+        )
+    )
 
     blocks += _statistics_blocks(agg, out)
 
@@ -660,30 +785,51 @@ def write_aggregate_report(dirs: list[str | os.PathLike], output: str | os.PathL
     if x_axis:
         p = plot_return_vs(agg, x_axis, out)
         if p is not None:
-            blocks += [("h", 2, f"Final return vs {x_axis}"),
-                       ("p", "Mean ± std across seeds (error bars); data in " + p.with_suffix(".csv").name + "."),
-                       ("img", p.name, f"return vs {x_axis}")]
+            blocks += [
+                ("h", 2, f"Final return vs {x_axis}"),
+                ("p", "Mean ± std across seeds (error bars); data in " + p.with_suffix(".csv").name + "."),
+                ("img", p.name, f"return vs {x_axis}"),
+            ]
     p, _ = plot_learning_curves(agg, out)
     if p is not None:
-        blocks += [("h", 2, "Learning curves"),
-                   ("p", "Nominal-dynamics evaluation against environment frames: mean across seeds, shaded ± std; "
-                         "dotted lines mark rank events (truncations). Data in learning_curves.csv."),
-                   ("img", p.name, "learning curves")]
+        blocks += [
+            ("h", 2, "Learning curves"),
+            (
+                "p",
+                "Nominal-dynamics evaluation against environment frames: mean across seeds, shaded ± std; "
+                "dotted lines mark rank events (truncations). Data in learning_curves.csv.",
+            ),
+            ("img", p.name, "learning curves"),
+        ]
     p = plot_rank_trajectories(agg, out)
     if p is not None:
-        blocks += [("h", 2, "Rank trajectories"),
-                   ("p", "Rank of each factorised layer over optimisation steps, every seed; the red dashed line is "
-                         "the intrinsic rank (2*d_a+1, Tiwari et al. 2025; or the spec's report.intrinsic_rank). "
-                         "Data in ranks.csv."),
-                   ("img", p.name, "ranks")]
+        blocks += [
+            ("h", 2, "Rank trajectories"),
+            (
+                "p",
+                "Rank of each factorised layer over optimisation steps, every seed; the red dashed line is "
+                "the intrinsic rank (2*d_a+1, Tiwari et al. 2025; or the spec's report.intrinsic_rank). "
+                "Data in ranks.csv.",
+            ),
+            ("img", p.name, "ranks"),
+        ]
     blocks += _rank_settling_blocks(agg, out)
     for name, path, summary in plot_sweeps(agg, out):
-        blocks += [("h", 2, f"Robustness sweep: {name}"),
-                   ("p", "Per grid point: mean across seeds of the per-point mean return, shaded ± std across seeds; "
-                         "red stars: worst single episode over all seeds. Data in " + path.with_suffix(".csv").name),
-                   ("table", ["group", "seeds", "average over grid", "worst mean", "worst case"],
-                    [[s[0], s[1], f"{s[2]:.1f}", f"{s[3]:.1f}", f"{s[4]:.1f}"] for s in summary], []),
-                   ("img", path.name, f"sweep {name}")]
+        blocks += [
+            ("h", 2, f"Robustness sweep: {name}"),
+            (
+                "p",
+                "Per grid point: mean across seeds of the per-point mean return, shaded ± std across seeds; "
+                "red stars: worst single episode over all seeds. Data in " + path.with_suffix(".csv").name,
+            ),
+            (
+                "table",
+                ["group", "seeds", "average over grid", "worst mean", "worst case"],
+                [[s[0], s[1], f"{s[2]:.1f}", f"{s[3]:.1f}", f"{s[4]:.1f}"] for s in summary],
+                [],
+            ),
+            ("img", path.name, f"sweep {name}"),
+        ]
     (out / "report.md").write_text(_markdown(blocks))
     (out / "report.html").write_text(_html(blocks))
     return out / "report.md"
@@ -727,17 +873,37 @@ def _statistics_blocks(agg: Aggregate, out: Path) -> list[tuple]:
                 row.append("–")
         rows.append(row)
         csv_rows.append([*[v for _, v in g.key], len(f), g.mean, g.std, *m, *q, *p])
-    names = [*agg.axes, "n_seeds", "mean", "std", "mean_pt", "mean_lo", "mean_hi", "iqm", "iqm_lo", "iqm_hi",
-             "poi_ref", "poi_lo", "poi_hi"]
+    names = [
+        *agg.axes,
+        "n_seeds",
+        "mean",
+        "std",
+        "mean_pt",
+        "mean_lo",
+        "mean_hi",
+        "iqm",
+        "iqm_lo",
+        "iqm_hi",
+        "poi_ref",
+        "poi_lo",
+        "poi_hi",
+    ]
     (out / "statistics.csv").write_text(_csv(csv_rows, names))
     blocks: list[tuple] = [
         ("h", 2, "Statistics across seeds"),
-        ("p", "Each seed counted once. Mean and interquartile mean (IQM: the mean of the middle 50% of the seeds' "
-              "scores) with 95% stratified-bootstrap percentile intervals (2000 resamples of the seeds within each "
-              "env, fixed seed), computed by adarl.experiments.stats as the rliable library defines them"
-              + (f"; P({ref} > setting): the probability that a run of {ref} scores above a run of the setting "
-                 "(ties count half), with its bootstrap interval" if ref is not None else "")
-              + ". With 5 seeds the intervals are wide. Data in statistics.csv."),
+        (
+            "p",
+            "Each seed counted once. Mean and interquartile mean (IQM: the mean of the middle 50% of the seeds' "
+            "scores) with 95% stratified-bootstrap percentile intervals (2000 resamples of the seeds within each "
+            "env, fixed seed), computed by adarl.experiments.stats as the rliable library defines them"
+            + (
+                f"; P({ref} > setting): the probability that a run of {ref} scores above a run of the setting "
+                "(ties count half), with its bootstrap interval"
+                if ref is not None
+                else ""
+            )
+            + ". With 5 seeds the intervals are wide. Data in statistics.csv.",
+        ),
         ("table", header, rows, []),
     ]
     dups = [f"{g.label}: seeds {g.duplicate_seeds}" for g in groups if g.duplicate_seeds]
@@ -760,12 +926,18 @@ def _statistics_blocks(agg: Aggregate, out: Path) -> list[tuple]:
                 cells.append(f"{mean:.1f} ± {sd:.1f}; IQM {_ci(*q)} (n={len(vals)})" if vals else "–")
                 crow.append([*[v for _, v in g.key], u, len(vals), mean, sd, *q])
             trows.append([g.label, *cells])
-        (out / "at_updates.csv").write_text(_csv(crow, [*agg.axes, "updates", "n_seeds", "mean", "std", "iqm",
-                                                        "iqm_lo", "iqm_hi"]))
-        blocks += [("h", 2, "Score at the end of each iteration"),
-                   ("p", "Each run's first nominal-dynamics evaluation at or after the given number of optimisation "
-                         "steps: mean ± std across seeds; IQM [95% CI]. Data in at_updates.csv."),
-                   ("table", head, trows, [])]
+        (out / "at_updates.csv").write_text(
+            _csv(crow, [*agg.axes, "updates", "n_seeds", "mean", "std", "iqm", "iqm_lo", "iqm_hi"])
+        )
+        blocks += [
+            ("h", 2, "Score at the end of each iteration"),
+            (
+                "p",
+                "Each run's first nominal-dynamics evaluation at or after the given number of optimisation "
+                "steps: mean ± std across seeds; IQM [95% CI]. Data in at_updates.csv.",
+            ),
+            ("table", head, trows, []),
+        ]
     return blocks
 
 
@@ -794,18 +966,31 @@ def _event_window_blocks(groups: list[Group], window: int, out: Path) -> list[tu
                 crow.append([*[v for _, v in g.key], r.seed, e, before, after])
         if not changes:
             continue
-        rows.append([g.label, str(len(changes)), f"{statistics.fmean(changes):+.1f}",
-                     f"{min(changes):+.1f}", f"{statistics.fmean(a for a in afters if not math.isnan(a)):.2f}"])
+        rows.append(
+            [
+                g.label,
+                str(len(changes)),
+                f"{statistics.fmean(changes):+.1f}",
+                f"{min(changes):+.1f}",
+                f"{statistics.fmean(a for a in afters if not math.isnan(a)):.2f}",
+            ]
+        )
     if not rows:
         return []
-    (out / "event_window.csv").write_text(_csv(crow, [*[a for a, _ in groups[0].key], "seed", "event_frames",
-                                                      "return_before", "return_after"]))
-    return [("h", 2, "Training return around rank events"),
-            ("p", f"For every rank event that changed a rank, in every seed: the mean training episode return in "
-                  f"the {window:,} frames after the event minus the mean in the {window:,} frames before it (the "
-                  "transient dip of Fig. 9; training episodes run under the perturbed dynamics, so single values are "
-                  "noisy). Data in event_window.csv."),
-            ("table", ["setting", "events", "mean change", "worst change", "mean after / before"], rows, [])]
+    (out / "event_window.csv").write_text(
+        _csv(crow, [*[a for a, _ in groups[0].key], "seed", "event_frames", "return_before", "return_after"])
+    )
+    return [
+        ("h", 2, "Training return around rank events"),
+        (
+            "p",
+            f"For every rank event that changed a rank, in every seed: the mean training episode return in "
+            f"the {window:,} frames after the event minus the mean in the {window:,} frames before it (the "
+            "transient dip of Fig. 9; training episodes run under the perturbed dynamics, so single values are "
+            "noisy). Data in event_window.csv.",
+        ),
+        ("table", ["setting", "events", "mean change", "worst change", "mean after / before"], rows, []),
+    ]
 
 
 def _write_report_via_copy(dirs: list, output, *, command: str | None) -> Path | str:
@@ -833,7 +1018,7 @@ def _write_report_via_copy(dirs: list, output, *, command: str | None) -> Path |
         for row in rows[1:]:  # local copies -> the URLs they came from
             for copy, url in names.items():
                 if row[0] == copy or row[0].startswith(copy + os.sep):
-                    row[0] = url + row[0][len(copy):].replace(os.sep, "/")
+                    row[0] = url + row[0][len(copy) :].replace(os.sep, "/")
         buf = io.StringIO()
         csv.writer(buf).writerows(rows)
         runs_csv.write_text(buf.getvalue())

@@ -43,14 +43,30 @@ def _sb3_available() -> bool:
     return importlib.util.find_spec("stable_baselines3") is not None
 
 
-def _recipe(env_id: str, width: int, variant: str, warmup: int, total: int, rank_interval: int, batch: int,
-            extra: tuple[str, ...] = ()):
+def _recipe(
+    env_id: str,
+    width: int,
+    variant: str,
+    warmup: int,
+    total: int,
+    rank_interval: int,
+    batch: int,
+    extra: tuple[str, ...] = (),
+):
     from adarl.runtime.config import load_recipe
 
-    ov = [f"env.id={env_id}", "env.perturbation.preset=none", f"collector.total_frames={total}",
-          f"collector.init_random_frames={warmup}", "collector.frames_per_batch=50", f"replay.size={max(total, batch)}",
-          f"algorithm.batch_size={batch}", f"network.actor.num_cells=[{width},{width}]",
-          f"network.critic.num_cells=[{width},{width}]", "replay.warm_start.frames=0"]
+    ov = [
+        f"env.id={env_id}",
+        "env.perturbation.preset=none",
+        f"collector.total_frames={total}",
+        f"collector.init_random_frames={warmup}",
+        "collector.frames_per_batch=50",
+        f"replay.size={max(total, batch)}",
+        f"algorithm.batch_size={batch}",
+        f"network.actor.num_cells=[{width},{width}]",
+        f"network.critic.num_cells=[{width},{width}]",
+        "replay.warm_start.frames=0",
+    ]
     if variant in ("adarl", "adarl_process", "adarl_thread"):
         ov += [f"rank.interval={rank_interval}", "algorithm.fused=true"]
         if variant != "adarl":  # collection in a worker process / a background thread, one batch staler
@@ -60,8 +76,12 @@ def _recipe(env_id: str, width: int, variant: str, warmup: int, total: int, rank
     elif variant == "adarl_norank":
         ov += ["rank.enabled=false", "algorithm.fused=true"]
     else:  # stock TorchRL: plain MLPs, SACLoss, for-loop Adam, SoftUpdate (TorchRL's reference SAC recipe)
-        ov += ["rank.enabled=false", "algorithm.fused=false", "network.actor.low_rank_layers=[]",
-               "network.critic.low_rank_layers=[]"]
+        ov += [
+            "rank.enabled=false",
+            "algorithm.fused=false",
+            "network.actor.low_rank_layers=[]",
+            "network.critic.low_rank_layers=[]",
+        ]
     return load_recipe("base", ov + list(extra))
 
 
@@ -110,8 +130,12 @@ def _measure_torchrl(variant, env_id, width, warmup, steps, skip, batch, rank_in
             event_s.append(time.perf_counter() - t - per_update)
     c.collector.shutdown()  # joins a collector worker process, so its peak memory is counted below
     del torch
-    return {"updates_per_s": (updates - skip) / wall, "env_steps_per_s": (frames - f0) / wall,
-            "rank_event_s": event_s, "rank_events": len(event_s)}
+    return {
+        "updates_per_s": (updates - skip) / wall,
+        "env_steps_per_s": (frames - f0) / wall,
+        "rank_event_s": event_s,
+        "rank_events": len(event_s),
+    }
 
 
 def _measure_sb3(env_id, width, warmup, steps, skip, batch) -> dict:
@@ -119,9 +143,20 @@ def _measure_sb3(env_id, width, warmup, steps, skip, batch) -> dict:
     from stable_baselines3 import SAC
 
     env = gym.make(env_id)
-    model = SAC("MlpPolicy", env, batch_size=batch, learning_starts=warmup, train_freq=1, gradient_steps=1,
-                buffer_size=warmup + skip + steps + 10, policy_kwargs={"net_arch": [width, width]}, device="cpu",
-                learning_rate=3e-3, seed=0, verbose=0)
+    model = SAC(
+        "MlpPolicy",
+        env,
+        batch_size=batch,
+        learning_starts=warmup,
+        train_freq=1,
+        gradient_steps=1,
+        buffer_size=warmup + skip + steps + 10,
+        policy_kwargs={"net_arch": [width, width]},
+        device="cpu",
+        learning_rate=3e-3,
+        seed=0,
+        verbose=0,
+    )
     model.learn(total_timesteps=warmup + skip)
     t = time.perf_counter()
     model.learn(total_timesteps=steps, reset_num_timesteps=False)
@@ -129,8 +164,19 @@ def _measure_sb3(env_id, width, warmup, steps, skip, batch) -> dict:
     return {"updates_per_s": steps / wall, "env_steps_per_s": steps / wall, "rank_event_s": [], "rank_events": 0}
 
 
-def measure(variant: str, env_id: str, width: int, *, warmup: int = 1000, steps: int = 1000, skip: int = 100,
-            batch: int = 256, threads: int = 1, rank_interval: int = 400, overrides: tuple[str, ...] = ()) -> dict:
+def measure(
+    variant: str,
+    env_id: str,
+    width: int,
+    *,
+    warmup: int = 1000,
+    steps: int = 1000,
+    skip: int = 100,
+    batch: int = 256,
+    threads: int = 1,
+    rank_interval: int = 400,
+    overrides: tuple[str, ...] = (),
+) -> dict:
     """One measurement in this process: updates/s and env steps/s over ``steps`` updates after warm-up.
 
     ``overrides`` are recipe overrides for the adarl variants (e.g. ``network.actor.rank=64``)."""
@@ -143,8 +189,9 @@ def measure(variant: str, env_id: str, width: int, *, warmup: int = 1000, steps:
         out = _measure_torchrl(variant, env_id, width, warmup, steps, skip, batch, rank_interval, overrides)
     out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     # a collector worker process (adarl_process): its own peak, reported beside the trainer's
-    out["worker_peak_rss_mb"] = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024 if \
-        variant == "adarl_process" else 0.0
+    out["worker_peak_rss_mb"] = (
+        resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024 if variant == "adarl_process" else 0.0
+    )
     return out
 
 
@@ -174,25 +221,58 @@ def _worker(args) -> int:
     import warnings
 
     warnings.filterwarnings("ignore")
-    out = measure(args.variant, args.env, args.width, warmup=args.warmup, steps=args.steps, skip=args.skip,
-                  batch=args.batch, threads=args.threads, rank_interval=args.rank_interval, overrides=tuple(args.set))
+    out = measure(
+        args.variant,
+        args.env,
+        args.width,
+        warmup=args.warmup,
+        steps=args.steps,
+        skip=args.skip,
+        batch=args.batch,
+        threads=args.threads,
+        rank_interval=args.rank_interval,
+        overrides=tuple(args.set),
+    )
     print("ADARL_BENCH " + json.dumps(out))
     return 0
 
 
 def _spawn(variant, env_id, width, a) -> dict:
-    cmd = [sys.executable, "-m", "adarl.experiments.bench", "--worker", "--variant", variant, "--env", env_id,
-           "--width", str(width), "--warmup", str(a.warmup), "--steps", str(a.steps), "--skip", str(a.skip),
-           "--batch", str(a.batch), "--threads", str(a.threads), "--rank-interval", str(a.rank_interval),
-           "--set", *a.set]
+    cmd = [
+        sys.executable,
+        "-m",
+        "adarl.experiments.bench",
+        "--worker",
+        "--variant",
+        variant,
+        "--env",
+        env_id,
+        "--width",
+        str(width),
+        "--warmup",
+        str(a.warmup),
+        "--steps",
+        str(a.steps),
+        "--skip",
+        str(a.skip),
+        "--batch",
+        str(a.batch),
+        "--threads",
+        str(a.threads),
+        "--rank-interval",
+        str(a.rank_interval),
+        "--set",
+        *a.set,
+    ]
     with tempfile.TemporaryDirectory(prefix="adarl-bench-inductor-") as cache:
         # a fresh inductor cache: every compilation is cold, as each rank event's new shapes are in a real run
-        env = dict(os.environ, OMP_NUM_THREADS=str(a.threads), MKL_NUM_THREADS=str(a.threads),
-                   TORCHINDUCTOR_CACHE_DIR=cache)
+        env = dict(
+            os.environ, OMP_NUM_THREADS=str(a.threads), MKL_NUM_THREADS=str(a.threads), TORCHINDUCTOR_CACHE_DIR=cache
+        )
         proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
     for line in proc.stdout.splitlines():
         if line.startswith("ADARL_BENCH "):
-            return json.loads(line[len("ADARL_BENCH "):])
+            return json.loads(line[len("ADARL_BENCH ") :])
     raise RuntimeError(f"benchmark worker {variant} {env_id} {width} failed:\n{proc.stderr[-2000:]}")
 
 
@@ -209,8 +289,12 @@ def run_benchmark(a) -> dict:
                 for v in order:
                     runs[v].append(_spawn(v, env_id, width, a))
                     if not a.quiet:
-                        print(f"  {env_id} ({width},{width}) {v} #{rep + 1}: "
-                              f"{runs[v][-1]['updates_per_s']:.1f} updates/s", file=sys.stderr, flush=True)
+                        print(
+                            f"  {env_id} ({width},{width}) {v} #{rep + 1}: "
+                            f"{runs[v][-1]['updates_per_s']:.1f} updates/s",
+                            file=sys.stderr,
+                            flush=True,
+                        )
             row = {"env": env_id, "width": width, "variants": {}}
             for v, rs in runs.items():
                 events = [t for r in rs for t in r["rank_event_s"]]
@@ -234,35 +318,51 @@ def run_benchmark(a) -> dict:
             results.append(row)
     # one rank event stand-alone, at the loop's thread count and (rank.num_threads) with every core
     thread_counts = sorted({a.threads, os.cpu_count() or 1})
-    events = [{"width": w, "threads": t, "ms": 1000 * rank_event_seconds(w, threads=a.threads, event_threads=t)}
-              for w in a.event_widths for t in thread_counts]
-    return {"settings": {k: v for k, v in vars(a).items() if k not in ("func",)}, "skipped": skipped,
-            "results": results, "rank_events_standalone": events,
-            "machine": {"cpus": os.cpu_count(), "load_avg": os.getloadavg()}}
+    events = [
+        {"width": w, "threads": t, "ms": 1000 * rank_event_seconds(w, threads=a.threads, event_threads=t)}
+        for w in a.event_widths
+        for t in thread_counts
+    ]
+    return {
+        "settings": {k: v for k, v in vars(a).items() if k not in ("func",)},
+        "skipped": skipped,
+        "results": results,
+        "rank_events_standalone": events,
+        "machine": {"cpus": os.cpu_count(), "load_avg": os.getloadavg()},
+    }
 
 
 def format_table(report: dict) -> str:
-    lines = ["| env | size | variant | updates/s | env steps/s | peak RSS (MB) | rank event (ms) |",
-             "|---|---|---|---|---|---|---|"]
+    lines = [
+        "| env | size | variant | updates/s | env steps/s | peak RSS (MB) | rank event (ms) |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for row in report["results"]:
         for v, d in row["variants"].items():
             ev = "-" if d["rank_event_ms"] is None else f"{d['rank_event_ms']:.1f}"
             rss = f"{d['peak_rss_mb']:.0f}"
             if d.get("worker_peak_rss_mb"):
                 rss += f" + {d['worker_peak_rss_mb']:.0f} (worker)"
-            lines.append(f"| {row['env']} | ({row['width']}, {row['width']}) | {v} | {d['updates_per_s']:.1f} | "
-                         f"{d['env_steps_per_s']:.1f} | {rss} | {ev} |")
+            lines.append(
+                f"| {row['env']} | ({row['width']}, {row['width']}) | {v} | {d['updates_per_s']:.1f} | "
+                f"{d['env_steps_per_s']:.1f} | {rss} | {ev} |"
+            )
     lines += ["", "| env | size | ratio | value |", "|---|---|---|---|"]
     for row in report["results"]:
         for k, val in row["ratios"].items():
             lines.append(f"| {row['env']} | ({row['width']}, {row['width']}) | updates/s {k} | {val:.2f}x |")
-        shares = {v: d["rank_overhead_at_paper_interval"] for v, d in row["variants"].items()
-                  if d.get("rank_overhead_at_paper_interval") is not None}
+        shares = {
+            v: d["rank_overhead_at_paper_interval"]
+            for v, d in row["variants"].items()
+            if d.get("rank_overhead_at_paper_interval") is not None
+        }
         if not shares and "rank_overhead_at_paper_interval" in row:
             shares = {"adarl": row["rank_overhead_at_paper_interval"]}
         for v, share in shares.items():
-            lines.append(f"| {row['env']} | ({row['width']}, {row['width']}) | rank-event share of wall time at "
-                         f"interval 1e6, {v} | {100 * share:.5f}% |")
+            lines.append(
+                f"| {row['env']} | ({row['width']}, {row['width']}) | rank-event share of wall time at "
+                f"interval 1e6, {v} | {100 * share:.5f}% |"
+            )
     lines += ["", "| layer width | torch threads | one rank event, actor + 2 critics (ms) |", "|---|---|---|"]
     lines += [f"| {e['width']} | {e['threads']} | {e['ms']:.1f} |" for e in report["rank_events_standalone"]]
     if report["skipped"]:
@@ -273,23 +373,42 @@ def format_table(report: dict) -> str:
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--envs", nargs="+", default=["Hopper-v5"], help="gymnasium env ids (e.g. Hopper-v5 Humanoid-v5)")
     p.add_argument("--widths", nargs="+", type=int, default=[64, 256], help="hidden width w of (w, w) MLPs")
-    p.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS,
-                   help="adarl (fused, rank adaptation on), adarl_compiled (the same with algorithm.compile; its "
-                        "rank events, each a recompilation, are timed after the window), adarl_process / adarl_thread "
-                        "(collector.overlap: process / thread), adarl_norank, torchrl (stock SACLoss loop), sb3")
+    p.add_argument(
+        "--variants",
+        nargs="+",
+        default=list(VARIANTS),
+        choices=VARIANTS,
+        help="adarl (fused, rank adaptation on), adarl_compiled (the same with algorithm.compile; its "
+        "rank events, each a recompilation, are timed after the window), adarl_process / adarl_thread "
+        "(collector.overlap: process / thread), adarl_norank, torchrl (stock SACLoss loop), sb3",
+    )
     p.add_argument("--repeats", type=int, default=3, help="repeats per variant (the median is reported)")
     p.add_argument("--steps", type=int, default=1000, help="timed updates per measurement")
     p.add_argument("--warmup", type=int, default=1000, help="random-action frames before updates start")
     p.add_argument("--skip", type=int, default=100, help="untimed updates before the timed window")
     p.add_argument("--batch", type=int, default=256)
     p.add_argument("--threads", type=int, default=1, help="torch threads per measurement")
-    p.add_argument("--rank-interval", type=int, default=400,
-                   help="adarl variant: updates between rank events (to time events inside the window)")
-    p.add_argument("--event-widths", nargs="*", type=int, default=[64, 1024],
-                   help="layer widths for the stand-alone rank-event timing")
-    p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
-                   help="recipe overrides for the adarl variants, e.g. network.actor.rank=64 network.critic.rank=64 "
-                        "to time the loop at the ranks a truncation leaves")
+    p.add_argument(
+        "--rank-interval",
+        type=int,
+        default=400,
+        help="adarl variant: updates between rank events (to time events inside the window)",
+    )
+    p.add_argument(
+        "--event-widths",
+        nargs="*",
+        type=int,
+        default=[64, 1024],
+        help="layer widths for the stand-alone rank-event timing",
+    )
+    p.add_argument(
+        "--set",
+        nargs="*",
+        default=[],
+        metavar="KEY=VALUE",
+        help="recipe overrides for the adarl variants, e.g. network.actor.rank=64 network.critic.rank=64 "
+        "to time the loop at the ranks a truncation leaves",
+    )
     p.add_argument("--output", default="bench.json", help="JSON report path")
     p.add_argument("--quiet", action="store_true")
 
@@ -300,8 +419,9 @@ def cli(a) -> int:
             raise AdaRLValueError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(a, name)}")
     for env_id in a.envs if a.set else ():  # a bad override fails here, with the recipe's error, before measuring
         for width in a.widths:
-            _recipe(env_id, width, "adarl", a.warmup, a.warmup + a.skip + a.steps, a.rank_interval, a.batch,
-                    tuple(a.set))
+            _recipe(
+                env_id, width, "adarl", a.warmup, a.warmup + a.skip + a.steps, a.rank_interval, a.batch, tuple(a.set)
+            )
     report = run_benchmark(a)
     Path(a.output).write_text(json.dumps(report, indent=2) + "\n")
     print(format_table(report))

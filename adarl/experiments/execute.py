@@ -25,7 +25,16 @@ from pathlib import Path
 import yaml
 
 from adarl.experiments.spec import PlannedRun
-from adarl.runtime.results import SYNC_INTERVAL_S, RunMirror, filesystem, is_url, join, read_text, scratch_folder, write_atomic
+from adarl.runtime.results import (
+    SYNC_INTERVAL_S,
+    RunMirror,
+    filesystem,
+    is_url,
+    join,
+    read_text,
+    scratch_folder,
+    write_atomic,
+)
 
 __all__ = ["execute_run", "run_is_finished", "read_attempts", "ATTEMPTS_DIR"]
 
@@ -127,8 +136,13 @@ def execute_run(run: PlannedRun, threads: int | None) -> PlannedRun:
     _record_attempt(run, event="start", action=action)
     start = time.perf_counter()
     with log.open("w") as fh:
-        proc = subprocess.run(cmd, stdout=fh, stderr=subprocess.STDOUT, env=env,
-                              preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None)
+        proc = subprocess.run(
+            cmd,
+            stdout=fh,
+            stderr=subprocess.STDOUT,
+            env=env,
+            preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None,
+        )
     run.wall_time_s = time.perf_counter() - start
     if proc.returncode == 0 and run_is_finished(path):
         run.status, run.message = "finished", action
@@ -177,8 +191,13 @@ def _execute_at_url(run: PlannedRun, threads: int | None) -> PlannedRun:
     returncode, upload_error = 0, None
     if cmd is not None:
         with log.open("w") as fh:
-            proc = subprocess.Popen(cmd, stdout=fh, stderr=subprocess.STDOUT, env=_train_env(threads),
-                                    preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None)
+            proc = subprocess.Popen(
+                cmd,
+                stdout=fh,
+                stderr=subprocess.STDOUT,
+                env=_train_env(threads),
+                preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None,
+            )
             try:
                 while True:
                     try:

@@ -2,10 +2,10 @@
 ``ray`` (one Ray task per run, on an existing cluster or a Ray started on demand) and ``submitit`` (one SLURM job
 per run, or submitit's local executor).
 
-Every launcher runs the same thing: :func:`adarl.experiments.execute.execute_run`, which starts ``adarl run`` (or ``adarl
-resume`` when the run folder has a checkpoint) in a child process that dies with its launcher process. So a worker
-that is lost mid-run is retried from the run's last checkpoint (Ray: ``max_retries``; submitit: resubmitted by the
-driver, and requeued from the checkpoint on preemption/timeout), and a finished run is never started again. Runs
+Every launcher runs the same thing: :func:`adarl.experiments.execute.execute_run`, which starts ``adarl run`` (or
+``adarl resume`` when the run folder has a checkpoint) in a child process that dies with its launcher process. So a
+worker that is lost mid-run is retried from the run's last checkpoint (Ray: ``max_retries``; submitit: resubmitted by
+the driver, and requeued from the checkpoint on preemption/timeout), and a finished run is never started again. Runs
 write into the experiment's output: a filesystem path that every worker sees (NFS, Lustre, ...), or an fsspec URL
 (``s3://...``) that each run uploads to from a local scratch folder (:mod:`adarl.runtime.results`). The launchers do not
 stage code or install packages on workers: each worker needs ``adarl`` installed (and the URL's fsspec backend, e.g.
@@ -17,9 +17,9 @@ from __future__ import annotations
 import os
 import time
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Callable
 
 from adarl.errors import AdaRLError, AdaRLValueError
 from adarl.experiments.execute import execute_run
@@ -96,11 +96,21 @@ class RayLauncher(Launcher):
 
     name = "ray"
 
-    def __init__(self, address: str | None = None, *, cpus_per_run: float = 1, gpus_per_run: float = 0,
-                 max_retries: int = 3, num_cpus: int | None = None, poll_s: float = 5.0) -> None:
+    def __init__(
+        self,
+        address: str | None = None,
+        *,
+        cpus_per_run: float = 1,
+        gpus_per_run: float = 0,
+        max_retries: int = 3,
+        num_cpus: int | None = None,
+        poll_s: float = 5.0,
+    ) -> None:
         if cpus_per_run <= 0 or gpus_per_run < 0 or max_retries < 0:
-            raise AdaRLValueError(f"ray launcher: cpus_per_run must be > 0, gpus_per_run and max_retries >= 0 "
-                                  f"(got {cpus_per_run}, {gpus_per_run}, {max_retries})")
+            raise AdaRLValueError(
+                f"ray launcher: cpus_per_run must be > 0, gpus_per_run and max_retries >= 0 "
+                f"(got {cpus_per_run}, {gpus_per_run}, {max_retries})"
+            )
         self.address, self.cpus_per_run, self.gpus_per_run = address, cpus_per_run, gpus_per_run
         self.max_retries, self.num_cpus, self.poll_s = max_retries, num_cpus, poll_s
 
@@ -116,14 +126,17 @@ class RayLauncher(Launcher):
         started = False
         if not ray.is_initialized():
             if self.address is None:
-                ray.init(num_cpus=self.num_cpus, include_dashboard=False, log_to_driver=False,
-                         configure_logging=False)
+                ray.init(num_cpus=self.num_cpus, include_dashboard=False, log_to_driver=False, configure_logging=False)
             else:
                 ray.init(address=self.address, log_to_driver=False, configure_logging=False)
             started = True
         try:
-            task = ray.remote(_ray_execute).options(num_cpus=self.cpus_per_run, num_gpus=self.gpus_per_run,
-                                                    max_retries=self.max_retries, retry_exceptions=False)
+            task = ray.remote(_ray_execute).options(
+                num_cpus=self.cpus_per_run,
+                num_gpus=self.gpus_per_run,
+                max_retries=self.max_retries,
+                retry_exceptions=False,
+            )
             refs = {task.remote(r, self.threads): r for r in runs}
             pending = list(refs)
             while pending:
@@ -151,9 +164,19 @@ class SubmititLauncher(Launcher):
 
     name = "submitit"
 
-    def __init__(self, folder: str | os.PathLike, *, cluster: str | None = None, cpus_per_run: int = 1,
-                 gpus_per_run: int = 0, timeout_min: int = 24 * 60, slurm_partition: str | None = None,
-                 slurm_additional_parameters: dict | None = None, max_retries: int = 3, poll_s: float = 5.0) -> None:
+    def __init__(
+        self,
+        folder: str | os.PathLike,
+        *,
+        cluster: str | None = None,
+        cpus_per_run: int = 1,
+        gpus_per_run: int = 0,
+        timeout_min: int = 24 * 60,
+        slurm_partition: str | None = None,
+        slurm_additional_parameters: dict | None = None,
+        max_retries: int = 3,
+        poll_s: float = 5.0,
+    ) -> None:
         self.folder, self.cluster = Path(folder), cluster
         self.cpus_per_run, self.gpus_per_run, self.timeout_min = int(cpus_per_run), int(gpus_per_run), timeout_min
         self.slurm_partition, self.slurm_additional_parameters = slurm_partition, slurm_additional_parameters or {}
@@ -216,10 +239,19 @@ class _CheckpointableRun(_Checkpointable):
         return execute_run(run, threads)
 
 
-def make_launcher(name: str, *, workers: int = 1, output: str | os.PathLike = ".", address: str | None = None,
-                  cpus_per_run: float | None = None, gpus_per_run: float | None = None, max_retries: int = 3,
-                  resources=None, cluster: str | None = None, submitit_folder: str | os.PathLike | None = None
-                  ) -> Launcher:
+def make_launcher(
+    name: str,
+    *,
+    workers: int = 1,
+    output: str | os.PathLike = ".",
+    address: str | None = None,
+    cpus_per_run: float | None = None,
+    gpus_per_run: float | None = None,
+    max_retries: int = 3,
+    resources=None,
+    cluster: str | None = None,
+    submitit_folder: str | os.PathLike | None = None,
+) -> Launcher:
     """A launcher by name (``local``, ``ray``, ``submitit``), sized from the spec's ``resources`` unless given.
 
     ``submitit_folder``: where submitit keeps its job files (default ``<output>/submitit``; required when the output
@@ -233,11 +265,18 @@ def make_launcher(name: str, *, workers: int = 1, output: str | os.PathLike = ".
     if name == "ray":
         return RayLauncher(address, cpus_per_run=cpus, gpus_per_run=gpus, max_retries=max_retries)
     if submitit_folder is None and is_url(output):
-        raise AdaRLValueError(f"the submitit launcher keeps its job files in a folder every job can read; with an "
-                              f"fsspec URL as output ({output}) give one: --submitit-folder /shared/path")
+        raise AdaRLValueError(
+            f"the submitit launcher keeps its job files in a folder every job can read; with an "
+            f"fsspec URL as output ({output}) give one: --submitit-folder /shared/path"
+        )
     folder = Path(submitit_folder) if submitit_folder is not None else Path(output) / "submitit"
-    return SubmititLauncher(folder, cluster=cluster, cpus_per_run=int(cpus), gpus_per_run=int(gpus),
-                            timeout_min=resources.timeout_min if resources else 24 * 60,
-                            slurm_partition=resources.slurm_partition if resources else None,
-                            slurm_additional_parameters=resources.slurm_additional_parameters if resources else None,
-                            max_retries=max_retries)
+    return SubmititLauncher(
+        folder,
+        cluster=cluster,
+        cpus_per_run=int(cpus),
+        gpus_per_run=int(gpus),
+        timeout_min=resources.timeout_min if resources else 24 * 60,
+        slurm_partition=resources.slurm_partition if resources else None,
+        slurm_additional_parameters=resources.slurm_additional_parameters if resources else None,
+        max_retries=max_retries,
+    )

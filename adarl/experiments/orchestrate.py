@@ -22,10 +22,28 @@ from adarl.experiments.aggregate import write_aggregate_report
 from adarl.experiments.execute import run_is_finished
 from adarl.experiments.launchers import Launcher, make_launcher
 from adarl.experiments.progress import LiveBoard, ProgressBoard
-from adarl.experiments.spec import ExperimentSpec, PlannedRun, SweepSpec, default_output, load_experiment, plan_runs, resolve_budget
+from adarl.experiments.spec import (
+    ExperimentSpec,
+    PlannedRun,
+    SweepSpec,
+    default_output,
+    load_experiment,
+    plan_runs,
+    resolve_budget,
+)
 from adarl.experiments.sweep import parse_sweep, sweep_run
 from adarl.runtime.config import load_recipe
-from adarl.runtime.results import RunMirror, exists, filesystem, is_url, join, makedirs, read_text, upload_tree, write_atomic
+from adarl.runtime.results import (
+    RunMirror,
+    exists,
+    filesystem,
+    is_url,
+    join,
+    makedirs,
+    read_text,
+    upload_tree,
+    write_atomic,
+)
 
 __all__ = ["run_experiment", "EXPERIMENT_FILE"]
 
@@ -71,11 +89,18 @@ def _sweep(run: PlannedRun, sweeps: list[SweepSpec]) -> None:
         upload_tree(mirror.local / "sweeps", join(run.path, "sweeps"))
 
 
-def _write_state(out: Path | str, spec: ExperimentSpec, budget: str | None, runs: list[PlannedRun],
-                 command: str = "") -> None:
-    payload = {"name": spec.name, "description": spec.description, "budget": budget, "command": command,
-               "axes": list(spec.axes),
-               "report": spec.report.model_dump(), "runs": [r.as_dict() for r in runs]}
+def _write_state(
+    out: Path | str, spec: ExperimentSpec, budget: str | None, runs: list[PlannedRun], command: str = ""
+) -> None:
+    payload = {
+        "name": spec.name,
+        "description": spec.description,
+        "budget": budget,
+        "command": command,
+        "axes": list(spec.axes),
+        "report": spec.report.model_dump(),
+        "runs": [r.as_dict() for r in runs],
+    }
     if is_url(out):
         write_atomic(join(out, EXPERIMENT_FILE), json.dumps(payload, indent=2) + "\n")
         return
@@ -91,18 +116,30 @@ def _read_previous(out: Path | str) -> str | None:
     return previous.read_text() if previous.is_file() else None
 
 
-def run_experiment(spec_path: str | os.PathLike, *, budget: str | None = None, output: str | os.PathLike | None = None,
-                   workers: int | None = None, dry_run: bool = False, report: bool = True,
-                   log=print, launcher: str | Any = "local", launcher_options: dict | None = None,
-                   progress_interval: float = 0, scratch: str | os.PathLike | None = None,
-                   live: bool = False, console=None) -> list[PlannedRun]:
+def run_experiment(
+    spec_path: str | os.PathLike,
+    *,
+    budget: str | None = None,
+    output: str | os.PathLike | None = None,
+    workers: int | None = None,
+    dry_run: bool = False,
+    report: bool = True,
+    log=print,
+    launcher: str | Any = "local",
+    launcher_options: dict | None = None,
+    progress_interval: float = 0,
+    scratch: str | os.PathLike | None = None,
+    live: bool = False,
+    console=None,
+) -> list[PlannedRun]:
     """Run (or continue) the experiment in ``spec_path``; returns the runs with their status.
 
-    ``output``: a folder, or an fsspec URL (``s3://bucket/exp``, ``file:///shared/exp``; see :mod:`adarl.runtime.results`),
-    where each run then trains in ``scratch`` (default: ``$TMPDIR/adarl-scratch`` of the machine it runs on) and is
-    uploaded after each checkpoint. ``launcher``: ``local`` (default), ``ray``, ``submitit`` (see
-    :mod:`adarl.experiments.launchers`; ``launcher_options`` go to :func:`~adarl.experiments.launchers.make_launcher`) or a
-    :class:`~adarl.experiments.launchers.Launcher`. ``progress_interval`` > 0 logs one line per run and an aggregate bar that
+    ``output``: a folder, or an fsspec URL (``s3://bucket/exp``, ``file:///shared/exp``; see
+    :mod:`adarl.runtime.results`), where each run then trains in ``scratch`` (default: ``$TMPDIR/adarl-scratch`` of the
+    machine it runs on) and is uploaded after each checkpoint. ``launcher``: ``local`` (default), ``ray``, ``submitit``
+    (see :mod:`adarl.experiments.launchers`; ``launcher_options`` go to
+    :func:`~adarl.experiments.launchers.make_launcher`) or a :class:`~adarl.experiments.launchers.Launcher`.
+    ``progress_interval`` > 0 logs one line per run and an aggregate bar that
     often (seconds); with ``live`` a table redrawn in place instead (rich, on ``console``: default stdout)."""
     spec = load_experiment(spec_path)
     budget, _ = resolve_budget(spec, budget)
@@ -136,8 +173,10 @@ def run_experiment(spec_path: str | os.PathLike, *, budget: str | None = None, o
             if r.status == "skipped-finished" and r.run_id in before:
                 r.wall_time_s = float(before[r.run_id].get("wall_time_s") or 0.0)
     n_done = sum(r.status == "skipped-finished" for r in runs)
-    log(f"experiment {spec.name} (budget {budget or 'default'}): {len(runs)} runs, {n_done} already finished, "
-        f"{len(todo)} to run, {sum(r.status == 'missing-recipe' for r in runs)} with a missing recipe -> {out}")
+    log(
+        f"experiment {spec.name} (budget {budget or 'default'}): {len(runs)} runs, {n_done} already finished, "
+        f"{len(todo)} to run, {sum(r.status == 'missing-recipe' for r in runs)} with a missing recipe -> {out}"
+    )
     if dry_run:
         for r in runs:
             log(f"  {r.status:<16} {r.run_id}: {r.recipe} {' '.join(r.overrides)}")
@@ -149,11 +188,14 @@ def run_experiment(spec_path: str | os.PathLike, *, budget: str | None = None, o
     command = f"adarl experiment {spec_path}" + (f" --budget {budget}" if budget else "") + f" -o {out}"
     _write_state(out, spec, budget, runs, command)
     if not isinstance(launcher, Launcher):
-        launcher = make_launcher(launcher, workers=workers or spec.workers, output=out, resources=spec.resources,
-                                 **(launcher_options or {}))
+        launcher = make_launcher(
+            launcher, workers=workers or spec.workers, output=out, resources=spec.resources, **(launcher_options or {})
+        )
     if is_url(out) and out.startswith("memory://") and launcher.name != "local":
-        raise AdaRLValueError(f"output {out!r}: memory:// lives in one process, which the {launcher.name} launcher's "
-                              "workers cannot see; use a shared URL (s3://, gs://, file:///shared/...)")
+        raise AdaRLValueError(
+            f"output {out!r}: memory:// lives in one process, which the {launcher.name} launcher's "
+            "workers cannot see; use a shared URL (s3://, gs://, file:///shared/...)"
+        )
     board, last_tick = ProgressBoard(runs), [time.monotonic()]
     screen = LiveBoard(board, console=console) if live and progress_interval > 0 else None
     say = screen.log if screen is not None else log
@@ -192,6 +234,7 @@ def run_experiment(spec_path: str | os.PathLike, *, budget: str | None = None, o
         path = write_aggregate_report([out], f"{out}/report" if is_url(out) else out / "report")
         log(f"report: {path}")
     if failed:
-        raise AdaRLError(f"{len(failed)} of {len(runs)} runs failed: " + "; ".join(f"{r.run_id}: {r.message}"
-                                                                               for r in failed[:5]))
+        raise AdaRLError(
+            f"{len(failed)} of {len(runs)} runs failed: " + "; ".join(f"{r.run_id}: {r.message}" for r in failed[:5])
+        )
     return runs

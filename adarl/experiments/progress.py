@@ -172,8 +172,14 @@ def use_live(stream=None, environ=None) -> bool:
     return bool(isatty and isatty()) and not environ.get("CI") and environ.get("TERM") != "dumb"
 
 
-_STYLES = {"running": "bold cyan", "finished": "green", "skipped-finished": "green", "failed": "bold red",
-           "pending": "dim", "missing-recipe": "yellow"}
+_STYLES = {
+    "running": "bold cyan",
+    "finished": "green",
+    "skipped-finished": "green",
+    "failed": "bold red",
+    "pending": "dim",
+    "missing-recipe": "yellow",
+}
 _KEEP_FIRST = ("running", "failed")  # rows kept when the terminal is too short for all of them
 
 
@@ -192,9 +198,13 @@ class LiveBoard:
     def renderable(self):
         progs, totals = self.board.snapshot()
         head = Table.grid(padding=(0, 1))
-        head.add_row(ProgressBar(total=max(totals.all_frames, 1), completed=totals.done_frames, width=self.board.width),
-                     Text(f"{totals.n_done}/{totals.n} runs done, {100 * totals.frac:.0f}% of frames, "
-                          f"{_fmt_s(time.monotonic() - self._start)} elapsed"))
+        head.add_row(
+            ProgressBar(total=max(totals.all_frames, 1), completed=totals.done_frames, width=self.board.width),
+            Text(
+                f"{totals.n_done}/{totals.n} runs done, {100 * totals.frac:.0f}% of frames, "
+                f"{_fmt_s(time.monotonic() - self._start)} elapsed"
+            ),
+        )
         room = max(self.console.size.height - 8, 3)
         keep = set(range(len(progs)))
         if len(progs) > room:
@@ -202,14 +212,23 @@ class LiveBoard:
             keep = set(order[:room])
         shown = [p for i, p in enumerate(progs) if i in keep]
         table = Table(box=box.SIMPLE_HEAD, pad_edge=False, expand=False)
-        for name, justify in (("state", "left"), ("run", "left"), ("frames", "right"), ("return", "right"),
-                              ("eta", "right")):
+        for name, justify in (
+            ("state", "left"),
+            ("run", "left"),
+            ("frames", "right"),
+            ("return", "right"),
+            ("eta", "right"),
+        ):
             table.add_column(name, justify=justify, no_wrap=True)
         for p in shown:
             total = f"/{p.total_frames}" if p.total_frames else ""
-            table.add_row(Text(p.state, style=_STYLES.get(p.state, "")), p.run_id, f"{p.frames}{total}",
-                          "-" if p.last_return is None else f"{p.last_return:.1f}",
-                          "-" if p.eta_s is None else _fmt_s(p.eta_s))
+            table.add_row(
+                Text(p.state, style=_STYLES.get(p.state, "")),
+                p.run_id,
+                f"{p.frames}{total}",
+                "-" if p.last_return is None else f"{p.last_return:.1f}",
+                "-" if p.eta_s is None else _fmt_s(p.eta_s),
+            )
         if len(shown) < len(progs):
             hidden: dict[str, int] = {}
             for i, p in enumerate(progs):

@@ -37,8 +37,21 @@ from adarl.errors import AdaRLWarning, RecipeError
 from adarl.runtime.config import EXPERIMENTS_DIR, recipes_dir
 from adarl.runtime.results import is_url
 
-__all__ = ["AxisValue", "SweepSpec", "Budget", "ReportSpec", "ResourcesSpec", "ExperimentSpec", "PlannedRun",
-           "load_experiment", "shipped_experiments", "resolve_budget", "default_output", "unused_axes", "plan_runs"]
+__all__ = [
+    "AxisValue",
+    "SweepSpec",
+    "Budget",
+    "ReportSpec",
+    "ResourcesSpec",
+    "ExperimentSpec",
+    "PlannedRun",
+    "load_experiment",
+    "shipped_experiments",
+    "resolve_budget",
+    "default_output",
+    "unused_axes",
+    "plan_runs",
+]
 
 _NAME_CHARS = set("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789._-+")
 
@@ -64,7 +77,9 @@ class AxisValue(_Model):
 
 def _as_axis_value(v: Any) -> Any:
     if isinstance(v, bool) or v is None:
-        raise ValueError(f"an axis value must be a number, a string or a mapping {{name, recipe, overrides}}, got {v!r}")
+        raise ValueError(
+            f"an axis value must be a number, a string or a mapping {{name, recipe, overrides}}, got {v!r}"
+        )
     if isinstance(v, (int, float, str)):
         return {"name": str(v)}
     return v
@@ -73,8 +88,9 @@ def _as_axis_value(v: Any) -> Any:
 class SweepSpec(_Model):
     """A robustness sweep to run on every finished run (see :mod:`adarl.experiments.sweep`)."""
 
-    params: list[str] = Field(description="One or two grid specs 'param=lo:hi:n' (others held at nominal).",
-                              min_length=1, max_length=2)
+    params: list[str] = Field(
+        description="One or two grid specs 'param=lo:hi:n' (others held at nominal).", min_length=1, max_length=2
+    )
     episodes: Annotated[int, Field(ge=1)] = Field(5, description="Episodes per grid point.")
     name: str | None = Field(None, description="File stem under sweeps/ (default: the parameter names).")
 
@@ -85,10 +101,12 @@ class Budget(_Model):
     description: str = ""
     seeds: list[int] | None = Field(None, description="Seeds for this budget (default: the spec's).")
     overrides: list[str] = Field(default_factory=list, description="Overrides added to every run.")
-    axes: dict[str, list[str]] = Field(default_factory=dict,
-                                       description="Keep only these value names of an axis, e.g. {rank: ['1', '4']}.")
-    sweeps: list[SweepSpec] | None = Field(None, description="Robustness sweeps for this budget (default: the "
-                                           "spec's); [] runs none.")
+    axes: dict[str, list[str]] = Field(
+        default_factory=dict, description="Keep only these value names of an axis, e.g. {rank: ['1', '4']}."
+    )
+    sweeps: list[SweepSpec] | None = Field(
+        None, description="Robustness sweeps for this budget (default: the spec's); [] runs none."
+    )
 
     @field_validator("axes", mode="before")
     @classmethod
@@ -104,14 +122,21 @@ class ReportSpec(_Model):
     columns: str | None = Field(None, description="Axis shown as table columns (default: 'algorithm' if present).")
     x_axis: str | None = Field(None, description="Numeric axis for a return-vs-value plot (e.g. 'rank', Fig. 1).")
     intrinsic_rank: int | None = Field(None, description="Reference line in rank plots (default: 2*d_a+1 of the env).")
-    reference: str | None = Field(None, description="A value of the column axis (e.g. 'adarl'): the statistics table "
-                                  "gives the probability that it improves on each other column.")
+    reference: str | None = Field(
+        None,
+        description="A value of the column axis (e.g. 'adarl'): the statistics table "
+        "gives the probability that it improves on each other column.",
+    )
     event_window: Annotated[int, Field(ge=1)] | None = Field(
-        None, description="Frames before and after each rank event over which the report compares the training "
-        "episode return (the transient dip after a truncation, Fig. 9).")
+        None,
+        description="Frames before and after each rank event over which the report compares the training "
+        "episode return (the transient dip after a truncation, Fig. 9).",
+    )
     at_updates: list[Annotated[int, Field(ge=1)]] = Field(
-        default_factory=list, description="Optimisation steps at which to report each run's score as well (e.g. the "
-        "ends of the paper's iterations 1, 3 and 5 in Table 2): the first evaluation at or after each.")
+        default_factory=list,
+        description="Optimisation steps at which to report each run's score as well (e.g. the "
+        "ends of the paper's iterations 1, 3 and 5 in Table 2): the first evaluation at or after each.",
+    )
 
 
 class ResourcesSpec(_Model):
@@ -119,11 +144,13 @@ class ResourcesSpec(_Model):
 
     cpus_per_run: Annotated[float, Field(gt=0)] = Field(1, description="CPUs per run (also its torch threads).")
     gpus_per_run: Annotated[float, Field(ge=0)] = Field(0, description="GPUs per run (Ray may take fractions).")
-    timeout_min: Annotated[int, Field(ge=1)] = Field(24 * 60, description="SLURM time limit per job (minutes); "
-                                                     "a job that hits it is requeued from its checkpoint.")
+    timeout_min: Annotated[int, Field(ge=1)] = Field(
+        24 * 60, description="SLURM time limit per job (minutes); a job that hits it is requeued from its checkpoint."
+    )
     slurm_partition: str | None = Field(None, description="SLURM partition (default: the cluster's).")
-    slurm_additional_parameters: dict[str, Any] = Field(default_factory=dict,
-                                                        description="Extra sbatch parameters, e.g. {account: x}.")
+    slurm_additional_parameters: dict[str, Any] = Field(
+        default_factory=dict, description="Extra sbatch parameters, e.g. {account: x}."
+    )
 
 
 class ExperimentSpec(_Model):
@@ -138,8 +165,10 @@ class ExperimentSpec(_Model):
     seeds: list[int] = Field(default_factory=lambda: [0], min_length=1)
     budgets: dict[str, Budget] = Field(default_factory=dict)
     default_budget: str | None = Field(None, description="Budget used when none is asked for (default: none).")
-    output: str | None = Field(None, description="Output folder or fsspec URL, e.g. s3://bucket/exp "
-                               "(default: runs/experiments/<name>[-<budget>]).")
+    output: str | None = Field(
+        None,
+        description="Output folder or fsspec URL, e.g. s3://bucket/exp (default: runs/experiments/<name>[-<budget>]).",
+    )
     workers: Annotated[int, Field(ge=1)] = Field(1, description="Runs at a time (each in its own process).")
     resources: ResourcesSpec = Field(default_factory=ResourcesSpec)
     sweeps: list[SweepSpec] = Field(default_factory=list)
@@ -177,8 +206,10 @@ class ExperimentSpec(_Model):
         if self.recipe is None:
             missing = [a for a, vals in self.axes.items() if not all(v.recipe for v in vals)]
             if not any(all(v.recipe for v in vals) for vals in self.axes.values()):
-                raise ValueError("no recipe: set `recipe`, or a `recipe` on every value of one axis "
-                                 f"(axes without one on every value: {missing})")
+                raise ValueError(
+                    "no recipe: set `recipe`, or a `recipe` on every value of one axis "
+                    f"(axes without one on every value: {missing})"
+                )
         for bname, budget in self.budgets.items():
             for axis, keep in budget.axes.items():
                 if axis not in self.axes:
@@ -196,8 +227,9 @@ class ExperimentSpec(_Model):
             col = self.report.columns or ("algorithm" if "algorithm" in self.axes else None)
             known = [v.name for v in self.axes.get(col, [])] if col else []
             if self.report.reference not in known:
-                raise ValueError(f"report.reference {self.report.reference!r} must be a value of the column axis "
-                                 f"{col!r}: {known}")
+                raise ValueError(
+                    f"report.reference {self.report.reference!r} must be a value of the column axis {col!r}: {known}"
+                )
         return self
 
 
@@ -246,8 +278,10 @@ def load_experiment(path: str | os.PathLike) -> ExperimentSpec:
     if not isinstance(data, dict):
         raise RecipeError(f"experiment spec {str(p)!r} must be a mapping, got {type(data).__name__}")
     if data.get("kind") != "experiment":
-        raise RecipeError(f"{str(p)!r} is not an experiment spec (it needs `kind: experiment`); "
-                          "to train a single recipe use `adarl run`")
+        raise RecipeError(
+            f"{str(p)!r} is not an experiment spec (it needs `kind: experiment`); "
+            "to train a single recipe use `adarl run`"
+        )
     try:
         return ExperimentSpec.model_validate(data)
     except ValidationError as err:
@@ -266,16 +300,19 @@ def _find_shipped(name: str) -> Path:
             candidate = d / EXPERIMENTS_DIR / f"{name}.yaml"
             if candidate.is_file():
                 return candidate
-    raise RecipeError(f"experiment spec {name!r} not found (a .yaml path, or a shipped spec name: "
-                      f"{', '.join(shipped_experiments())})")
+    raise RecipeError(
+        f"experiment spec {name!r} not found (a .yaml path, or a shipped spec name: {', '.join(shipped_experiments())})"
+    )
 
 
 def _fill(template: str, values: dict[str, str], where: str) -> str:
     try:
         return template.format(**values)
     except KeyError as err:
-        raise RecipeError(f"{where}: template {template!r} uses {{{err.args[0]}}}, which is not an axis or 'seed'; "
-                          f"available: {sorted(values)}") from None
+        raise RecipeError(
+            f"{where}: template {template!r} uses {{{err.args[0]}}}, which is not an axis or 'seed'; "
+            f"available: {sorted(values)}"
+        ) from None
     except (ValueError, IndexError) as err:
         raise RecipeError(f"{where}: bad template {template!r}: {err}") from None
 
@@ -285,7 +322,9 @@ def resolve_budget(spec: ExperimentSpec, budget: str | None) -> tuple[str | None
     if name is None:
         return None, Budget()
     if name not in spec.budgets:
-        raise RecipeError(f"experiment {spec.name!r} has no budget {name!r}; budgets: {sorted(spec.budgets) or '(none)'}")
+        raise RecipeError(
+            f"experiment {spec.name!r} has no budget {name!r}; budgets: {sorted(spec.budgets) or '(none)'}"
+        )
     return name, spec.budgets[name]
 
 
@@ -306,8 +345,7 @@ def unused_axes(spec: ExperimentSpec) -> list[str]:
             named |= {f.split(".")[0].split("[")[0] for _, f, _, _ in string.Formatter().parse(t) if f}
         except ValueError:  # a malformed template is reported when it is filled
             continue
-    return [a for a, vals in spec.axes.items()
-            if a not in named and not any(v.recipe or v.overrides for v in vals)]
+    return [a for a, vals in spec.axes.items() if a not in named and not any(v.recipe or v.overrides for v in vals)]
 
 
 def plan_runs(spec: ExperimentSpec, output: str | os.PathLike, budget: str | None = None) -> list[PlannedRun]:
@@ -317,9 +355,13 @@ def plan_runs(spec: ExperimentSpec, output: str | os.PathLike, budget: str | Non
     :class:`~adarl.errors.AdaRLWarning`: its runs would repeat the same training."""
     for axis in unused_axes(spec):
         names = [v.name for v in spec.axes[axis]]
-        warnings.warn(f"experiment {spec.name!r}: axis {axis!r} changes nothing (no override or recipe uses "
-                      f"{{{axis}}} and its values {names} bring none), so its runs repeat the same training; use "
-                      f"{{{axis}}} in an override, give its values overrides, or remove it", AdaRLWarning, stacklevel=2)
+        warnings.warn(
+            f"experiment {spec.name!r}: axis {axis!r} changes nothing (no override or recipe uses "
+            f"{{{axis}}} and its values {names} bring none), so its runs repeat the same training; use "
+            f"{{{axis}}} in an override, give its values overrides, or remove it",
+            AdaRLWarning,
+            stacklevel=2,
+        )
     _, b = resolve_budget(spec, budget)
     seeds = b.seeds if b.seeds is not None else spec.seeds
     axes = {a: [v for v in vals if a not in b.axes or v.name in b.axes[a]] for a, vals in spec.axes.items()}
@@ -340,6 +382,14 @@ def plan_runs(spec: ExperimentSpec, output: str | os.PathLike, budget: str | Non
             run_id = "__".join([f"{a}={v.name}" for a, v in named.items()] + [f"seed={seed}"])
             recipe = _fill(recipe_t, values, f"run {run_id} recipe")
             overrides = [_fill(o, values, f"run {run_id} override") for o in overrides_t] + [f"seed={seed}"]
-            runs.append(PlannedRun(run_id, {a: v.name for a, v in named.items()}, seed, recipe, overrides,
-                                   f"{out}/{run_id}" if url else str(out / run_id)))
+            runs.append(
+                PlannedRun(
+                    run_id,
+                    {a: v.name for a, v in named.items()},
+                    seed,
+                    recipe,
+                    overrides,
+                    f"{out}/{run_id}" if url else str(out / run_id),
+                )
+            )
     return runs

@@ -44,8 +44,9 @@ def _tasks(scores) -> list[np.ndarray]:
     return [np.asarray(t, dtype=float).ravel() for t in scores]
 
 
-def stratified_bootstrap(tasks: Sequence[np.ndarray], statistic: Callable[[list[np.ndarray]], float], *,
-                         reps: int = REPS, seed: int = 0) -> np.ndarray:
+def stratified_bootstrap(
+    tasks: Sequence[np.ndarray], statistic: Callable[[list[np.ndarray]], float], *, reps: int = REPS, seed: int = 0
+) -> np.ndarray:
     """``reps`` values of ``statistic`` on resamples that draw each task's runs with replacement within the task."""
     rng = np.random.default_rng(seed)
     out = np.empty(reps)
@@ -54,8 +55,9 @@ def stratified_bootstrap(tasks: Sequence[np.ndarray], statistic: Callable[[list[
     return out
 
 
-def interval_estimate(scores, statistic: str = "iqm", *, reps: int = REPS, confidence: float = CONFIDENCE,
-                      seed: int = 0) -> tuple[float, float, float]:
+def interval_estimate(
+    scores, statistic: str = "iqm", *, reps: int = REPS, confidence: float = CONFIDENCE, seed: int = 0
+) -> tuple[float, float, float]:
     """``(point, low, high)`` of the IQM (or ``"mean"``) of the runs' scores, pooled over tasks, with a stratified
     bootstrap percentile interval. ``scores``: a flat list (one task) or a list of per-task lists."""
     tasks = [t for t in _tasks(scores) if t.size]
@@ -86,7 +88,9 @@ def probability_of_improvement(x: Sequence[float], y: Sequence[float]) -> float:
     return float((greater + 0.5 * ties) / (x.size * y.size))
 
 
-def poi_estimate(x, y, *, reps: int = REPS, confidence: float = CONFIDENCE, seed: int = 0) -> tuple[float, float, float]:
+def poi_estimate(
+    x, y, *, reps: int = REPS, confidence: float = CONFIDENCE, seed: int = 0
+) -> tuple[float, float, float]:
     """``(point, low, high)`` of the probability that X improves on Y, averaged over tasks; both sides' runs are
     resampled within each task (stratified bootstrap, percentile interval). ``x``, ``y``: flat lists (one task) or
     per-task lists in the same task order."""
@@ -100,7 +104,11 @@ def poi_estimate(x, y, *, reps: int = REPS, confidence: float = CONFIDENCE, seed
     rng = np.random.default_rng(seed)
     boot = np.empty(reps)
     for i in range(reps):
-        boot[i] = np.mean([probability_of_improvement(a[rng.integers(0, a.size, a.size)],
-                                                      b[rng.integers(0, b.size, b.size)]) for a, b in pairs])
+        boot[i] = np.mean(
+            [
+                probability_of_improvement(a[rng.integers(0, a.size, a.size)], b[rng.integers(0, b.size, b.size)])
+                for a, b in pairs
+            ]
+        )
     lo = (1 - confidence) / 2
     return point, float(np.quantile(boot, lo)), float(np.quantile(boot, 1 - lo))

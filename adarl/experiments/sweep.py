@@ -34,8 +34,9 @@ __all__ = ["parse_sweep", "SweepPoint", "SweepResult", "sweep_policy", "sweep_ru
 def parse_sweep(text: str) -> tuple[str, list[float]]:
     """``"param=lo:hi:n"`` (n evenly spaced values, ends included) or ``"param=v1,v2,..."`` -> (param, values)."""
     if not isinstance(text, str) or "=" not in text:
-        raise AdaRLValueError(f"sweep {text!r} must look like PARAM=LO:HI:N (e.g. torso_length=0.25:0.55:7) "
-                              "or PARAM=V1,V2,...")
+        raise AdaRLValueError(
+            f"sweep {text!r} must look like PARAM=LO:HI:N (e.g. torso_length=0.25:0.55:7) or PARAM=V1,V2,..."
+        )
     name, spec = (s.strip() for s in text.split("=", 1))
     if not name:
         raise AdaRLValueError(f"sweep {text!r} has no parameter name before '='")
@@ -53,8 +54,10 @@ def parse_sweep(text: str) -> tuple[str, list[float]]:
             if not values or not all(math.isfinite(v) for v in values):
                 raise ValueError
     except ValueError:
-        raise AdaRLValueError(f"sweep {text!r}: expected {name}=LO:HI:N with numbers LO, HI and an integer N >= 1, "
-                              f"or {name}=V1,V2,... with finite numbers") from None
+        raise AdaRLValueError(
+            f"sweep {text!r}: expected {name}=LO:HI:N with numbers LO, HI and an integer N >= 1, "
+            f"or {name}=V1,V2,... with finite numbers"
+        ) from None
     return name, [round(v, 12) for v in values]
 
 
@@ -103,24 +106,44 @@ class SweepResult:
 
     def summary(self) -> dict:
         worst = min(self.points, key=lambda p: p.mean)
-        return {"name": self.name, "params": self.params, "nominal": self.nominal, "episodes": self.episodes,
-                "frames": self.frames, "points": len(self.points), "average": self.average,
-                "worst_mean": self.worst_mean, "worst_mean_at": worst.values, "worst_case": self.worst_case}
+        return {
+            "name": self.name,
+            "params": self.params,
+            "nominal": self.nominal,
+            "episodes": self.episodes,
+            "frames": self.frames,
+            "points": len(self.points),
+            "average": self.average,
+            "worst_mean": self.worst_mean,
+            "worst_mean_at": worst.values,
+            "worst_case": self.worst_case,
+        }
 
     def to_csv(self) -> str:
         buf = io.StringIO()
         w = csv.writer(buf)
         w.writerow([*self.params, "mean", "std", "ci95", "worst", "episodes", "returns"])
         for p in self.points:
-            w.writerow([*(p.values[k] for k in self.params), p.mean, p.std, p.ci95, p.worst, len(p.returns),
-                        json.dumps(p.returns)])
+            w.writerow(
+                [
+                    *(p.values[k] for k in self.params),
+                    p.mean,
+                    p.std,
+                    p.ci95,
+                    p.worst,
+                    len(p.returns),
+                    json.dumps(p.returns),
+                ]
+            )
         return buf.getvalue()
 
     def describe(self) -> str:
         s = self.summary()
-        return (f"sweep {self.name} over {', '.join(self.params)} ({len(self.points)} points x {self.episodes} "
-                f"episodes, others at nominal {self.nominal}): average {s['average']:.1f}, worst mean "
-                f"{s['worst_mean']:.1f} at {s['worst_mean_at']}, worst episode {s['worst_case']:.1f}")
+        return (
+            f"sweep {self.name} over {', '.join(self.params)} ({len(self.points)} points x {self.episodes} "
+            f"episodes, others at nominal {self.nominal}): average {s['average']:.1f}, worst mean "
+            f"{s['worst_mean']:.1f} at {s['worst_mean_at']}, worst episode {s['worst_case']:.1f}"
+        )
 
 
 def _grid(axes: list[tuple[str, list[float]]]) -> list[dict[str, float]]:
@@ -128,8 +151,17 @@ def _grid(axes: list[tuple[str, list[float]]]) -> list[dict[str, float]]:
     return [dict(zip(names, combo)) for combo in itertools.product(*(v for _, v in axes))]
 
 
-def sweep_policy(policy, env_id: str, axes: list[tuple[str, list[float]]], *, nominal: dict[str, float],
-                 episodes: int = 5, max_steps: int = 1000, seed: int = 0, **env_kwargs) -> SweepResult:
+def sweep_policy(
+    policy,
+    env_id: str,
+    axes: list[tuple[str, list[float]]],
+    *,
+    nominal: dict[str, float],
+    episodes: int = 5,
+    max_steps: int = 1000,
+    seed: int = 0,
+    **env_kwargs,
+) -> SweepResult:
     """Evaluate ``policy`` deterministically at each grid point of ``axes`` (others held at ``nominal``)."""
     if not 1 <= len(axes) <= 2:
         raise AdaRLValueError(f"a sweep varies one or two parameters, got {len(axes)}: {[n for n, _ in axes]}")
@@ -160,8 +192,14 @@ def _nominal_values(recipe) -> dict[str, float]:
     return dict(sched.nominal()) if sched is not None else {}
 
 
-def sweep_run(run_dir: str | os.PathLike, axes: list[tuple[str, list[float]]], *, episodes: int | None = None,
-              name: str | None = None, checkpoint: str | os.PathLike | None = None) -> SweepResult:
+def sweep_run(
+    run_dir: str | os.PathLike,
+    axes: list[tuple[str, list[float]]],
+    *,
+    episodes: int | None = None,
+    name: str | None = None,
+    checkpoint: str | os.PathLike | None = None,
+) -> SweepResult:
     """Sweep the latest checkpoint of a run folder (or ``checkpoint``: ``"latest"``, ``"best"``, a file, as
     :meth:`~adarl.runtime.trainers.base.BaseTrainer.resume` takes it); writes ``sweeps/<name>.{csv,json,png}`` there
     and nothing else (the run is loaded read-only)."""
@@ -175,10 +213,18 @@ def sweep_run(run_dir: str | os.PathLike, axes: list[tuple[str, list[float]]], *
     try:
         recipe = trainer.recipe
         e = recipe.env
-        result = sweep_policy(trainer.c.modules.actor, e.id, axes, nominal=_nominal_values(recipe),
-                              episodes=episodes or recipe.eval.episodes, max_steps=recipe.eval.max_steps,
-                              seed=recipe.seed + 20_000, mode=e.perturbation.mode, device=recipe.device,
-                              max_episode_steps=e.max_episode_steps)
+        result = sweep_policy(
+            trainer.c.modules.actor,
+            e.id,
+            axes,
+            nominal=_nominal_values(recipe),
+            episodes=episodes or recipe.eval.episodes,
+            max_steps=recipe.eval.max_steps,
+            seed=recipe.seed + 20_000,
+            mode=e.perturbation.mode,
+            device=recipe.device,
+            max_episode_steps=e.max_episode_steps,
+        )
     finally:
         trainer.close()
     result.frames = trainer.frames
@@ -203,8 +249,7 @@ def read_sweep(csv_path: str | os.PathLike) -> SweepResult:
     points = [SweepPoint({k: float(r[k]) for k in params}, [float(x) for x in json.loads(r["returns"])]) for r in rows]
     meta = path.with_suffix(".json")
     info = json.loads(meta.read_text()) if meta.is_file() else {}
-    return SweepResult(params, info.get("nominal", {}), points, int(rows[0]["episodes"]), info.get("frames"),
-                       path.stem)
+    return SweepResult(params, info.get("nominal", {}), points, int(rows[0]["episodes"]), info.get("frames"), path.stem)
 
 
 def plot_sweep(result: SweepResult, out: str | os.PathLike) -> Path:

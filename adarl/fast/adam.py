@@ -42,16 +42,25 @@ class DirectAdamStep:
 
     def _hooked(self) -> bool:
         o = self.opt
-        return bool(o._optimizer_step_pre_hooks or o._optimizer_step_post_hooks or
-                    optim_mod._global_optimizer_pre_hooks or optim_mod._global_optimizer_post_hooks)
+        return bool(
+            o._optimizer_step_pre_hooks
+            or o._optimizer_step_post_hooks
+            or optim_mod._global_optimizer_pre_hooks
+            or optim_mod._global_optimizer_post_hooks
+        )
 
     def _supported(self) -> bool:
         o = self.opt
         if not isinstance(o, torch.optim.Adam) or len(o.param_groups) != 1:
             return False
         g = o.param_groups[0]
-        return bool(g.get("fused")) and not g.get("amsgrad") and not g.get("capturable") \
-            and not g.get("differentiable") and not g.get("decoupled_weight_decay")
+        return (
+            bool(g.get("fused"))
+            and not g.get("amsgrad")
+            and not g.get("capturable")
+            and not g.get("differentiable")
+            and not g.get("decoupled_weight_decay")
+        )
 
     def _build_cache(self) -> tuple | None:
         params = self.opt.param_groups[0]["params"]
@@ -60,8 +69,14 @@ class DirectAdamStep:
             return None
         if len({(p.device, p.dtype) for p in params}) != 1:
             return None
-        return (params, list(params), states, [st["exp_avg"] for st in states],
-                [st["exp_avg_sq"] for st in states], [st["step"] for st in states])
+        return (
+            params,
+            list(params),
+            states,
+            [st["exp_avg"] for st in states],
+            [st["exp_avg_sq"] for st in states],
+            [st["step"] for st in states],
+        )
 
     def _valid(self, cache) -> bool:
         params, plist, states, avgs, sqs, steps = cache
@@ -72,7 +87,12 @@ class DirectAdamStep:
             if p is not q or p.grad is None:
                 return False
             got = state.get(p)
-            if got is not st or got.get("exp_avg") is not a or got.get("exp_avg_sq") is not b or got.get("step") is not c:
+            if (
+                got is not st
+                or got.get("exp_avg") is not a
+                or got.get("exp_avg_sq") is not b
+                or got.get("step") is not c
+            ):
                 return False
         return True
 
@@ -92,9 +112,23 @@ class DirectAdamStep:
         g = self.opt.param_groups[0]
         beta1, beta2 = g["betas"]
         torch._foreach_add_(steps, 1)
-        torch._fused_adam_(plist, [p.grad for p in plist], avgs, sqs, [], steps, amsgrad=False, lr=g["lr"],
-                           beta1=float(beta1), beta2=float(beta2), weight_decay=g["weight_decay"], eps=g["eps"],
-                           maximize=g["maximize"], grad_scale=None, found_inf=None)
+        torch._fused_adam_(
+            plist,
+            [p.grad for p in plist],
+            avgs,
+            sqs,
+            [],
+            steps,
+            amsgrad=False,
+            lr=g["lr"],
+            beta1=float(beta1),
+            beta2=float(beta2),
+            weight_decay=g["weight_decay"],
+            eps=g["eps"],
+            maximize=g["maximize"],
+            grad_scale=None,
+            found_inf=None,
+        )
         for p in plist:
             p.grad = None
         self.fast_steps += 1

@@ -21,8 +21,9 @@ synchronous collector would have left it.
 Mirrors: ``torchrl.collectors.Collector`` (one env, ``frames_per_batch``, ``init_random_frames``, a
 ``ProbabilisticActor`` in ``ExplorationType.RANDOM``) for the keys a replay buffer and the trainers read.
 Equality: ``tests/test_lean_collector.py::test_batches_equal_torchrl_collectors`` (the same batches as TorchRL's
-``Collector`` from the same seeds) and ``tests/test_lean_collector.py::test_policy_action_equals_probabilistic_actor_sample``;
-the overlap modes against each other in ``tests/test_lean_collector.py`` and ``tests/test_kill_resume.py``.
+``Collector`` from the same seeds) and
+``tests/test_lean_collector.py::test_policy_action_equals_probabilistic_actor_sample``; the overlap modes against each
+other in ``tests/test_lean_collector.py`` and ``tests/test_kill_resume.py``.
 """
 
 from __future__ import annotations
@@ -65,8 +66,10 @@ def wants_lean(setting, env, policy) -> bool:
     if setting == "auto":
         return ok
     if setting is True and not ok:
-        raise AdaRLValueError("collector.lean: true needs one env (env.num_envs: 1) and a TanhNormal (box-action) "
-                              "actor; allowed otherwise: 'auto' or false")
+        raise AdaRLValueError(
+            "collector.lean: true needs one env (env.num_envs: 1) and a TanhNormal (box-action) "
+            "actor; allowed otherwise: 'auto' or false"
+        )
     return bool(setting)
 
 
@@ -98,15 +101,29 @@ class LeanCollector:
             either way; :attr:`direct` tells which path is used (the ``"process"`` worker uses the same).
     """
 
-    def __init__(self, env, policy, *, frames_per_batch: int, init_random_frames: int = 0,
-                 total_frames: int = -1, overlap: bool | str = False, noise_seed: int = 0,
-                 env_factory: Callable[[], object] | None = None, direct: bool | str = "auto") -> None:
+    def __init__(
+        self,
+        env,
+        policy,
+        *,
+        frames_per_batch: int,
+        init_random_frames: int = 0,
+        total_frames: int = -1,
+        overlap: bool | str = False,
+        noise_seed: int = 0,
+        env_factory: Callable[[], object] | None = None,
+        direct: bool | str = "auto",
+    ) -> None:
         if tuple(env.batch_size) != ():
-            raise AdaRLValueError(f"LeanCollector runs one env (batch_size []), got batch_size {tuple(env.batch_size)}; "
-                                  "set collector.lean: false for vectorised envs")
+            raise AdaRLValueError(
+                f"LeanCollector runs one env (batch_size []), got batch_size {tuple(env.batch_size)}; "
+                "set collector.lean: false for vectorised envs"
+            )
         if not _is_tanh_normal_actor(policy):
-            raise AdaRLValueError("LeanCollector needs a TanhNormal actor from adarl.runtime.builders.make_sac_actor; "
-                                  "set collector.lean: false")
+            raise AdaRLValueError(
+                "LeanCollector needs a TanhNormal actor from adarl.runtime.builders.make_sac_actor; "
+                "set collector.lean: false"
+            )
         if frames_per_batch < 1:
             raise AdaRLValueError(f"frames_per_batch must be >= 1, got {frames_per_batch}")
         self.env, self.policy, self.net = env, policy, policy.module[0].module
@@ -126,9 +143,11 @@ class LeanCollector:
         if overlap not in OVERLAP_MODES:
             raise AdaRLValueError(f"overlap must be one of {OVERLAP_MODES} (True means 'thread'), got {overlap!r}")
         if overlap == "process" and not callable(env_factory):
-            raise AdaRLValueError("overlap='process' needs env_factory: a picklable callable that builds the same env "
-                                  "(e.g. functools.partial(adarl.envs.make_env, env_id, preset=...)); "
-                                  "or use overlap='thread'")
+            raise AdaRLValueError(
+                "overlap='process' needs env_factory: a picklable callable that builds the same env "
+                "(e.g. functools.partial(adarl.envs.make_env, env_id, preset=...)); "
+                "or use overlap='thread'"
+            )
         self.mode = overlap
         self.overlap = overlap is not False
         self.env_factory = env_factory
@@ -162,8 +181,13 @@ class LeanCollector:
         start, forward = self.frames, _layer_chain(self.net if net is None else net)
         try:
             with torch.no_grad():
-                batch, self._td = _rollout(self.env, self._stepper, self._td, self.frames_per_batch,
-                                           lambda obs, i: self._act(obs, start + i, forward, generator))
+                batch, self._td = _rollout(
+                    self.env,
+                    self._stepper,
+                    self._td,
+                    self.frames_per_batch,
+                    lambda obs, i: self._act(obs, start + i, forward, generator),
+                )
         except BaseException:
             self._td = None  # the env moved on from the carrier: a later batch starts a fresh episode
             raise
@@ -242,8 +266,13 @@ class LeanCollector:
         self._sync_env()
 
     def __iter__(self) -> Iterator[TensorDictBase]:
-        while self.total_frames < 0 or self.frames < self.total_frames or self._ready is not None \
-                or self._thread is not None or self._pending:
+        while (
+            self.total_frames < 0
+            or self.frames < self.total_frames
+            or self._ready is not None
+            or self._thread is not None
+            or self._pending
+        ):
             self._finish_prefetch(keep=True)  # the env is synced only when something needs it
             if self._ready is not None:
                 batch, self._ready = self._ready, None
@@ -261,9 +290,13 @@ class LeanCollector:
         With ``overlap`` a batch being prefetched is finished first and saved with the noise generator's state,
         so a resumed run hands out the same batch next."""
         self.drain(keep=True)
-        state = {"frames": self.frames, "iter": 0, "traj_pool": None,
-                 "carrier": None if self._td is None else self._td.to_dict(),
-                 "carrier_batch_size": [] if self._td is None else list(self._td.batch_size)}
+        state = {
+            "frames": self.frames,
+            "iter": 0,
+            "traj_pool": None,
+            "carrier": None if self._td is None else self._td.to_dict(),
+            "carrier_batch_size": [] if self._td is None else list(self._td.batch_size),
+        }
         if self.overlap:
             state["prefetched"] = None if self._ready is None else self._ready.to_dict()
             state["prefetched_batch_size"] = None if self._ready is None else list(self._ready.batch_size)
@@ -301,8 +334,11 @@ class LeanCollector:
 
 def _snapshot(env, td: TensorDictBase | None) -> dict:
     """The env's live state (perturbation, simulator and gymnasium state, TorchRL carrier), as a checkpoint has it."""
-    return {"dynamics": dynamics_state_dict(env), "env": env_state_dict(env),
-            "carrier": None if td is None else (td.to_dict(), list(td.batch_size))}
+    return {
+        "dynamics": dynamics_state_dict(env),
+        "env": env_state_dict(env),
+        "carrier": None if td is None else (td.to_dict(), list(td.batch_size)),
+    }
 
 
 def _restore(env, state: dict) -> TensorDictBase | None:
@@ -327,8 +363,12 @@ def _layer_chain(net: torch.nn.Module) -> Callable[[torch.Tensor], object]:
     containers' and ``Module.__call__``'s Python overhead (~20 us of the ~125 us a (64, 64) actor's action takes
     on one observation). ``net`` itself where a hook is registered or a container does more than chain its children."""
 
-    if (nn_module._global_forward_hooks or nn_module._global_forward_pre_hooks or nn_module._global_backward_hooks
-            or nn_module._global_backward_pre_hooks):
+    if (
+        nn_module._global_forward_hooks
+        or nn_module._global_forward_pre_hooks
+        or nn_module._global_backward_hooks
+        or nn_module._global_backward_pre_hooks
+    ):
         return net
     layers = []
 
@@ -351,8 +391,13 @@ def _layer_chain(net: torch.nn.Module) -> Callable[[torch.Tensor], object]:
     return forward
 
 
-def _rollout(env, stepper: DirectStepper | None, td: TensorDictBase | None, n: int,
-             act: Callable[[torch.Tensor, int], torch.Tensor]) -> tuple[TensorDictBase, TensorDictBase]:
+def _rollout(
+    env,
+    stepper: DirectStepper | None,
+    td: TensorDictBase | None,
+    n: int,
+    act: Callable[[torch.Tensor, int], torch.Tensor],
+) -> tuple[TensorDictBase, TensorDictBase]:
     """``n`` frames from the carrier ``td`` (None: reset first), ``act(observation, i)`` choosing frame ``i``'s
     action: the batch and the next carrier. Directly when ``stepper`` continues ``td`` exactly, else through TorchRL."""
     if stepper is not None and (td is None or stepper.accepts(td)):
@@ -375,10 +420,15 @@ def _collect_remote(env, stepper: DirectStepper | None, net, job: dict) -> tuple
     noise.set_state(job["noise"])
     forward = _layer_chain(net)
     with torch.no_grad():
-        batch, td = _rollout(env, stepper, td, job["n"],
-                             lambda obs, i: _tanh_normal_action(forward, obs, noise, job["box"]))
-    return {"batch": batch.to_dict(), "batch_size": list(batch.batch_size), "noise": noise.get_state(),
-            "state": _snapshot(env, td)}, td
+        batch, td = _rollout(
+            env, stepper, td, job["n"], lambda obs, i: _tanh_normal_action(forward, obs, noise, job["box"])
+        )
+    return {
+        "batch": batch.to_dict(),
+        "batch_size": list(batch.batch_size),
+        "noise": noise.get_state(),
+        "state": _snapshot(env, td),
+    }, td
 
 
 def _worker_main(conn, env_factory, direct: bool) -> None:
@@ -432,15 +482,27 @@ def _parameter_from_numpy(array, requires_grad: bool) -> torch.nn.Parameter:
     return torch.nn.Parameter(torch.from_numpy(array), requires_grad=requires_grad)
 
 
-_NUMPY_DTYPES = {torch.float32, torch.float64, torch.float16, torch.int64, torch.int32, torch.int16, torch.int8,
-                 torch.uint8, torch.bool}
+_NUMPY_DTYPES = {
+    torch.float32,
+    torch.float64,
+    torch.float16,
+    torch.int64,
+    torch.int32,
+    torch.int16,
+    torch.int8,
+    torch.uint8,
+    torch.bool,
+}
 
 
 def _dumps(obj) -> bytes:
     buf = io.BytesIO()
     pickler = pickle.Pickler(buf, protocol=pickle.HIGHEST_PROTOCOL)
-    pickler.dispatch_table = {**copyreg.dispatch_table, torch.Tensor: _tensor_as_numpy,
-                              torch.nn.Parameter: _tensor_as_numpy}
+    pickler.dispatch_table = {
+        **copyreg.dispatch_table,
+        torch.Tensor: _tensor_as_numpy,
+        torch.nn.Parameter: _tensor_as_numpy,
+    }
     pickler.dump(obj)
     return buf.getvalue()
 
@@ -452,8 +514,12 @@ class _Worker:
         ctx = multiprocessing.get_context("spawn")
         self.conn, child = ctx.Pipe()
         self.layout: tuple | None = None  # the policy layout the worker holds (None: send the module)
-        self.proc = ctx.Process(target=_worker_main, args=(child, env_factory, direct), name="adarl-lean-collector",
-                                daemon=not multiprocessing.current_process().daemon)
+        self.proc = ctx.Process(
+            target=_worker_main,
+            args=(child, env_factory, direct),
+            name="adarl-lean-collector",
+            daemon=not multiprocessing.current_process().daemon,
+        )
         self.proc.start()
         child.close()
         self._finalizer = weakref.finalize(self, _stop_worker, self.conn, self.proc)
@@ -472,10 +538,12 @@ class _Worker:
             status, payload = pickle.loads(self.conn.recv_bytes())
         except (EOFError, OSError) as err:
             self.proc.join(timeout=5)
-            raise RuntimeError(f"the collector worker process died (exit code {self.proc.exitcode}); its output is "
-                               "above. It is started with 'spawn', which imports your main script again: guard the "
-                               "script's code with `if __name__ == '__main__':`. Or set collector.overlap: 'thread' "
-                               "or false to collect in this process") from err
+            raise RuntimeError(
+                f"the collector worker process died (exit code {self.proc.exitcode}); its output is "
+                "above. It is started with 'spawn', which imports your main script again: guard the "
+                "script's code with `if __name__ == '__main__':`. Or set collector.overlap: 'thread' "
+                "or false to collect in this process"
+            ) from err
         if status == "error":
             raise RuntimeError(f"the collector worker process failed:\n{payload}")
         return payload

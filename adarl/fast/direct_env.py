@@ -55,8 +55,9 @@ def direct_stepper(env, setting: bool | str = "auto") -> DirectStepper | None:
     if why is None:
         return DirectStepper(env)
     if setting is True:
-        raise AdaRLValueError(f"direct=True cannot step this env directly: {why}; use direct='auto' or False for "
-                              "TorchRL's own stepping")
+        raise AdaRLValueError(
+            f"direct=True cannot step this env directly: {why}; use direct='auto' or False for TorchRL's own stepping"
+        )
     return None
 
 
@@ -79,33 +80,55 @@ def _unsupported(env) -> str | None:
         return f"transforms {[type(t).__name__ for t in transforms]}; allowed: {_LAYOUT}"
     spec = env.full_observation_spec  # resolves the transforms' keys from the specs
     cast, counter, rsum = transforms[-3:]
-    if list(cast.in_keys or ()) != ["observation"] or list(cast.out_keys or ()) != ["observation"] \
-            or cast.in_keys_inv is None or list(cast.in_keys_inv):
-        return (f"DoubleToFloat(in_keys={cast.in_keys}, out_keys={cast.out_keys}, in_keys_inv={cast.in_keys_inv}); "
-                "allowed: in_keys=out_keys=['observation'], in_keys_inv=[]")
+    if (
+        list(cast.in_keys or ()) != ["observation"]
+        or list(cast.out_keys or ()) != ["observation"]
+        or cast.in_keys_inv is None
+        or list(cast.in_keys_inv)
+    ):
+        return (
+            f"DoubleToFloat(in_keys={cast.in_keys}, out_keys={cast.out_keys}, in_keys_inv={cast.in_keys_inv}); "
+            "allowed: in_keys=out_keys=['observation'], in_keys_inv=[]"
+        )
     if counter.max_steps is not None or counter.step_count_key != "step_count":
-        return (f"StepCounter(max_steps={counter.max_steps}, step_count_key={counter.step_count_key!r}); allowed: "
-                "max_steps=None, step_count_key='step_count' (the time limit is gymnasium's)")
+        return (
+            f"StepCounter(max_steps={counter.max_steps}, step_count_key={counter.step_count_key!r}); allowed: "
+            "max_steps=None, step_count_key='step_count' (the time limit is gymnasium's)"
+        )
     if [*rsum.in_keys] != ["reward"] or [*rsum.out_keys] != ["episode_reward"]:
         return f"RewardSum(in_keys={rsum.in_keys}, out_keys={rsum.out_keys}); allowed: ['reward'] -> ['episode_reward']"
-    if (base.wrapper_frame_skip != 1 or base.info_dict_reader or getattr(base, "from_pixels", False)
-            or not base._convert_actions_to_numpy or base.__dict__.get("_torchrl_native_autoreset", False)
-            or "_compiled_step_and_maybe_reset" in env.__dict__):
-        return ("the GymEnv uses frame skipping, an info-dict reader, pixels, native auto-reset or a compiled step; "
-                "allowed: a plain GymEnv(env_id) as make_env builds")
+    if (
+        base.wrapper_frame_skip != 1
+        or base.info_dict_reader
+        or getattr(base, "from_pixels", False)
+        or not base._convert_actions_to_numpy
+        or base.__dict__.get("_torchrl_native_autoreset", False)
+        or "_compiled_step_and_maybe_reset" in env.__dict__
+    ):
+        return (
+            "the GymEnv uses frame skipping, an info-dict reader, pixels, native auto-reset or a compiled step; "
+            "allowed: a plain GymEnv(env_id) as make_env builds"
+        )
     perturbation = transforms[0] if len(transforms) == 4 else None
-    dynamics = set() if perturbation is None else {unravel_key((*perturbation.out_key, k))
-                                                  for k in (*perturbation.params, EPISODE_KEY)}
+    dynamics = (
+        set()
+        if perturbation is None
+        else {unravel_key((*perturbation.out_key, k)) for k in (*perturbation.params, EPISODE_KEY)}
+    )
     wanted = {"observation": torch.float32, "step_count": torch.int64, "episode_reward": torch.float32}
     leaves = set(spec.keys(True, True))
     if leaves != set(wanted) | dynamics or any(spec[k].dtype is not d for k, d in wanted.items()):
         return f"observation entries {sorted(map(str, leaves))}; allowed: {sorted(map(str, set(wanted) | dynamics))}"
-    if base.observation_spec["observation"].dtype not in (torch.float32, torch.float64) \
-            or set(base.observation_spec.keys(True, True)) != {"observation"}:
+    if base.observation_spec["observation"].dtype not in (torch.float32, torch.float64) or set(
+        base.observation_spec.keys(True, True)
+    ) != {"observation"}:
         return "the GymEnv observes more than one float 'observation' array"
     reward, done, action = env.full_reward_spec, env.full_done_spec, env.full_action_spec
-    if list(reward.keys(True, True)) != ["reward"] or reward["reward"].dtype is not torch.float32 \
-            or tuple(reward["reward"].shape) != (1,):
+    if (
+        list(reward.keys(True, True)) != ["reward"]
+        or reward["reward"].dtype is not torch.float32
+        or tuple(reward["reward"].shape) != (1,)
+    ):
         return f"reward entries {list(reward.keys(True, True))}; allowed: one float32 'reward' of shape [1]"
     if set(done.keys(True, True)) != set(_FLAGS) or any(tuple(done[k].shape) != (1,) for k in _FLAGS):
         return f"done entries {list(done.keys(True, True))}; allowed: {list(_FLAGS)} of shape [1]"
@@ -127,13 +150,20 @@ class DirectStepper:
         self.perturbation = transform if isinstance(transform, PerturbedDynamicsEnvTransform) else None
         spec = env.full_observation_spec
         # the perturbation's entries, in the order its output has them
-        self.dynamics = [] if self.perturbation is None else [
-            unravel_key((*self.perturbation.out_key, k)) for k in (*self.perturbation.params, EPISODE_KEY)]
+        self.dynamics = (
+            []
+            if self.perturbation is None
+            else [unravel_key((*self.perturbation.out_key, k)) for k in (*self.perturbation.params, EPISODE_KEY)]
+        )
         # ("next", ...) in the order TorchRL writes it: GymLikeEnv._step, then the transforms in turn
-        layout = [("observation", spec["observation"]), ("reward", env.full_reward_spec["reward"]),
-                  *((k, env.full_done_spec[k]) for k in ("truncated", "done", "terminated")),
-                  *((k, spec[k]) for k in self.dynamics), ("step_count", spec["step_count"]),
-                  ("episode_reward", spec["episode_reward"])]
+        layout = [
+            ("observation", spec["observation"]),
+            ("reward", env.full_reward_spec["reward"]),
+            *((k, env.full_done_spec[k]) for k in ("truncated", "done", "terminated")),
+            *((k, spec[k]) for k in self.dynamics),
+            ("step_count", spec["step_count"]),
+            ("episode_reward", spec["episode_reward"]),
+        ]
         self.next_layout = [(k, tuple(s.shape), s.dtype) for k, s in layout]
         # the entries step_mdp moves from ("next", ...) to the root, i.e. the carrier's, less the action
         self.state_keys = [k for k, _, _ in self.next_layout if k != "reward"]
@@ -143,8 +173,9 @@ class DirectStepper:
         """Whether ``td`` is a carrier this stepper continues exactly (its entries are the env's, action aside)."""
         return set(td.keys(True, True)) - {"action"} == set(self.state_keys)
 
-    def rollout(self, td: TensorDictBase | None, n: int,
-                act: Callable[[torch.Tensor, int], torch.Tensor]) -> tuple[TensorDictBase, TensorDictBase]:
+    def rollout(
+        self, td: TensorDictBase | None, n: int, act: Callable[[torch.Tensor, int], torch.Tensor]
+    ) -> tuple[TensorDictBase, TensorDictBase]:
         """``n`` frames from the carrier ``td`` (None: reset first): the batch and the carrier that follows.
 
         ``act(observation, i)`` gives frame ``i``'s action from its float32 observation."""
@@ -205,9 +236,9 @@ class DirectStepper:
         if self.perturbation is not None:  # the episode's values, as the transform writes them at every step
             values = self.perturbation._output()
             for key in self.dynamics:
-                nxt.get(key)[seg] = values.get(key[len(self.perturbation.out_key):])
+                nxt.get(key)[seg] = values.get(key[len(self.perturbation.out_key) :])
         # step_mdp: a frame's root is the carrier, then the previous frame's ("next", ...)
         for key in self.state_keys:
             root = batch.get(key)
             root[start] = td.get(key)
-            root[start + 1:end] = nxt.get(key)[start:end - 1]
+            root[start + 1 : end] = nxt.get(key)[start : end - 1]

@@ -31,8 +31,6 @@ def affine(x: torch.Tensor, w_t: torch.Tensor, b: torch.Tensor | None) -> torch.
     return torch.matmul(x, w_t) + b.unsqueeze(-2)
 
 
-
-
 def compile_fresh(function, owner, name: str, backend: str):
     """``torch.compile`` of ``function`` bound to ``owner``, from a fresh copy of its code object.
 

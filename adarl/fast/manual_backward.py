@@ -16,10 +16,10 @@ per (64, 64) update against 914 with autograd, measured) and builds no graph:
 The gradients land in ``p.grad``, as ``loss.backward()`` leaves them, so clipping, (direct) fused Adam and the
 rank adapter work unchanged. Used by :class:`~adarl.fast.sac.FusedSACUpdate` (``backward="manual"``).
 
-Mirrors: the gradients ``(loss_actor + loss_qvalue + loss_alpha).backward()`` leaves on a ``torchrl.objectives.SACLoss``.
-Equality: ``tests/test_fast_sac.py::test_losses_and_gradients_match_sacloss`` (losses and gradients against
-``SACLoss``, and the autograd path's, over activations, critic losses, action boxes and truncated ranks), within fp
-tolerance.
+Mirrors: the gradients ``(loss_actor + loss_qvalue + loss_alpha).backward()`` leaves on a
+``torchrl.objectives.SACLoss``. Equality: ``tests/test_fast_sac.py::test_losses_and_gradients_match_sacloss`` (losses
+and gradients against ``SACLoss``, and the autograd path's, over activations, critic losses, action boxes and truncated
+ranks), within fp tolerance.
 """
 
 from __future__ import annotations
@@ -29,10 +29,9 @@ from collections.abc import Callable
 from typing import Any, NamedTuple
 
 import torch
+from tensordict.nn.utils import biased_softplus
 from torch import nn
 from torch.nn import functional as F
-
-from tensordict.nn.utils import biased_softplus
 
 from adarl.errors import AdaRLValueError
 from adarl.fast.kernels import affine, compile_fresh
@@ -65,8 +64,10 @@ def unsupported_reason(update) -> str | None:
     for what, mlp in (("actor", update.actor_mlp), ("critic", update.q_net)):
         for kind, spec in mlp.layers:
             if kind == "act" and (getattr(spec, "inplace", False) or _activation_backward(spec) is None):
-                return f"{what} activation {type(spec).__name__} (supported: ReLU, Tanh, Softplus, ELU, GELU, SiLU, " \
-                       "LeakyReLU, not in place)"
+                return (
+                    f"{what} activation {type(spec).__name__} (supported: ReLU, Tanh, Softplus, ELU, GELU, SiLU, "
+                    "LeakyReLU, not in place)"
+                )
     ext = update._param_extractor
     if not isinstance(ext.scale_mapping, biased_softplus):
         return f"scale mapping {type(ext.scale_mapping).__name__} (supported: biased_softplus, the default)"
@@ -174,9 +175,17 @@ def _param_grad(dy: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     return _mm(dy.transpose(-1, -2), x)
 
 
-def backward(grads: dict[str, torch.Tensor], layers: list[_Layer], saved: list, dy: torch.Tensor, *, rows: slice,
-             grad_rows: slice | None, input_rows: slice | None = None,
-             input_cols: slice | None = None) -> torch.Tensor | None:
+def backward(
+    grads: dict[str, torch.Tensor],
+    layers: list[_Layer],
+    saved: list,
+    dy: torch.Tensor,
+    *,
+    rows: slice,
+    grad_rows: slice | None,
+    input_rows: slice | None = None,
+    input_cols: slice | None = None,
+) -> torch.Tensor | None:
     """Back-propagate ``dy``, the gradient at the output for the forward rows ``rows``, through the layers.
 
     Parameter gradients come from the rows ``grad_rows`` of ``dy`` (None: none) and are added to ``grads`` under
@@ -343,8 +352,9 @@ class ManualSACStep:
         d_q = torch.zeros_like(q_new).scatter_(0, q_idx.unsqueeze(0), -1.0 / b)
         d_all = torch.cat([self._distance_grad(pred, tgt, 1.0 / b), d_q], -1).unsqueeze(-1)
         grads: dict[str, torch.Tensor] = {}
-        d_new_action = backward(grads, critic, c_saved, d_all, rows=slice(None), grad_rows=nxt, input_rows=now,
-                                input_cols=slice(ds, None))
+        d_new_action = backward(
+            grads, critic, c_saved, d_all, rows=slice(None), grad_rows=nxt, input_rows=now, input_cols=slice(ds, None)
+        )
         # actor: through the sample (current rows), then the network; alpha is a constant in the actor loss
         d_out = self._sample_backward(s_saved, now, d_new_action, alpha / b)
         backward(grads, actor, a_saved, d_out, rows=now, grad_rows=slice(None))

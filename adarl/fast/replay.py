@@ -32,8 +32,9 @@ class UniformTensorSampler:
 
     Args:
         replay_buffer: a TorchRL replay buffer with a ``RandomSampler``, a one-dimensional
-            ``LazyTensorStorage``/``LazyMemmapStorage`` and no transform (what :func:`adarl.runtime.components.build_components`
-            builds); anything else raises, so a buffer this class cannot reproduce is never sampled differently.
+            ``LazyTensorStorage``/``LazyMemmapStorage`` and no transform (what
+            :func:`adarl.runtime.builders.sac.build_components` builds); anything else raises, so a buffer this class
+            cannot reproduce is never sampled differently.
         keys: the (nested) keys to gather, in the order they are returned.
         generator: the generator given to the buffer (``generator=`` of the buffer); ``None`` = torch's default
             generator, as the buffer uses then.
@@ -42,11 +43,14 @@ class UniformTensorSampler:
     def __init__(self, replay_buffer, keys: Sequence[NestedKey], *, generator: torch.Generator | None = None) -> None:
         sampler, storage = replay_buffer._sampler, replay_buffer._storage
         if type(sampler) is not RandomSampler:
-            raise AdaRLValueError(f"UniformTensorSampler reproduces RandomSampler only, the buffer has "
-                                  f"{type(sampler).__name__}")
+            raise AdaRLValueError(
+                f"UniformTensorSampler reproduces RandomSampler only, the buffer has {type(sampler).__name__}"
+            )
         if not isinstance(storage, TensorStorage) or storage.ndim != 1:
-            raise AdaRLValueError(f"UniformTensorSampler needs a one-dimensional TensorStorage, the buffer has "
-                                  f"{type(storage).__name__} (ndim {getattr(storage, 'ndim', '?')})")
+            raise AdaRLValueError(
+                f"UniformTensorSampler needs a one-dimensional TensorStorage, the buffer has "
+                f"{type(storage).__name__} (ndim {getattr(storage, 'ndim', '?')})"
+            )
         if len(replay_buffer._transform) > 0:
             raise AdaRLValueError("UniformTensorSampler cannot apply replay-buffer transforms; sample with rb.sample()")
         if not isinstance(replay_buffer.batch_size, int) or replay_buffer.batch_size < 1:
@@ -65,8 +69,9 @@ class UniformTensorSampler:
             leaves = [data.get(k, None) for k in self.keys]
             missing = [k for k, t in zip(self.keys, leaves) if t is None]
             if missing:
-                raise AdaRLValueError(f"replay storage has no key(s) {missing}; it holds "
-                                      f"{sorted(map(str, data.keys(True, True)))}")
+                raise AdaRLValueError(
+                    f"replay storage has no key(s) {missing}; it holds {sorted(map(str, data.keys(True, True)))}"
+                )
             self._leaves = leaves
             self._source = data
         return self._leaves

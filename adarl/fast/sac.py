@@ -61,8 +61,10 @@ def wants_fused(setting, loss) -> bool:
     if setting == "auto":
         return type(loss) is SACLoss
     if setting is True and type(loss) is not SACLoss:
-        raise AdaRLValueError(f"algorithm.fused: true needs a continuous-action SACLoss, got {type(loss).__name__}; "
-                              "allowed for discrete actions: 'auto' or false")
+        raise AdaRLValueError(
+            f"algorithm.fused: true needs a continuous-action SACLoss, got {type(loss).__name__}; "
+            "allowed for discrete actions: 'auto' or false"
+        )
     return bool(setting)
 
 
@@ -80,13 +82,16 @@ def _mlp_layers(net: nn.Module, what: str) -> list[nn.Module]:
 class _StackedMLP:
     """Forward of an ensemble MLP whose parameters are stacked ``[N, ...]`` tensors (the SACLoss layout)."""
 
-    def __init__(self, net: nn.Module, params: dict[str, torch.Tensor], prefix: str = "module",
-                 what: str = "critic") -> None:
+    def __init__(
+        self, net: nn.Module, params: dict[str, torch.Tensor], prefix: str = "module", what: str = "critic"
+    ) -> None:
         self.layers: list[tuple[str, object]] = []
         for i, layer in enumerate(_mlp_layers(net, what)):
             key = f"{prefix}.{i}"
             if isinstance(layer, LowRankLinear):
-                self.layers.append(("lowrank", (key + ".w1", key + ".w2", key + ".bias" if layer.bias is not None else None)))
+                self.layers.append(
+                    ("lowrank", (key + ".w1", key + ".w2", key + ".bias" if layer.bias is not None else None))
+                )
             elif isinstance(layer, nn.Linear):
                 self.layers.append(("linear", (key + ".weight", key + ".bias" if layer.bias is not None else None)))
             else:
@@ -120,8 +125,10 @@ class _StackedMLP:
     @staticmethod
     def detached(prepared: list[tuple]) -> list[tuple]:
         """The same layers with every tensor detached (the critics inside the actor loss)."""
+
         def d(t):
             return None if t is None else tuple(x.detach() for x in t) if isinstance(t, tuple) else t.detach()
+
         return [(k, w if k == "act" else d(w), d(b)) for k, w, b in prepared]
 
     @staticmethod
@@ -144,11 +151,15 @@ def _actor_net(loss) -> nn.Module:
     first = actor.module[0] if hasattr(actor, "module") and isinstance(actor.module, nn.ModuleList) else None
     net = getattr(first, "module", None)
     if net is None or len(first.in_keys) != 1 or len(first.out_keys) != 2:
-        raise AdaRLValueError("the fused SAC update needs an actor built by adarl.runtime.builders.make_sac_actor "
-                              "(one observation key -> loc, scale -> TanhNormal)")
+        raise AdaRLValueError(
+            "the fused SAC update needs an actor built by adarl.runtime.builders.make_sac_actor "
+            "(one observation key -> loc, scale -> TanhNormal)"
+        )
     if not (isinstance(net, nn.Sequential) and len(net) == 2 and isinstance(net[1], NormalParamExtractor)):
-        raise AdaRLValueError("the fused SAC update needs the actor network Sequential(MLP, NormalParamExtractor) "
-                              "that adarl.runtime.builders.make_sac_actor builds (set algorithm.fused: false otherwise)")
+        raise AdaRLValueError(
+            "the fused SAC update needs the actor network Sequential(MLP, NormalParamExtractor) "
+            "that adarl.runtime.builders.make_sac_actor builds (set algorithm.fused: false otherwise)"
+        )
     _mlp_layers(net[0], "actor")
     return net
 
@@ -158,8 +169,10 @@ LOSS_FUNCTIONS = ("l2", "smooth_l1", "l1")
 
 
 def _refuse(setting: str, why: str) -> AdaRLValueError:
-    return AdaRLValueError(f"the fused SAC update does not implement {setting}: {why}; set algorithm.fused: false "
-                           "(TorchRL's SACLoss) or change the setting")
+    return AdaRLValueError(
+        f"the fused SAC update does not implement {setting}: {why}; set algorithm.fused: false "
+        "(TorchRL's SACLoss) or change the setting"
+    )
 
 
 def check_fusable(loss) -> tuple[NestedKey, ...]:
@@ -171,14 +184,18 @@ def check_fusable(loss) -> tuple[NestedKey, ...]:
     ``tanh_loc=False`` and ``safe_tanh=True``, an actor reading one observation key and critics reading
     ``[observation, action]`` (the keys may have any names)."""
     if type(loss) is not SACLoss:
-        raise AdaRLValueError(f"the fused SAC update needs a continuous-action SACLoss, got {type(loss).__name__} "
-                              "(set algorithm.fused: false)")
+        raise AdaRLValueError(
+            f"the fused SAC update needs a continuous-action SACLoss, got {type(loss).__name__} "
+            "(set algorithm.fused: false)"
+        )
     if getattr(loss, "_version", 2) != 2:
         raise _refuse("SAC v1 (a value network)", "it computes SAC v2's losses")
     estimator = loss.value_estimator
     if type(estimator) is not TD0Estimator:
-        raise _refuse(f"the value estimator {type(estimator).__name__}",
-                      "it computes TD(0) targets; allowed: loss.make_value_estimator(ValueEstimators.TD0, gamma=...)")
+        raise _refuse(
+            f"the value estimator {type(estimator).__name__}",
+            "it computes TD(0) targets; allowed: loss.make_value_estimator(ValueEstimators.TD0, gamma=...)",
+        )
     if getattr(estimator, "average_rewards", False):
         raise _refuse("TD0Estimator(average_rewards=True)", "it bootstraps on the raw rewards")
     if loss.reduction != "mean":
@@ -199,9 +216,11 @@ def check_fusable(loss) -> tuple[NestedKey, ...]:
     obs_key, action_key = actor_keys[0] if len(actor_keys) == 1 else None, loss.tensor_keys.action
     critic_keys = list(loss.qvalue_network.in_keys)
     if obs_key is None or critic_keys != [obs_key, action_key]:
-        raise _refuse(f"the tensordict keys actor in_keys={actor_keys}, qvalue_network.in_keys={critic_keys}",
-                      f"the critics must read [observation, action] = [the actor's one in_key, "
-                      f"loss.tensor_keys.action={action_key!r}], in that order")
+        raise _refuse(
+            f"the tensordict keys actor in_keys={actor_keys}, qvalue_network.in_keys={critic_keys}",
+            f"the critics must read [observation, action] = [the actor's one in_key, "
+            f"loss.tensor_keys.action={action_key!r}], in that order",
+        )
     keys = estimator.tensor_keys
     return obs_key, action_key, ("next", keys.reward), ("next", obs_key), ("next", keys.terminated)
 
@@ -210,9 +229,9 @@ class FusedSACUpdate:
     """One SAC optimisation step (losses, backward, optimisers, LR schedules, Polyak update) on ``loss``'s tensors.
 
     Args:
-        loss: a continuous-action TorchRL ``SACLoss`` with the TD(0) estimator (as :func:`adarl.runtime.builders.make_sac_loss`).
-        optimizers: optimisers over the loss's parameters (``make_adam(..., fused=True)`` for fused Adam).
-        schedulers: LR schedulers stepped after the optimisers.
+        loss: a continuous-action TorchRL ``SACLoss`` with the TD(0) estimator (as
+        :func:`adarl.runtime.builders.make_sac_loss`). optimizers: optimisers over the loss's parameters
+        (``make_adam(..., fused=True)`` for fused Adam). schedulers: LR schedulers stepped after the optimisers.
         tau: Polyak rate of the target critics (``SoftUpdate(loss, tau=tau)`` does the same).
         max_grad_norm: per-optimiser gradient clipping as in the plain loop; ``None`` = none.
         compile: ``torch.compile`` the update's computation (the manual step, or the autograd path's losses); one
@@ -256,9 +275,18 @@ class FusedSACUpdate:
     adarl.errors.AdaRLValueError: the fused SAC update does not implement the value estimator TDLambdaEstimator: ...
     """
 
-    def __init__(self, loss, optimizers: Sequence[torch.optim.Optimizer], *, tau: float,
-                 schedulers: Sequence = (), max_grad_norm: float | None = None, compile: bool = False,
-                 compile_backend: str = "inductor", backward: str = "auto") -> None:
+    def __init__(
+        self,
+        loss,
+        optimizers: Sequence[torch.optim.Optimizer],
+        *,
+        tau: float,
+        schedulers: Sequence = (),
+        max_grad_norm: float | None = None,
+        compile: bool = False,
+        compile_backend: str = "inductor",
+        backward: str = "auto",
+    ) -> None:
         self.keys = check_fusable(loss)
         if not 0 < tau <= 1:
             raise AdaRLValueError(f"tau must be in (0, 1], got {tau}")
@@ -311,15 +339,15 @@ class FusedSACUpdate:
             raise AdaRLValueError(f"backward must be one of {BACKWARDS}, got {setting!r}")
         reason = unsupported_reason(self)
         if setting == "manual" and reason is not None:
-            raise AdaRLValueError(f"backward='manual' does not support the {reason}; allowed here: 'auto' or "
-                                  "'autograd'")
+            raise AdaRLValueError(
+                f"backward='manual' does not support the {reason}; allowed here: 'auto' or 'autograd'"
+            )
         if setting == "auto":
             return "autograd" if reason is not None else "manual"
         return setting
 
     # ------------------------------------------------------------------ the maths
-    def _sample(self, actor: list[tuple], obs: torch.Tensor,
-                noise: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def _sample(self, actor: list[tuple], obs: torch.Tensor, noise: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Reparameterised TanhNormal sample and its log-probability, scored at the exact pre-tanh value."""
         loc, scale = self._param_extractor(_StackedMLP.forward(actor, obs))
         pre = loc + noise * scale
@@ -387,8 +415,14 @@ class FusedSACUpdate:
     def __call__(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         return self.step(*self.batch_tensors(batch))
 
-    def step(self, obs: torch.Tensor, action: torch.Tensor, reward: torch.Tensor, next_obs: torch.Tensor,
-             terminated: torch.Tensor) -> dict[str, torch.Tensor]:
+    def step(
+        self,
+        obs: torch.Tensor,
+        action: torch.Tensor,
+        reward: torch.Tensor,
+        next_obs: torch.Tensor,
+        terminated: torch.Tensor,
+    ) -> dict[str, torch.Tensor]:
         """One update from the five tensors of :meth:`batch_tensors` (e.g. from a
         :class:`~adarl.fast.replay.UniformTensorSampler`)."""
         if self.min_log_alpha is not None or self.max_log_alpha is not None:
@@ -410,5 +444,10 @@ class FusedSACUpdate:
             sched.step()
         with torch.no_grad():
             torch._foreach_lerp_(self._q_targets, self._q_sources, self.tau)
-        return {"loss_actor": loss_actor.detach(), "loss_qvalue": loss_q.detach(),
-                "loss_alpha": loss_alpha.detach(), "alpha": alpha, "entropy": entropy}
+        return {
+            "loss_actor": loss_actor.detach(),
+            "loss_qvalue": loss_q.detach(),
+            "loss_alpha": loss_alpha.detach(),
+            "alpha": alpha,
+            "entropy": entropy,
+        }

@@ -17,8 +17,21 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 __all__ = ["EvalResult", "evaluate_policy"]
 
 # Two-sided 95% Student-t quantiles for small samples (df = n - 1); normal beyond the table.
-_T95 = {1: 12.706, 2: 4.303, 3: 3.182, 4: 2.776, 5: 2.571, 6: 2.447, 7: 2.365, 8: 2.306, 9: 2.262, 10: 2.228,
-        15: 2.131, 20: 2.086, 30: 2.042}
+_T95 = {
+    1: 12.706,
+    2: 4.303,
+    3: 3.182,
+    4: 2.776,
+    5: 2.571,
+    6: 2.447,
+    7: 2.365,
+    8: 2.306,
+    9: 2.262,
+    10: 2.228,
+    15: 2.131,
+    20: 2.086,
+    30: 2.042,
+}
 
 
 def _t95(df: int) -> float:
@@ -52,8 +65,9 @@ class EvalResult:
 
 
 @torch.no_grad()
-def evaluate_policy(policy: TensorDictModuleBase, env: EnvBase, episodes: int = 5, max_steps: int = 1000,
-                    deterministic: bool = True) -> EvalResult:
+def evaluate_policy(
+    policy: TensorDictModuleBase, env: EnvBase, episodes: int = 5, max_steps: int = 1000, deterministic: bool = True
+) -> EvalResult:
     """Run ``episodes`` episodes of at most ``max_steps`` steps; the policy acts by its mode when deterministic."""
     returns, lengths = [], []
     mode = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM

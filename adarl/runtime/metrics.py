@@ -28,9 +28,27 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
-__all__ = ["TRAIN_RETURN", "TRAIN_LENGTH", "TRAIN_EPISODES", "TRAIN_UPDATES", "TRAIN_LR", "EVAL_RETURN",
-           "EVAL_RETURN_STD", "WARM_START_FRAMES", "FPS", "UPDATES_PER_S", "ROLLBACKS", "LEGACY_NAMES", "train",
-           "rank", "rank_error", "dynamics", "legacy_name", "series", "csv_paths"]
+__all__ = [
+    "TRAIN_RETURN",
+    "TRAIN_LENGTH",
+    "TRAIN_EPISODES",
+    "TRAIN_UPDATES",
+    "TRAIN_LR",
+    "EVAL_RETURN",
+    "EVAL_RETURN_STD",
+    "WARM_START_FRAMES",
+    "FPS",
+    "UPDATES_PER_S",
+    "ROLLBACKS",
+    "LEGACY_NAMES",
+    "train",
+    "rank",
+    "rank_error",
+    "dynamics",
+    "legacy_name",
+    "series",
+    "csv_paths",
+]
 
 TRAIN_RETURN = "train/episode_return"
 TRAIN_LENGTH = "train/episode_length"
@@ -74,7 +92,8 @@ def legacy_name(name: str) -> str:
 
 
 def series(scalars: Mapping[str, list], name: str) -> list:
-    """The rows of metric ``name`` in ``scalars`` (as :meth:`adarl.runtime.run_dir.RunDir.scalars` returns them), or of its
+    """The rows of metric ``name`` in ``scalars`` (as :meth:`adarl.runtime.run_dir.RunDir.scalars` returns them), or of
+    its
     legacy name for a run folder written by an older adarl; ``[]`` when neither was logged."""
     rows = scalars.get(name)
     if rows:

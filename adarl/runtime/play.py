@@ -59,8 +59,9 @@ def parse_perturb(items) -> dict[str, float]:
         except ValueError:
             v = math.nan
         if not sep or not name or not math.isfinite(v):
-            raise AdaRLValueError(f"--perturb {text!r} must look like PARAM=VALUE with a finite number, e.g. "
-                                  "torso_length=0.5")
+            raise AdaRLValueError(
+                f"--perturb {text!r} must look like PARAM=VALUE with a finite number, e.g. torso_length=0.5"
+            )
         out[name] = v
     return out
 
@@ -95,20 +96,29 @@ def _recording_env(recipe, values: dict[str, float], folder: Path, size: tuple[i
     except Exception as err:  # noqa: BLE001 - any GL failure: say how to render headless
         base.close()
         gl = os.environ.get("MUJOCO_GL", "(unset)")
-        raise AdaRLError(f"headless rendering of {env_id} failed with MUJOCO_GL={gl}: {type(err).__name__}: "
-                         f"{str(err).splitlines()[0] if str(err) else ''}; MuJoCo renders without a display through "
-                         f"MUJOCO_GL=egl (libEGL: Debian's libegl1 and libegl-mesa0) or MUJOCO_GL=osmesa "
-                         f"(libosmesa6)") from None
+        raise AdaRLError(
+            f"headless rendering of {env_id} failed with MUJOCO_GL={gl}: {type(err).__name__}: "
+            f"{str(err).splitlines()[0] if str(err) else ''}; MuJoCo renders without a display through "
+            f"MUJOCO_GL=egl (libEGL: Debian's libegl1 and libegl-mesa0) or MUJOCO_GL=osmesa "
+            f"(libosmesa6)"
+        ) from None
     if frame is None:
         base.close()
         raise AdaRLError(f"{env_id} rendered no frame (render_mode='rgb_array')")
     try:
-        recorder = RecordVideo(base, str(folder), episode_trigger=lambda i: False, video_length=10**9,
-                               name_prefix="play", disable_logger=True)
+        recorder = RecordVideo(
+            base,
+            str(folder),
+            episode_trigger=lambda i: False,
+            video_length=10**9,
+            name_prefix="play",
+            disable_logger=True,
+        )
     except DependencyNotInstalled:
         base.close()
-        raise AdaRLError("--video needs moviepy (gymnasium's RecordVideo writes with it): "
-                         "pip install 'adarl[video]'") from None
+        raise AdaRLError(
+            "--video needs moviepy (gymnasium's RecordVideo writes with it): pip install 'adarl[video]'"
+        ) from None
     transforms = []
     if values:
         p = recipe.env.perturbation
@@ -125,9 +135,17 @@ def _plain_env(recipe, values: dict[str, float]):
     return make_env(recipe.env.id, perturb=False, **common)
 
 
-def play(run: str | os.PathLike, *, which: str = "latest", episodes: int = 1, video: str | os.PathLike | None = None,
-         perturb: dict[str, float] | None = None, max_steps: int | None = None, seed: int = 0,
-         size: tuple[int, int] = (480, 480)) -> PlayResult:
+def play(
+    run: str | os.PathLike,
+    *,
+    which: str = "latest",
+    episodes: int = 1,
+    video: str | os.PathLike | None = None,
+    perturb: dict[str, float] | None = None,
+    max_steps: int | None = None,
+    seed: int = 0,
+    size: tuple[int, int] = (480, 480),
+) -> PlayResult:
     """Run ``episodes`` deterministic episodes of the policy of ``run`` (a run folder or checkpoint file) and,
     with ``video``, write them to that MP4 file."""
     if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 1:

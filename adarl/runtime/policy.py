@@ -45,8 +45,11 @@ def _specs_from_env_id(env_id: str) -> dict:
         if isinstance(act, gym.spaces.Discrete):
             out.update(action_kind="one_hot", action_n=int(act.n))  # TorchRL's GymEnv default encoding
         else:
-            out.update(action_kind="box", action_low=torch.as_tensor(act.low, dtype=torch.float32),
-                       action_high=torch.as_tensor(act.high, dtype=torch.float32))
+            out.update(
+                action_kind="box",
+                action_low=torch.as_tensor(act.low, dtype=torch.float32),
+                action_high=torch.as_tensor(act.high, dtype=torch.float32),
+            )
         return out
     finally:
         env.close()
@@ -72,8 +75,10 @@ def _checkpoint(path: str | os.PathLike, which: str):
         if which == "best":
             ckpt = run.best_checkpoint_path
             if not ckpt.is_file():
-                raise CheckpointError(f"{str(p)!r} has no best checkpoint ({ckpt.name}: written at evaluations "
-                                      f"when checkpoint.keep_best is true); load which='latest' instead")
+                raise CheckpointError(
+                    f"{str(p)!r} has no best checkpoint ({ckpt.name}: written at evaluations "
+                    f"when checkpoint.keep_best is true); load which='latest' instead"
+                )
             return run, ckpt, run.load_checkpoint(ckpt)
         ckpts = run.checkpoints()
         if not ckpts:
@@ -85,9 +90,11 @@ def _checkpoint(path: str | os.PathLike, which: str):
     if p.is_file():
         folder = p.parent.parent if p.parent.name == "checkpoints" else p.parent
         if not (folder / "recipe.yaml").is_file():
-            raise CheckpointError(f"checkpoint {str(p)!r}: its run folder's recipe.yaml (the network it holds) was "
-                                  f"not found at {str(folder / 'recipe.yaml')!r}; load the checkpoint from inside "
-                                  f"its run folder (<run>/checkpoints/)")
+            raise CheckpointError(
+                f"checkpoint {str(p)!r}: its run folder's recipe.yaml (the network it holds) was "
+                f"not found at {str(folder / 'recipe.yaml')!r}; load the checkpoint from inside "
+                f"its run folder (<run>/checkpoints/)"
+            )
         run = RunDir.open(folder)
         return run, p, run.load_checkpoint(p)
     raise CheckpointError(f"{str(p)!r} is neither a run folder nor a checkpoint file")
@@ -103,13 +110,16 @@ def _resize_low_rank(actor: torch.nn.Module, params: dict) -> None:
             continue
         rank = int(w2.shape[-2])
         if not 1 <= rank <= module.rank:
-            raise CheckpointError(f"the checkpoint's rank {rank} of actor layer {name!r} does not fit the recipe's "
-                                  f"network (rank {module.rank}, at most {module.max_rank})")
+            raise CheckpointError(
+                f"the checkpoint's rank {rank} of actor layer {name!r} does not fit the recipe's "
+                f"network (rank {module.rank}, at most {module.max_rank})"
+            )
         module.truncate_(rank)
 
 
-def load_policy_with_info(run_dir_or_checkpoint: str | os.PathLike, which: str = "latest", *,
-                          device: str | torch.device = "cpu") -> LoadedPolicy:
+def load_policy_with_info(
+    run_dir_or_checkpoint: str | os.PathLike, which: str = "latest", *, device: str | torch.device = "cpu"
+) -> LoadedPolicy:
     """:func:`load_policy`, with the recipe, run folder, checkpoint file and frames it was saved at."""
     dev = check_device(device)
     run, ckpt, state = _checkpoint(run_dir_or_checkpoint, which)
@@ -121,19 +131,20 @@ def load_policy_with_info(run_dir_or_checkpoint: str | os.PathLike, which: str =
         params = state["actor"]
     else:
         actor = make_recipe_actor(recipe, env)
-        params = {k[len(_ACTOR_PREFIX):]: v for k, v in state["loss"].items() if k.startswith(_ACTOR_PREFIX)}
+        params = {k[len(_ACTOR_PREFIX) :]: v for k, v in state["loss"].items() if k.startswith(_ACTOR_PREFIX)}
         _resize_low_rank(actor, params)
     try:
         actor.load_state_dict({k: v.to(dev) for k, v in params.items()})
     except RuntimeError as err:
-        raise CheckpointError(f"{str(ckpt)!r}: the actor's tensors do not fit the network recipe.yaml describes: "
-                              f"{str(err).splitlines()[0]}") from None
+        raise CheckpointError(
+            f"{str(ckpt)!r}: the actor's tensors do not fit the network recipe.yaml describes: "
+            f"{str(err).splitlines()[0]}"
+        ) from None
     actor.eval().requires_grad_(False)
     return LoadedPolicy(actor, recipe, run.path, ckpt, int(state["counters"]["frames"]))
 
 
-def load_policy(run_dir_or_checkpoint: str | os.PathLike, which: str = "latest", *,
-                device: str | torch.device = "cpu"):
+def load_policy(run_dir_or_checkpoint: str | os.PathLike, which: str = "latest", *, device: str | torch.device = "cpu"):
     """The trained policy of a run as a TorchRL actor (a ``ProbabilisticActor``, a ``TensorDictModule``).
 
     ``run_dir_or_checkpoint``: a run folder (``which="latest"``, its newest loadable checkpoint, or ``"best"``,

@@ -9,7 +9,8 @@ after an event that changed a rank (``on_truncate``):
 
 1. the update step re-binds to the new shapes (a compiled step compiles once per event);
 2. a lean collector finishes and drops the batch it is prefetching: nothing may step the env under the warm start;
-3. every low-rank factor is checked alive: finite, non-zero, of rank >= 1 (:func:`~adarl.runtime.guards.check_live_layers`);
+3. every low-rank factor is checked alive: finite, non-zero, of rank >= 1
+   (:func:`~adarl.runtime.guards.check_live_layers`);
 4. the warm start refills (or empties) the replay buffer with the truncated policy, then each ``after_warm_start``
    hook gets its :class:`~adarl.core.warmstart.WarmStartRecord` (``None`` without a warm start): the trainer counts
    the frames and logs them;
@@ -43,8 +44,9 @@ class RankEventEffects:
         factors: ``{name: w1 or w2 tensor}`` of every low-rank layer the loss trains (checked after each event).
     """
 
-    def __init__(self, update: UpdateStep, collector, warm_start: ReplayWarmStart | None,
-                 factors: Mapping[str, torch.Tensor]) -> None:
+    def __init__(
+        self, update: UpdateStep, collector, warm_start: ReplayWarmStart | None, factors: Mapping[str, torch.Tensor]
+    ) -> None:
         self.update, self.collector, self.warm_start = update, collector, warm_start
         self.factors = dict(factors)
         self._reset = collector.reset if isinstance(collector, LeanCollector) else None

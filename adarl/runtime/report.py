@@ -96,7 +96,8 @@ def plot_ranks(run: RunDir, out: Path) -> Path | None:
 def write_report(path: str | os.PathLike) -> Path | str:
     """Write ``report.md`` and ``plots/*.png`` for the run folder at ``path``; returns the report's path.
 
-    ``path`` may be an fsspec URL (:mod:`adarl.runtime.results`): the report is made in a local copy of the run's files and
+    ``path`` may be an fsspec URL (:mod:`adarl.runtime.results`): the report is made in a local copy of the run's files
+    and
     uploaded beside them; the URL of ``report.md`` is returned."""
     if is_url(path):
         with tempfile.TemporaryDirectory(prefix="adarl-report-") as tmp:
@@ -127,8 +128,10 @@ def write_report(path: str | os.PathLike) -> Path | str:
         if per_frame is not None:
             line = f"- simulator steps: {per_frame} per frame, {summary.get('simulator_steps')} in all"
             if int(per_frame) > 1:
-                line += (f" (RNAC-DS probes {int(per_frame) - 1} noisy candidate next states before each real step: "
-                         f"at equal frames it used {per_frame}x the simulator steps of a one-step method)")
+                line += (
+                    f" (RNAC-DS probes {int(per_frame) - 1} noisy candidate next states before each real step: "
+                    f"at equal frames it used {per_frame}x the simulator steps of a one-step method)"
+                )
             lines.append(line)
         lines.append("")
     if evals:
@@ -142,17 +145,23 @@ def write_report(path: str | os.PathLike) -> Path | str:
             "| frames | updates | mean | std | episodes |",
             "|---:|---:|---:|---:|---:|",
         ]
-        lines += [f"| {r['frames']} | {r['updates']} | {float(r['mean']):.1f} | {float(r['std']):.1f} | {r['episodes']} |"
-                  for r in evals]
+        lines += [
+            f"| {r['frames']} | {r['updates']} | {float(r['mean']):.1f} | {float(r['std']):.1f} | {r['episodes']} |"
+            for r in evals
+        ]
         lines.append("")
     if history:
-        lines += ["## Rank events", "",
-                  "The rule proposes a candidate; the acceptance step applies it only if the network's outputs on "
-                  "recent transitions change by at most the tolerance (relative output error), otherwise the layer "
-                  "keeps its rank. Energy and weight error are at the new rank (worst ensemble member).", "",
-                  "| step | network | layer | old rank | candidate | new rank | output error (candidate) | "
-                  "output error (new) | tolerance | retained energy | weight error | note |",
-                  "|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
+        lines += [
+            "## Rank events",
+            "",
+            "The rule proposes a candidate; the acceptance step applies it only if the network's outputs on "
+            "recent transitions change by at most the tolerance (relative output error), otherwise the layer "
+            "keeps its rank. Energy and weight error are at the new rank (worst ensemble member).",
+            "",
+            "| step | network | layer | old rank | candidate | new rank | output error (candidate) | "
+            "output error (new) | tolerance | retained energy | weight error | note |",
+            "|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|",
+        ]
         for ev in history:
             for layer in ev.get("layers", []):
                 err = layer.get("truncation_error")
@@ -163,14 +172,20 @@ def write_report(path: str | os.PathLike) -> Path | str:
                 lines.append(
                     f"| {ev.get('step')} | {layer.get('network', '')} | {layer.get('name') or layer.get('layer', '')} "
                     f"| {layer.get('old_rank')} "
-                    f"| {_int(layer.get('candidate'))} | {layer.get('new_rank')} | {_fmt(layer.get('candidate_error'))} "
+                    f"| {_int(layer.get('candidate'))} | {layer.get('new_rank')} "
+                    f"| {_fmt(layer.get('candidate_error'))} "
                     f"| {_fmt(layer.get('error'))} | {_fmt(layer.get('tolerance'))} | {_fmt(energy)} | {_fmt(err)} "
                     f"| {note.replace('|', '/')} |"
                 )
         lines.append("")
     lines += ["## Plots", ""]
     if ret:
-        lines += ["Training and evaluation return; red dashed lines mark rank events.", "", "![return](plots/return.png)", ""]
+        lines += [
+            "Training and evaluation return; red dashed lines mark rank events.",
+            "",
+            "![return](plots/return.png)",
+            "",
+        ]
     if rk:
         lines += ["Rank per low-rank layer.", "", "![ranks](plots/ranks.png)", ""]
     out = run.path / "report.md"

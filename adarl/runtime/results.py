@@ -1,8 +1,8 @@
 """Results at an fsspec URL (``s3://bucket/exp``, ``gs://...``, ``file:///shared/exp``): every run trains in a local
 scratch folder and is copied to ``<URL>/<run id>/``; everything else reads and writes the URL through fsspec.
 
-Why a scratch folder: a run's checkpoints are made safe by fsync + atomic rename (:mod:`adarl.runtime.run_dir`), and object
-stores have neither rename (a "move" is a copy then a delete) nor append. So the run writes exactly as on a local
+Why a scratch folder: a run's checkpoints are made safe by fsync + atomic rename (:mod:`adarl.runtime.run_dir`), and
+object stores have neither rename (a "move" is a copy then a delete) nor append. So the run writes exactly as on a local
 disk, and :class:`RunMirror` copies its folder to the URL, in an order that keeps the URL consistent for a reader:
 
 - after each new checkpoint, while the run goes on (and every ``SYNC_INTERVAL_S`` for the metrics): the metric
@@ -35,8 +35,21 @@ from fsspec.registry import known_implementations
 
 from adarl.errors import AdaRLError, AdaRLValueError
 
-__all__ = ["is_url", "filesystem", "join", "read_text", "exists", "write_atomic", "makedirs", "RunMirror",
-           "scratch_folder", "download_results", "upload_tree", "LATEST", "SYNC_INTERVAL_S"]
+__all__ = [
+    "is_url",
+    "filesystem",
+    "join",
+    "read_text",
+    "exists",
+    "write_atomic",
+    "makedirs",
+    "RunMirror",
+    "scratch_folder",
+    "download_results",
+    "upload_tree",
+    "LATEST",
+    "SYNC_INTERVAL_S",
+]
 
 LATEST = "LATEST"  # checkpoints/LATEST at the URL: the one checkpoint a reader may use
 SYNC_INTERVAL_S = 30.0  # metrics go up at least this often while a run trains (and after every checkpoint)
@@ -68,13 +81,15 @@ def filesystem(url: str):
     except ImportError as err:
         raise AdaRLValueError(
             f"results URL {url!r}: the {protocol}:// filesystem needs a package that is not installed: "
-            f"pip install {_backend_package(protocol, err)} (fsspec says: {err})") from None
+            f"pip install {_backend_package(protocol, err)} (fsspec says: {err})"
+        ) from None
     except ValueError as err:
         if "protocol" not in str(err).lower():
             raise
         raise AdaRLValueError(
             f"results URL {url!r}: unknown protocol {protocol!r}; fsspec knows e.g. {_COMMON} (all: "
-            f"fsspec.available_protocols()); a plain path needs no protocol") from None
+            f"fsspec.available_protocols()); a plain path needs no protocol"
+        ) from None
 
 
 def join(base: str, *parts: str) -> str:
@@ -161,7 +176,7 @@ def _files(fs, root: str) -> list[str]:
         found = fs.find(root, withdirs=False)
     except FileNotFoundError:
         return []
-    return sorted(p[len(root):].lstrip("/") for p in found if p.rstrip("/") != root)
+    return sorted(p[len(root) :].lstrip("/") for p in found if p.rstrip("/") != root)
 
 
 def scratch_folder(run_path: str, run_id: str, scratch: str | None) -> Path:
@@ -247,8 +262,11 @@ class RunMirror:
         frames = int(latest["frames"])
         keep = {f"checkpoints/{latest['checkpoint']}", "checkpoints/best.pt"}
         rb = f"checkpoints/rb-{frames:012d}/"
-        rels = [rel for rel in _files(self.fs, self.root) if not _is_temp(rel)
-                and (not rel.startswith("checkpoints/") or rel in keep or rel.startswith(rb))]
+        rels = [
+            rel
+            for rel in _files(self.fs, self.root)
+            if not _is_temp(rel) and (not rel.startswith("checkpoints/") or rel in keep or rel.startswith(rb))
+        ]
         tmp = self.local.with_name(self.local.name + ".download")
         shutil.rmtree(tmp, ignore_errors=True)
         _get_many(self.fs, [self._remote(rel) for rel in rels], [tmp / rel for rel in rels])
@@ -295,7 +313,7 @@ class RunMirror:
         if self.synced.get(rel) == key:
             return
         if rel.endswith(".csv") and not data.endswith(b"\n"):  # a row being appended goes up next time, whole
-            data, key = data[:data.rfind(b"\n") + 1], None
+            data, key = data[: data.rfind(b"\n") + 1], None
         _put_bytes(self.fs, self._remote(rel), data, atomic=atomic)
         self.synced[rel] = key
 
@@ -315,11 +333,19 @@ class RunMirror:
             shutil.rmtree(snap, ignore_errors=True)
             return
         rels = [f.relative_to(rb) for f in rb_files]
-        _put_many(self.fs, [snap / "rb" / r for r in rels],
-                  [self._remote(f"checkpoints/rb-{frames:012d}/{r.as_posix()}") for r in rels])
+        _put_many(
+            self.fs,
+            [snap / "rb" / r for r in rels],
+            [self._remote(f"checkpoints/rb-{frames:012d}/{r.as_posix()}") for r in rels],
+        )
         _put_file(self.fs, snap / ckpt.name, self._remote(f"checkpoints/{ckpt.name}"), atomic=True)
-        pointer = {"checkpoint": ckpt.name, "frames": frames, "replay_buffer": bool(rb_files), "time": time.time(),
-                   "host": socket.gethostname()}
+        pointer = {
+            "checkpoint": ckpt.name,
+            "frames": frames,
+            "replay_buffer": bool(rb_files),
+            "time": time.time(),
+            "host": socket.gethostname(),
+        }
         _put_bytes(self.fs, self._remote(f"checkpoints/{LATEST}"), json.dumps(pointer).encode(), atomic=True)
         self.synced["@latest"] = frames
         keep = {ckpt.name, f"rb-{frames:012d}", "best.pt", LATEST}
@@ -361,8 +387,12 @@ def download_results(url: str, dest: str | os.PathLike, *, checkpoints: bool = F
     rels = []
     for rel in _files(fs, root):
         parts = rel.split("/")
-        if not (_is_temp(rel) or rel.endswith(".log") or parts[0] in ("attempts", "report", "submitit")
-                or (not checkpoints and "checkpoints" in parts[:-1])):
+        if not (
+            _is_temp(rel)
+            or rel.endswith(".log")
+            or parts[0] in ("attempts", "report", "submitit")
+            or (not checkpoints and "checkpoints" in parts[:-1])
+        ):
             rels.append(rel)
     _get_many(fs, [f"{root}/{rel}" for rel in rels], [dest / rel for rel in rels])
     dest.mkdir(parents=True, exist_ok=True)

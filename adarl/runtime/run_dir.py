@@ -5,7 +5,8 @@
     <run>/recipe.yaml            resolved recipe (what ran; `adarl resume` rebuilds from it)
     <run>/.adarl.lock            claimed when the folder is created; locked while a process trains in it
     <run>/metrics/scalars/       TorchRL CSVLogger scalars, one file per metric ("step,value", step = frames):
-                                 train/episode_return.csv, eval/return.csv, rank/actor.layer0.csv (adarl.runtime.metrics)
+                                 train/episode_return.csv, eval/return.csv, rank/actor.layer0.csv
+                                 (adarl.runtime.metrics)
     <run>/wandb_run_id           the wandb run this folder logs to (with logging.backends: [wandb]), for resume
     <run>/eval.csv               nominal-dynamics evaluations (frames, updates, mean, std, ci95, episodes, ranks)
     <run>/ranks.json, ranks.csv  rank history: per event and layer, old/new rank, spectrum, energy, error
@@ -26,20 +27,19 @@ from __future__ import annotations
 import contextlib
 import csv
 import errno
+import importlib.util
+import io
 import json
 import math
 import os
+import pickle
+import re
 import shutil
 import socket
 import time
 import uuid
 import warnings
 from pathlib import Path
-
-import importlib.util
-import io
-import pickle
-import re
 
 import torch
 from torchrl.record import loggers as torchrl_loggers
@@ -61,8 +61,19 @@ LOCK_FILE = ".adarl.lock"
 REPLAY_BUFFER_FILE = "buffer.pt"  # inside rb-<frames>/; older checkpoints hold TorchRL's dumps() layout there
 # What only training writes (`adarl eval` and `adarl report` must leave these byte-for-byte unchanged); the other
 # files of a run folder are report.md, plots/, eval_nominal.json and sweeps/.
-TRAINING_RECORDS = ("recipe.yaml", LOCK_FILE, "metrics/", "eval.csv", "ranks.json", "ranks.csv", "checkpoints/",
-                    "summary.json", "tensorboard/", "wandb/", "replay_storage/")
+TRAINING_RECORDS = (
+    "recipe.yaml",
+    LOCK_FILE,
+    "metrics/",
+    "eval.csv",
+    "ranks.json",
+    "ranks.csv",
+    "checkpoints/",
+    "summary.json",
+    "tensorboard/",
+    "wandb/",
+    "replay_storage/",
+)
 _EVAL_FIELDS = ["frames", "updates", "mean", "std", "ci95", "episodes", "returns", "ranks"]
 _HELD_LOCKS: dict[str, int] = {}  # lock files this process holds (path -> fd): a lock excludes other processes only
 
@@ -72,12 +83,16 @@ def recipe_fingerprint(recipe) -> dict:
 
     A checkpoint written under another value cannot be loaded into this run's networks and buffer; it is refused
     by name before any tensor is used (keys absent on either side, from other adarl versions, are not compared)."""
-    fp = {"algorithm.name": recipe.algorithm.name, "env.id": recipe.env.id, "env.num_envs": recipe.env.num_envs,
-          "algorithm.num_qvalue_nets": recipe.algorithm.num_qvalue_nets,
-          "algorithm.fixed_alpha": recipe.algorithm.fixed_alpha,
-          "algorithm.parseval.diagonal": recipe.algorithm.parseval.diagonal,
-          "algorithm.parseval.input_scale": recipe.algorithm.parseval.input_scale,
-          "replay.size": recipe.replay.size}
+    fp = {
+        "algorithm.name": recipe.algorithm.name,
+        "env.id": recipe.env.id,
+        "env.num_envs": recipe.env.num_envs,
+        "algorithm.num_qvalue_nets": recipe.algorithm.num_qvalue_nets,
+        "algorithm.fixed_alpha": recipe.algorithm.fixed_alpha,
+        "algorithm.parseval.diagonal": recipe.algorithm.parseval.diagonal,
+        "algorithm.parseval.input_scale": recipe.algorithm.parseval.input_scale,
+        "replay.size": recipe.replay.size,
+    }
     for net in ("actor", "critic"):
         m = getattr(recipe.network, net)
         fp[f"network.{net}.num_cells"] = list(m.num_cells)
@@ -128,8 +143,10 @@ class RunDir:
         except FileExistsError:
             raise AdaRLError(f"run folder {str(p)!r} exists and is not a folder; choose another output.dir") from None
         except OSError as err:
-            raise AdaRLError(f"cannot create run folder {str(p)!r}: {_os_why(err, p)}; choose a writable place "
-                             f"with -o/--output or output.root") from None
+            raise AdaRLError(
+                f"cannot create run folder {str(p)!r}: {_os_why(err, p)}; choose a writable place "
+                f"with -o/--output or output.root"
+            ) from None
         if any(p.iterdir()):
             if not overwrite:
                 raise AdaRLError(
@@ -147,11 +164,15 @@ class RunDir:
         try:
             fd = os.open(p / LOCK_FILE, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o644)
         except FileExistsError:
-            raise AdaRLError(f"run folder {str(p)!r} was just claimed by another process ({_holder(p / LOCK_FILE)}); "
-                             f"choose another output.dir") from None
+            raise AdaRLError(
+                f"run folder {str(p)!r} was just claimed by another process ({_holder(p / LOCK_FILE)}); "
+                f"choose another output.dir"
+            ) from None
         except OSError as err:
-            raise AdaRLError(f"cannot create run folder {str(p)!r}: {_os_why(err, p)}; choose a writable place "
-                             f"with -o/--output or output.root") from None
+            raise AdaRLError(
+                f"cannot create run folder {str(p)!r}: {_os_why(err, p)}; choose a writable place "
+                f"with -o/--output or output.root"
+            ) from None
         _hold_lock(p / LOCK_FILE, fd)
         return run
 
@@ -179,11 +200,14 @@ class RunDir:
         try:
             fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
         except OSError as err:
-            raise AdaRLError(f"cannot lock run folder {str(self.path)!r} to train in it: "
-                             f"{_os_why(err, lock)}") from None
+            raise AdaRLError(
+                f"cannot lock run folder {str(self.path)!r} to train in it: {_os_why(err, lock)}"
+            ) from None
         if not _hold_lock(lock, fd):
-            raise AdaRLError(f"run folder {str(self.path)!r} is in use by another process ({_holder(lock)}); wait "
-                             f"for it to finish or stop it first")
+            raise AdaRLError(
+                f"run folder {str(self.path)!r} is in use by another process ({_holder(lock)}); wait "
+                f"for it to finish or stop it first"
+            )
 
     def unlock(self) -> None:
         """Release this process's lock (training ended); another process may train in the folder again."""
@@ -251,9 +275,16 @@ class RunDir:
                 tb.experiment.add_text("recipe", "```yaml\n" + recipe_to_yaml(recipe) + "```", global_step=0)
             loggers.append(tb)
         if "wandb" in backends:
-            loggers.append(torchrl_loggers.WandbLogger(exp_name=recipe.name, project=recipe.logging.wandb_project,
-                                       offline=recipe.logging.wandb_mode == "offline", save_dir=str(self.path),
-                                       id=self.wandb_run_id(), config=config))
+            loggers.append(
+                torchrl_loggers.WandbLogger(
+                    exp_name=recipe.name,
+                    project=recipe.logging.wandb_project,
+                    offline=recipe.logging.wandb_mode == "offline",
+                    save_dir=str(self.path),
+                    id=self.wandb_run_id(),
+                    config=config,
+                )
+            )
         return _Fanout(loggers)
 
     def close_logger(self, logger: _Fanout) -> None:
@@ -315,9 +346,18 @@ class RunDir:
             w = csv.DictWriter(fh, fieldnames=_EVAL_FIELDS)
             if new:
                 w.writeheader()
-            w.writerow({"frames": frames, "updates": updates, "mean": result.mean, "std": result.std,
-                        "ci95": result.ci95, "episodes": len(result.returns),
-                        "returns": json.dumps(result.returns), "ranks": json.dumps(ranks)})
+            w.writerow(
+                {
+                    "frames": frames,
+                    "updates": updates,
+                    "mean": result.mean,
+                    "std": result.std,
+                    "ci95": result.ci95,
+                    "episodes": len(result.returns),
+                    "returns": json.dumps(result.returns),
+                    "ranks": json.dumps(ranks),
+                }
+            )
             fh.flush()
             os.fsync(fh.fileno())
 
@@ -350,8 +390,13 @@ class RunDir:
         if not rows:
             return None
         r = rows[-1]
-        return {"frames": int(r["frames"]), "mean": float(r["mean"]), "std": float(r["std"]),
-                "ci95": float(r["ci95"]), "episodes": int(r["episodes"])}
+        return {
+            "frames": int(r["frames"]),
+            "mean": float(r["mean"]),
+            "std": float(r["std"]),
+            "ci95": float(r["ci95"]),
+            "episodes": int(r["episodes"]),
+        }
 
     def write_rank_history(self, history: list, frames: int | None = None) -> None:
         """Rank events as JSON (with spectra) and a flat CSV, one row per event and layer.
@@ -414,11 +459,19 @@ class RunDir:
         return self.checkpoint_dir / "best.pt"
 
     def _payload(self, state: dict, frames: int, fingerprint: dict | None, **extra) -> dict:
-        return {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "adarl_version": __version__,
-                "frames": int(frames), "recipe_fingerprint": fingerprint, **extra, "state": state}
+        return {
+            "format": CHECKPOINT_FORMAT,
+            "version": CHECKPOINT_VERSION,
+            "adarl_version": __version__,
+            "frames": int(frames),
+            "recipe_fingerprint": fingerprint,
+            **extra,
+            "state": state,
+        }
 
-    def save_checkpoint(self, state: dict, *, frames: int, keep_last: int = 3, replay_buffer=None,
-                        fingerprint: dict | None = None) -> Path:
+    def save_checkpoint(
+        self, state: dict, *, frames: int, keep_last: int = 3, replay_buffer=None, fingerprint: dict | None = None
+    ) -> Path:
         """Write ``ckpt-<frames>.pt`` (and the replay buffer beside it) atomically, then delete the oldest.
 
         Order: buffer to a temporary folder, renamed; checkpoint to a temporary file, fsync'ed, renamed; folder
@@ -435,14 +488,16 @@ class RunDir:
             self.checkpoint_dir.mkdir(parents=True, exist_ok=True)
             if replay_buffer is not None:
                 shutil.rmtree(rb_tmp, ignore_errors=True)
-                _check_free_space(self.checkpoint_dir, _buffer_nbytes(replay_buffer) + _nbytes(state),
-                                  "the checkpoint with its replay buffer")
+                _check_free_space(
+                    self.checkpoint_dir,
+                    _buffer_nbytes(replay_buffer) + _nbytes(state),
+                    "the checkpoint with its replay buffer",
+                )
                 rb_tmp.mkdir()
                 _atomic_torch_save(replay_buffer.state_dict(), rb_tmp / REPLAY_BUFFER_FILE)
                 shutil.rmtree(rb_dir, ignore_errors=True)
                 os.replace(rb_tmp, rb_dir)
-            _atomic_torch_save(self._payload(state, frames, fingerprint, replay_buffer=replay_buffer is not None),
-                               path)
+            _atomic_torch_save(self._payload(state, frames, fingerprint, replay_buffer=replay_buffer is not None), path)
             _fsync_dir(self.checkpoint_dir)
         except OSError as err:
             shutil.rmtree(rb_tmp, ignore_errors=True)
@@ -454,7 +509,9 @@ class RunDir:
             raise CheckpointError(
                 f"could not write checkpoint {path.name}{' (disk full)' if full else ''}: {err.strerror or err}; the "
                 f"run stopped. The previous checkpoint {prev[-1] if prev else '(none)'} is intact: {remedy} and "
-                f"`adarl resume {self.path}`", path=path, reason=err.strerror or str(err),
+                f"`adarl resume {self.path}`",
+                path=path,
+                reason=err.strerror or str(err),
             ) from None
         for old in self.checkpoints()[:-keep_last]:
             old.unlink(missing_ok=True)
@@ -478,8 +535,9 @@ class RunDir:
             frames = int(checkpoint.name.split(".")[0].removeprefix("ckpt-"))
         return checkpoint.parent / f"rb-{int(frames):012d}"
 
-    def load_checkpoint(self, path: str | os.PathLike, *, fingerprint: dict | None = None,
-                        replay_buffer: bool = True) -> dict:
+    def load_checkpoint(
+        self, path: str | os.PathLike, *, fingerprint: dict | None = None, replay_buffer: bool = True
+    ) -> dict:
         """Load one checkpoint safely (``weights_only=True``: no code runs from the file) and check it fits.
 
         ``fingerprint`` (:func:`recipe_fingerprint` of the run): a checkpoint written under another recipe is refused
@@ -504,8 +562,10 @@ class RunDir:
         try:  # the fields everything below relies on, of the right kinds (a file may hold anything plain)
             version = int(payload.get("version", 0))
             if version > CHECKPOINT_VERSION:  # a newer layout: say so before judging it by this one
-                raise refuse(f"was written by a newer adarl (checkpoint version {version}, this version reads up to "
-                             f"{CHECKPOINT_VERSION}); upgrade adarl to load it")
+                raise refuse(
+                    f"was written by a newer adarl (checkpoint version {version}, this version reads up to "
+                    f"{CHECKPOINT_VERSION}); upgrade adarl to load it"
+                )
             frames = int(payload.get("frames", state["counters"]["frames"]))
             int(state["counters"]["frames"])
         except (TypeError, ValueError, KeyError, IndexError):
@@ -515,8 +575,10 @@ class RunDir:
             differ = [k for k in fingerprint if k in theirs and theirs[k] != fingerprint[k]]
             if differ:
                 shown = "; ".join(f"{k}: {theirs[k]} in it, {fingerprint[k]} in this run" for k in differ[:3])
-                raise refuse(f"was written for another recipe ({shown}{'; ...' if len(differ) > 3 else ''}); it "
-                             f"cannot be loaded into this run's networks")
+                raise refuse(
+                    f"was written for another recipe ({shown}{'; ...' if len(differ) > 3 else ''}); it "
+                    f"cannot be loaded into this run's networks"
+                )
         if replay_buffer and payload.get("replay_buffer"):
             rb = self._replay_buffer_dir(path, frames)
             if not rb.is_dir():
@@ -524,8 +586,14 @@ class RunDir:
         state["checkpoint_file"] = str(path)
         return state
 
-    def load_latest_checkpoint(self, *, quarantine: bool = False, fingerprint: dict | None = None,
-                               strict: bool = False, replay_buffer: bool = True) -> dict:
+    def load_latest_checkpoint(
+        self,
+        *,
+        quarantine: bool = False,
+        fingerprint: dict | None = None,
+        strict: bool = False,
+        replay_buffer: bool = True,
+    ) -> dict:
         """The newest checkpoint that loads. A newer one that does not (damaged, or for another recipe) is skipped
         with a :class:`~adarl.errors.CheckpointFallbackWarning` naming it and why, never silently.
 
@@ -539,9 +607,12 @@ class RunDir:
                 state = self.load_checkpoint(path, fingerprint=fingerprint, replay_buffer=replay_buffer)
             except CheckpointError as err:
                 if strict:
-                    raise CheckpointError(f"{err}; --checkpoint latest does not fall back to an older checkpoint "
-                                          f"(without it, the newest one that loads is used)",
-                                          path=err.path, reason=err.reason) from None
+                    raise CheckpointError(
+                        f"{err}; --checkpoint latest does not fall back to an older checkpoint "
+                        f"(without it, the newest one that loads is used)",
+                        path=err.path,
+                        reason=err.reason,
+                    ) from None
                 errors.append(str(err))
                 bad.append((path, err.reason))
                 continue
@@ -557,7 +628,9 @@ class RunDir:
                     f"skipped checkpoint {b.name}{note}: {reason}; using {path.name} instead"
                     + (f", {lost} frames earlier" if lost is not None and lost > 0 else "")
                     + " (--checkpoint latest refuses instead)",
-                    CheckpointFallbackWarning, stacklevel=2)
+                    CheckpointFallbackWarning,
+                    stacklevel=2,
+                )
             return state
         if errors:
             raise CheckpointError("no loadable checkpoint in run folder: " + "; ".join(errors))
@@ -574,8 +647,12 @@ class RunDir:
             try:
                 sd = torch.load(rb_dir / REPLAY_BUFFER_FILE, map_location="cpu", weights_only=True)
             except Exception as err:  # noqa: BLE001 - any unreadable file is refused the same way
-                raise CheckpointError(f"replay buffer {str(rb_dir / REPLAY_BUFFER_FILE)!r} cannot be loaded safely: "
-                                      f"{_why_unloadable(err)}", path=rb_dir, reason=_why_unloadable(err)) from None
+                raise CheckpointError(
+                    f"replay buffer {str(rb_dir / REPLAY_BUFFER_FILE)!r} cannot be loaded safely: "
+                    f"{_why_unloadable(err)}",
+                    path=rb_dir,
+                    reason=_why_unloadable(err),
+                ) from None
             replay_buffer.load_state_dict(sd)
         else:
             replay_buffer.loads(str(rb_dir))
@@ -604,8 +681,13 @@ def _hold_lock(lock: Path, fd: int) -> bool:
             return False
     with contextlib.suppress(OSError):  # who holds it, for the message another process gets
         os.ftruncate(fd, 0)
-        os.pwrite(fd, json.dumps({"pid": os.getpid(), "host": socket.gethostname(),
-                                  "since": time.strftime("%Y-%m-%d %H:%M:%S")}).encode(), 0)
+        os.pwrite(
+            fd,
+            json.dumps(
+                {"pid": os.getpid(), "host": socket.gethostname(), "since": time.strftime("%Y-%m-%d %H:%M:%S")}
+            ).encode(),
+            0,
+        )
     _HELD_LOCKS[str(lock.absolute())] = fd
     return True
 
@@ -669,8 +751,10 @@ def _why_unloadable(err: Exception) -> str:
     if isinstance(err, pickle.UnpicklingError):
         found = re.search(r"GLOBAL ([\w.]+)", text)
         if found:
-            return (f"it holds a Python object ({found.group(1)}), not only tensors and plain containers; refused "
-                    f"unread, nothing in it ran")
+            return (
+                f"it holds a Python object ({found.group(1)}), not only tensors and plain containers; refused "
+                f"unread, nothing in it ran"
+            )
         return "it is corrupt or not a torch checkpoint (only tensors and plain containers are accepted)"
     if "zip" in text.lower() or "PytorchStreamReader" in text:
         return "it is truncated or corrupt (its zip archive is incomplete)"
@@ -703,8 +787,11 @@ def _check_free_space(folder: Path, nbytes: int, what: str) -> None:
     margin = 64 << 10  # file headers, pickled containers, metadata
     free = shutil.disk_usage(folder).free
     if nbytes + margin > free:
-        raise OSError(errno.ENOSPC, f"No space left on device ({what} needs {(nbytes + margin) / 1e6:.1f} MB, "
-                                    f"{free / 1e6:.1f} MB free)", str(folder))
+        raise OSError(
+            errno.ENOSPC,
+            f"No space left on device ({what} needs {(nbytes + margin) / 1e6:.1f} MB, {free / 1e6:.1f} MB free)",
+            str(folder),
+        )
 
 
 def _atomic_write_text(path: Path, text: str) -> None:

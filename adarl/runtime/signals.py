@@ -42,8 +42,12 @@ class GracefulInterrupt:
             raise KeyboardInterrupt
         self.requested = signum
         if not self.quiet:
-            print(f"\nadarl: {signal.Signals(signum).name} received: saving a checkpoint after this batch "
-                  f"(send it again to stop now)", file=sys.stderr, flush=True)
+            print(
+                f"\nadarl: {signal.Signals(signum).name} received: saving a checkpoint after this batch "
+                f"(send it again to stop now)",
+                file=sys.stderr,
+                flush=True,
+            )
 
     def __enter__(self) -> GracefulInterrupt:
         if threading.current_thread() is threading.main_thread():

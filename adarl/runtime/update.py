@@ -38,7 +38,7 @@ class UpdateStep(ABC):
     def __call__(self, guard: NonFiniteGuard | None = None, *, update: int = 0) -> dict[str, torch.Tensor]:
         """One step; ``guard`` (when given) checks it, ``update`` is the step's index in its messages."""
 
-    def on_rank_event(self, event=None) -> None:
+    def on_rank_event(self, event=None) -> None:  # noqa: B027 (optional: a step that holds no shapes needs none)
         """The parameters changed shape in place (a rank event): re-bind what depends on the shapes."""
 
 
@@ -49,9 +49,17 @@ class LossStep(UpdateStep):
     ``terms``: loss terms (``{name: term}``, e.g. the Parseval regulariser) whose ``wrap_output(td)`` adds
     ``loss_<name>`` to the loss's output; each is added to the total and returned."""
 
-    def __init__(self, loss: nn.Module, optimizers: Sequence[torch.optim.Optimizer], *,
-                 replay_buffer: TensorDictReplayBuffer, target_updater: SoftUpdate, schedulers: Sequence = (),
-                 max_grad_norm: float | None = None, terms: Mapping[str, nn.Module] | None = None) -> None:
+    def __init__(
+        self,
+        loss: nn.Module,
+        optimizers: Sequence[torch.optim.Optimizer],
+        *,
+        replay_buffer: TensorDictReplayBuffer,
+        target_updater: SoftUpdate,
+        schedulers: Sequence = (),
+        max_grad_norm: float | None = None,
+        terms: Mapping[str, nn.Module] | None = None,
+    ) -> None:
         self.loss, self.optimizers, self.schedulers = loss, list(optimizers), list(schedulers)
         self.replay_buffer, self.target_updater = replay_buffer, target_updater
         self.max_grad_norm, self.terms = max_grad_norm, dict(terms or {})
@@ -90,8 +98,9 @@ class FusedStep(UpdateStep):
     ``rb.sample()`` would draw and :class:`~adarl.fast.sac.FusedSACUpdate` computes the step (no gradient check:
     the manual backward never materialises a graph to check; the losses and parameters are checked)."""
 
-    def __init__(self, update: FusedSACUpdate, replay_buffer: TensorDictReplayBuffer,
-                 generator: torch.Generator | None = None) -> None:
+    def __init__(
+        self, update: FusedSACUpdate, replay_buffer: TensorDictReplayBuffer, generator: torch.Generator | None = None
+    ) -> None:
         self.fused = update
         self.sampler = UniformTensorSampler(replay_buffer, update.keys, generator=generator)
 

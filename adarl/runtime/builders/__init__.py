@@ -33,7 +33,27 @@ from adarl.runtime.builders.sac import (
     update_after,
 )
 
-__all__ = ["ACTIVATIONS", "check_device", "make_mlp", "make_envs", "train_env_factory", "policy_specs", "spec_env",
-           "make_sac_actor", "make_sac_critic", "make_sac_loss", "make_recipe_actor", "make_sac_modules",
-           "reinit_low_rank_ensemble", "SACModules", "Components", "build_components", "planned_updates",
-           "update_after", "PPOModules", "PPOComponents", "make_ppo_modules", "build_ppo_components"]
+__all__ = [
+    "ACTIVATIONS",
+    "check_device",
+    "make_mlp",
+    "make_envs",
+    "train_env_factory",
+    "policy_specs",
+    "spec_env",
+    "make_sac_actor",
+    "make_sac_critic",
+    "make_sac_loss",
+    "make_recipe_actor",
+    "make_sac_modules",
+    "reinit_low_rank_ensemble",
+    "SACModules",
+    "Components",
+    "build_components",
+    "planned_updates",
+    "update_after",
+    "PPOModules",
+    "PPOComponents",
+    "make_ppo_modules",
+    "build_ppo_components",
+]

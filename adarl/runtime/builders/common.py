@@ -22,8 +22,19 @@ from adarl.core.lowrank import low_rank_mlp
 from adarl.envs.factory import make_env, make_eval_env
 from adarl.errors import AdaRLValueError
 
-__all__ = ["ACTIVATIONS", "check_device", "make_mlp", "make_recipe_mlp", "init_network", "action_spec",
-           "is_discrete", "train_env_factory", "make_envs", "policy_specs", "spec_env"]
+__all__ = [
+    "ACTIVATIONS",
+    "check_device",
+    "make_mlp",
+    "make_recipe_mlp",
+    "init_network",
+    "action_spec",
+    "is_discrete",
+    "train_env_factory",
+    "make_envs",
+    "policy_specs",
+    "spec_env",
+]
 
 ACTIVATIONS: dict[str, type[nn.Module]] = {
     "relu": nn.ReLU,
@@ -41,15 +52,21 @@ def check_device(device: str | torch.device) -> torch.device:
     if dev.type != "cuda":
         return dev
     if not torch.cuda.is_available():
-        why = (f"this torch ({torch.__version__}) was built without CUDA" if torch.version.cuda is None
-               else "no CUDA GPU is visible (torch.cuda.is_available() is False)")
-        raise AdaRLValueError(f"device {str(device)!r} is not available: {why}; allowed here: 'cpu' (the recipe "
-                              f"key `device`, e.g. the override device=cpu)")
+        why = (
+            f"this torch ({torch.__version__}) was built without CUDA"
+            if torch.version.cuda is None
+            else "no CUDA GPU is visible (torch.cuda.is_available() is False)"
+        )
+        raise AdaRLValueError(
+            f"device {str(device)!r} is not available: {why}; allowed here: 'cpu' (the recipe "
+            f"key `device`, e.g. the override device=cpu)"
+        )
     n = torch.cuda.device_count()
     if dev.index is not None and dev.index >= n:
         allowed = ", ".join(["'cpu'", "'cuda'", *(f"'cuda:{i}'" for i in range(n))])
-        raise AdaRLValueError(f"device {str(device)!r} is not available: this machine has {n} CUDA device(s); "
-                              f"allowed here: {allowed}")
+        raise AdaRLValueError(
+            f"device {str(device)!r} is not available: this machine has {n} CUDA device(s); allowed here: {allowed}"
+        )
     return dev
 
 
@@ -80,21 +97,41 @@ def make_mlp(
     """
     act = _activation(activation)
     if variants:
-        return registry.build_variant_network(in_features, out_features, num_cells, act, low_rank_layers, rank,
-                                              device=device, **variants)
+        return registry.build_variant_network(
+            in_features, out_features, num_cells, act, low_rank_layers, rank, device=device, **variants
+        )
     if len(low_rank_layers) == 0:
-        return MLP(in_features=in_features, out_features=out_features, num_cells=list(num_cells),
-                   activation_class=act, device=device)
-    return low_rank_mlp(in_features, out_features, num_cells, activation_class=act,
-                        low_rank_layers=low_rank_layers, rank=rank, device=device)
+        return MLP(
+            in_features=in_features,
+            out_features=out_features,
+            num_cells=list(num_cells),
+            activation_class=act,
+            device=device,
+        )
+    return low_rank_mlp(
+        in_features,
+        out_features,
+        num_cells,
+        activation_class=act,
+        low_rank_layers=low_rank_layers,
+        rank=rank,
+        device=device,
+    )
 
 
 def make_recipe_mlp(in_features: int, out_features: int, mlp, algorithm, action_dim: int, device) -> nn.Module:
     """The MLP of a recipe's ``network.<net>`` section (``mlp``), with the variants the registered baselines ask
     for given the ``algorithm`` section; its initial weights are each layer's own (see :func:`init_network`)."""
-    return make_mlp(in_features, out_features, num_cells=mlp.num_cells, activation=mlp.activation,
-                    low_rank_layers=mlp.low_rank_layers, rank=mlp.rank, device=device,
-                    **registry.network_kwargs(mlp, algorithm, action_dim))
+    return make_mlp(
+        in_features,
+        out_features,
+        num_cells=mlp.num_cells,
+        activation=mlp.activation,
+        low_rank_layers=mlp.low_rank_layers,
+        rank=mlp.rank,
+        device=device,
+        **registry.network_kwargs(mlp, algorithm, action_dim),
+    )
 
 
 def init_network(network: nn.Module, mlp) -> None:
@@ -122,8 +159,16 @@ def _env_kwargs(recipe) -> dict:
 def train_env_factory(recipe) -> Callable[[], TransformedEnv]:
     """A picklable callable that builds the training env (a collector worker process builds its own copy)."""
     e, p = recipe.env, recipe.env.perturbation
-    return functools.partial(make_env, e.id, preset=p.preset, schedule=p.schedule, num_envs=e.num_envs,
-                             parallel=e.parallel, seed=recipe.seed, **_env_kwargs(recipe))
+    return functools.partial(
+        make_env,
+        e.id,
+        preset=p.preset,
+        schedule=p.schedule,
+        num_envs=e.num_envs,
+        parallel=e.parallel,
+        seed=recipe.seed,
+        **_env_kwargs(recipe),
+    )
 
 
 def make_envs(recipe) -> tuple:
@@ -144,8 +189,11 @@ def policy_specs(env) -> dict:
     if is_discrete(spec):
         out.update(action_kind="one_hot" if isinstance(spec, OneHot) else "categorical", action_n=int(spec.space.n))
     else:
-        out.update(action_kind="box", action_low=spec.space.low.detach().cpu().clone(),
-                   action_high=spec.space.high.detach().cpu().clone())
+        out.update(
+            action_kind="box",
+            action_low=spec.space.low.detach().cpu().clone(),
+            action_high=spec.space.high.detach().cpu().clone(),
+        )
     return out
 
 

@@ -31,8 +31,14 @@ from adarl.baselines.rnac import DoubleSamplingTransform, IPMAdvantage
 from adarl.runtime.builders.common import action_spec, check_device, init_network, make_envs, make_recipe_mlp
 from adarl.runtime.state import seed_everything
 
-__all__ = ["PPOModules", "PPOComponents", "LinearDecay", "make_ppo_modules", "build_ppo_components",
-           "simulator_steps_per_frame"]
+__all__ = [
+    "PPOModules",
+    "PPOComponents",
+    "LinearDecay",
+    "make_ppo_modules",
+    "build_ppo_components",
+    "simulator_steps_per_frame",
+]
 
 
 @dataclass
@@ -118,22 +124,37 @@ def make_ppo_modules(recipe, env) -> PPOModules:
         head, dist_class = [], TanhNormal
     policy = TensorDictModule(
         nn.Sequential(actor_body, *head, AddStateIndependentNormalScale(act_dim, scale_lb=1e-8).to(device)),
-        in_keys=["observation"], out_keys=["loc", "scale"],
+        in_keys=["observation"],
+        out_keys=["loc", "scale"],
     )
     actor = ProbabilisticActor(
-        policy, in_keys=["loc", "scale"], spec=spec, distribution_class=dist_class,
-        distribution_kwargs={"low": low, "high": high}, return_log_prob=True,
+        policy,
+        in_keys=["loc", "scale"],
+        spec=spec,
+        distribution_class=dist_class,
+        distribution_kwargs={"low": low, "high": high},
+        return_log_prob=True,
     )
-    critic = ValueOperator(_net(obs_dim, 1, c, alg, act_dim, norms[1] if norms else None, device),
-                           in_keys=["observation"])
+    critic = ValueOperator(
+        _net(obs_dim, 1, c, alg, act_dim, norms[1] if norms else None, device), in_keys=["observation"]
+    )
     # 'batch' standardises once per collected batch in PPOTrainer's iteration; 'minibatch' inside the loss
-    loss = ClipPPOLoss(actor, critic, clip_epsilon=ppo.clip_epsilon, entropy_bonus=ppo.entropy_coeff > 0,
-                       entropy_coeff=ppo.entropy_coeff, critic_coeff=ppo.critic_coeff, loss_critic_type="l2",
-                       normalize_advantage=ppo.normalize_advantage == "minibatch", functional=False)
+    loss = ClipPPOLoss(
+        actor,
+        critic,
+        clip_epsilon=ppo.clip_epsilon,
+        entropy_bonus=ppo.entropy_coeff > 0,
+        entropy_coeff=ppo.entropy_coeff,
+        critic_coeff=ppo.critic_coeff,
+        loss_critic_type="l2",
+        normalize_advantage=ppo.normalize_advantage == "minibatch",
+        functional=False,
+    )
     rn = alg.rnac
     if rn.mode == "ipm":
-        advantage = IPMAdvantage(gamma=alg.gamma, lmbda=ppo.gae_lambda, value_network=critic, kappa=rn.kappa,
-                                 average_gae=False)
+        advantage = IPMAdvantage(
+            gamma=alg.gamma, lmbda=ppo.gae_lambda, value_network=critic, kappa=rn.kappa, average_gae=False
+        )
     else:
         advantage = GAE(gamma=alg.gamma, lmbda=ppo.gae_lambda, value_network=critic, average_gae=False)
     return PPOModules(actor, critic, loss, advantage, norms)
@@ -157,15 +178,19 @@ def build_ppo_components(recipe) -> PPOComponents:
     }
     c = recipe.collector
     iterations = math.ceil(c.total_frames / c.frames_per_batch)
-    schedulers = {k: torch.optim.lr_scheduler.LambdaLR(o, LinearDecay(iterations if ppo.lr_decay else 10**12))
-                  for k, o in optimizers.items()}
-    collector = Collector(env, modules.actor, frames_per_batch=c.frames_per_batch, total_frames=-1,
-                          device=recipe.device)
+    schedulers = {
+        k: torch.optim.lr_scheduler.LambdaLR(o, LinearDecay(iterations if ppo.lr_decay else 10**12))
+        for k, o in optimizers.items()
+    }
+    collector = Collector(
+        env, modules.actor, frames_per_batch=c.frames_per_batch, total_frames=-1, device=recipe.device
+    )
     terms = registry.loss_terms(modules.loss, alg)
     scaler = RewardScaler(alg.gamma) if ppo.reward_scaling else None
     generator = torch.Generator().manual_seed(recipe.seed + 1)
-    return PPOComponents(recipe, env, eval_env, modules, optimizers, schedulers, collector, scaler, ds, iterations,
-                         generator, terms)
+    return PPOComponents(
+        recipe, env, eval_env, modules, optimizers, schedulers, collector, scaler, ds, iterations, generator, terms
+    )
 
 
 def simulator_steps_per_frame(recipe) -> int:

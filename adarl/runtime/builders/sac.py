@@ -50,9 +50,20 @@ from adarl.runtime.rank_events import RankEventEffects
 from adarl.runtime.state import seed_everything
 from adarl.runtime.update import FusedStep, LossStep, UpdateStep
 
-__all__ = ["make_sac_actor", "make_sac_critic", "make_sac_loss", "reinit_low_rank_ensemble", "SACModules",
-           "make_recipe_actor", "make_sac_modules", "Components", "build_components", "sac_parameters",
-           "update_after", "planned_updates"]
+__all__ = [
+    "make_sac_actor",
+    "make_sac_critic",
+    "make_sac_loss",
+    "reinit_low_rank_ensemble",
+    "SACModules",
+    "make_recipe_actor",
+    "make_sac_modules",
+    "Components",
+    "build_components",
+    "sac_parameters",
+    "update_after",
+    "planned_updates",
+]
 
 
 def make_sac_actor(env: EnvBase, obs_key="observation", **mlp_kwargs) -> ProbabilisticActor:
@@ -63,8 +74,9 @@ def make_sac_actor(env: EnvBase, obs_key="observation", **mlp_kwargs) -> Probabi
         n = spec.space.n
         net = make_mlp(obs_dim, n, **mlp_kwargs)
         module = TensorDictModule(net, in_keys=[obs_key], out_keys=["logits"])
-        return ProbabilisticActor(module, in_keys=["logits"], spec=spec, distribution_class=OneHotCategorical,
-                                  return_log_prob=False)
+        return ProbabilisticActor(
+            module, in_keys=["logits"], spec=spec, distribution_class=OneHotCategorical, return_log_prob=False
+        )
     act_dim = spec.shape[-1]
     net = make_mlp(obs_dim, 2 * act_dim, **mlp_kwargs)
     module = TensorDictModule(nn.Sequential(net, NormalParamExtractor()), in_keys=[obs_key], out_keys=["loc", "scale"])
@@ -162,8 +174,14 @@ def reinit_low_rank_ensemble(loss, network: str = "qvalue_network") -> int:
             continue
         device, dtype = online[keys[0]].device, online[keys[0]].dtype
         for i in range(members):
-            fresh = LowRankLinear(layer.in_features, layer.out_features, rank=layer.rank,
-                                  bias=layer.bias is not None, device=device, dtype=dtype)
+            fresh = LowRankLinear(
+                layer.in_features,
+                layer.out_features,
+                rank=layer.rank,
+                bias=layer.bias is not None,
+                device=device,
+                dtype=dtype,
+            )
             for k, p in zip(keys, ("w1", "w2", "bias")):
                 online[k].data[i].copy_(getattr(fresh, p))
         for k in keys:
@@ -189,9 +207,15 @@ def make_recipe_actor(recipe, env: EnvBase) -> ProbabilisticActor:
     a = recipe.network.actor
     spec = action_spec(env)
     action_dim = spec.space.n if is_discrete(spec) else spec.shape[-1]
-    return make_sac_actor(env, num_cells=a.num_cells, activation=a.activation, low_rank_layers=a.low_rank_layers,
-                          rank=a.rank, device=torch.device(recipe.device),
-                          **registry.network_kwargs(a, recipe.algorithm, action_dim))
+    return make_sac_actor(
+        env,
+        num_cells=a.num_cells,
+        activation=a.activation,
+        low_rank_layers=a.low_rank_layers,
+        rank=a.rank,
+        device=torch.device(recipe.device),
+        **registry.network_kwargs(a, recipe.algorithm, action_dim),
+    )
 
 
 def make_sac_modules(recipe, env: EnvBase) -> SACModules:
@@ -202,12 +226,26 @@ def make_sac_modules(recipe, env: EnvBase) -> SACModules:
     action_dim = spec.space.n if is_discrete(spec) else spec.shape[-1]
     alg = recipe.algorithm
     actor = make_recipe_actor(recipe, env)
-    critic = make_sac_critic(env, num_cells=c.num_cells, activation=c.activation,
-                             low_rank_layers=c.low_rank_layers, rank=c.rank, device=device,
-                             **registry.network_kwargs(c, alg, action_dim))
-    loss = make_sac_loss(actor, critic, env, gamma=alg.gamma, num_qvalue_nets=alg.num_qvalue_nets,
-                         loss_function=alg.loss_function, init_alpha=alg.init_alpha, fixed_alpha=alg.fixed_alpha,
-                         target_entropy=alg.target_entropy)
+    critic = make_sac_critic(
+        env,
+        num_cells=c.num_cells,
+        activation=c.activation,
+        low_rank_layers=c.low_rank_layers,
+        rank=c.rank,
+        device=device,
+        **registry.network_kwargs(c, alg, action_dim),
+    )
+    loss = make_sac_loss(
+        actor,
+        critic,
+        env,
+        gamma=alg.gamma,
+        num_qvalue_nets=alg.num_qvalue_nets,
+        loss_function=alg.loss_function,
+        init_alpha=alg.init_alpha,
+        fixed_alpha=alg.fixed_alpha,
+        target_entropy=alg.target_entropy,
+    )
     # after the loss exists: SACLoss resamples the stacked critics, so each member is drawn in the loss's params
     for network, mlp in (("actor_network", a), ("qvalue_network", c)):
         init = registry.init_scheme(mlp.init.scheme)
@@ -288,8 +326,11 @@ def _rank_adapter(recipe, loss, optimizers, schedulers, replay_buffer) -> RankAd
         rule = make_rule(r.rule, beta=r.beta)
     a = r.accept
     # 'fixed' is an instruction (the fixed-rank projection), not a candidate: nothing to accept or refuse
-    acceptance = (ProjectionAcceptance(a.actor_tol, a.critic_tol, search=a.search)
-                  if a.mode == "projection" and r.rule != "fixed" else None)
+    acceptance = (
+        ProjectionAcceptance(a.actor_tol, a.critic_tol, search=a.search)
+        if a.mode == "projection" and r.rule != "fixed"
+        else None
+    )
     return RankAdapter(
         loss,
         list(optimizers.values()),
@@ -306,15 +347,22 @@ def _rank_adapter(recipe, loss, optimizers, schedulers, replay_buffer) -> RankAd
     )
 
 
-def _update_step(recipe, modules: SACModules, optimizers, schedulers, replay_buffer, generator, *, fused: bool,
-                 terms: dict) -> UpdateStep:
+def _update_step(
+    recipe, modules: SACModules, optimizers, schedulers, replay_buffer, generator, *, fused: bool, terms: dict
+) -> UpdateStep:
     """The fused step where asked for and possible, else TorchRL's (``algorithm.fused``, ``algorithm.backward``)."""
     alg = recipe.algorithm
     if fused:
         try:
-            update = FusedSACUpdate(modules.loss, list(optimizers.values()), tau=alg.tau,
-                                    schedulers=list(schedulers.values()), max_grad_norm=alg.max_grad_norm,
-                                    compile=alg.compile, backward=alg.backward)
+            update = FusedSACUpdate(
+                modules.loss,
+                list(optimizers.values()),
+                tau=alg.tau,
+                schedulers=list(schedulers.values()),
+                max_grad_norm=alg.max_grad_norm,
+                compile=alg.compile,
+                backward=alg.backward,
+            )
         except AdaRLValueError:
             if alg.fused is True or alg.backward == "manual":  # asked for explicitly: say why not
                 raise
@@ -322,13 +370,20 @@ def _update_step(recipe, modules: SACModules, optimizers, schedulers, replay_buf
         else:
             # the same indices rb.sample() would draw, gathered straight into the update's five tensors
             return FusedStep(update, replay_buffer, generator)
-    return LossStep(modules.loss, list(optimizers.values()), replay_buffer=replay_buffer,
-                    target_updater=modules.target_updater, schedulers=list(schedulers.values()),
-                    max_grad_norm=alg.max_grad_norm, terms=terms)
+    return LossStep(
+        modules.loss,
+        list(optimizers.values()),
+        replay_buffer=replay_buffer,
+        target_updater=modules.target_updater,
+        schedulers=list(schedulers.values()),
+        max_grad_norm=alg.max_grad_norm,
+        terms=terms,
+    )
 
 
-def build_components(recipe, *, init_random_frames: int | None = None,
-                     scratch_dir: str | os.PathLike | None = None) -> Components:
+def build_components(
+    recipe, *, init_random_frames: int | None = None, scratch_dir: str | os.PathLike | None = None
+) -> Components:
     """Build env, networks, SAC loss, optimisers, LR schedules, buffer, collector, update step, rank adapter and
     warm start.
 
@@ -353,8 +408,10 @@ def build_components(recipe, *, init_random_frames: int | None = None,
     if terms and fused:
         # The fused step computes SACLoss's terms only; a loss term (Parseval) needs the TorchRL path.
         if alg.fused is True:
-            raise AdaRLValueError(f"algorithm.fused: true cannot add the loss terms {sorted(terms)} (e.g. "
-                                  "algorithm.parseval.enabled: true); allowed with them: algorithm.fused: 'auto' or false")
+            raise AdaRLValueError(
+                f"algorithm.fused: true cannot add the loss terms {sorted(terms)} (e.g. "
+                "algorithm.parseval.enabled: true); allowed with them: algorithm.fused: 'auto' or false"
+            )
         fused = False
     optimizers = {
         "actor": make_adam(actor_params, alg.lr, fused=fused),
@@ -376,8 +433,11 @@ def build_components(recipe, *, init_random_frames: int | None = None,
 
     generator = torch.Generator().manual_seed(recipe.seed + 1)
     replay_buffer = TensorDictReplayBuffer(
-        storage=(LazyMemmapStorage(recipe.replay.size, scratch_dir=scratch_dir, device=recipe.device)
-                 if recipe.replay.storage == "memmap" else LazyTensorStorage(recipe.replay.size, device=recipe.device)),
+        storage=(
+            LazyMemmapStorage(recipe.replay.size, scratch_dir=scratch_dir, device=recipe.device)
+            if recipe.replay.storage == "memmap"
+            else LazyTensorStorage(recipe.replay.size, device=recipe.device)
+        ),
         sampler=RandomSampler(),
         batch_size=alg.batch_size,
         generator=generator,
@@ -386,15 +446,29 @@ def build_components(recipe, *, init_random_frames: int | None = None,
     init_random = c.init_random_frames if init_random_frames is None else init_random_frames
     lean = wants_lean(c.lean, env, modules.actor)
     if c.overlap and not lean:
-        raise AdaRLValueError(f"collector.overlap: {c.overlap!r} needs the lean collector (one env, a TanhNormal "
-                              "actor, collector.lean: 'auto' or true); allowed otherwise: collector.overlap: false")
+        raise AdaRLValueError(
+            f"collector.overlap: {c.overlap!r} needs the lean collector (one env, a TanhNormal "
+            "actor, collector.lean: 'auto' or true); allowed otherwise: collector.overlap: false"
+        )
     if lean:
-        collector = LeanCollector(env, modules.actor, frames_per_batch=c.frames_per_batch,
-                                  init_random_frames=init_random, overlap=c.overlap, noise_seed=recipe.seed + 2,
-                                  env_factory=train_env_factory(recipe) if c.overlap == "process" else None)
+        collector = LeanCollector(
+            env,
+            modules.actor,
+            frames_per_batch=c.frames_per_batch,
+            init_random_frames=init_random,
+            overlap=c.overlap,
+            noise_seed=recipe.seed + 2,
+            env_factory=train_env_factory(recipe) if c.overlap == "process" else None,
+        )
     else:
-        collector = Collector(env, modules.actor, frames_per_batch=c.frames_per_batch, total_frames=-1,
-                              init_random_frames=init_random, device=recipe.device)
+        collector = Collector(
+            env,
+            modules.actor,
+            frames_per_batch=c.frames_per_batch,
+            total_frames=-1,
+            init_random_frames=init_random,
+            device=recipe.device,
+        )
 
     adapter = warm_start = None
     if recipe.rank.enabled:
@@ -404,12 +478,25 @@ def build_components(recipe, *, init_random_frames: int | None = None,
             source = (env, modules.actor) if lean else collector
             warm_start = ReplayWarmStart(replay_buffer, source, frames=w.frames, mode=w.mode)
         adapter = _rank_adapter(recipe, loss, optimizers, schedulers, replay_buffer)
-    update = _update_step(recipe, modules, optimizers, schedulers, replay_buffer, generator, fused=fused,
-                          terms=terms)
+    update = _update_step(recipe, modules, optimizers, schedulers, replay_buffer, generator, fused=fused, terms=terms)
     effects = None
     if adapter is not None:
         factors = {k: v for k, v in sac_parameters(loss, alg.fixed_alpha).items() if k.endswith((".w1", ".w2"))}
         effects = RankEventEffects(update, collector, warm_start, factors)
         effects.register(adapter)
-    return Components(recipe, env, eval_env, modules, optimizers, schedulers, replay_buffer, collector, update,
-                      adapter, warm_start, total_updates, generator, effects)
+    return Components(
+        recipe,
+        env,
+        eval_env,
+        modules,
+        optimizers,
+        schedulers,
+        replay_buffer,
+        collector,
+        update,
+        adapter,
+        warm_start,
+        total_updates,
+        generator,
+        effects,
+    )

@@ -37,7 +37,9 @@ def _setup_dumper() -> None:
     def represent_str(dumper, data):
         # NEL, line/paragraph separators, BOM and control characters are line breaks or invisible to a YAML
         # reader unless escaped, and only the double-quoted style escapes them
-        special = any(ch in "\x85\u2028\u2029\ufeff" or (ch < " " and ch not in "\n") or "\x7f" <= ch < "\xa0" for ch in data)
+        special = any(
+            ch in "\x85\u2028\u2029\ufeff" or (ch < " " and ch not in "\n") or "\x7f" <= ch < "\xa0" for ch in data
+        )
         return dumper.represent_scalar("tag:yaml.org,2002:str", data, style='"' if special else None)
 
     _Dumper.add_representer(str, represent_str)

@@ -65,8 +65,9 @@ def _check_strings(obj: Any, path: str, where: str) -> None:
             )
         if calls:
             raise RecipeError(
-                f"{where}: {path or '<value>'} = {_show(obj)}: resolver interpolations ({', '.join(sorted(set(calls)))}) "
-                "are not allowed in recipes (a run must not depend on the environment); only references to other "
+                f"{where}: {path or '<value>'} = {_show(obj)}: resolver interpolations "
+                f"({', '.join(sorted(set(calls)))}) are not allowed in recipes (a run must not depend on the "
+                "environment); only references to other "
                 "keys like ${collector.total_frames} are"
             )
     elif isinstance(obj, dict):
@@ -108,7 +109,8 @@ def _resolve_extends(ext: Any, child: Path, where: str) -> Path:
         names = _available_names()
         raise RecipeError(
             f"{where}: extends = {ext!r}: no recipe of that name next to this file or in "
-            f"{', '.join(str(d) for d in recipes_dir())}; available: {', '.join(names) or '(none)'}{did_you_mean(ext, names)}"
+            f"{', '.join(str(d) for d in recipes_dir())}; available: {', '.join(names) or '(none)'}"
+            f"{did_you_mean(ext, names)}"
         )
     return found
 
@@ -133,9 +135,10 @@ def _load_chain(path: Path, stack: tuple[Path, ...] = ()):
         return _to_omegaconf(data, where)
     base = _load_chain(_resolve_extends(ext, path, where), (*stack, real))
     child = _to_omegaconf(data, where)
-    if OmegaConf.select(child, _SCHEDULE_PATH, default=NO_VALUE) is not NO_VALUE and OmegaConf.select(
-        base, _SCHEDULE_PATH, default=None
-    ) is not None:
+    if (
+        OmegaConf.select(child, _SCHEDULE_PATH, default=NO_VALUE) is not NO_VALUE
+        and OmegaConf.select(base, _SCHEDULE_PATH, default=None) is not None
+    ):
         # an explicit schedule replaces the base's whole schedule (a sinusoid's keys make no sense in a list)
         OmegaConf.update(base, _SCHEDULE_PATH, None, merge=False)
     try:

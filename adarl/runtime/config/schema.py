@@ -14,13 +14,39 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, field_validator, model_validator
 
 from adarl.envs.parameters import SUPPORTED_ENVS, env_parameters, preset_names, validate_schedule
-from adarl.envs.schedules import schedule_from_dict, schedule_parameter_names, schedule_parameter_paths, schedule_problems
+from adarl.envs.schedules import (
+    schedule_from_dict,
+    schedule_parameter_names,
+    schedule_parameter_paths,
+    schedule_problems,
+)
 from adarl.errors import NO_VALUE, did_you_mean, one_of
 
-__all__ = ["SCHEMA_VERSION", "Recipe", "EnvConfig", "PerturbationConfig", "NetworkConfig", "MLPConfig",
-           "AlgorithmConfig", "SparseLayerConfig", "InitConfig", "ParsevalConfig", "PPOConfig", "RNACConfig",
-           "RankConfig", "AcceptConfig", "LRScheduleConfig", "ReplayConfig", "WarmStartConfig", "CollectorConfig",
-           "EvalConfig", "LoggingConfig", "CheckpointConfig", "GuardsConfig", "OutputConfig"]
+__all__ = [
+    "SCHEMA_VERSION",
+    "Recipe",
+    "EnvConfig",
+    "PerturbationConfig",
+    "NetworkConfig",
+    "MLPConfig",
+    "AlgorithmConfig",
+    "SparseLayerConfig",
+    "InitConfig",
+    "ParsevalConfig",
+    "PPOConfig",
+    "RNACConfig",
+    "RankConfig",
+    "AcceptConfig",
+    "LRScheduleConfig",
+    "ReplayConfig",
+    "WarmStartConfig",
+    "CollectorConfig",
+    "EvalConfig",
+    "LoggingConfig",
+    "CheckpointConfig",
+    "GuardsConfig",
+    "OutputConfig",
+]
 
 #: The recipe schema version this adarl reads. A recipe with a higher ``version`` is refused.
 SCHEMA_VERSION = 1
@@ -111,7 +137,9 @@ class EnvConfig(_Section):
         json_schema_extra={"allowed": "a supported env id (adarl.envs.SUPPORTED_ENVS)"},
     )
     num_envs: PosInt = Field(1, description="Envs stepped together by the collector (a batched env when > 1).")
-    parallel: bool = Field(False, description="Run the num_envs envs in worker processes (ParallelEnv) instead of serially.")
+    parallel: bool = Field(
+        False, description="Run the num_envs envs in worker processes (ParallelEnv) instead of serially."
+    )
     max_episode_steps: PosInt | None = Field(
         None, description="Episode time limit; null keeps the env's own (1000 for MuJoCo, 500 for CartPole-v1)."
     )
@@ -134,13 +162,28 @@ class EnvConfig(_Section):
         if sched is None:
             available = [str(p) for p in preset_names(self.id)]
             if pert.preset not in available:
-                raise _Problems([("perturbation.preset", pert.preset, f"not available for {self.id}; allowed: "
-                                  f"{one_of(available)} (or give an explicit perturbation.schedule)")])
+                raise _Problems(
+                    [
+                        (
+                            "perturbation.preset",
+                            pert.preset,
+                            f"not available for {self.id}; allowed: "
+                            f"{one_of(available)} (or give an explicit perturbation.schedule)",
+                        )
+                    ]
+                )
             return self
         known = [str(k) for k in env_parameters(self.id)]
-        problems = [(f"perturbation.schedule.{where}", NO_VALUE, f"unknown perturbation parameter {name!r} for "
-                     f"{self.id}; allowed: {one_of(known)}{did_you_mean(str(name), known)}")
-                    for where, name in schedule_parameter_paths(sched) if name not in known]
+        problems = [
+            (
+                f"perturbation.schedule.{where}",
+                NO_VALUE,
+                f"unknown perturbation parameter {name!r} for "
+                f"{self.id}; allowed: {one_of(known)}{did_you_mean(str(name), known)}",
+            )
+            for where, name in schedule_parameter_paths(sched)
+            if name not in known
+        ]
         if not problems:
             # adarl.envs is the authority on schedules: build it, then check every value it can produce
             try:
@@ -280,11 +323,17 @@ class MLPConfig(_Section):
         sp = self.sparse.layer
         if sp is not None:
             if sp >= n:
-                problems.append(("sparse.layer", sp, f"must index a hidden layer, 0 .. {n - 1} (num_cells has {n} entries)"))
+                problems.append(
+                    ("sparse.layer", sp, f"must index a hidden layer, 0 .. {n - 1} (num_cells has {n} entries)")
+                )
             elif sp in self.low_rank_layers:
                 problems.append(
-                    ("sparse.layer", sp, f"is also in low_rank_layers {self.low_rank_layers}; a layer is either "
-                     "low-rank or the sparsification layer")
+                    (
+                        "sparse.layer",
+                        sp,
+                        f"is also in low_rank_layers {self.low_rank_layers}; a layer is either "
+                        "low-rank or the sparsification layer",
+                    )
                 )
         if problems:
             raise _Problems(problems)
@@ -292,7 +341,9 @@ class MLPConfig(_Section):
 
 
 class NetworkConfig(_Section):
-    actor: MLPConfig = Field(default_factory=MLPConfig, description="Policy network (tanh-Gaussian or categorical head).")
+    actor: MLPConfig = Field(
+        default_factory=MLPConfig, description="Policy network (tanh-Gaussian or categorical head)."
+    )
     critic: MLPConfig = Field(default_factory=MLPConfig, description="Q network (each of num_qvalue_nets copies).")
 
 
@@ -302,11 +353,15 @@ class NetworkConfig(_Section):
 class ParsevalConfig(_Section):
     enabled: bool = Field(False, description="Add Parseval regularisation (Chung et al., 2024) to the loss.")
     lam: Annotated[Float, Field(gt=0)] = Field(
-        1e-4, description="Weight lambda of lam * (base_width/width)^2 * sum ||W W^T - s I||_F^2 (tuned in {1e-3, 1e-4, 1e-5})."
+        1e-4,
+        description="Weight lambda of lam * (base_width/width)^2 * sum ||W W^T - s I||_F^2 "
+        "(tuned in {1e-3, 1e-4, 1e-5}).",
     )
     s: PosFloat = Field(2.0, description="Target squared row norm s of the hidden weights (the paper: 2).")
     base_width: PosInt = Field(64, description="Reference width of the (base_width/width)^2 scaling (the paper: 64).")
-    diagonal: bool = Field(False, description="Learnable per-unit gain after every hidden linear layer (optional layer).")
+    diagonal: bool = Field(
+        False, description="Learnable per-unit gain after every hidden linear layer (optional layer)."
+    )
     input_scale: bool = Field(False, description="Learnable scalar on the network input (optional layer).")
 
 
@@ -340,19 +395,24 @@ class PPOConfig(_Section):
 class RNACConfig(_Section):
     mode: Literal["none", "ipm", "ds"] = Field(
         "none",
-        description="RNAC's robust critic (Zhou et al., 2023), PPO only: 'ipm' shifts the reward by kappa*||theta_critic|| "
-        "in GAE; 'ds' picks the worst of num_candidates noisy next states with probability 1/(m+1); 'none' = plain PPO.",
+        description="RNAC's robust critic (Zhou et al., 2023), PPO only: 'ipm' shifts the reward by "
+        "kappa*||theta_critic|| in GAE; 'ds' picks the worst of num_candidates noisy next states with probability "
+        "1/(m+1); 'none' = plain PPO.",
     )
-    kappa: Annotated[Float, Field(ge=0)] = Field(1e-5, description="RNAC-IPM's radius: reward shift per unit of ||theta_critic||.")
+    kappa: Annotated[Float, Field(ge=0)] = Field(
+        1e-5, description="RNAC-IPM's radius: reward shift per unit of ||theta_critic||."
+    )
     num_candidates: PosInt = Field(2, description="RNAC-DS's m: noisy next states probed per step.")
-    noise: Annotated[Float, Field(ge=0)] = Field(5e-3, description="RNAC-DS's actuation noise half-width, U[-noise, noise].")
+    noise: Annotated[Float, Field(ge=0)] = Field(
+        5e-3, description="RNAC-DS's actuation noise half-width, U[-noise, noise]."
+    )
 
 
 class AlgorithmConfig(_Section):
     name: Literal["sac", "ppo"] = Field(
         "sac",
-        description="Base RL algorithm: 'sac' as in the paper (DiscreteSAC for discrete-action envs); 'ppo' = TorchRL's "
-        "ClipPPOLoss + GAE, the RNAC baselines' base (continuous actions; SAC-only keys are ignored).",
+        description="Base RL algorithm: 'sac' as in the paper (DiscreteSAC for discrete-action envs); 'ppo' = "
+        "TorchRL's ClipPPOLoss + GAE, the RNAC baselines' base (continuous actions; SAC-only keys are ignored).",
     )
     gamma: Annotated[Float, Field(gt=0, le=1)] = Field(0.99, description="Discount factor.")
     tau: Annotated[Float, Field(gt=0, le=1)] = Field(0.005, description="Polyak rate of the target critics.")
@@ -372,7 +432,8 @@ class AlgorithmConfig(_Section):
     init_alpha: PosFloat = Field(1.0, description="Initial entropy temperature.")
     fixed_alpha: bool = Field(False, description="Keep alpha at init_alpha instead of tuning it.")
     target_entropy: Literal["auto"] | Float = Field(
-        "auto", description="Entropy target of the alpha tuning; 'auto' = -action_dim (continuous) or TorchRL's default."
+        "auto",
+        description="Entropy target of the alpha tuning; 'auto' = -action_dim (continuous) or TorchRL's default.",
     )
     max_grad_norm: PosFloat | None = Field(None, description="Clip gradient norm per optimiser; null = no clipping.")
     fused: Literal["auto"] | bool = Field(
@@ -389,7 +450,8 @@ class AlgorithmConfig(_Section):
         "hand, no autograd graph), 'autograd' (loss.backward()); 'auto' = manual where the networks allow it.",
     )
     num_threads: PosInt | None = Field(
-        None, description="torch.set_num_threads for the run; null = leave torch's setting (1 is best at (64, 64) on CPU)."
+        None,
+        description="torch.set_num_threads for the run; null = leave torch's setting (1 is best at (64, 64) on CPU).",
     )
     parseval: ParsevalConfig = Field(default_factory=ParsevalConfig, description="Parseval regularisation baseline.")
     ppo: PPOConfig = Field(default_factory=PPOConfig, description="PPO hyperparameters (algorithm.name=ppo).")
@@ -402,10 +464,12 @@ class AcceptConfig(_Section):
         description="Algorithm 1's acceptance step (Sec. 4.2): 'projection' applies the rule's candidate only if the "
         "truncated network's outputs on recent transitions change by at most the tolerance (else the layer keeps "
         "its rank, r_new = r_old); 'always' applies every candidate (with rule 'energy': Eq. 10 alone, the literal "
-        "ratchet that lowers every rank at every event). Rule 'fixed' is an instruction, not a proposal: always applied.",
+        "ratchet that lowers every rank at every event). Rule 'fixed' is an instruction, not a proposal: always "
+        "applied.",
     )
     actor_tol: Annotated[Float, Field(ge=0)] = Field(
-        0.05, description="Largest relative change of the actor's outputs (distribution parameters) accepted at an event."
+        0.05,
+        description="Largest relative change of the actor's outputs (distribution parameters) accepted at an event.",
     )
     critic_tol: Annotated[Float, Field(ge=0)] = Field(
         0.02, description="Largest relative change of each critic's Q-values on recent (state, action) pairs accepted."
@@ -525,7 +589,9 @@ class EvalConfig(_Section):
     interval: PosInt = Field(10_000, description="Frames between evaluations.")
     episodes: PosInt = Field(5, description="Episodes per evaluation (deterministic policy).")
     max_steps: PosInt = Field(1000, description="Step cap of an evaluation episode.")
-    nominal: bool = Field(True, description="Evaluate on the nominal dynamics, the centre of the uncertainty set (paper).")
+    nominal: bool = Field(
+        True, description="Evaluate on the nominal dynamics, the centre of the uncertainty set (paper)."
+    )
 
 
 class LoggingConfig(_Section):
@@ -554,7 +620,9 @@ class CheckpointConfig(_Section):
     replay_buffer: bool = Field(
         True, description="Also dump the replay buffer (needed for an exact resume; up to GBs on disk for 1e6 frames)."
     )
-    keep_best: bool = Field(True, description="Also keep checkpoints/best.pt, the policy of the best nominal evaluation.")
+    keep_best: bool = Field(
+        True, description="Also keep checkpoints/best.pt, the policy of the best nominal evaluation."
+    )
 
 
 class GuardsConfig(_Section):
@@ -564,7 +632,8 @@ class GuardsConfig(_Section):
         "'rollback' to the last checkpoint with the learning rate scaled by lr_factor.",
     )
     lr_factor: Annotated[Float, Field(gt=0, lt=1)] = Field(
-        0.5, description="Learning-rate multiplier applied at each rollback.",
+        0.5,
+        description="Learning-rate multiplier applied at each rollback.",
         json_schema_extra={"allowed": "a number in (0, 1)"},
     )
     max_rollbacks: NonNegInt = Field(3, description="Rollbacks allowed before the run stops anyway.")
@@ -594,7 +663,9 @@ class Recipe(_Section):
         1,
         description=f"Recipe schema version; this adarl reads up to {SCHEMA_VERSION}.",
         json_schema_extra={
-            "allowed": f"an integer from 1 to {SCHEMA_VERSION}" if SCHEMA_VERSION > 1 else "1 (the only schema version so far)"
+            "allowed": f"an integer from 1 to {SCHEMA_VERSION}"
+            if SCHEMA_VERSION > 1
+            else "1 (the only schema version so far)"
         },
     )
     seed: Annotated[Int, Field(ge=0, le=2**32 - 1)] = Field(0, description="Seed of Python, NumPy, torch and the envs.")
@@ -628,25 +699,42 @@ class Recipe(_Section):
     def _cross_checks(self) -> Recipe:
         p: list[tuple[str, Any, str]] = []
         if self.algorithm.batch_size > self.replay.size:
-            p.append(("algorithm.batch_size", self.algorithm.batch_size, f"must be <= replay.size ({self.replay.size})"))
+            p.append(
+                ("algorithm.batch_size", self.algorithm.batch_size, f"must be <= replay.size ({self.replay.size})")
+            )
         w = self.replay.warm_start
         if w.frames > self.replay.size and self.rank.enabled:  # warm starts only follow rank events
             p.append(("replay.warm_start.frames", w.frames, f"must be <= replay.size ({self.replay.size})"))
         c = self.collector
         if c.init_random_frames > c.total_frames:
             p.append(
-                ("collector.init_random_frames", c.init_random_frames, f"must be <= collector.total_frames ({c.total_frames})")
+                (
+                    "collector.init_random_frames",
+                    c.init_random_frames,
+                    f"must be <= collector.total_frames ({c.total_frames})",
+                )
             )
         if c.frames_per_batch > c.total_frames:
             p.append(
-                ("collector.frames_per_batch", c.frames_per_batch, f"must be <= collector.total_frames ({c.total_frames})")
+                (
+                    "collector.frames_per_batch",
+                    c.frames_per_batch,
+                    f"must be <= collector.total_frames ({c.total_frames})",
+                )
             )
         if self.algorithm.compile and self.algorithm.fused is False:
-            p.append(("algorithm.compile", True, "needs algorithm.fused: true or 'auto' (it compiles the fused update)"))
+            p.append(
+                ("algorithm.compile", True, "needs algorithm.fused: true or 'auto' (it compiles the fused update)")
+            )
         if self.algorithm.backward != "auto" and self.algorithm.fused is False:
-            p.append(("algorithm.backward", self.algorithm.backward,
-                      "needs algorithm.fused: true or 'auto' (it is the fused update's backward); allowed with "
-                      "fused: false: 'auto'"))
+            p.append(
+                (
+                    "algorithm.backward",
+                    self.algorithm.backward,
+                    "needs algorithm.fused: true or 'auto' (it is the fused update's backward); allowed with "
+                    "fused: false: 'auto'",
+                )
+            )
         p += self._algorithm_checks()
         r = self.rank
         if r.enabled:
@@ -674,25 +762,37 @@ class Recipe(_Section):
             raise _Problems(p)
         return self
 
-
     def _algorithm_checks(self) -> list[tuple[str, Any, str]]:
         """PPO/RNAC combinations (the baselines' loop, adarl.runtime.trainers.ppo)."""
         p: list[tuple[str, Any, str]] = []
         alg, env = self.algorithm, self.env
         if alg.name == "ppo":
             if self.rank.enabled:
-                p.append(("rank.enabled", True, "must be false with algorithm.name='ppo': the PPO loop runs the RNAC "
-                          "baselines without rank adaptation (docs/custom-loss.md shows RankAdapter on another loss)"))
+                p.append(
+                    (
+                        "rank.enabled",
+                        True,
+                        "must be false with algorithm.name='ppo': the PPO loop runs the RNAC "
+                        "baselines without rank adaptation (docs/custom-loss.md shows RankAdapter on another loss)",
+                    )
+                )
             if env.id == "CartPole-v1":
                 p.append(("algorithm.name", "ppo", f"needs a continuous-action env; {env.id} is discrete (use 'sac')"))
             if alg.ppo.minibatch_size > self.collector.frames_per_batch:
-                p.append(("algorithm.ppo.minibatch_size", alg.ppo.minibatch_size,
-                          f"must be <= collector.frames_per_batch ({self.collector.frames_per_batch})"))
+                p.append(
+                    (
+                        "algorithm.ppo.minibatch_size",
+                        alg.ppo.minibatch_size,
+                        f"must be <= collector.frames_per_batch ({self.collector.frames_per_batch})",
+                    )
+                )
         elif alg.rnac.mode != "none":
             p.append(("algorithm.rnac.mode", alg.rnac.mode, "needs algorithm.name='ppo' (RNAC is built on PPO)"))
         if alg.rnac.mode == "ds":
             if env.num_envs != 1:
-                p.append(("env.num_envs", env.num_envs, "must be 1 with algorithm.rnac.mode='ds' (it steps one MuJoCo env)"))
+                p.append(
+                    ("env.num_envs", env.num_envs, "must be 1 with algorithm.rnac.mode='ds' (it steps one MuJoCo env)")
+                )
             if env.id == "CartPole-v1":
                 p.append(("algorithm.rnac.mode", "ds", f"needs a MuJoCo env; {env.id} is not one"))
         return p

@@ -222,7 +222,9 @@ def _format_errors(err: ValidationError) -> list[str]:
             allowed = (
                 _describe_field(target)
                 if hasattr(target, "annotation")
-                else _describe_type(target) if target is not None else "a mapping with keys " + ", ".join(Recipe.model_fields)
+                else _describe_type(target)
+                if target is not None
+                else "a mapping with keys " + ", ".join(Recipe.model_fields)
             )
             if etype == "missing":
                 line = f"{key}: required key is missing; expected {allowed}"
@@ -261,7 +263,9 @@ def validate_recipe(data: Mapping[str, Any], *, label: str = "<mapping>") -> Rec
 
     Raises :class:`RecipeError` listing every problem with its key path, value and allowed values."""
     if not isinstance(data, Mapping):
-        raise RecipeError(f"invalid recipe {label}: the top level must be a mapping of keys to values, got {_show(data)}")
+        raise RecipeError(
+            f"invalid recipe {label}: the top level must be a mapping of keys to values, got {_show(data)}"
+        )
     if "extends" in data:
         raise RecipeError(
             f"invalid recipe {label}: extends = {_show(data['extends'])}: `extends` is resolved by load_recipe; "

@@ -1,8 +1,8 @@
 """What every trainer does the same way, whatever the algorithm: :class:`BaseTrainer`.
 
-It owns the run folder (its lock, logger, checkpoints, records and report), the progress bar, the logging of
-episodes, losses and throughput, the evaluation and checkpoint cadence, the divergence guards (stop, or roll back
-to the last checkpoint with a lower learning rate), the first SIGINT/SIGTERM (a checkpoint, then
+It owns the run folder (its lock, resolved recipe, logger, checkpoints, records and report), the progress bar, the
+logging of episodes, losses and throughput, the evaluation and checkpoint cadence, the divergence guards (stop, or roll
+back to the last checkpoint with a lower learning rate), the first SIGINT/SIGTERM (a checkpoint, then
 :class:`~adarl.runtime.signals.RunInterrupted`), and exact resume (counters, RNGs, the live episode and the
 collector's state in every checkpoint). A subclass builds its components and consumes one collected batch:
 
@@ -64,11 +64,21 @@ class BaseTrainer:
             cls.algorithm = algorithm
             BaseTrainer._by_algorithm[algorithm] = cls
 
-    def __init__(self, recipe, run_dir: RunDir, *, quiet: bool = False, _resume_state: dict | None = None,
-                 _log_from: int | None = None, _read_only: bool = False) -> None:
+    def __init__(
+        self,
+        recipe,
+        run_dir: RunDir,
+        *,
+        quiet: bool = False,
+        _resume_state: dict | None = None,
+        _log_from: int | None = None,
+        _read_only: bool = False,
+    ) -> None:
         if self.algorithm is not None and recipe.algorithm.name != self.algorithm:
-            raise AdaRLValueError(f"{type(self).__name__} runs algorithm.name: {self.algorithm!r}, the recipe has "
-                                  f"{recipe.algorithm.name!r}; use {trainer_class(recipe).__name__} (trainer_class)")
+            raise AdaRLValueError(
+                f"{type(self).__name__} runs algorithm.name: {self.algorithm!r}, the recipe has "
+                f"{recipe.algorithm.name!r}; use {trainer_class(recipe).__name__} (trainer_class)"
+            )
         self.recipe = recipe
         self.run_dir = run_dir
         self.quiet = quiet
@@ -82,7 +92,9 @@ class BaseTrainer:
         self.best_eval = -math.inf
         self.last_return = float("nan")
         self.rollbacks = 0
-        self.warm_start_frames = 0  # env frames collected by rank events' warm starts (SAC; counted in `frames` by default)
+        self.warm_start_frames = (
+            0  # env frames collected by rank events' warm starts (SAC; counted in `frames` by default)
+        )
         # training losses are averaged over logging.log_interval frames (sums kept in checkpoints: exact resume)
         self._loss_sums: dict[str, float] = {}
         self._loss_count = 0
@@ -157,12 +169,21 @@ class BaseTrainer:
         except (RuntimeError, KeyError, ValueError, IndexError, TypeError) as err:
             first = (str(err).strip().splitlines() or [type(err).__name__])[0]
             where = state.get("checkpoint_file", "the checkpoint")
-            raise CheckpointError(f"checkpoint {where!r} does not fit this run's recipe ({type(err).__name__}: "
-                                  f"{first[:200]}); it was written for other networks or is damaged") from None
+            raise CheckpointError(
+                f"checkpoint {where!r} does not fit this run's recipe ({type(err).__name__}: "
+                f"{first[:200]}); it was written for other networks or is damaged"
+            ) from None
 
     @classmethod
-    def resume(cls, path: str | os.PathLike, *, quiet: bool = False, truncate_metrics: bool = True,
-               checkpoint: str | os.PathLike | None = None, read_only: bool | None = None) -> BaseTrainer:
+    def resume(
+        cls,
+        path: str | os.PathLike,
+        *,
+        quiet: bool = False,
+        truncate_metrics: bool = True,
+        checkpoint: str | os.PathLike | None = None,
+        read_only: bool | None = None,
+    ) -> BaseTrainer:
         """Continue the run in ``path`` from its latest loadable checkpoint (metrics after it are dropped first).
 
         The trainer is the recipe's (:func:`trainer_class`: ``Trainer.resume`` of a PPO run gives a
@@ -184,11 +205,18 @@ class BaseTrainer:
             run_dir.lock()  # one process trains in a run folder at a time
         fingerprint = recipe_fingerprint(recipe)
         if checkpoint is None or checkpoint == "latest":
-            state = run_dir.load_latest_checkpoint(quarantine=not read_only, fingerprint=fingerprint,
-                                                   strict=checkpoint == "latest", replay_buffer=not read_only)
+            state = run_dir.load_latest_checkpoint(
+                quarantine=not read_only,
+                fingerprint=fingerprint,
+                strict=checkpoint == "latest",
+                replay_buffer=not read_only,
+            )
         else:
-            state = run_dir.load_checkpoint(run_dir.best_checkpoint_path if checkpoint == "best" else checkpoint,
-                                            fingerprint=fingerprint, replay_buffer=not read_only)
+            state = run_dir.load_checkpoint(
+                run_dir.best_checkpoint_path if checkpoint == "best" else checkpoint,
+                fingerprint=fingerprint,
+                replay_buffer=not read_only,
+            )
         if truncate_metrics and not read_only:
             run_dir.truncate_metrics(int(state["counters"]["frames"]))
         log_from = int(state["counters"]["frames"]) if truncate_metrics and not read_only else None
@@ -203,8 +231,9 @@ class BaseTrainer:
         """
         rc = self.recipe
         total = rc.collector.total_frames
-        bar = tqdm_auto.tqdm(total=total, initial=self.frames, unit="frame", disable=self.quiet, dynamic_ncols=True,
-                             desc=rc.name)
+        bar = tqdm_auto.tqdm(
+            total=total, initial=self.frames, unit="frame", disable=self.quiet, dynamic_ncols=True, desc=rc.name
+        )
         self._bar = bar
         start = time.perf_counter()
         self._clock = (start, self.frames, self.updates)  # time/fps counts this process's work only
@@ -252,7 +281,10 @@ class BaseTrainer:
                 name = signal.Signals(interrupt.requested).name
                 raise RunInterrupted(
                     f"stopped on {name} at {self.frames} frames; checkpoint {path.name} saved, continue with "
-                    f"`adarl resume {self.run_dir.path}`", signum=interrupt.requested, checkpoint=path)
+                    f"`adarl resume {self.run_dir.path}`",
+                    signum=interrupt.requested,
+                    checkpoint=path,
+                )
             if self.frames >= total:
                 break
 
@@ -273,12 +305,19 @@ class BaseTrainer:
             self._rollback(err)
             return
         self.close()
-        why = (f"after {self.rollbacks} rollback(s) (guards.max_rollbacks={g.max_rollbacks})"
-               if g.on_nonfinite == "rollback" else "(guards.on_nonfinite=stop)")
+        why = (
+            f"after {self.rollbacks} rollback(s) (guards.max_rollbacks={g.max_rollbacks})"
+            if g.on_nonfinite == "rollback"
+            else "(guards.on_nonfinite=stop)"
+        )
         raise NonFiniteError(
             f"training diverged: {err} at {self.frames} frames; stopped {why} without writing a checkpoint. The last "
             f"good checkpoint is {last}; continue it with `adarl resume {self.run_dir.path}`, or lower algorithm.lr, "
-            f"or set guards.on_nonfinite=rollback", stage=err.stage, what=err.what, update=err.update) from None
+            f"or set guards.on_nonfinite=rollback",
+            stage=err.stage,
+            what=err.what,
+            update=err.update,
+        ) from None
 
     def _rollback(self, err: NonFiniteError) -> None:
         g = self.recipe.guards
@@ -299,8 +338,12 @@ class BaseTrainer:
                     group["initial_lr"] *= g.lr_factor
         self.logger.log_scalar(metrics.ROLLBACKS, self.rollbacks, step=self.frames)
         if not self.quiet:
-            print(f"adarl: {err}; rolled back to {self.frames} frames with the learning rate x{g.lr_factor} "
-                  f"(rollback {self.rollbacks}/{g.max_rollbacks})", file=sys.stderr, flush=True)
+            print(
+                f"adarl: {err}; rolled back to {self.frames} frames with the learning rate x{g.lr_factor} "
+                f"(rollback {self.rollbacks}/{g.max_rollbacks})",
+                file=sys.stderr,
+                flush=True,
+            )
 
     def _clip_and_step(self) -> None:
         """Per-optimiser gradient clipping (``algorithm.max_grad_norm``), then every optimiser's step."""
@@ -330,8 +373,9 @@ class BaseTrainer:
         if key in batch.keys():
             for name, value in batch[key].items():
                 if name != "episode":
-                    self.logger.log_scalar(metrics.dynamics(name), float(value.reshape(-1)[done].float().mean()),
-                                           step=self.frames)
+                    self.logger.log_scalar(
+                        metrics.dynamics(name), float(value.reshape(-1)[done].float().mean()), step=self.frames
+                    )
 
     def _log_losses(self, losses: list[dict[str, torch.Tensor]], *, flush: bool = False) -> None:
         """Accumulate a batch's losses; every ``logging.log_interval`` frames log their means (and at the end)."""
@@ -346,8 +390,7 @@ class BaseTrainer:
             for k, total in self._loss_sums.items():
                 self.logger.log_scalar(metrics.train(k), total / self._loss_count, step=self.frames)
             self.logger.log_scalar(metrics.TRAIN_UPDATES, self.updates, step=self.frames)
-            self.logger.log_scalar(metrics.TRAIN_LR, self.c.optimizers["actor"].param_groups[0]["lr"],
-                                   step=self.frames)
+            self.logger.log_scalar(metrics.TRAIN_LR, self.c.optimizers["actor"].param_groups[0]["lr"], step=self.frames)
         self._log_throughput()
         self._loss_sums, self._loss_count = {}, 0
 
@@ -372,18 +415,26 @@ class BaseTrainer:
         if result.mean > self.best_eval:
             self.best_eval = result.mean
             if self.recipe.checkpoint.keep_best:
-                self.run_dir.save_best(self.state_dict(), frames=self.frames, score=result.mean,
-                                       fingerprint=self.fingerprint)
+                self.run_dir.save_best(
+                    self.state_dict(), frames=self.frames, score=result.mean, fingerprint=self.fingerprint
+                )
         return result
 
     # ------------------------------------------------------------------ checkpoints
     def _counters(self) -> dict:
-        return {"frames": self.frames, "updates": self.updates, "episodes": self.episodes,
-                "last_eval_frames": self.last_eval_frames, "best_eval": self.best_eval,
-                "last_ckpt_frames": self.last_ckpt_frames, "rollbacks": self.rollbacks,
-                **self._extra_counters(),
-                "loss_sums": dict(self._loss_sums), "loss_count": self._loss_count,
-                "last_log_frames": self._last_log_frames}
+        return {
+            "frames": self.frames,
+            "updates": self.updates,
+            "episodes": self.episodes,
+            "last_eval_frames": self.last_eval_frames,
+            "best_eval": self.best_eval,
+            "last_ckpt_frames": self.last_ckpt_frames,
+            "rollbacks": self.rollbacks,
+            **self._extra_counters(),
+            "loss_sums": dict(self._loss_sums),
+            "loss_count": self._loss_count,
+            "last_log_frames": self._last_log_frames,
+        }
 
     def state_dict(self) -> dict:
         """Everything needed to continue this run (the replay buffer is dumped beside it when configured)."""
@@ -417,7 +468,10 @@ class BaseTrainer:
         state = self.state_dict()
         state["replay_buffer_saved"] = rb is not None
         return self.run_dir.save_checkpoint(
-            state, frames=self.frames, keep_last=self.recipe.checkpoint.keep_last, replay_buffer=rb,
+            state,
+            frames=self.frames,
+            keep_last=self.recipe.checkpoint.keep_last,
+            replay_buffer=rb,
             fingerprint=self.fingerprint,
         )
 

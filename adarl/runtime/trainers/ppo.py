@@ -47,11 +47,20 @@ class PPOTrainer(BaseTrainer, algorithm="ppo"):
     """Runs a PPO/RNAC recipe in a run folder; same outputs as the SAC :class:`~adarl.runtime.trainers.sac.Trainer`
     (and ``simulator_steps_per_frame``/``simulator_steps`` in the summary)."""
 
-    def __init__(self, recipe, run_dir, *, quiet: bool = False, _resume_state: dict | None = None,
-                 _log_from: int | None = None, _read_only: bool = False) -> None:
+    def __init__(
+        self,
+        recipe,
+        run_dir,
+        *,
+        quiet: bool = False,
+        _resume_state: dict | None = None,
+        _log_from: int | None = None,
+        _read_only: bool = False,
+    ) -> None:
         self.iterations = 0
-        super().__init__(recipe, run_dir, quiet=quiet, _resume_state=_resume_state, _log_from=_log_from,
-                         _read_only=_read_only)
+        super().__init__(
+            recipe, run_dir, quiet=quiet, _resume_state=_resume_state, _log_from=_log_from, _read_only=_read_only
+        )
 
     def _build_components(self, state: dict | None) -> dict[str, torch.Tensor]:
         self.c = build_ppo_components(self.recipe)
@@ -86,7 +95,7 @@ class PPOTrainer(BaseTrainer, algorithm="ppo"):
         for _ in range(ppo.epochs):
             perm = torch.randperm(n, generator=c.sampling_generator)
             for i in range(0, n, mb):
-                losses.append(self._update(flat[perm[i:i + mb]]))
+                losses.append(self._update(flat[perm[i : i + mb]]))
         for norm in m.obs_norms:
             norm.update(flat.get("observation"))
         for s in c.schedulers.values():

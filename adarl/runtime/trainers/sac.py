@@ -52,11 +52,20 @@ class Trainer(BaseTrainer, algorithm="sac"):
     torch.Size([3])
     """
 
-    def __init__(self, recipe, run_dir, *, quiet: bool = False, _resume_state: dict | None = None,
-                 _log_from: int | None = None, _read_only: bool = False) -> None:
+    def __init__(
+        self,
+        recipe,
+        run_dir,
+        *,
+        quiet: bool = False,
+        _resume_state: dict | None = None,
+        _log_from: int | None = None,
+        _read_only: bool = False,
+    ) -> None:
         self._pending_updates = 0.0
-        super().__init__(recipe, run_dir, quiet=quiet, _resume_state=_resume_state, _log_from=_log_from,
-                         _read_only=_read_only)
+        super().__init__(
+            recipe, run_dir, quiet=quiet, _resume_state=_resume_state, _log_from=_log_from, _read_only=_read_only
+        )
 
     @property
     def adapter(self) -> RankAdapter | None:
@@ -67,8 +76,11 @@ class Trainer(BaseTrainer, algorithm="sac"):
         if state is not None and state.get("collector") is None:
             # Checkpoints without the collector's state (older format): skip the random frames already done.
             init_random = max(0, self.recipe.collector.init_random_frames - int(state["counters"]["frames"]))
-        self.c = build_components(self.recipe, init_random_frames=init_random,
-                                  scratch_dir=None if self.read_only else self.run_dir.path / "replay_storage")
+        self.c = build_components(
+            self.recipe,
+            init_random_frames=init_random,
+            scratch_dir=None if self.read_only else self.run_dir.path / "replay_storage",
+        )
         if self.c.rank_events is not None:
             self.c.rank_events.after_warm_start.append(self._count_warm_start)
             self.c.rank_events.after_event.append(self._record_rank_event)
@@ -126,8 +138,9 @@ class Trainer(BaseTrainer, algorithm="sac"):
             self.logger.log_scalar(metrics.rank(name), rank, step=self.frames)
         for record in event.layers:
             if record.error is not None:
-                self.logger.log_scalar(metrics.rank_error(record.name or record.layer), float(record.error),
-                                       step=self.frames)
+                self.logger.log_scalar(
+                    metrics.rank_error(record.name or record.layer), float(record.error), step=self.frames
+                )
         self.run_dir.write_rank_history(adapter.history, frames=self.frames)
 
     # ------------------------------------------------------------------ checkpoints
@@ -167,7 +180,9 @@ class Trainer(BaseTrainer, algorithm="sac"):
             source = state.get("checkpoint_file")  # the buffer lies beside the checkpoint file, wherever it is
             loaded = self.run_dir.load_replay_buffer(c.replay_buffer, frames=self.frames, checkpoint=source)
             if not loaded and saved:
-                raise CheckpointError(f"the replay buffer saved with the checkpoint at {self.frames} frames is missing "
-                                      f"from {Path(source).parent if source else self.run_dir.checkpoint_dir}")
+                raise CheckpointError(
+                    f"the replay buffer saved with the checkpoint at {self.frames} frames is missing "
+                    f"from {Path(source).parent if source else self.run_dir.checkpoint_dir}"
+                )
         if c.adapter is not None and not self.read_only:  # the rank history as of the checkpoint resumed
             self.run_dir.write_rank_history(c.adapter.history, frames=self.frames)
