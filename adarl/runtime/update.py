@@ -31,7 +31,7 @@ SAC_LOSSES = ("loss_actor", "loss_qvalue", "loss_alpha")
 class UpdateStep(ABC):
     """One optimisation step: sample, losses, backward, clipping, optimisers, LR schedules, target update.
 
-    ``step(guard, update=n)`` returns the detached losses by name; :meth:`on_rank_event` is an ``on_truncate``
+    ``step(guard, update=n)`` (a call) returns the detached losses by name; :meth:`on_rank_event` is an ``on_truncate``
     callback of the rank adapter (the parameters changed shape in place)."""
 
     @abstractmethod
