@@ -53,6 +53,8 @@ _EXPORTS: dict[str, str] = {
     ),
     **dict.fromkeys(["ReplayWarmStart", "WarmStartRecord"], "adarl.core.warmstart"),
     "CollectorRebuild": "adarl.core.collector_rebuild",
+    "TargetShiftSACLoss": "adarl.core.target_shift",
+    **dict.fromkeys(["register_algorithm", "algorithm_names"], "adarl.plugins"),
     **dict.fromkeys(
         [
             "PerturbedDynamicsEnvTransform",

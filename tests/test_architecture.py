@@ -3,7 +3,7 @@
 The import graph is read from the source (``ast``), so the test needs nothing installed and sees every import,
 including those inside functions. Wings, bottom to top (a module may import its own wing and those listed for it):
 
-* ``errors`` - nothing of adarl;
+* ``errors`` - nothing of adarl; ``plugins`` (algorithm names and the entry-point group) - ``errors``;
 * ``core`` (the paper's components) and ``envs`` - ``errors`` (and core: torch, TorchRL, tensordict only);
 * ``baselines`` - ``core``; ``fast`` (the speed engine) - ``core``, ``envs``;
 * ``runtime`` - all of the above; ``experiments`` - ``runtime`` and below; ``cli`` - everything.
@@ -25,13 +25,14 @@ ROOT = Path(__file__).resolve().parents[1] / "adarl"
 #: wing -> the wings its modules may import (besides their own)
 ALLOWED = {
     "errors": set(),
+    "plugins": {"errors"},
     "core": {"errors"},
     "envs": {"errors"},
-    "baselines": {"errors", "core"},
+    "baselines": {"errors", "plugins", "core"},
     "fast": {"errors", "core", "envs"},
-    "runtime": {"errors", "core", "envs", "baselines", "fast"},
-    "experiments": {"errors", "core", "envs", "baselines", "fast", "runtime"},
-    "cli": {"errors", "core", "envs", "baselines", "fast", "runtime", "experiments"},
+    "runtime": {"errors", "plugins", "core", "envs", "baselines", "fast"},
+    "experiments": {"errors", "plugins", "core", "envs", "baselines", "fast", "runtime"},
+    "cli": {"errors", "plugins", "core", "envs", "baselines", "fast", "runtime", "experiments"},
 }
 #: third-party packages the paper's components may use
 CORE_THIRD_PARTY = {"torch", "torchrl", "tensordict"}

@@ -38,12 +38,22 @@ from torchrl.objectives import SACLoss
 from torchrl.objectives.value import TD0Estimator
 
 from adarl.core.lowrank import LowRankLinear
+from adarl.core.target_shift import TargetShiftSACLoss
 from adarl.errors import AdaRLValueError
 from adarl.fast.adam import DirectAdamStep
 from adarl.fast.kernels import affine, compile_fresh
 from adarl.fast.manual_backward import ManualSACStep, unsupported_reason
 
-__all__ = ["BACKWARDS", "LOSS_FUNCTIONS", "FusedSACUpdate", "check_fusable", "supported_activation", "wants_fused"]
+__all__ = [
+    "BACKWARDS",
+    "LOSS_FUNCTIONS",
+    "FUSABLE_OVERRIDES",
+    "FusedSACUpdate",
+    "check_fusable",
+    "fused_fallback_reason",
+    "supported_activation",
+    "wants_fused",
+]
 
 #: values of ``FusedSACUpdate(backward=...)`` / ``algorithm.backward``
 BACKWARDS = ("auto", "manual", "autograd")
@@ -56,15 +66,48 @@ def supported_activation(module: nn.Module) -> bool:
     return isinstance(module, _ACTIVATIONS)
 
 
-def wants_fused(setting, loss) -> bool:
-    """Resolve ``algorithm.fused``: ``'auto'`` is on for a continuous ``SACLoss``; ``True`` insists (clear error)."""
-    if setting == "auto":
-        return type(loss) is SACLoss
-    if setting is True and type(loss) is not SACLoss:
-        raise AdaRLValueError(
-            f"algorithm.fused: true needs a continuous-action SACLoss, got {type(loss).__name__}; "
-            "allowed for discrete actions: 'auto' or false"
+#: methods a :class:`~adarl.core.target_shift.TargetShiftSACLoss` subclass may define and keep the fused update
+FUSABLE_OVERRIDES = frozenset({"__init__", "target_shift"})
+
+
+def fused_fallback_reason(loss) -> str | None:
+    """Why the fused update cannot compute ``loss`` as its own ``forward`` does (None: it can, as far as the loss
+    class goes). It computes ``SACLoss`` exactly, and a :class:`~adarl.core.target_shift.TargetShiftSACLoss`
+    subclass that overrides only :data:`FUSABLE_OVERRIDES` (its shift is applied to the reward)."""
+    cls = type(loss)
+    if cls is SACLoss or cls is TargetShiftSACLoss:
+        return None
+    if not isinstance(loss, SACLoss):
+        return f"{cls.__name__} is not a continuous-action SACLoss"
+    if not isinstance(loss, TargetShiftSACLoss):
+        return (
+            f"{cls.__name__} subclasses SACLoss, and the fused update computes SACLoss's own losses only (to keep it, "
+            "change only the TD target: subclass adarl.TargetShiftSACLoss and override target_shift)"
         )
+    extra = sorted(
+        {
+            name
+            for klass in cls.__mro__[: cls.__mro__.index(TargetShiftSACLoss)]
+            for name in vars(klass)
+            if callable(vars(klass)[name]) and name not in FUSABLE_OVERRIDES and not name.startswith("__")
+        }
+    )
+    if extra:
+        return (
+            f"{cls.__name__} overrides {extra} besides target_shift, which the fused update does not run "
+            f"(allowed overrides: {sorted(FUSABLE_OVERRIDES)})"
+        )
+    return None
+
+
+def wants_fused(setting, loss) -> bool:
+    """Resolve ``algorithm.fused``: ``'auto'`` is on for a loss the fused update computes exactly (a continuous
+    ``SACLoss``, or a TD-target shift of one: :func:`fused_fallback_reason`); ``True`` insists (clear error)."""
+    reason = fused_fallback_reason(loss)
+    if setting == "auto":
+        return reason is None
+    if setting is True and reason is not None:
+        raise AdaRLValueError(f"algorithm.fused: true cannot run this loss: {reason}; allowed: 'auto' or false")
     return bool(setting)
 
 
@@ -183,11 +226,9 @@ def check_fusable(loss) -> tuple[NestedKey, ...]:
     ``loss_function`` in :data:`LOSS_FUNCTIONS`, ``skip_done_states=False``, a TanhNormal actor with its default
     ``tanh_loc=False`` and ``safe_tanh=True``, an actor reading one observation key and critics reading
     ``[observation, action]`` (the keys may have any names)."""
-    if type(loss) is not SACLoss:
-        raise AdaRLValueError(
-            f"the fused SAC update needs a continuous-action SACLoss, got {type(loss).__name__} "
-            "(set algorithm.fused: false)"
-        )
+    reason = fused_fallback_reason(loss)
+    if reason is not None:
+        raise AdaRLValueError(f"the fused SAC update cannot run this loss: {reason} (set algorithm.fused: false)")
     if getattr(loss, "_version", 2) != 2:
         raise _refuse("SAC v1 (a value network)", "it computes SAC v2's losses")
     estimator = loss.value_estimator
@@ -427,6 +468,10 @@ class FusedSACUpdate:
         :class:`~adarl.fast.replay.UniformTensorSampler`)."""
         if self.min_log_alpha is not None or self.max_log_alpha is not None:
             self.loss.log_alpha.data.clamp_(self.min_log_alpha, self.max_log_alpha)
+        shift = None
+        if isinstance(self.loss, TargetShiftSACLoss):  # only the target reads the reward: r - shift is exact
+            shift = self.loss.target_shift().detach().reshape(())
+            reward = reward - shift
         noise_next, noise_now = self.draw_noise(obs, action)
         args = (obs, action, reward, next_obs, terminated.bool(), noise_next, noise_now)
         if self._manual is not None:  # fills the parameters' .grad itself
@@ -450,4 +495,5 @@ class FusedSACUpdate:
             "loss_alpha": loss_alpha.detach(),
             "alpha": alpha,
             "entropy": entropy,
+            **({} if shift is None else {"target_shift": shift}),
         }

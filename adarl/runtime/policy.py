@@ -126,7 +126,7 @@ def load_policy_with_info(
     recipe = load_recipe(str(run.recipe_path)).model_copy(update={"device": str(dev)})
     specs = state.get("policy_specs") or _specs_from_env_id(recipe.env.id)
     env = spec_env(specs, dev)
-    if recipe.algorithm.name == "ppo":
+    if recipe.algorithm.base == "ppo":
         actor = make_ppo_modules(recipe, env).actor
         params = state["actor"]
     else:

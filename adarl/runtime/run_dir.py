@@ -99,7 +99,7 @@ def recipe_fingerprint(recipe) -> dict:
         fp[f"network.{net}.low_rank_layers"] = list(m.low_rank_layers)
         fp[f"network.{net}.rank"] = m.rank
         fp[f"network.{net}.sparse"] = m.sparse.model_dump()
-    if recipe.algorithm.name == "ppo":
+    if recipe.algorithm.base == "ppo":
         fp["algorithm.ppo.obs_norm"] = recipe.algorithm.ppo.obs_norm
         fp["algorithm.ppo.policy"] = recipe.algorithm.ppo.policy
     return fp

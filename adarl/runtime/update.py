@@ -18,6 +18,7 @@ from torch import nn
 from torchrl.data import TensorDictReplayBuffer
 from torchrl.objectives import SoftUpdate
 
+from adarl.errors import AdaRLValueError
 from adarl.fast.replay import UniformTensorSampler
 from adarl.fast.sac import FusedSACUpdate
 from adarl.runtime.guards import NonFiniteGuard
@@ -47,7 +48,8 @@ class LossStep(UpdateStep):
     ``opt.step()``, the schedulers, then ``SoftUpdate.step()``.
 
     ``terms``: loss terms (``{name: term}``, e.g. the Parseval regulariser) whose ``wrap_output(td)`` adds
-    ``loss_<name>`` to the loss's output; each is added to the total and returned."""
+    ``loss_<name>`` to the loss's output. As TorchRL's trainers do, every ``loss_*`` entry of the output is added
+    to the total; every scalar entry (losses and metrics, a registered loss's own included) is returned."""
 
     def __init__(
         self,
@@ -66,12 +68,20 @@ class LossStep(UpdateStep):
 
     def __call__(self, guard: NonFiniteGuard | None = None, *, update: int = 0) -> dict[str, torch.Tensor]:
         td = self.loss(self.replay_buffer.sample())
-        if guard is not None:
-            guard.check_losses({k: td[k] for k in SAC_LOSSES}, update)
-        total = td["loss_actor"] + td["loss_qvalue"] + td["loss_alpha"]
-        for name, term in self.terms.items():
+        for term in self.terms.values():
             td = term.wrap_output(td)
-            total = total + td[f"loss_{name}"]
+        # TorchRL's convention: every "loss_*" entry is summed; the other scalars are metrics (a registered
+        # algorithm's own, e.g. target_shift, included)
+        losses = {k: td[k] for k in td.keys() if isinstance(k, str) and k.startswith("loss_")}
+        missing = [k for k in SAC_LOSSES if k not in losses]
+        if missing:
+            raise AdaRLValueError(
+                f"{type(self.loss).__name__}'s output lacks {missing}; a loss on the SAC loop returns "
+                f"{list(SAC_LOSSES)} (and may add more loss_* entries and metrics)"
+            )
+        if guard is not None:
+            guard.check_losses(losses, update)
+        total = sum(losses.values())
         total.backward()
         if guard is not None:
             guard.check_grads(update)
@@ -87,10 +97,11 @@ class LossStep(UpdateStep):
         self.target_updater.step()
         if guard is not None:
             guard.check_params(update)
-        out = {k: td[k].detach() for k in (*SAC_LOSSES, "alpha")}
-        for name in self.terms:
-            out[f"loss_{name}"] = td[f"loss_{name}"].detach()
-        return out
+        return {
+            k: v.detach()
+            for k, v in td.items()
+            if isinstance(k, str) and isinstance(v, torch.Tensor) and v.numel() == 1 and v.is_floating_point()
+        }
 
 
 class FusedStep(UpdateStep):

@@ -24,6 +24,7 @@ from torchrl.modules import ProbabilisticActor, TanhNormal, ValueOperator
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
+from adarl import plugins
 from adarl.baselines import registry
 from adarl.baselines.normalization import RewardScaler, RunningObsNorm
 from adarl.baselines.policy import BoxTanh, ClippedNormal
@@ -139,7 +140,9 @@ def make_ppo_modules(recipe, env) -> PPOModules:
         _net(obs_dim, 1, c, alg, act_dim, norms[1] if norms else None, device), in_keys=["observation"]
     )
     # 'batch' standardises once per collected batch in PPOTrainer's iteration; 'minibatch' inside the loss
-    loss = ClipPPOLoss(
+    # algorithm.name's loss (a plugin on the PPO loop: ClipPPOLoss's arguments plus its algorithm.options)
+    loss_class = plugins.algorithm(alg.name).loss_class()
+    loss = loss_class(
         actor,
         critic,
         clip_epsilon=ppo.clip_epsilon,
@@ -149,6 +152,7 @@ def make_ppo_modules(recipe, env) -> PPOModules:
         loss_critic_type="l2",
         normalize_advantage=ppo.normalize_advantage == "minibatch",
         functional=False,
+        **dict(alg.options),
     )
     rn = alg.rnac
     if rn.mode == "ipm":
@@ -197,4 +201,4 @@ def simulator_steps_per_frame(recipe) -> int:
     """Environment steps the simulator takes per collected frame: ``m + 1`` for RNAC-DS (it probes ``m`` noisy
     candidates before the real step), 1 otherwise."""
     rn = recipe.algorithm.rnac
-    return rn.num_candidates + 1 if recipe.algorithm.name == "ppo" and rn.mode == "ds" else 1
+    return rn.num_candidates + 1 if recipe.algorithm.base == "ppo" and rn.mode == "ds" else 1

@@ -22,6 +22,7 @@ through :mod:`adarl.baselines.registry` (network variants, init schemes, loss te
 from __future__ import annotations
 
 import os
+import warnings
 from dataclasses import dataclass
 
 import torch
@@ -34,6 +35,7 @@ from torchrl.envs import EnvBase
 from torchrl.modules import OneHotCategorical, ProbabilisticActor, TanhNormal, ValueOperator
 from torchrl.objectives import DiscreteSACLoss, SACLoss, SoftUpdate, ValueEstimators
 
+from adarl import plugins
 from adarl.baselines import registry
 from adarl.core.acceptance import ProjectionAcceptance, RecentTransitions
 from adarl.core.adapter import RankAdapter
@@ -41,10 +43,10 @@ from adarl.core.lowrank import LowRankLinear
 from adarl.core.lr_schedule import make_lr_scheduler
 from adarl.core.rank import make_rule
 from adarl.core.warmstart import ReplayWarmStart
-from adarl.errors import AdaRLValueError
+from adarl.errors import AdaRLValueError, AdaRLWarning
 from adarl.fast.adam import make_adam
 from adarl.fast.collector import LeanCollector, wants_lean
-from adarl.fast.sac import FusedSACUpdate, wants_fused
+from adarl.fast.sac import FusedSACUpdate, fused_fallback_reason, wants_fused
 from adarl.runtime.builders.common import action_spec, check_device, is_discrete, make_envs, make_mlp, train_env_factory
 from adarl.runtime.rank_events import RankEventEffects
 from adarl.runtime.state import seed_everything
@@ -61,6 +63,7 @@ __all__ = [
     "Components",
     "build_components",
     "sac_parameters",
+    "FusedFallbackWarning",
     "update_after",
     "planned_updates",
 ]
@@ -112,9 +115,19 @@ def make_sac_loss(
     init_alpha: float = 1.0,
     fixed_alpha: bool = False,
     target_entropy: float | str = "auto",
+    loss_class: type[SACLoss] = SACLoss,
+    loss_kwargs: dict | None = None,
 ) -> SACLoss | DiscreteSACLoss:
-    """TorchRL's ``SACLoss`` (or ``DiscreteSACLoss``) with the TD(0) estimator, as TorchRL's reference SAC."""
+    """TorchRL's ``SACLoss`` (or ``DiscreteSACLoss``) with the TD(0) estimator, as TorchRL's reference SAC.
+
+    ``loss_class``: a registered algorithm's loss (:mod:`adarl.plugins`), built with ``SACLoss``'s keyword
+    arguments and ``loss_kwargs`` (its ``algorithm.options``)."""
     spec = action_spec(env)
+    if loss_class is not SACLoss and is_discrete(spec):
+        raise AdaRLValueError(
+            f"{loss_class.__name__} is built like SACLoss (continuous actions); this env's actions are discrete "
+            "(allowed for discrete actions: algorithm.name: 'sac', which uses DiscreteSACLoss)"
+        )
     if is_discrete(spec):
         loss = DiscreteSACLoss(
             actor_network=actor,
@@ -128,7 +141,7 @@ def make_sac_loss(
             target_entropy=target_entropy,
         )
     else:
-        loss = SACLoss(
+        loss = loss_class(
             actor_network=actor,
             qvalue_network=critic,
             num_qvalue_nets=num_qvalue_nets,
@@ -137,6 +150,7 @@ def make_sac_loss(
             fixed_alpha=fixed_alpha,
             target_entropy=target_entropy,
             action_spec=spec,
+            **(loss_kwargs or {}),
         )
     loss.make_value_estimator(ValueEstimators.TD0, gamma=gamma)
     reinit_low_rank_ensemble(loss)
@@ -245,6 +259,8 @@ def make_sac_modules(recipe, env: EnvBase) -> SACModules:
         init_alpha=alg.init_alpha,
         fixed_alpha=alg.fixed_alpha,
         target_entropy=alg.target_entropy,
+        loss_class=plugins.algorithm(alg.name).loss_class(),
+        loss_kwargs=dict(alg.options),
     )
     # after the loss exists: SACLoss resamples the stacked critics, so each member is drawn in the loss's params
     for network, mlp in (("actor_network", a), ("qvalue_network", c)):
@@ -291,6 +307,10 @@ class Components:
                 closable.shutdown() if hasattr(closable, "shutdown") else closable.close()
             except Exception:  # noqa: BLE001 - already closed
                 pass
+
+
+class FusedFallbackWarning(AdaRLWarning):
+    """A registered algorithm's ``SACLoss`` runs TorchRL's (slower) path instead of the fused update, and why."""
 
 
 def sac_parameters(loss, fixed_alpha: bool = False) -> dict[str, torch.Tensor]:
@@ -405,6 +425,15 @@ def build_components(
     critic_params = list(loss.qvalue_network_params.flatten_keys().values())
     terms = registry.loss_terms(loss, alg)
     fused = wants_fused(alg.fused, loss)
+    reason = fused_fallback_reason(loss)
+    if alg.fused == "auto" and reason is not None and isinstance(loss, SACLoss):
+        # a SACLoss of a plugin the fused update cannot compute: say so, once, rather than slow down in silence
+        warnings.warn(
+            f"algorithm {alg.name!r} runs TorchRL's SACLoss path, not the fused update: {reason}; it costs about "
+            "3x the time per update (docs/performance.md)",
+            FusedFallbackWarning,
+            stacklevel=2,
+        )
     if terms and fused:
         # The fused step computes SACLoss's terms only; a loss term (Parseval) needs the TorchRL path.
         if alg.fused is True:

@@ -11,8 +11,9 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from adarl import plugins
 from adarl.envs.parameters import SUPPORTED_ENVS, env_parameters, preset_names, validate_schedule
 from adarl.envs.schedules import (
     schedule_from_dict,
@@ -20,7 +21,7 @@ from adarl.envs.schedules import (
     schedule_parameter_paths,
     schedule_problems,
 )
-from adarl.errors import NO_VALUE, did_you_mean, one_of
+from adarl.errors import NO_VALUE, AdaRLValueError, did_you_mean, one_of
 
 __all__ = [
     "SCHEMA_VERSION",
@@ -409,10 +410,19 @@ class RNACConfig(_Section):
 
 
 class AlgorithmConfig(_Section):
-    name: Literal["sac", "ppo"] = Field(
+    name: str = Field(
         "sac",
-        description="Base RL algorithm: 'sac' as in the paper (DiscreteSAC for discrete-action envs); 'ppo' = "
-        "TorchRL's ClipPPOLoss + GAE, the RNAC baselines' base (continuous actions; SAC-only keys are ignored).",
+        description="RL algorithm, a registered name (adarl.register_algorithm; installed packages add names through "
+        "the 'adarl.plugins' entry-point group): 'sac' as in the paper (DiscreteSAC for discrete-action envs); "
+        "'ppo' = TorchRL's ClipPPOLoss + GAE, the RNAC baselines' base (continuous actions; SAC-only keys are "
+        "ignored); a plugin's name runs its loss on the loop of its base (docs/custom-loss.md).",
+        json_schema_extra={"allowed": "a registered algorithm name ('sac', 'ppo', or one an installed plugin adds)"},
+    )
+    options: dict[str, Any] = Field(
+        default_factory=dict,
+        description="The registered algorithm's own options (its pydantic model: unknown keys, types and ranges are "
+        "checked like every other key; every default is written into the run's recipe.yaml). 'sac' and 'ppo' "
+        "have none.",
     )
     gamma: Annotated[Float, Field(gt=0, le=1)] = Field(0.99, description="Discount factor.")
     tau: Annotated[Float, Field(gt=0, le=1)] = Field(0.005, description="Polyak rate of the target critics.")
@@ -456,6 +466,43 @@ class AlgorithmConfig(_Section):
     parseval: ParsevalConfig = Field(default_factory=ParsevalConfig, description="Parseval regularisation baseline.")
     ppo: PPOConfig = Field(default_factory=PPOConfig, description="PPO hyperparameters (algorithm.name=ppo).")
     rnac: RNACConfig = Field(default_factory=RNACConfig, description="RNAC's robust critic (algorithm.name=ppo).")
+
+    @field_validator("name")
+    @classmethod
+    def _check_name(cls, v: str) -> str:
+        try:
+            plugins.algorithm(v)
+        except AdaRLValueError as err:
+            rest = str(err).split("; ", 1)[-1]
+            raise _Problems([("", v, f"not a registered algorithm; {rest}")]) from None
+        return v
+
+    @model_validator(mode="after")
+    def _check_options(self) -> AlgorithmConfig:
+        spec = plugins.algorithm(self.name)
+        try:
+            checked = spec.options.model_validate(_plain(self.options))
+        except ValidationError as err:
+            problems = []
+            for e in err.errors():
+                where = ".".join(str(x) for x in e["loc"])
+                allowed = list(spec.options.model_fields)
+                msg = e["msg"]
+                if e["type"] == "extra_forbidden":
+                    msg = (
+                        f"unknown option of algorithm {self.name!r}; allowed: "
+                        f"{one_of(allowed) if allowed else 'none (it has no options)'}"
+                        f"{did_you_mean(str(e['loc'][-1]), allowed)}"
+                    )
+                problems.append((f"options.{where}", e.get("input", NO_VALUE), msg))
+            raise _Problems(problems) from None
+        self.options = checked.model_dump(mode="python")
+        return self
+
+    @property
+    def base(self) -> str:
+        """The training loop of :attr:`name` ('sac' or 'ppo'; :func:`adarl.plugins.algorithm`)."""
+        return plugins.algorithm(self.name).base
 
 
 class AcceptConfig(_Section):
@@ -766,7 +813,7 @@ class Recipe(_Section):
         """PPO/RNAC combinations (the baselines' loop, adarl.runtime.trainers.ppo)."""
         p: list[tuple[str, Any, str]] = []
         alg, env = self.algorithm, self.env
-        if alg.name == "ppo":
+        if alg.base == "ppo":
             if self.rank.enabled:
                 p.append(
                     (
@@ -777,7 +824,9 @@ class Recipe(_Section):
                     )
                 )
             if env.id == "CartPole-v1":
-                p.append(("algorithm.name", "ppo", f"needs a continuous-action env; {env.id} is discrete (use 'sac')"))
+                p.append(
+                    ("algorithm.name", alg.name, f"needs a continuous-action env; {env.id} is discrete (use 'sac')")
+                )
             if alg.ppo.minibatch_size > self.collector.frames_per_batch:
                 p.append(
                     (

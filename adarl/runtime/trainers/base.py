@@ -74,7 +74,7 @@ class BaseTrainer:
         _log_from: int | None = None,
         _read_only: bool = False,
     ) -> None:
-        if self.algorithm is not None and recipe.algorithm.name != self.algorithm:
+        if self.algorithm is not None and recipe.algorithm.base != self.algorithm:
             raise AdaRLValueError(
                 f"{type(self).__name__} runs algorithm.name: {self.algorithm!r}, the recipe has "
                 f"{recipe.algorithm.name!r}; use {trainer_class(recipe).__name__} (trainer_class)"
@@ -533,8 +533,9 @@ class BaseTrainer:
 
 
 def trainer_class(recipe) -> type[BaseTrainer]:
-    """The trainer that runs ``recipe``: the subclass declared for its ``algorithm.name``."""
-    name = recipe.algorithm.name
+    """The trainer that runs ``recipe``: the subclass declared for the base loop of its ``algorithm.name``
+    (a plugin's algorithm runs on its base's trainer, :mod:`adarl.plugins`)."""
+    name = recipe.algorithm.base
     if name not in BaseTrainer._by_algorithm:
         raise AdaRLValueError(f"no trainer runs algorithm.name: {name!r}; allowed: {sorted(BaseTrainer._by_algorithm)}")
     return BaseTrainer._by_algorithm[name]

@@ -1,0 +1,213 @@
+"""A user's own TorchRL loss, in a package outside adarl, runs from a recipe (docs/custom-loss.md).
+
+The test writes a small plugin package (an RNAC-IPM-style robust SAC: ``SACLoss`` with its TD target lowered by
+``kappa * ||theta_critic||``, registered as ``robust_sac`` through the ``adarl.plugins`` entry-point group),
+installs it with pip into a folder of its own (``pip install --target``, so the test venv is left as it was) and
+puts that folder on ``PYTHONPATH`` of the ``adarl`` commands it runs from another folder: ``adarl show``,
+``adarl run`` killed with SIGKILL and ``adarl resume``d, and a two-seed ``adarl experiment``. At each step the
+loss's own metric (``train/target_shift``, ``kappa * ||theta||``) must be logged; without the package, resuming
+the run is refused with a message naming the algorithm, and nothing in the run folder changes.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+PLUGIN = '''
+"""An RNAC-IPM-style robust SAC for adarl: the TD target minus kappa * ||theta_critic||."""
+import torch
+from pydantic import BaseModel, ConfigDict, Field
+
+from adarl import TargetShiftSACLoss, register_algorithm
+
+
+class RobustSACOptions(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    kappa: float = Field(1e-3, ge=0, description="IPM radius: TD-target shift per unit of ||theta_critic||")
+
+
+@register_algorithm("robust_sac", options=RobustSACOptions, description="SAC with an IPM-shifted TD target")
+class RobustSACLoss(TargetShiftSACLoss):
+    def __init__(self, *args, kappa: float = 1e-3, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.kappa = kappa
+
+    def target_shift(self) -> torch.Tensor:
+        params = self.qvalue_network_params.flatten_keys().values()
+        return self.kappa * torch.stack([p.detach().pow(2).sum() for p in params]).sum().sqrt()
+'''
+
+PYPROJECT = """
+[build-system]
+requires = ["setuptools>=61"]
+build-backend = "setuptools.build_meta"
+
+[project]
+name = "adarl-robust-sac"
+version = "0.1.0"
+
+[project.entry-points."adarl.plugins"]
+robust_sac = "adarl_robust_sac"
+
+[tool.setuptools]
+packages = ["adarl_robust_sac"]
+"""
+
+# Hopper, tiny: 600 frames, a checkpoint every 50, one rank event
+TINY = [
+    "collector.total_frames=600",
+    "collector.init_random_frames=100",
+    "collector.frames_per_batch=50",
+    "algorithm.batch_size=32",
+    "rank.interval=200",
+    "replay.size=600",
+    "replay.warm_start.frames=50",
+    "lr_schedule.warmup_steps=20",
+    "eval.interval=300",
+    "eval.episodes=1",
+    "eval.max_steps=20",
+    "checkpoint.interval=50",
+    "checkpoint.keep_last=2",
+    "logging.log_interval=100",
+]
+
+
+@pytest.fixture(scope="module")
+def plugin(tmp_path_factory) -> Path:
+    """The plugin package, pip-installed into a folder of its own; returns that folder."""
+    root = tmp_path_factory.mktemp("plugin")
+    src = root / "src"
+    (src / "adarl_robust_sac").mkdir(parents=True)
+    (src / "adarl_robust_sac" / "__init__.py").write_text(textwrap.dedent(PLUGIN))
+    (src / "pyproject.toml").write_text(textwrap.dedent(PYPROJECT))
+    site = root / "site"
+    proc = subprocess.run(
+        [sys.executable, "-m", "pip", "install", "--no-deps", "--no-build-isolation", "--no-index", "-q"]
+        + ["--target", str(site), str(src)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    assert (site / "adarl_robust_sac").is_dir()
+    return site
+
+
+def _env(site: Path | None) -> dict:
+    paths = [str(REPO)] + ([str(site)] if site is not None else [])
+    return {**os.environ, "PYTHONPATH": os.pathsep.join(paths), "OMP_NUM_THREADS": "1", "MUJOCO_GL": "egl"}
+
+
+def _adarl(site: Path | None, cwd: Path, *args: str, timeout: float = 600) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "adarl.cli", *args],
+        cwd=cwd,
+        env=_env(site),
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+
+
+def _target_shift(run: Path) -> list[float]:
+    path = run / "metrics" / "scalars" / "train" / "target_shift.csv"
+    assert path.is_file(), f"the custom loss's metric was not logged: {sorted(p.name for p in path.parent.glob('*'))}"
+    with path.open() as f:
+        return [float(row[-1]) for row in csv.reader(f) if row]
+
+
+def _snapshot(run: Path) -> dict[str, bytes]:
+    return {p.relative_to(run).as_posix(): p.read_bytes() for p in sorted(run.rglob("*")) if p.is_file()}
+
+
+@pytest.mark.slow
+def test_a_plugin_loss_runs_resumes_and_goes_into_an_experiment(plugin: Path, tmp_path: Path):
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    recipe = elsewhere / "robust_hopper.yaml"
+    recipe.write_text(
+        "extends: quickstart\nname: robust_hopper\nalgorithm:\n  name: robust_sac\n  options: {kappa: 0.002}\n"
+    )
+
+    # show: the plugin's options are recipe keys, validated, with their defaults spelled out
+    shown = _adarl(plugin, elsewhere, "show", str(recipe))
+    assert shown.returncode == 0, shown.stderr[-3000:]
+    assert "name: robust_sac" in shown.stdout and "kappa: 0.002" in shown.stdout
+    for bad, words in (
+        ("algorithm.options.kapa=1", ["kapa", "kappa"]),
+        ("algorithm.options.kappa=-1", ["kappa", "greater than or equal to 0"]),
+        ("algorithm.options.kappa=big", ["kappa", "number"]),
+        ("algorithm.name=robust_sca", ["robust_sca", "robust_sac", "adarl.plugins"]),
+    ):
+        proc = _adarl(plugin, elsewhere, "show", str(recipe), bad)
+        assert proc.returncode != 0 and all(w in proc.stderr for w in words), (bad, proc.stderr[-2000:])
+    # without the package the name is unknown, and the error says how to get one
+    proc = _adarl(None, elsewhere, "show", str(recipe))
+    assert proc.returncode != 0 and "robust_sac" in proc.stderr and "adarl.plugins" in proc.stderr
+
+    # run, killed with SIGKILL once it has checkpointed
+    run = tmp_path / "run"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "adarl.cli", "run", str(recipe), *TINY, "-o", str(run), "--quiet"],
+        cwd=elsewhere,
+        env=_env(plugin),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    end = time.monotonic() + 300
+    while time.monotonic() < end and proc.poll() is None:
+        if len(list((run / "checkpoints").glob("ckpt-*.pt"))) >= 2 if (run / "checkpoints").is_dir() else False:
+            break
+        time.sleep(0.05)
+    killed = proc.poll() is None
+    if killed:
+        proc.send_signal(signal.SIGKILL)
+    _, err = proc.communicate(timeout=60)
+    assert killed, f"the run ended before it could be killed: {err[-2000:]}"
+    text = (run / "recipe.yaml").read_text()
+    assert "name: robust_sac" in text and "kappa: 0.002" in text  # what the run used, recorded
+
+    # resume without the plugin: refused, naming the algorithm; nothing in the run folder changes
+    before = _snapshot(run)
+    proc = _adarl(None, elsewhere, "resume", str(run), "--quiet")
+    assert proc.returncode != 0
+    assert "robust_sac" in proc.stderr and "adarl.plugins" in proc.stderr, proc.stderr[-2000:]
+    assert _snapshot(run) == before
+
+    # resume with it: the run finishes as the same algorithm, on the fused update (a TD-target shift only)
+    proc = _adarl(plugin, elsewhere, "resume", str(run), "--quiet")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "FusedFallbackWarning" not in proc.stderr and "not the fused update" not in proc.stderr
+    shifts = _target_shift(run)
+    assert shifts and all(s > 0 for s in shifts)
+    assert (run / "summary.json").is_file()
+
+    # a two-seed experiment of the same recipe
+    spec = elsewhere / "robust_seeds.yaml"
+    spec.write_text(
+        "kind: experiment\nname: robust_seeds\nrecipe: "
+        + str(recipe)
+        + "\noverrides: ["
+        + ", ".join(o for o in TINY if not o.startswith("checkpoint"))
+        + ", checkpoint.interval=300]\nseeds: [0, 1]\n"
+    )
+    out = tmp_path / "experiment"
+    proc = _adarl(plugin, elsewhere, "experiment", str(spec), "-o", str(out), "--workers", "1", "--no-live")
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
+    runs = sorted(p.parent for p in out.rglob("summary.json") if (p.parent / "recipe.yaml").is_file())
+    assert len(runs) == 2, sorted(p.as_posix() for p in out.rglob("*"))[:50]
+    for r in runs:
+        assert "name: robust_sac" in (r / "recipe.yaml").read_text()
+        assert _target_shift(r)
