@@ -5,7 +5,10 @@ registered *network variants* which arguments they want (the sparsification laye
 scale layers) and build the network with the registered *variant builder* when any are asked for; for
 ``network.<net>.init.scheme`` they call the registered *initialisation*; and they add every registered *loss term*
 the recipe switches on (Parseval regularisation). Each baseline module registers itself when :mod:`adarl.baselines`
-is imported; your own code registers more the same way.
+is imported; your own code registers more the same way. Algorithms (``algorithm.name``: a loss, its options and
+its base loop) register in :mod:`adarl.plugins` (``register_algorithm``, re-exported here), which installed packages
+reach through the ``adarl.plugins`` entry-point group; it lives below every wing because recipes are validated
+without torch.
 
 >>> from adarl.baselines import registry
 >>> sorted(registry.init_schemes())
@@ -23,8 +26,10 @@ from typing import Any
 from torch import nn
 
 from adarl.errors import AdaRLValueError, one_of
+from adarl.plugins import register_algorithm
 
 __all__ = [
+    "register_algorithm",
     "Init",
     "register_network_variant",
     "register_variant_builder",

@@ -16,14 +16,14 @@ so in one line (:func:`adarl.fast.sac.fused_fallback_reason`).
 >>> from tensordict.nn import NormalParamExtractor, TensorDictModule
 >>> from torch import nn
 >>> from torchrl.data import Bounded
->>> from torchrl.modules import ProbabilisticActor, TanhNormal, ValueOperator
+>>> from torchrl.modules import MLP, ProbabilisticActor, TanhNormal, ValueOperator
 >>> from torchrl.objectives import ValueEstimators
 >>> class ConstantShift(TargetShiftSACLoss):
 ...     def target_shift(self):
 ...         return torch.tensor(0.5)
 >>> actor = ProbabilisticActor(TensorDictModule(nn.Sequential(nn.Linear(3, 4), NormalParamExtractor()),
 ...     ["observation"], ["loc", "scale"]), in_keys=["loc", "scale"], distribution_class=TanhNormal)
->>> loss = ConstantShift(actor, ValueOperator(nn.Linear(5, 1), in_keys=["observation", "action"]),
+>>> loss = ConstantShift(actor, ValueOperator(MLP(5, 1, num_cells=[8]), in_keys=["observation", "action"]),
 ...                      action_spec=Bounded(-1.0, 1.0, (2,)))
 >>> loss.make_value_estimator(ValueEstimators.TD0, gamma=0.99)
 >>> batch = TensorDict({"observation": torch.randn(8, 3), "action": torch.rand(8, 2) * 2 - 1,

@@ -24,6 +24,7 @@ actor's ``in_keys``), as ``SACLoss`` reads them: :attr:`FusedSACUpdate.keys`.
 
 from __future__ import annotations
 
+import inspect
 import math
 from collections.abc import Sequence
 
@@ -84,12 +85,15 @@ def fused_fallback_reason(loss) -> str | None:
             f"{cls.__name__} subclasses SACLoss, and the fused update computes SACLoss's own losses only (to keep it, "
             "change only the TD target: subclass adarl.TargetShiftSACLoss and override target_shift)"
         )
+    # methods the subclasses define themselves (TorchRL re-wraps `forward` in every subclass: unwrap it first)
     extra = sorted(
         {
             name
             for klass in cls.__mro__[: cls.__mro__.index(TargetShiftSACLoss)]
-            for name in vars(klass)
-            if callable(vars(klass)[name]) and name not in FUSABLE_OVERRIDES and not name.startswith("__")
+            for name, value in vars(klass).items()
+            if callable(value)
+            and name not in FUSABLE_OVERRIDES
+            and getattr(inspect.unwrap(value), "__qualname__", "").startswith(f"{klass.__qualname__}.")
         }
     )
     if extra:
