@@ -117,3 +117,13 @@ def test_another_override_falls_back_in_one_line_and_its_metrics_are_returned(re
     out = c.update()
     assert {"loss_actor", "loss_qvalue", "loss_alpha", "alpha", "entropy", "target_shift", "my_metric"} <= set(out)
     c.close()
+
+
+def test_a_plugin_that_fails_to_load_is_named(monkeypatch):
+    from importlib.metadata import EntryPoint
+
+    broken = EntryPoint("broken", "adarl_no_such_plugin_module", plugins.ENTRY_POINT_GROUP)
+    monkeypatch.setattr(plugins, "entry_points", lambda group: [broken])
+    monkeypatch.setattr(plugins, "_loaded", set())
+    with pytest.raises(RecipeError, match=r"plugin 'broken' \(adarl_no_such_plugin_module.*ModuleNotFoundError"):
+        load_recipe("quickstart", ["algorithm.name=anything"])

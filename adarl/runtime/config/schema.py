@@ -473,8 +473,10 @@ class AlgorithmConfig(_Section):
         try:
             plugins.algorithm(v)
         except AdaRLValueError as err:
-            rest = str(err).split("; ", 1)[-1]
-            raise _Problems([("", v, f"not a registered algorithm; {rest}")]) from None
+            msg = str(err)
+            if msg.startswith("unknown algorithm.name"):  # else: an installed plugin failed to load (named)
+                msg = "not a registered algorithm; " + msg.split("; ", 1)[-1]
+            raise _Problems([("", v, msg)]) from None
         return v
 
     @model_validator(mode="after")
