@@ -125,3 +125,33 @@ def test_rank_settling_reads_the_last_change_and_the_events_after_it(tmp_path):
     d = rank_settling(_load_run(run, None))
     assert d["actor:a"] == {"initial": 11, "final": 7, "min": 7, "last_change": 20, "events_after": 2}
     assert d["critic:c"]["last_change"] is None and d["critic:c"]["events_after"] == 4
+
+
+def test_runs_csv_has_one_column_per_name_with_an_env_axis(tmp_path):
+    """An experiment whose axis is called ``env`` (table1, rank_trajectory) kept two ``env`` columns in runs.csv,
+    so csv.DictReader silently lost the axis value."""
+    from adarl.experiments.aggregate import write_aggregate_report
+
+    exp = tmp_path / "exp"
+    runs = []
+    for seed in (0, 1):
+        rid = f"env=hopper__seed={seed}"
+        _fake_run(exp, rid, seed, 0, [(100, 1.0), (200, 2.0 + seed)])
+        runs.append(
+            {
+                "run_id": rid,
+                "axes": {"env": "hopper"},
+                "seed": seed,
+                "recipe": "fake",
+                "path": str(exp / rid),
+                "status": "finished",
+            }
+        )
+    (exp / "experiment.json").write_text(json.dumps({"name": "fake", "axes": ["env"], "runs": runs}))
+    write_aggregate_report([exp])
+    with (exp / "report" / "runs.csv").open() as fh:
+        header = next(csv.reader(fh))
+        fh.seek(0)
+        rows = list(csv.DictReader(fh))
+    assert len(header) == len(set(header)), header
+    assert {(r["env"], r["env_id"]) for r in rows} == {("hopper", "LinearCartPole-v0")}

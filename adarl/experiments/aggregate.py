@@ -775,7 +775,7 @@ def write_aggregate_report(
                 for g in agg.groups
                 for r in g.runs
             ],
-            ["path", *agg.axes, "seed", "env", "final_return", "frames", "updates"],
+            ["path", *agg.axes, "seed", "env_id", "final_return", "frames", "updates"],
         )
     )
 
