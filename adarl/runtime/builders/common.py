@@ -23,6 +23,7 @@ from adarl.envs.factory import make_env, make_eval_env
 from adarl.errors import AdaRLValueError
 
 __all__ = [
+    "RunComponents",
     "ACTIVATIONS",
     "check_device",
     "make_mlp",
@@ -211,3 +212,21 @@ def spec_env(specs: dict, device) -> SimpleNamespace:
         high = torch.as_tensor(specs["action_high"], dtype=torch.float32, device=device)
         action = Bounded(low=low, high=high, shape=low.shape, dtype=torch.float32, device=device)
     return SimpleNamespace(observation_spec=obs, action_spec=action, action_spec_unbatched=action)
+
+
+class RunComponents:
+    """What the SAC and PPO component bundles share: the policy the collector runs and a close that shuts the
+    collector and both envs once. Subclasses are dataclasses with ``modules``, ``collector``, ``env``, ``eval_env``."""
+
+    @property
+    def policy(self):
+        """The stochastic policy the collector runs (the same parameter objects as the loss's actor)."""
+        return self.modules.actor
+
+    def close(self) -> None:
+        """Shut the collector down and close the envs (each only once)."""
+        for closable in (self.collector, self.env, self.eval_env):
+            try:
+                closable.shutdown() if hasattr(closable, "shutdown") else closable.close()
+            except Exception:  # noqa: BLE001 - already closed
+                pass

@@ -29,7 +29,14 @@ from adarl.baselines import registry
 from adarl.baselines.normalization import RewardScaler, RunningObsNorm
 from adarl.baselines.policy import BoxTanh, ClippedNormal
 from adarl.baselines.rnac import DoubleSamplingTransform, IPMAdvantage
-from adarl.runtime.builders.common import action_spec, check_device, init_network, make_envs, make_recipe_mlp
+from adarl.runtime.builders.common import (
+    RunComponents,
+    action_spec,
+    check_device,
+    init_network,
+    make_envs,
+    make_recipe_mlp,
+)
 from adarl.runtime.state import seed_everything
 
 __all__ = [
@@ -55,7 +62,7 @@ class PPOModules:
 
 
 @dataclass
-class PPOComponents:
+class PPOComponents(RunComponents):
     """Everything a PPO recipe builds, wired together (no training has happened yet). ``terms``: the loss terms the
     recipe switches on (:mod:`adarl.baselines.registry`: Parseval); ``sampling_generator`` draws the minibatches."""
 
@@ -71,18 +78,6 @@ class PPOComponents:
     total_iterations: int
     sampling_generator: torch.Generator
     terms: dict[str, nn.Module] = field(default_factory=dict)
-
-    @property
-    def policy(self):
-        return self.modules.actor
-
-    def close(self) -> None:
-        """Shut the collector down and close the envs (each only once)."""
-        for closable in (self.collector, self.env, self.eval_env):
-            try:
-                closable.shutdown() if hasattr(closable, "shutdown") else closable.close()
-            except Exception:  # noqa: BLE001 - already closed
-                pass
 
 
 class LinearDecay:

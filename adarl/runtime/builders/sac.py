@@ -47,7 +47,15 @@ from adarl.errors import AdaRLValueError, AdaRLWarning
 from adarl.fast.adam import make_adam
 from adarl.fast.collector import LeanCollector, wants_lean
 from adarl.fast.sac import FusedSACUpdate, fused_fallback_reason, wants_fused
-from adarl.runtime.builders.common import action_spec, check_device, is_discrete, make_envs, make_mlp, train_env_factory
+from adarl.runtime.builders.common import (
+    RunComponents,
+    action_spec,
+    check_device,
+    is_discrete,
+    make_envs,
+    make_mlp,
+    train_env_factory,
+)
 from adarl.runtime.rank_events import RankEventEffects
 from adarl.runtime.state import seed_everything
 from adarl.runtime.update import FusedStep, LossStep, UpdateStep
@@ -272,7 +280,7 @@ def make_sac_modules(recipe, env: EnvBase) -> SACModules:
 
 
 @dataclass
-class Components:
+class Components(RunComponents):
     """Everything a SAC recipe builds, wired together (no training has happened yet).
 
     ``update`` is the optimisation step (:class:`~adarl.runtime.update.UpdateStep`: TorchRL's ``SACLoss`` step or
@@ -294,19 +302,6 @@ class Components:
     total_updates: int
     sampling_generator: torch.Generator
     rank_events: RankEventEffects | None = None
-
-    @property
-    def policy(self):
-        """The stochastic policy the collector runs (the same parameter objects as the loss's actor)."""
-        return self.modules.actor
-
-    def close(self) -> None:
-        """Shut the collector down and close the envs (each only once)."""
-        for closable in (self.collector, self.env, self.eval_env):
-            try:
-                closable.shutdown() if hasattr(closable, "shutdown") else closable.close()
-            except Exception:  # noqa: BLE001 - already closed
-                pass
 
 
 class FusedFallbackWarning(AdaRLWarning):
