@@ -12,6 +12,7 @@ The public components, importable from here:
 - :class:`ReplayWarmStart`: the warm-start replay buffer, an ``on_truncate`` callback.
 - :class:`CollectorRebuild`: a collector rebuilt after each rank event (process collectors, policy copies).
 - :class:`PerturbedDynamicsEnvTransform` / :func:`make_env`: per-episode MuJoCo dynamics, a TorchRL ``Transform``.
+- :func:`register_env` / :func:`register_parameter`: env ids and perturbation parameters from your own package.
 - :func:`load_recipe`, :func:`build_components`, :class:`Trainer`: recipes and the AdaRL-SAC loop.
 - :func:`load_policy`: a trained run's policy as a TorchRL actor, without its env, buffer or collector.
 
@@ -54,7 +55,10 @@ _EXPORTS: dict[str, str] = {
     **dict.fromkeys(["ReplayWarmStart", "WarmStartRecord"], "adarl.core.warmstart"),
     "CollectorRebuild": "adarl.core.collector_rebuild",
     "TargetShiftSACLoss": "adarl.core.target_shift",
-    **dict.fromkeys(["register_algorithm", "algorithm_names"], "adarl.plugins"),
+    **dict.fromkeys(
+        ["register_algorithm", "algorithm_names", "register_rank_rule", "rank_rule_names"], "adarl.plugins"
+    ),
+    **dict.fromkeys(["register_env", "register_parameter", "ParameterInfo"], "adarl.envs.parameters"),
     **dict.fromkeys(
         [
             "PerturbedDynamicsEnvTransform",

@@ -65,7 +65,7 @@ def _run_folder(recipe, output: str | None) -> Path:
 
 
 def cmd_run(args) -> int:
-    from adarl.runtime.config import load_recipe, save_resolved
+    from adarl.runtime.config import load_recipe
     from adarl.runtime.run_dir import RunDir
     from adarl.runtime.trainers import trainer_class
 
@@ -74,7 +74,7 @@ def cmd_run(args) -> int:
     existed = path.exists()
     run_dir = RunDir.create(path, overwrite=args.overwrite)
     try:
-        save_resolved(recipe, run_dir.recipe_path)
+        run_dir.save_recipe(recipe)
         trainer = trainer_class(recipe)(recipe, run_dir, quiet=args.quiet)
     except BaseException:
         # Nothing ran: leave no half-made run folder behind (and never remove one the user had).

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -26,6 +28,8 @@ from adarl.errors import AdaRLValueError, RecipeError
 from adarl.runtime.config import list_recipes, load_recipe
 
 # ------------------------------------------------------------------------------------------------ Parseval
+
+REPO = Path(__file__).resolve().parents[1]
 
 
 def _net_with(hidden: torch.Tensor) -> nn.Sequential:
@@ -386,13 +390,13 @@ def _advantage_seen_by_the_loss(tmp_path, how: str) -> tuple[torch.Tensor, torch
 
     torch.manual_seed(0)
     recipe = load_recipe(
-        "baselines/hopper_rnac_ipm",
+        "baselines/ppo_base",
         [
+            "env.id=Hopper-v5",
             "collector.total_frames=256",
             "collector.frames_per_batch=128",
             "algorithm.ppo.epochs=1",
             f"algorithm.ppo.normalize_advantage={how}",
-            "algorithm.rnac.mode=none",
         ],
     )
     trainer = PPOTrainer(recipe, RunDir.create(tmp_path / how), quiet=True)
@@ -443,7 +447,9 @@ def test_simulator_steps_per_frame():
     from adarl.runtime.builders.ppo import simulator_steps_per_frame
 
     assert simulator_steps_per_frame(load_recipe("baselines/hopper_rnac_ds")) == 3  # m = 2 probes + the real step
-    assert simulator_steps_per_frame(load_recipe("baselines/hopper_rnac_ds", ["algorithm.rnac.num_candidates=4"])) == 5
+    assert (
+        simulator_steps_per_frame(load_recipe("baselines/hopper_rnac_ds", ["algorithm.options.num_candidates=4"])) == 5
+    )
     assert simulator_steps_per_frame(load_recipe("baselines/hopper_rnac_ipm")) == 1
     assert simulator_steps_per_frame(load_recipe("hopper_adarl")) == 1
 
@@ -558,7 +564,7 @@ def test_baseline_recipes_say_what_they_run(env):
     assert load_recipe(f"baselines/{env}_sparse").network.critic.sparse.width == 1024
     for mode in ("ipm", "ds"):
         r = load_recipe(f"baselines/{env}_rnac_{mode}")
-        assert r.algorithm.name == "ppo" and r.algorithm.rnac.mode == mode and r.env.id == adarl.env.id
+        assert r.algorithm.name == f"rnac_{mode}" and r.algorithm.base == "ppo" and r.env.id == adarl.env.id
         assert r.collector.frames_per_batch == 2048 and r.algorithm.lr == 3e-4 and r.algorithm.max_grad_norm == 0.5
     assert load_recipe(f"ablations/{env}_scope_actor").rank.scope == "actor"
     assert load_recipe(f"ablations/{env}_ratio_rule").rank.rule == "ratio"
@@ -569,12 +575,24 @@ def test_baseline_recipes_say_what_they_run(env):
 @pytest.mark.parametrize(
     "recipe, overrides, expected",
     [
-        ("quickstart", ["algorithm.rnac.mode=ipm"], "algorithm.rnac.mode = 'ipm': needs algorithm.name='ppo'"),
+        ("quickstart", ["algorithm.rnac.mode=ipm"], "RNAC is now a registered algorithm: algorithm.name=rnac_ipm"),
+        (
+            "quickstart",
+            ["algorithm.name=rnac_ipm"],
+            "rank.enabled = true: must be false with algorithm.name='rnac_ipm'",
+        ),
+        (
+            "baselines/hopper_rnac_ipm",
+            ["algorithm.options.m=3"],
+            "unknown option of algorithm 'rnac_ipm'; allowed: 'kappa'",
+        ),
+        ("baselines/hopper_rnac_ds", ["algorithm.options.num_candidates=0"], "algorithm.options.num_candidates = 0"),
+        ("baselines/hopper_rnac_ds", ["env.id=LinearCartPole-v0"], "needs a MuJoCo env"),
         ("quickstart", ["algorithm.name=ppo"], "rank.enabled = true: must be false"),
         ("baselines/hopper_rnac_ds", ["env.num_envs=2"], "env.num_envs = 2: must be 1"),
         ("baselines/hopper_rnac_ipm", ["env.id=CartPole-v1"], "continuous-action env"),
         ("baselines/hopper_rnac_ipm", ["algorithm.ppo.minibatch_size=4096"], "must be <= collector.frames_per_batch"),
-        ("baselines/hopper_rnac_ipm", ["algorithm.rnac.mode=worst"], "one of 'none', 'ipm', 'ds'"),
+        ("baselines/hopper_rnac_ipm", ["algorithm.name=rnac_worst"], "did you mean 'rnac_ds'"),
         ("baselines/hopper_parseval", ["algorithm.parseval.lam=0"], "algorithm.parseval.lam"),
         ("quickstart", ["network.actor.sparse.layer=1"], "low-rank or the sparsification layer"),
         ("baselines/hopper_sparse", ["network.critic.sparse.layer=2"], "must index a hidden layer"),
@@ -597,3 +615,31 @@ def test_bad_baseline_settings_are_recipe_errors(recipe, overrides, expected):
     with pytest.raises(RecipeError) as err:
         load_recipe(recipe, overrides)
     assert expected in str(err.value)
+
+
+def test_recipes_with_the_old_rnac_section_still_load(tmp_path):
+    """Run folders written before RNAC became registered algorithms say name: ppo + algorithm.rnac: read as the new
+    names, and their checkpoints (fingerprint algorithm.name 'ppo', no options) still load."""
+    from adarl.runtime.run_dir import _same_in_fingerprint, recipe_fingerprint
+
+    old = tmp_path / "old.yaml"
+    base = (REPO / "recipes" / "baselines" / "ppo_base.yaml").as_posix()
+    old.write_text(
+        f"extends: {base}\nname: old\nenv: {{id: Hopper-v5}}\n"
+        "algorithm:\n  name: ppo\n  rnac: {mode: ds, kappa: 1.0e-5, num_candidates: 3, noise: 0.01}\n"
+    )
+    r = load_recipe(str(old))
+    assert r.algorithm.name == "rnac_ds" and r.algorithm.options == {"num_candidates": 3, "noise": 0.01}
+    fp = recipe_fingerprint(r)
+    theirs = {k: v for k, v in fp.items() if k != "algorithm.options"} | {"algorithm.name": "ppo"}
+    assert _same_in_fingerprint("algorithm.name", theirs, fp)
+    assert not _same_in_fingerprint("algorithm.name", {**theirs, "algorithm.options": {}}, fp)
+    plain = tmp_path / "plain.yaml"
+    plain.write_text(f"extends: {base}\nname: plain\nenv: {{id: Hopper-v5}}\nalgorithm:\n  rnac: {{mode: none}}\n")
+    assert load_recipe(str(plain)).algorithm.name == "ppo"
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(
+        f"extends: {base}\nname: bad\nenv: {{id: Hopper-v5}}\nalgorithm:\n  name: sac\n  rnac: {{mode: ipm}}\n"
+    )
+    with pytest.raises(RecipeError, match="write algorithm.name: rnac_ipm"):
+        load_recipe(str(bad))

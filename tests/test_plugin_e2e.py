@@ -28,6 +28,7 @@ PLUGIN = '''
 """An RNAC-IPM-style robust SAC for adarl: the TD target minus kappa * ||theta_critic||."""
 import torch
 from pydantic import BaseModel, ConfigDict, Field
+from torchrl.objectives import ClipPPOLoss
 
 from adarl import TargetShiftSACLoss, register_algorithm
 
@@ -46,6 +47,25 @@ class RobustSACLoss(TargetShiftSACLoss):
     def target_shift(self) -> torch.Tensor:
         params = self.qvalue_network_params.flatten_keys().values()
         return self.kappa * torch.stack([p.detach().pow(2).sum() for p in params]).sum().sqrt()
+
+
+class NormPenaltyOptions(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    weight: float = Field(1e-3, ge=0, description="weight of the critic's squared parameter norm in the loss")
+
+
+@register_algorithm("norm_ppo", base="ppo", options=NormPenaltyOptions, description="PPO + a critic norm penalty")
+class NormPenaltyPPOLoss(ClipPPOLoss):
+    def __init__(self, *args, weight: float = 1e-3, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.weight = weight
+
+    def forward(self, tensordict):
+        out = super().forward(tensordict)
+        sq = torch.stack([p.pow(2).sum() for p in self.critic_network.parameters()]).sum()
+        out.set("loss_norm", self.weight * sq)  # summed into the total (TorchRL's loss_* convention)
+        out.set("critic_sq_norm", sq.detach())  # a metric: logged as train/critic_sq_norm
+        return out
 '''
 
 PYPROJECT = """
@@ -184,6 +204,7 @@ def test_a_plugin_loss_runs_resumes_and_goes_into_an_experiment(plugin: Path, tm
     proc = _adarl(None, elsewhere, "resume", str(run), "--quiet")
     assert proc.returncode != 0
     assert "robust_sac" in proc.stderr and "adarl.plugins" in proc.stderr, proc.stderr[-2000:]
+    assert "'adarl-robust-sac' 0.1.0" in proc.stderr and "pip install adarl-robust-sac" in proc.stderr
     assert _snapshot(run) == before
 
     # resume with it: the run finishes as the same algorithm, on the fused update (a TD-target shift only)
@@ -211,3 +232,26 @@ def test_a_plugin_loss_runs_resumes_and_goes_into_an_experiment(plugin: Path, tm
     for r in runs:
         assert "name: robust_sac" in (r / "recipe.yaml").read_text()
         assert _target_shift(r)
+
+
+@pytest.mark.slow
+def test_a_plugin_loss_on_the_ppo_loop_runs_and_logs_its_own_terms(plugin: Path, tmp_path: Path):
+    """base='ppo': the plugin's loss gets ClipPPOLoss's arguments plus its options; its extra loss_* entry is part of
+    the total and logged, its other scalars are logged as train/<key>."""
+    recipe = tmp_path / "norm_ppo.yaml"
+    recipe.write_text(
+        f"extends: {REPO / 'recipes' / 'baselines' / 'ppo_base.yaml'}\nname: norm_ppo\nenv: {{id: Hopper-v5}}\n"
+        "algorithm:\n  name: norm_ppo\n  options: {weight: 0.01}\n"
+    )
+    run = tmp_path / "run"
+    tiny = ["collector.total_frames=256", "collector.frames_per_batch=128", "algorithm.ppo.epochs=1"]
+    tiny += ["eval.interval=256", "eval.episodes=1", "eval.max_steps=20", "checkpoint.interval=128"]
+    tiny += ["logging.log_interval=128"]
+    proc = _adarl(plugin, tmp_path, "run", str(recipe), *tiny, "-o", str(run), "--quiet")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    scalars = run / "metrics" / "scalars" / "train"
+    for name in ("loss_norm", "critic_sq_norm", "loss_objective", "loss_critic"):
+        assert (scalars / f"{name}.csv").is_file(), sorted(p.name for p in scalars.glob("*"))
+    with (scalars / "critic_sq_norm.csv").open() as f:
+        assert all(float(row[-1]) > 0 for row in csv.reader(f) if row)
+    assert '"package": "adarl-robust-sac"' in (run / "plugins.json").read_text()

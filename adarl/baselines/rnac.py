@@ -27,7 +27,15 @@ from torchrl.objectives.value import GAE
 
 from adarl.errors import AdaRLValueError
 
-__all__ = ["critic_parameter_norm", "IPMAdvantage", "DoubleSamplingTransform", "mujoco_state", "set_mujoco_state"]
+__all__ = [
+    "critic_parameter_norm",
+    "IPMAdvantage",
+    "DoubleSamplingTransform",
+    "mujoco_state",
+    "set_mujoco_state",
+    "make_ipm_advantage",
+    "make_double_sampling",
+]
 
 
 def critic_parameter_norm(critic: nn.Module) -> torch.Tensor:
@@ -200,3 +208,24 @@ class DoubleSamplingTransform(Transform):
 
     def set_rng_state(self, state: dict) -> None:
         self.rng.bit_generator.state = state
+
+
+# ---- the hooks through which the registered algorithms rnac_ipm and rnac_ds (adarl.plugins) plug into the PPO loop
+
+
+def make_ipm_advantage(recipe, critic) -> IPMAdvantage:
+    """``rnac_ipm``'s advantage hook: GAE on the reward shifted by ``algorithm.options.kappa * ||theta_critic||``."""
+    alg = recipe.algorithm
+    return IPMAdvantage(
+        gamma=alg.gamma,
+        lmbda=alg.ppo.gae_lambda,
+        value_network=critic,
+        kappa=alg.options["kappa"],
+        average_gae=False,
+    )
+
+
+def make_double_sampling(recipe, critic) -> DoubleSamplingTransform:
+    """``rnac_ds``'s env hook: the double-sampling transform on the training env, pessimistic w.r.t. ``critic``."""
+    o = recipe.algorithm.options
+    return DoubleSamplingTransform(o["num_candidates"], o["noise"], value_network=critic, seed=recipe.seed + 2)

@@ -28,6 +28,7 @@ from dataclasses import asdict, dataclass
 
 import torch
 
+from adarl import plugins
 from adarl.errors import AdaRLValueError
 
 __all__ = [
@@ -238,10 +239,31 @@ RULES: dict[str, type[RankRule]] = {
 
 
 def make_rule(name: str, **kwargs) -> RankRule:
-    """Build a rule by its registry name (``energy``, ``energy_inclusive``, ``ratio``, ``fixed``, ``policy_fit``)."""
-    if name not in RULES:
-        raise AdaRLValueError(f"unknown rank rule {name!r}; allowed: {sorted(RULES)}")
+    """Build a rule by its name: one of :data:`RULES` (``energy``, ``energy_inclusive``, ``ratio``, ``fixed``,
+    ``policy_fit``, and any class added to it), else one registered with :func:`adarl.register_rank_rule`
+    (installed plugins included), built with ``kwargs``."""
+    cls = RULES.get(name)
+    if cls is None:
+        cls = _registered_rule_class(name)
     try:
-        return RULES[name](**kwargs)
+        return cls(**kwargs)
     except TypeError as err:
         raise AdaRLValueError(f"rank rule {name!r}: {err}") from None
+
+
+def _registered_rule_class(name: str) -> type[RankRule]:
+    """The class registered as ``name`` in :mod:`adarl.plugins` (the registry recipes use).
+
+    That module imports neither torch nor anything of core (it names core's rules by ``"module:Class"`` path), so
+    this is no import cycle (tests/test_architecture.py)."""
+    if name not in plugins.rank_rule_names(load=False):
+        plugins.load_entry_points()
+    names = list(dict.fromkeys([*RULES, *plugins.rank_rule_names(load=False)]))
+    if name not in names:
+        raise AdaRLValueError(f"unknown rank rule {name!r}; allowed: {sorted(names)}")
+    cls = plugins.rank_rule(name).rule_class()
+    if not (isinstance(cls, type) and issubclass(cls, RankRule)):
+        raise AdaRLValueError(
+            f"rank rule {name!r} is registered as {cls!r}, which is not an adarl.core.rank.RankRule subclass"
+        )
+    return cls

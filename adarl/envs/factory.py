@@ -76,6 +76,7 @@ def _worker_parts(
     num_workers: int,
 ) -> tuple[EnvBase, PerturbedDynamicsEnvTransform | None]:
     kwargs = {"max_episode_steps": max_episode_steps} if max_episode_steps is not None else {}
+    check_env_id(env_id)  # in a fresh worker process: an installed plugin registers its env id with gymnasium
     if env_id == LINEAR_CARTPOLE_ID:  # adarl's own TorchRL env, no gymnasium underneath
         base = LinearCartPoleEnv(device=device, **kwargs)
     else:
@@ -112,7 +113,8 @@ def make_env(
     """A TorchRL env whose dynamics change every episode.
 
     Args:
-        env_id: a gymnasium id from :data:`adarl.envs.SUPPORTED_ENVS` (e.g. ``"Hopper-v5"``).
+        env_id: a gymnasium id from :data:`adarl.envs.SUPPORTED_ENVS` (e.g. ``"Hopper-v5"``) or one registered
+            with :func:`adarl.register_env`.
         preset: ``"paper"``, ``"low"``, ``"high"``, ``"nominal"`` or ``"none"`` (see :func:`make_schedule`).
         schedule: a :class:`Schedule` or its dict; overrides ``preset``.
         mode: ``"consistent"`` (mass/inertia follow geometry) or ``"ompo"`` (geometry only, as the paper).

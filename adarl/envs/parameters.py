@@ -23,6 +23,10 @@ every MuJoCo env            ``mass_scale``                every body's mass and 
 every MuJoCo env            ``mass_scale:<body>``         that body's mass and inertia times s
 every MuJoCo env            ``friction_scale``            every geom's friction coefficients times s
 ==========================  ============================  =======================================================
+
+Installed packages add env ids (:func:`register_env`) and parameters (:func:`register_parameter`, e.g. a body's
+length on Hopper-v5) through the ``adarl.plugins`` entry-point group, loaded when an id or a parameter name is
+not known yet (docs/adding-a-component.md).
 """
 
 from __future__ import annotations
@@ -31,15 +35,17 @@ import contextlib
 import math
 import os
 from collections import OrderedDict
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import asdict, dataclass
 from functools import cache
+from importlib.util import find_spec
 from typing import Any
 
 import numpy as np
 
-from adarl.envs.schedules import FixedSchedule, Schedule, SinusoidSchedule, UniformSchedule
-from adarl.errors import AdaRLValueError
+from adarl import plugins
+from adarl.envs.schedules import FixedSchedule, Schedule, SinusoidSchedule, UniformSchedule, as_schedule
+from adarl.errors import AdaRLValueError, did_you_mean
 
 __all__ = [
     "SUPPORTED_ENVS",
@@ -62,6 +68,10 @@ __all__ = [
     "LinearCartPoleDynamics",
     "make_applier",
     "quiet_mujoco",
+    "register_env",
+    "register_parameter",
+    "supported_envs",
+    "HOW_TO_REGISTER_ENV",
 ]
 
 #: The environments the paper perturbs (each has a ``paper`` preset).
@@ -90,7 +100,7 @@ _MUJOCO_XML: dict[str, str] = {
     "HumanoidStandup-v5": "humanoidstandup.xml",
 }
 
-#: Every environment id the perturbation accepts.
+#: adarl's own environment ids (:func:`supported_envs` adds those installed plugins register).
 SUPPORTED_ENVS: tuple[str, ...] = PAPER_ENVS + tuple(e for e in _MUJOCO_XML if e not in PAPER_ENVS)
 
 #: Physics modes: ``consistent`` (mass and inertia follow the geometry) and ``ompo`` (geometry only, as OMPO).
@@ -116,16 +126,18 @@ class ParameterInfo:
     """One perturbable parameter: its environment default and the range in which the model stays valid.
 
     ``low_open`` / ``high_open`` say whether the bound itself is excluded (lengths and scales must be ``> 0``).
+    Only ``name`` and ``default`` are required (the range then is every finite number), e.g. a length:
+    ``ParameterInfo("thigh_length", 0.225, low=0.0, low_open=True, unit="m", description="thigh half-length")``.
     """
 
     name: str
     default: float
-    low: float
-    high: float
-    low_open: bool
-    high_open: bool
-    unit: str
-    description: str
+    low: float = -_INF
+    high: float = _INF
+    low_open: bool = False
+    high_open: bool = False
+    unit: str = ""
+    description: str = ""
 
     def allowed(self) -> str:
         """The valid range in words, e.g. ``'finite numbers > 0'``."""
@@ -207,22 +219,74 @@ _GENERIC: tuple[ParameterInfo, ...] = (
 
 _BODY_MASS_PREFIX = "mass_scale:"
 
+HOW_TO_REGISTER_ENV = (
+    "register one with adarl.register_env(...) (a parameter: adarl.register_parameter(...)) in a package that "
+    f"declares an {plugins.ENTRY_POINT_GROUP!r} entry point, then pip install it (docs/adding-a-component.md)"
+)
+
+#: What a registered parameter does: ``apply(editor, value, defaults)``. For a MuJoCo env ``editor`` edits the
+#: model's geometry (``set_body_z``, ``set_half_length``, ``scale_along``; an ``MjSpec`` in ``consistent`` mode,
+#: the live arrays in ``ompo`` mode); for another registered env it is the live (unwrapped) gymnasium env.
+#: ``defaults``: every parameter's default by name (and the built-in edits' own numbers).
+ParameterApply = Callable[[Any, float, Mapping[str, Any]], None]
+
+
+@dataclass(frozen=True)
+class _RegisteredEnv:
+    env_id: str
+    xml: str | None  # the absolute path of its MuJoCo model file, None for an env without one
+    description: str
+    provider: str | None  # the distribution whose entry point registered it (None: registered directly)
+
+
+# Env ids registered by plugins (adarl's own are SUPPORTED_ENVS), the parameters registered on any env (by
+# whom), and the registered envs whose 'nominal' preset follows their parameters' defaults.
+_REGISTERED: dict[str, _RegisteredEnv] = {}
+_PARAMETER_PROVIDERS: dict[tuple[str, str], str] = {}
+_DERIVED_NOMINAL: set[str] = set()
+# Built-in envs with an applier of their own (no MuJoCo model to edit): registered parameters would never apply.
+_OWN_APPLIER = ("CartPole-v1", "LinearCartPole-v0")
+# Parameters MujocoDynamics applies itself (by name, whatever the env): a registered one would be applied twice.
+_RESERVED = ("mass_scale", "friction_scale", "gravity", "wind", "episode")
+
+
+def _known_envs() -> tuple[str, ...]:
+    return SUPPORTED_ENVS + tuple(e for e in _REGISTERED if e not in SUPPORTED_ENVS)
+
+
+def supported_envs(*, load: bool = True) -> tuple[str, ...]:
+    """Every env id adarl accepts: :data:`SUPPORTED_ENVS` (adarl's own), then those registered with
+    :func:`register_env` (``load``: installed plugins' ``adarl.plugins`` entry points are loaded first)."""
+    if load:
+        plugins.load_entry_points()
+    return _known_envs()
+
 
 def check_env_id(env_id: Any) -> str:
-    """``env_id`` if supported, else :class:`AdaRLValueError` (pointing other versions at the supported one)."""
+    """``env_id`` if supported, else :class:`AdaRLValueError` (pointing other versions at the supported one).
+
+    An id not known yet gives installed plugins (the ``adarl.plugins`` entry points) a chance to register it."""
     if not isinstance(env_id, str):
-        raise AdaRLValueError(f"env id must be a string, got {env_id!r}; supported: {list(SUPPORTED_ENVS)}")
-    if env_id in SUPPORTED_ENVS:
+        raise AdaRLValueError(f"env id must be a string, got {env_id!r}; supported: {list(_known_envs())}")
+    if env_id in SUPPORTED_ENVS or env_id in _REGISTERED:
         return env_id
+    plugins.load_entry_points()
+    if env_id in _REGISTERED:
+        return env_id
+    known = _known_envs()
     family = env_id.rsplit("-v", 1)[0].lower()
-    for supported in SUPPORTED_ENVS:
+    for supported in known:
         if supported.rsplit("-v", 1)[0].lower() == family:
+            kind = "gymnasium " if supported in SUPPORTED_ENVS else ""
             raise AdaRLValueError(
-                f"env id {env_id!r} is not supported: the perturbations are written for the gymnasium "
+                f"env id {env_id!r} is not supported: the perturbations are written for the {kind}"
                 f"{supported.rsplit('-', 1)[1]} models (their XML bodies and geoms); use {supported!r}. "
-                f"Supported: {list(SUPPORTED_ENVS)}"
+                f"Supported: {list(known)}"
             )
-    raise AdaRLValueError(f"unknown env id {env_id!r}; supported: {list(SUPPORTED_ENVS)}")
+    raise AdaRLValueError(
+        f"unknown env id {env_id!r}; supported: {list(known)}{did_you_mean(env_id, known)} (no installed plugin "
+        f"registers it; {HOW_TO_REGISTER_ENV})"
+    )
 
 
 def check_mode(mode: Any) -> str:
@@ -235,11 +299,20 @@ def is_mujoco(env_id: str) -> bool:
     return check_env_id(env_id) in _MUJOCO_XML
 
 
-def default_xml_path(env_id: str) -> str:
-    """The gymnasium asset file the env id loads by default."""
-    import gymnasium.envs.mujoco as gym_mujoco
+def _gymnasium_assets() -> str:
+    """gymnasium's MuJoCo asset folder, found without importing gymnasium (nor MuJoCo)."""
+    spec = find_spec("gymnasium")
+    if spec is None or spec.origin is None:
+        raise AdaRLValueError("gymnasium is not installed: its MuJoCo model files cannot be found")
+    return os.path.join(os.path.dirname(spec.origin), "envs", "mujoco", "assets")
 
-    return os.path.join(os.path.dirname(gym_mujoco.__file__), "assets", _MUJOCO_XML[check_env_id(env_id)])
+
+def default_xml_path(env_id: str) -> str:
+    """The MuJoCo model file the env id loads by default (a gymnasium asset, or the file it was registered with)."""
+    env_id = check_env_id(env_id)
+    if env_id not in _MUJOCO_XML:
+        raise AdaRLValueError(f"{env_id} has no MuJoCo model file (it was registered without xml=...)")
+    return os.path.join(_gymnasium_assets(), _MUJOCO_XML[env_id])  # an absolute path is kept as it is
 
 
 @contextlib.contextmanager
@@ -273,13 +346,7 @@ def body_parameter(body: str) -> str:
     return _BODY_MASS_PREFIX + body
 
 
-def env_parameters(env_id: str) -> dict[str, ParameterInfo]:
-    """``{name: ParameterInfo}`` for every parameter ``env_id`` accepts (default value and valid range).
-
-    MuJoCo environments also get ``mass_scale``, ``friction_scale`` and one ``mass_scale:<body>`` per named body
-    of the default model.
-    """
-    env_id = check_env_id(env_id)
+def _parameters(env_id: str) -> dict[str, ParameterInfo]:
     params = {p.name: p for p in _SPECIFIC.get(env_id, ())}
     if env_id in _MUJOCO_XML:
         params.update({p.name: p for p in _GENERIC})
@@ -289,15 +356,33 @@ def env_parameters(env_id: str) -> dict[str, ParameterInfo]:
     return params
 
 
+def env_parameters(env_id: str, *, require: Iterable[Any] = ()) -> dict[str, ParameterInfo]:
+    """``{name: ParameterInfo}`` for every parameter ``env_id`` accepts (default value and valid range).
+
+    MuJoCo environments also get ``mass_scale``, ``friction_scale`` and one ``mass_scale:<body>`` per named body
+    of the default model, and every environment the parameters registered for it (:func:`register_parameter`).
+    ``require``: names the caller needs; when one is not known, installed plugins are loaded first.
+    """
+    env_id = check_env_id(env_id)
+    params = _parameters(env_id)
+    if any(name not in params for name in require):
+        plugins.load_entry_points()
+        params = _parameters(env_id)
+    return params
+
+
 def _unknown(env_id: str, name: Any, allowed: Mapping) -> AdaRLValueError:
-    return AdaRLValueError(f"unknown parameter {name!r} for {env_id}; allowed: {list(allowed)}")
+    return AdaRLValueError(
+        f"unknown parameter {name!r} for {env_id}; allowed: {list(allowed)}{did_you_mean(str(name), allowed)} "
+        "(to add one: adarl.register_parameter(...) in an installed plugin, docs/adding-a-component.md)"
+    )
 
 
 def validate_values(env_id: str, values: Mapping[str, Any]) -> dict[str, float]:
     """Check names and values against the registry; returns ``{name: float}`` in sorted order."""
-    allowed = env_parameters(env_id)
     if not isinstance(values, Mapping):
         raise AdaRLValueError(f"dynamics values for {env_id} must be a mapping {{parameter: value}}, got {values!r}")
+    allowed = env_parameters(env_id, require=values)
     out = {}
     for name in sorted(values, key=str):
         if name not in allowed:
@@ -306,9 +391,7 @@ def validate_values(env_id: str, values: Mapping[str, Any]) -> dict[str, float]:
     return out
 
 
-def validate_schedule(env_id: str, schedule: Schedule) -> Schedule:
-    """Check that every parameter of ``schedule`` exists for ``env_id`` and every value it can produce is valid."""
-    allowed = env_parameters(env_id)
+def _check_schedule(env_id: str, schedule: Schedule, allowed: Mapping[str, ParameterInfo]) -> Schedule:
     for name in schedule.params:
         if name not in allowed:
             raise _unknown(env_id, name, allowed)
@@ -316,6 +399,204 @@ def validate_schedule(env_id: str, schedule: Schedule) -> Schedule:
         for value in (lo, hi):
             allowed[name].validate(value, env_id, what=f"{name} (the {schedule.kind} schedule reaches {value!r})")
     return schedule
+
+
+def validate_schedule(env_id: str, schedule: Schedule) -> Schedule:
+    """Check that every parameter of ``schedule`` exists for ``env_id`` and every value it can produce is valid."""
+    return _check_schedule(env_id, schedule, env_parameters(env_id, require=schedule.params))
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Registration (by installed plugins, through the adarl.plugins entry-point group)
+# ----------------------------------------------------------------------------------------------------------------
+
+
+def _resolve_xml(env_id: str, xml: Any) -> str:
+    """The absolute path of a model file given as a path or as the name of a gymnasium asset (``hopper.xml``)."""
+    if not isinstance(xml, (str, os.PathLike)) or not str(xml):
+        raise AdaRLValueError(f"register_env({env_id!r}): xml must be a path or a gymnasium asset name, got {xml!r}")
+    path = os.fspath(xml)
+    if not os.path.isabs(path):
+        path = os.path.join(_gymnasium_assets(), path)
+    if not os.path.isfile(path):
+        raise AdaRLValueError(
+            f"register_env({env_id!r}): no MuJoCo model file {os.fspath(xml)!r} (looked at {path}); give an "
+            "absolute path (e.g. one next to your module) or the name of a gymnasium asset such as 'hopper.xml'"
+        )
+    return path
+
+
+def _registry_state() -> dict[str, Any]:
+    """A copy of every registry :func:`register_env` and :func:`register_parameter` change (for a rollback)."""
+    return {
+        "_MUJOCO_XML": dict(_MUJOCO_XML),
+        "_SPECIFIC": dict(_SPECIFIC),
+        "_GEOMETRY": {k: dict(v) for k, v in _GEOMETRY.items()},
+        "_PRESET_TABLE": {k: dict(v) for k, v in _PRESET_TABLE.items()},
+        "_REGISTERED": dict(_REGISTERED),
+        "_PARAMETER_PROVIDERS": dict(_PARAMETER_PROVIDERS),
+        "_DERIVED_NOMINAL": set(_DERIVED_NOMINAL),
+    }
+
+
+def _restore_registry(state: Mapping[str, Any]) -> None:
+    """Put the registries back as :func:`_registry_state` saw them (the same objects, refilled)."""
+    for name, saved in state.items():
+        registry = globals()[name]
+        registry.clear()
+        registry.update(saved)
+    _body_names.cache_clear()
+
+
+def _provider() -> str | None:
+    # the distribution whose entry point is loading now, if any (adarl.plugins' bookkeeping)
+    return getattr(plugins, "_current_provider", [None])[0]
+
+
+def _derive_nominal(env_id: str) -> None:
+    """The 'nominal' preset of a registered env that gave none: its own parameters at their defaults (a MuJoCo
+    env with none of its own: mass_scale and friction_scale at 1, as the other MuJoCo envs)."""
+    own = {p.name: p.default for p in _SPECIFIC.get(env_id, ())}
+    if not own and env_id in _MUJOCO_XML:
+        own = {"mass_scale": 1.0, "friction_scale": 1.0}
+    _PRESET_TABLE[env_id]["nominal"] = FixedSchedule(own)
+
+
+def register_parameter(env_id: str, info: ParameterInfo, apply: ParameterApply, *, replace: bool = False) -> None:
+    """Make ``info.name`` a perturbable parameter of ``env_id`` (adarl's own env or one from :func:`register_env`).
+
+    ``apply(editor, value, defaults)`` sets the parameter to ``value`` (absolutely: every application starts from
+    the env's defaults, so nothing compounds). For a MuJoCo env ``editor`` is the geometry editor the built-in
+    length parameters use (``set_body_z(body, z)``, ``set_half_length(geom, h)``, ``scale_along(geom, factor)``):
+    in ``consistent`` mode it edits an ``MjSpec`` of the model file, which is compiled (cached per value set) so
+    that mass and inertia follow the geometry; in ``ompo`` mode it edits the live model's arrays. For a registered
+    env without a MuJoCo model ``editor`` is the live (unwrapped) gymnasium env. ``defaults`` maps every parameter
+    of the env to its default. Values outside ``info``'s range are refused before ``apply`` is called.
+
+    A name registered twice for the same env is an error (``replace=True`` to override on purpose, a built-in
+    length parameter included); ``mass_scale``, ``friction_scale``, ``mass_scale:<body>``, ``gravity``, ``wind``
+    and ``episode`` are applied by adarl itself and cannot be registered.
+    """
+    if env_id in _OWN_APPLIER:
+        raise AdaRLValueError(
+            f"register_parameter({env_id!r}, ...): {env_id} has an applier of its own, not a MuJoCo model; "
+            "register parameters for MuJoCo envs or for envs registered with register_env"
+        )
+    env_id = check_env_id(env_id)
+    if not isinstance(info, ParameterInfo):
+        raise AdaRLValueError(
+            f"register_parameter({env_id!r}, ...): info must be an adarl.envs.ParameterInfo, got {info!r}"
+        )
+    name = info.name
+    if not isinstance(name, str) or not name.isidentifier():
+        raise AdaRLValueError(
+            f"register_parameter({env_id!r}, ...): the parameter name must be an identifier (letters, digits, _), "
+            f"got {name!r}"
+        )
+    if name in _RESERVED or name.startswith(_BODY_MASS_PREFIX):
+        raise AdaRLValueError(
+            f"register_parameter({env_id!r}, ...): {name!r} is applied by adarl itself; reserved names: "
+            f"{list(_RESERVED)} and '{_BODY_MASS_PREFIX}<body>'"
+        )
+    if not callable(apply):
+        raise AdaRLValueError(
+            f"register_parameter({env_id!r}, {name!r}): apply must be a function apply(editor, value, defaults), "
+            f"got {apply!r}"
+        )
+    info.validate(info.default, env_id, what=f"the default of {name}")
+    if any(p.name == name for p in _SPECIFIC.get(env_id, ())) and not replace:
+        owner = _PARAMETER_PROVIDERS.get((env_id, name), "adarl")
+        raise AdaRLValueError(
+            f"parameter {name!r} of {env_id} is already registered (from {owner}); pick another name or pass "
+            "replace=True"
+        )
+    _SPECIFIC[env_id] = (*(p for p in _SPECIFIC.get(env_id, ()) if p.name != name), info)
+    _GEOMETRY.setdefault(env_id, {})[name] = apply
+    _PARAMETER_PROVIDERS[(env_id, name)] = _provider() or "register_parameter"
+    if env_id in _DERIVED_NOMINAL:
+        _derive_nominal(env_id)
+
+
+def register_env(
+    env_id: str,
+    *,
+    xml: str | os.PathLike | None = None,
+    parameters: Iterable[tuple[ParameterInfo, ParameterApply]] = (),
+    presets: Mapping[str, Schedule | Mapping] | None = None,
+    description: str = "",
+    replace: bool = False,
+) -> None:
+    """Make the gymnasium env id ``env_id`` (registered with ``gymnasium.register`` by the plugin itself)
+    acceptable to adarl: in recipes (``env.id``), :func:`~adarl.envs.make_env` and the perturbation transform.
+
+    Args:
+        xml: its MuJoCo model file (an absolute path, or a gymnasium asset name such as ``"hopper.xml"``) when it
+            is a MuJoCo env: it then gets ``mass_scale``, ``friction_scale`` and ``mass_scale:<body>``, and its
+            parameters edit that model. Leave it None for an env without MuJoCo.
+        parameters: ``(ParameterInfo, apply)`` pairs, each as :func:`register_parameter` takes them.
+        presets: named schedules (a :class:`Schedule` or its dict) among ``"paper"``, ``"low"``, ``"high"`` and
+            ``"nominal"``; ``"none"`` (plain dynamics) always exists. Without ``"nominal"``, it is every
+            parameter of the env at its default. Without ``presets``, a MuJoCo env also gets the generic ``low``
+            and ``high`` boxes (mass and friction scales in [0.9, 1.1] and [0.7, 1.3]).
+        description: one line, for listings.
+        replace: re-register an id registered before (adarl's own ids cannot be replaced).
+    """
+    if not isinstance(env_id, str) or not env_id or env_id != env_id.strip():
+        raise AdaRLValueError(f"register_env: the env id must be a non-empty string without spaces, got {env_id!r}")
+    if env_id in SUPPORTED_ENVS:
+        raise AdaRLValueError(
+            f"register_env({env_id!r}): {env_id} is one of adarl's own envs; add parameters to it with "
+            "register_parameter instead"
+        )
+    old = _REGISTERED.get(env_id)
+    if old is not None and not replace:
+        raise AdaRLValueError(
+            f"env {env_id!r} is already registered (from {old.provider or 'register_env'}); pick another id or "
+            "pass replace=True"
+        )
+    path = None if xml is None else _resolve_xml(env_id, xml)
+    pairs = list(parameters)
+    for pair in pairs:
+        if not (isinstance(pair, tuple) and len(pair) == 2):
+            raise AdaRLValueError(
+                f"register_env({env_id!r}): parameters must be (ParameterInfo, apply) pairs, got {pair!r}"
+            )
+    named = dict(presets or {})
+    wrong = [p for p in named if p not in PRESETS or p == "none"]
+    if wrong:
+        raise AdaRLValueError(
+            f"register_env({env_id!r}): unknown preset name(s) {wrong}; allowed: "
+            f"{[p for p in PRESETS if p != 'none']} ('none' always exists)"
+        )
+    saved = _registry_state()
+    try:
+        for key in [k for k in _PARAMETER_PROVIDERS if k[0] == env_id]:
+            del _PARAMETER_PROVIDERS[key]
+        _DERIVED_NOMINAL.discard(env_id)
+        _MUJOCO_XML.pop(env_id, None)
+        if path is not None:
+            _MUJOCO_XML[env_id] = path
+        _body_names.cache_clear()
+        _SPECIFIC[env_id] = ()
+        _GEOMETRY[env_id] = {}
+        _REGISTERED[env_id] = _RegisteredEnv(env_id, path, str(description), _provider())
+        _PRESET_TABLE[env_id] = {}
+        for info, apply in pairs:
+            register_parameter(env_id, info, apply)
+        if presets is None and path is not None:
+            _PRESET_TABLE[env_id].update({k: v for k, v in _generic_presets().items() if k != "nominal"})
+        allowed = _parameters(env_id)
+        for name, schedule in named.items():
+            try:
+                _PRESET_TABLE[env_id][name] = _check_schedule(env_id, as_schedule(schedule), allowed)
+            except (AdaRLValueError, TypeError, ValueError) as err:
+                raise AdaRLValueError(f"register_env({env_id!r}): preset {name!r}: {err}") from err
+        if "nominal" not in _PRESET_TABLE[env_id]:
+            _DERIVED_NOMINAL.add(env_id)
+            _derive_nominal(env_id)
+    except BaseException:
+        _restore_registry(saved)
+        raise
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -416,6 +697,9 @@ def make_schedule(env_id: str, preset: str = "paper") -> Schedule:
     if preset == "none":
         return FixedSchedule({})
     if preset not in _PRESET_TABLE[env_id]:
+        plugins.load_entry_points()  # an installed plugin may register env ids and presets not loaded yet
+        available = preset_names(env_id)
+    if preset not in _PRESET_TABLE[env_id]:
         hint = " (the paper has no schedule for this env)" if preset == "paper" else ""
         raise AdaRLValueError(f"unknown preset {preset!r} for {env_id}{hint}; allowed presets: {available}")
     return _PRESET_TABLE[env_id][preset].from_dict(_PRESET_TABLE[env_id][preset].to_dict())
@@ -505,14 +789,20 @@ class _ModelEditor:
         self.model = model
         self.defaults = defaults
 
+    def _element(self, kind: str, name: str) -> Any:
+        try:
+            return self.model.body(name) if kind == "body" else self.model.geom(name)
+        except KeyError:
+            raise AdaRLValueError(f"the model has no {kind} named {name!r}") from None
+
     def set_body_z(self, body: str, z: float) -> None:
-        self.model.body(body).pos[2] = z
+        self._element("body", body).pos[2] = z
 
     def set_half_length(self, geom: str, value: float) -> None:
-        self.model.geom(geom).size[1] = value
+        self._element("geom", geom).size[1] = value
 
     def scale_along(self, geom: str, factor: float) -> None:
-        g = self.model.geom(geom)
+        g = self._element("geom", geom)
         g.size[1] = self.defaults["geom_size"][g.id][1] * factor
         g.pos[:] = self.defaults["geom_pos"][g.id] * factor
 
@@ -524,36 +814,41 @@ class _SpecEditor:
         self.spec = spec
         self.original: dict[tuple[str, str], np.ndarray] = {}
 
+    def _element(self, kind: str, name: str) -> Any:
+        element = self.spec.body(name) if kind == "body" else self.spec.geom(name)
+        if element is None:
+            raise AdaRLValueError(f"the model has no {kind} named {name!r}")
+        return element
+
     def _orig(self, kind: str, name: str, attr: str) -> np.ndarray:
         key = (kind, name + "/" + attr)
         if key not in self.original:
-            element = self.spec.body(name) if kind == "body" else self.spec.geom(name)
-            self.original[key] = np.array(getattr(element, attr), dtype=float)
+            self.original[key] = np.array(getattr(self._element(kind, name), attr), dtype=float)
         return self.original[key]
 
     def set_body_z(self, body: str, z: float) -> None:
         pos = self._orig("body", body, "pos").copy()
         pos[2] = z
-        self.spec.body(body).pos = pos
+        self._element("body", body).pos = pos
 
     def set_half_length(self, geom: str, value: float) -> None:
         size = self._orig("geom", geom, "size").copy()
         size[1] = value
-        self.spec.geom(geom).size = size
+        self._element("geom", geom).size = size
 
     def scale_along(self, geom: str, factor: float) -> None:
         fromto = self._orig("geom", geom, "fromto")
+        element = self._element("geom", geom)
         if np.isfinite(fromto).all():  # defined by its end points: scale them about the body origin
-            self.spec.geom(geom).fromto = fromto * factor
+            element.fromto = fromto * factor
         else:
-            self.spec.geom(geom).size = self._orig("geom", geom, "size") * np.array([1.0, factor, 1.0])
-            self.spec.geom(geom).pos = self._orig("geom", geom, "pos") * factor
+            element.size = self._orig("geom", geom, "size") * np.array([1.0, factor, 1.0])
+            element.pos = self._orig("geom", geom, "pos") * factor
 
     def reset(self) -> None:
         for (kind, key), value in self.original.items():
             name, attr = key.rsplit("/", 1)
-            element = self.spec.body(name) if kind == "body" else self.spec.geom(name)
-            setattr(element, attr, value.copy())
+            setattr(self._element(kind, name), attr, value.copy())
 
 
 def _torso(thighs: tuple[str, ...]):
@@ -627,7 +922,7 @@ class MujocoDynamics(DynamicsApplier):
         self.model = model
         self.params = tuple(params)
         self.xml_path = xml_path or default_xml_path(env_id)
-        allowed = env_parameters(env_id)
+        allowed = env_parameters(env_id, require=params)
         live_bodies = {model.body(i).name for i in range(1, model.nbody)} - {""}
         self._body_ids: dict[str, int] = {}
         for name in self.params:
@@ -654,10 +949,12 @@ class MujocoDynamics(DynamicsApplier):
         self.compiles = 0  # how many models were compiled (for tests and diagnostics)
 
     def _geometry_defaults(self) -> dict[str, float]:
-        m, out = self.model, {}
+        """What the edits get as ``defaults``: every parameter's default, and the built-in edits' own numbers."""
+        m = self.model
         if not self.geometry:
-            return out
-        bodies, geoms = _REQUIRED_NAMES[self.env_id]
+            return {}
+        out = {n: p.default for n, p in env_parameters(self.env_id).items() if not n.startswith(_BODY_MASS_PREFIX)}
+        bodies, geoms = _REQUIRED_NAMES.get(self.env_id, ((), ()))
         try:
             for name in bodies:
                 m.body(name)
@@ -672,9 +969,17 @@ class MujocoDynamics(DynamicsApplier):
         if "torso" in bodies:
             out["torso_z"] = float(m.body("torso").pos[2])
             out["torso_half"] = float(m.geom("torso_geom").size[1])
-        if "cpole" in geoms:
-            out["pole_length"] = env_parameters(self.env_id)["pole_length"].default
         return out
+
+    def _edit(self, editor: Any, name: str, value: float) -> None:
+        try:
+            self.geometry[name](editor, value, self._geo_defaults)
+        except AdaRLValueError as err:
+            raise AdaRLValueError(f"{self.env_id}: parameter {name} = {value!r}: {err}") from err
+        except Exception as err:  # noqa: BLE001 - a registered parameter's own code, named with its parameter
+            raise AdaRLValueError(
+                f"{self.env_id}: applying parameter {name} = {value!r} failed: {type(err).__name__}: {err}"
+            ) from err
 
     def _is_default(self, name: str, value: float) -> bool:
         return abs(value - env_parameters(self.env_id)[name].default) <= 1e-12
@@ -693,7 +998,7 @@ class MujocoDynamics(DynamicsApplier):
         editor = self._spec_editor
         editor.reset()
         for name, value in geo.items():
-            self.geometry[name](editor, value, self._geo_defaults)
+            self._edit(editor, name, value)
         with quiet_mujoco():
             compiled = self._spec.compile()
         self.compiles += 1
@@ -729,7 +1034,7 @@ class MujocoDynamics(DynamicsApplier):
             else:
                 editor = _ModelEditor(model, self.defaults)
                 for name, value in geo.items():
-                    self.geometry[name](editor, value, self._geo_defaults)
+                    self._edit(editor, name, value)
 
         scale = np.ones(model.nbody)
         if "mass_scale" in values:
@@ -751,6 +1056,35 @@ class MujocoDynamics(DynamicsApplier):
         mujoco.mj_setConst(model, self._scratch)
 
 
+class _LiveEnvDynamics(DynamicsApplier):
+    """A registered env without a MuJoCo model file: each parameter's ``apply(env, value, defaults)`` on the live
+    (unwrapped) gymnasium env, every time with every parameter (its default when not given), so nothing compounds.
+    """
+
+    def __init__(self, unwrapped: Any, env_id: str, params: tuple[str, ...]) -> None:
+        allowed = env_parameters(env_id, require=params)
+        for name in params:
+            if name not in allowed:
+                raise _unknown(env_id, name, allowed)
+        self.env_id = env_id
+        self.env = unwrapped
+        self.params = tuple(params)
+        self.edits = {p: _GEOMETRY[env_id][p] for p in self.params}
+        self.defaults = {n: p.default for n, p in allowed.items()}
+
+    def apply(self, values: Mapping[str, float]) -> None:
+        for name, edit in self.edits.items():
+            value = float(values.get(name, self.defaults[name]))
+            try:
+                edit(self.env, value, self.defaults)
+            except AdaRLValueError:
+                raise
+            except Exception as err:  # noqa: BLE001 - a registered parameter's own code, named with its parameter
+                raise AdaRLValueError(
+                    f"{self.env_id}: applying parameter {name} = {value!r} failed: {type(err).__name__}: {err}"
+                ) from err
+
+
 def make_applier(env_id: str, unwrapped: Any, params: tuple[str, ...], mode: str = "consistent") -> DynamicsApplier:
     """The applier for a live (unwrapped) gymnasium environment."""
     env_id = check_env_id(env_id)
@@ -759,10 +1093,12 @@ def make_applier(env_id: str, unwrapped: Any, params: tuple[str, ...], mode: str
         return CartPoleDynamics(unwrapped, env_id)
     if env_id == "LinearCartPole-v0":
         return LinearCartPoleDynamics(unwrapped, env_id)
+    if env_id in _REGISTERED and env_id not in _MUJOCO_XML:
+        return _LiveEnvDynamics(unwrapped, env_id, params)
     model = getattr(unwrapped, "model", None)
     if model is None or not hasattr(model, "body_mass"):
         raise AdaRLValueError(
             f"{env_id}: the live environment {type(unwrapped).__name__} has no MuJoCo model (`.model`); "
-            f"supported: {list(SUPPORTED_ENVS)}"
+            f"supported: {list(_known_envs())}"
         )
     return MujocoDynamics(model, env_id, params, mode, xml_path=getattr(unwrapped, "fullpath", None))

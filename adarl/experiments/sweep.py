@@ -22,7 +22,6 @@ from pathlib import Path
 from adarl.envs.factory import make_eval_env, resolve_schedule
 from adarl.envs.parameters import env_parameters
 from adarl.errors import AdaRLValueError
-from adarl.runtime.config import load_recipe
 from adarl.runtime.evaluation import EvalResult, evaluate_policy
 from adarl.runtime.report import pyplot
 from adarl.runtime.run_dir import RunDir
@@ -168,7 +167,7 @@ def sweep_policy(
     names = [n for n, _ in axes]
     if len(set(names)) != len(names):
         raise AdaRLValueError(f"sweep parameters must differ, got {names}")
-    allowed = env_parameters(env_id)
+    allowed = env_parameters(env_id, require=names)  # a plugin's parameter: its package is loaded first
     for n in names:
         if n not in allowed:
             raise AdaRLValueError(f"unknown sweep parameter {n!r} for {env_id}; allowed: {list(allowed)}")
@@ -204,8 +203,8 @@ def sweep_run(
     :meth:`~adarl.runtime.trainers.base.BaseTrainer.resume` takes it); writes ``sweeps/<name>.{csv,json,png}`` there
     and nothing else (the run is loaded read-only)."""
     # Check the grid against the run's env before loading anything heavy.
-    env_id = load_recipe(str(RunDir.open(run_dir).recipe_path)).env.id
-    allowed = env_parameters(env_id)
+    env_id = RunDir.open(run_dir).load_recipe().env.id
+    allowed = env_parameters(env_id, require=[n for n, _ in axes])
     for n, _ in axes:
         if n not in allowed:
             raise AdaRLValueError(f"unknown sweep parameter {n!r} for {env_id}; allowed: {list(allowed)}")

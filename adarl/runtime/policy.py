@@ -22,7 +22,6 @@ from adarl.errors import AdaRLValueError, CheckpointError
 from adarl.runtime.builders.common import check_device, policy_specs, spec_env
 from adarl.runtime.builders.ppo import make_ppo_modules
 from adarl.runtime.builders.sac import make_recipe_actor
-from adarl.runtime.config import load_recipe
 from adarl.runtime.run_dir import RunDir
 
 __all__ = ["load_policy", "LoadedPolicy", "load_policy_with_info", "WHICH"]
@@ -123,7 +122,7 @@ def load_policy_with_info(
     """:func:`load_policy`, with the recipe, run folder, checkpoint file and frames it was saved at."""
     dev = check_device(device)
     run, ckpt, state = _checkpoint(run_dir_or_checkpoint, which)
-    recipe = load_recipe(str(run.recipe_path)).model_copy(update={"device": str(dev)})
+    recipe = run.load_recipe().model_copy(update={"device": str(dev)})
     specs = state.get("policy_specs") or _specs_from_env_id(recipe.env.id)
     env = spec_env(specs, dev)
     if recipe.algorithm.base == "ppo":

@@ -44,9 +44,9 @@ from pathlib import Path
 import torch
 from torchrl.record import loggers as torchrl_loggers
 
-from adarl import __version__
-from adarl.errors import AdaRLError, CheckpointError, CheckpointFallbackWarning, describe_os_error
-from adarl.runtime.config import recipe_to_yaml
+from adarl import __version__, plugins
+from adarl.errors import AdaRLError, CheckpointError, CheckpointFallbackWarning, RecipeError, describe_os_error
+from adarl.runtime.config import load_recipe, recipe_to_yaml, save_resolved
 
 try:  # POSIX: a lock the kernel drops when its process dies (kill -9 included)
     import fcntl
@@ -63,6 +63,7 @@ REPLAY_BUFFER_FILE = "buffer.pt"  # inside rb-<frames>/; older checkpoints hold 
 # files of a run folder are report.md, plots/, eval_nominal.json and sweeps/.
 TRAINING_RECORDS = (
     "recipe.yaml",
+    "plugins.json",
     LOCK_FILE,
     "metrics/",
     "eval.csv",
@@ -85,6 +86,7 @@ def recipe_fingerprint(recipe) -> dict:
     by name before any tensor is used (keys absent on either side, from other adarl versions, are not compared)."""
     fp = {
         "algorithm.name": recipe.algorithm.name,
+        "algorithm.options": dict(recipe.algorithm.options),
         "env.id": recipe.env.id,
         "env.num_envs": recipe.env.num_envs,
         "algorithm.num_qvalue_nets": recipe.algorithm.num_qvalue_nets,
@@ -103,6 +105,20 @@ def recipe_fingerprint(recipe) -> dict:
         fp["algorithm.ppo.obs_norm"] = recipe.algorithm.ppo.obs_norm
         fp["algorithm.ppo.policy"] = recipe.algorithm.ppo.policy
     return fp
+
+
+def _same_in_fingerprint(key: str, theirs: dict, ours: dict) -> bool:
+    """Whether a checkpoint's fingerprint entry matches this run's. Checkpoints written before RNAC became the
+    registered algorithms ``rnac_ipm``/``rnac_ds`` say ``ppo`` and have no options (their recipe.yaml's old
+    ``algorithm.rnac`` section is read as the new name, :mod:`adarl.runtime.config.schema`)."""
+    if theirs[key] == ours[key]:
+        return True
+    return (
+        key == "algorithm.name"
+        and theirs[key] == "ppo"
+        and str(ours[key]).startswith("rnac_")
+        and "algorithm.options" not in theirs
+    )
 
 
 class _Fanout:
@@ -226,6 +242,49 @@ class RunDir:
     @property
     def recipe_path(self) -> Path:
         return self.path / "recipe.yaml"
+
+    @property
+    def plugins_path(self) -> Path:
+        """``plugins.json``: where the run's registered algorithm came from (package, version, loss)."""
+        return self.path / "plugins.json"
+
+    def save_recipe(self, recipe) -> None:
+        """Write the resolved recipe.yaml and plugins.json (what :meth:`load_recipe` needs to rebuild the run, or
+        to name the package it is missing)."""
+        save_resolved(recipe, self.recipe_path)
+        record = {"algorithm": plugins.algorithm(recipe.algorithm.name).provenance()}
+        try:
+            _atomic_write_text(self.plugins_path, json.dumps(record, indent=2) + "\n")
+        except OSError as err:
+            raise AdaRLError(f"cannot write {str(self.plugins_path)!r}: {describe_os_error(err)}") from None
+
+    def load_recipe(self):
+        """The run's recipe.yaml, validated. A run whose algorithm is no longer registered (its plugin package is not
+        installed here) is refused, naming the package and version plugins.json recorded."""
+        try:
+            return load_recipe(str(self.recipe_path))
+        except RecipeError as err:
+            used = self.recorded_plugins().get("algorithm") or {}
+            if (
+                not used.get("package")
+                or "algorithm.name" not in str(err)
+                or used.get("name") in plugins.algorithm_names()
+            ):
+                raise
+            version = f" {used['version']}" if used.get("version") else ""
+            raise RecipeError(
+                f"run folder {str(self.path)!r} was trained with algorithm {used['name']!r} (loss {used.get('loss')}) "
+                f"from the package {used['package']!r}{version}, which is not installed here: pip install "
+                f"{used['package']} to resume, evaluate or report it. ({err})"
+            ) from None
+
+    def recorded_plugins(self) -> dict:
+        """plugins.json as a dict ({} for runs made before it existed, or when it is unreadable)."""
+        try:
+            out = json.loads(self.plugins_path.read_text())
+        except (OSError, ValueError):
+            return {}
+        return out if isinstance(out, dict) else {}
 
     @property
     def checkpoint_dir(self) -> Path:
@@ -572,7 +631,7 @@ class RunDir:
             raise refuse("is not an adarl checkpoint (no training state in it)") from None
         theirs = payload.get("recipe_fingerprint")
         if fingerprint is not None and isinstance(theirs, dict):
-            differ = [k for k in fingerprint if k in theirs and theirs[k] != fingerprint[k]]
+            differ = [k for k in fingerprint if k in theirs and not _same_in_fingerprint(k, theirs, fingerprint)]
             if differ:
                 shown = "; ".join(f"{k}: {theirs[k]} in it, {fingerprint[k]} in this run" for k in differ[:3])
                 raise refuse(

@@ -1,7 +1,7 @@
 """Where a PPO recipe (the RNAC baselines, Zhou et al., 2023) becomes objects: actor, state-value critic,
-TorchRL's ``ClipPPOLoss`` and GAE (or RNAC-IPM's shifted GAE), then every component of a run wired together
-(:func:`build_ppo_components`): envs (with RNAC-DS's double-sampling transform), optimisers, the linear LR decay
-and the collector.
+TorchRL's ``ClipPPOLoss`` (or the registered algorithm's loss) and GAE (or the algorithm's ``advantage`` hook:
+RNAC-IPM's shifted GAE), then every component of a run wired together (:func:`build_ppo_components`): envs (plus the
+algorithm's ``env_transform`` hook: RNAC-DS's double sampling), optimisers, the linear LR decay and the collector.
 
 Defaults follow the original RNAC trainer (tliu1997/RNAC): 64-64 tanh networks with its orthogonal init
 (``network.<net>.init`` in the recipes), its Gaussian policy (mean ``tanh`` into the box, state-independent
@@ -20,6 +20,7 @@ import torch
 from tensordict.nn import AddStateIndependentNormalScale, TensorDictModule
 from torch import nn
 from torchrl.collectors import Collector
+from torchrl.envs import Transform
 from torchrl.modules import ProbabilisticActor, TanhNormal, ValueOperator
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
@@ -28,7 +29,7 @@ from adarl import plugins
 from adarl.baselines import registry
 from adarl.baselines.normalization import RewardScaler, RunningObsNorm
 from adarl.baselines.policy import BoxTanh, ClippedNormal
-from adarl.baselines.rnac import DoubleSamplingTransform, IPMAdvantage
+from adarl.baselines.rnac import DoubleSamplingTransform
 from adarl.runtime.builders.common import (
     RunComponents,
     action_spec,
@@ -74,10 +75,17 @@ class PPOComponents(RunComponents):
     schedulers: dict[str, torch.optim.lr_scheduler.LRScheduler]
     collector: Collector
     reward_scaler: RewardScaler | None
-    double_sampling: DoubleSamplingTransform | None
+    env_transform: Transform | None
     total_iterations: int
     sampling_generator: torch.Generator
     terms: dict[str, nn.Module] = field(default_factory=dict)
+    #: log the loss's other scalar entries (a plugin's loss; ClipPPOLoss's own diagnostics are left out as before)
+    plugin_metrics: bool = False
+
+    @property
+    def double_sampling(self) -> DoubleSamplingTransform | None:
+        """RNAC-DS's transform when the algorithm's env hook added one (its counters and generator are checkpointed)."""
+        return self.env_transform if isinstance(self.env_transform, DoubleSamplingTransform) else None
 
 
 class LinearDecay:
@@ -136,7 +144,8 @@ def make_ppo_modules(recipe, env) -> PPOModules:
     )
     # 'batch' standardises once per collected batch in PPOTrainer's iteration; 'minibatch' inside the loss
     # algorithm.name's loss (a plugin on the PPO loop: ClipPPOLoss's arguments plus its algorithm.options)
-    loss_class = plugins.algorithm(alg.name).loss_class()
+    spec = plugins.algorithm(alg.name)
+    loss_class = spec.loss_class()
     loss = loss_class(
         actor,
         critic,
@@ -147,13 +156,11 @@ def make_ppo_modules(recipe, env) -> PPOModules:
         loss_critic_type="l2",
         normalize_advantage=ppo.normalize_advantage == "minibatch",
         functional=False,
-        **dict(alg.options),
+        **(dict(alg.options) if spec.options_to_loss else {}),
     )
-    rn = alg.rnac
-    if rn.mode == "ipm":
-        advantage = IPMAdvantage(
-            gamma=alg.gamma, lmbda=ppo.gae_lambda, value_network=critic, kappa=rn.kappa, average_gae=False
-        )
+    make_advantage = spec.hook("advantage")  # RNAC-IPM's shifted GAE; plain GAE when the algorithm has no hook
+    if make_advantage is not None:
+        advantage = make_advantage(recipe, critic)
     else:
         advantage = GAE(gamma=alg.gamma, lmbda=ppo.gae_lambda, value_network=critic, average_gae=False)
     return PPOModules(actor, critic, loss, advantage, norms)
@@ -166,11 +173,10 @@ def build_ppo_components(recipe) -> PPOComponents:
     env, eval_env = make_envs(recipe)
     modules = make_ppo_modules(recipe, env)
     alg, ppo = recipe.algorithm, recipe.algorithm.ppo
-    ds = None
-    if alg.rnac.mode == "ds":
-        rn = alg.rnac
-        ds = DoubleSamplingTransform(rn.num_candidates, rn.noise, value_network=modules.critic, seed=recipe.seed + 2)
-        env.append_transform(ds)
+    make_transform = plugins.algorithm(alg.name).hook("env_transform")  # RNAC-DS's double sampling
+    transform = make_transform(recipe, modules.critic) if make_transform is not None else None
+    if transform is not None:
+        env.append_transform(transform)
     optimizers = {
         "actor": torch.optim.Adam(modules.actor.parameters(), lr=alg.lr, eps=ppo.adam_eps),
         "critic": torch.optim.Adam(modules.critic.parameters(), lr=alg.lr, eps=ppo.adam_eps),
@@ -188,12 +194,24 @@ def build_ppo_components(recipe) -> PPOComponents:
     scaler = RewardScaler(alg.gamma) if ppo.reward_scaling else None
     generator = torch.Generator().manual_seed(recipe.seed + 1)
     return PPOComponents(
-        recipe, env, eval_env, modules, optimizers, schedulers, collector, scaler, ds, iterations, generator, terms
+        recipe,
+        env,
+        eval_env,
+        modules,
+        optimizers,
+        schedulers,
+        collector,
+        scaler,
+        transform,
+        iterations,
+        generator,
+        terms,
+        plugin_metrics=type(modules.loss) is not ClipPPOLoss,
     )
 
 
 def simulator_steps_per_frame(recipe) -> int:
     """Environment steps the simulator takes per collected frame: ``m + 1`` for RNAC-DS (it probes ``m`` noisy
     candidates before the real step), 1 otherwise."""
-    rn = recipe.algorithm.rnac
-    return rn.num_candidates + 1 if recipe.algorithm.base == "ppo" and rn.mode == "ds" else 1
+    alg = recipe.algorithm
+    return plugins.algorithm(alg.name).steps_per_frame(alg.options)

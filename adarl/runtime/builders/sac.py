@@ -41,7 +41,7 @@ from adarl.core.acceptance import ProjectionAcceptance, RecentTransitions
 from adarl.core.adapter import RankAdapter
 from adarl.core.lowrank import LowRankLinear
 from adarl.core.lr_schedule import make_lr_scheduler
-from adarl.core.rank import make_rule
+from adarl.core.rank import RankRule, make_rule
 from adarl.core.warmstart import ReplayWarmStart
 from adarl.errors import AdaRLValueError, AdaRLWarning
 from adarl.fast.adam import make_adam
@@ -74,6 +74,7 @@ __all__ = [
     "FusedFallbackWarning",
     "update_after",
     "planned_updates",
+    "make_rank_rule",
 ]
 
 
@@ -330,15 +331,31 @@ def planned_updates(recipe) -> int:
     return max(1, int((c.total_frames - min(update_after(recipe), c.total_frames)) * recipe.algorithm.utd_ratio))
 
 
+def make_rank_rule(rank) -> RankRule:
+    """The rule of a recipe's ``rank`` section: adarl's own from ``beta`` / ``target_rank`` / ``lam``, a rule
+    registered with :func:`adarl.register_rank_rule` as ``rule_class()(**rule_options)``. A rule whose class sets
+    ``needs_fit = True`` gets ``fit(rank)`` from the adapter (on replay states), as ``policy_fit`` does."""
+    spec = plugins.rank_rule(rank.rule)
+    if spec.builtin:
+        if rank.rule == "fixed":
+            return make_rule("fixed", rank=rank.target_rank)
+        if rank.rule == "policy_fit":
+            return make_rule("policy_fit", lam=rank.lam)
+        return make_rule(rank.rule, beta=rank.beta)
+    cls = spec.rule_class()
+    where = f"rank rule {spec.name!r} ({spec.rule_path}, from {spec.provider or 'a register_rank_rule call'})"
+    if not (isinstance(cls, type) and issubclass(cls, RankRule)):
+        raise AdaRLValueError(f"{where} is not an adarl.core.rank.RankRule subclass (got {cls!r})")
+    try:
+        return cls(**rank.rule_options)
+    except TypeError as err:
+        raise AdaRLValueError(f"{where} cannot be built from rank.rule_options {rank.rule_options}: {err}") from None
+
+
 def _rank_adapter(recipe, loss, optimizers, schedulers, replay_buffer) -> RankAdapter:
     """The rank adapter of ``recipe.rank``: the rule proposes, the acceptance step decides (Algorithm 1)."""
     r = recipe.rank
-    if r.rule == "fixed":
-        rule = make_rule("fixed", rank=r.target_rank)
-    elif r.rule == "policy_fit":
-        rule = make_rule("policy_fit", lam=r.lam)
-    else:
-        rule = make_rule(r.rule, beta=r.beta)
+    rule = make_rank_rule(r)
     a = r.accept
     # 'fixed' is an instruction (the fixed-rank projection), not a candidate: nothing to accept or refuse
     acceptance = (

@@ -57,7 +57,6 @@ from adarl.runtime.config.schema import (
     RankConfig,
     Recipe,
     ReplayConfig,
-    RNACConfig,
     SparseLayerConfig,
     WarmStartConfig,
 )
@@ -76,7 +75,6 @@ __all__ = [
     "InitConfig",
     "ParsevalConfig",
     "PPOConfig",
-    "RNACConfig",
     "RankConfig",
     "AcceptConfig",
     "LRScheduleConfig",

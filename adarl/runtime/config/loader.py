@@ -159,6 +159,13 @@ def _split_key(key: str) -> list[str | int]:
     return out
 
 
+# keys of older recipes, with where they went (recipe files with them are still read: schema.py converts them)
+_MOVED_KEYS = {
+    "algorithm.rnac": " (RNAC is now a registered algorithm: algorithm.name=rnac_ipm with algorithm.options.kappa, "
+    "or algorithm.name=rnac_ds with algorithm.options.num_candidates / noise)",
+}
+
+
 def _check_override_key(key: str, parts: list[str | int], override: str) -> None:
     model: type[BaseModel] | None = Recipe
     tp: Any = None
@@ -170,8 +177,9 @@ def _check_override_key(key: str, parts: list[str | int], override: str) -> None
                 path = ".".join(walked)
                 full = _join_path(path, str(part))
                 where = f" under {path!r}" if path else " at the top level"
+                moved = _MOVED_KEYS.get(full, "")
                 raise RecipeError(
-                    f"override {override!r}: unknown key {full!r}; allowed keys{where}: {', '.join(allowed)}"
+                    f"override {override!r}: unknown key {full!r}{moved}; allowed keys{where}: {', '.join(allowed)}"
                     f"{did_you_mean(str(part), allowed)}"
                 )
             tp = model.model_fields[part].annotation

@@ -14,7 +14,15 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from adarl import plugins
-from adarl.envs.parameters import SUPPORTED_ENVS, env_parameters, preset_names, validate_schedule
+from adarl.envs.parameters import (
+    HOW_TO_REGISTER_ENV,
+    check_env_id,
+    env_parameters,
+    is_mujoco,
+    preset_names,
+    supported_envs,
+    validate_schedule,
+)
 from adarl.envs.schedules import (
     schedule_from_dict,
     schedule_parameter_names,
@@ -35,7 +43,6 @@ __all__ = [
     "InitConfig",
     "ParsevalConfig",
     "PPOConfig",
-    "RNACConfig",
     "RankConfig",
     "AcceptConfig",
     "LRScheduleConfig",
@@ -134,8 +141,8 @@ class PerturbationConfig(_Section):
 class EnvConfig(_Section):
     id: str = Field(
         description="Environment id: Hopper-v5, Walker2d-v5, Ant-v5, Humanoid-v5 (paper), CartPole-v1 (discrete), "
-        "or another id in adarl.envs.SUPPORTED_ENVS.",
-        json_schema_extra={"allowed": "a supported env id (adarl.envs.SUPPORTED_ENVS)"},
+        "or another id in adarl.envs.SUPPORTED_ENVS, or one an installed plugin registers (adarl.register_env).",
+        json_schema_extra={"allowed": "a supported env id (adarl.envs.supported_envs(): adarl's own and registered)"},
     )
     num_envs: PosInt = Field(1, description="Envs stepped together by the collector (a batched env when > 1).")
     parallel: bool = Field(
@@ -151,9 +158,17 @@ class EnvConfig(_Section):
     @field_validator("id")
     @classmethod
     def _check_id(cls, v: str) -> str:
-        supported = list(SUPPORTED_ENVS)
-        if v not in supported:
-            raise _Problems([("", v, f"must be a supported env: {one_of(supported)}{did_you_mean(v, supported)}")])
+        try:
+            check_env_id(v)  # adarl's own ids, and those installed plugins register (adarl.register_env)
+        except AdaRLValueError as err:
+            msg = str(err)
+            if not msg.startswith("the adarl plugin"):  # else: an installed plugin failed to load (named)
+                supported = list(supported_envs(load=False))
+                msg = (
+                    f"must be a supported env: {one_of(supported)}{did_you_mean(v, supported)} "
+                    f"(or {HOW_TO_REGISTER_ENV})"
+                )
+            raise _Problems([("", v, msg)]) from None
         return v
 
     @model_validator(mode="after")
@@ -174,7 +189,7 @@ class EnvConfig(_Section):
                     ]
                 )
             return self
-        known = [str(k) for k in env_parameters(self.id)]
+        known = [str(k) for k in env_parameters(self.id, require=schedule_parameter_names(sched))]
         problems = [
             (
                 f"perturbation.schedule.{where}",
@@ -393,22 +408,6 @@ class PPOConfig(_Section):
     )
 
 
-class RNACConfig(_Section):
-    mode: Literal["none", "ipm", "ds"] = Field(
-        "none",
-        description="RNAC's robust critic (Zhou et al., 2023), PPO only: 'ipm' shifts the reward by "
-        "kappa*||theta_critic|| in GAE; 'ds' picks the worst of num_candidates noisy next states with probability "
-        "1/(m+1); 'none' = plain PPO.",
-    )
-    kappa: Annotated[Float, Field(ge=0)] = Field(
-        1e-5, description="RNAC-IPM's radius: reward shift per unit of ||theta_critic||."
-    )
-    num_candidates: PosInt = Field(2, description="RNAC-DS's m: noisy next states probed per step.")
-    noise: Annotated[Float, Field(ge=0)] = Field(
-        5e-3, description="RNAC-DS's actuation noise half-width, U[-noise, noise]."
-    )
-
-
 class AlgorithmConfig(_Section):
     name: str = Field(
         "sac",
@@ -465,7 +464,34 @@ class AlgorithmConfig(_Section):
     )
     parseval: ParsevalConfig = Field(default_factory=ParsevalConfig, description="Parseval regularisation baseline.")
     ppo: PPOConfig = Field(default_factory=PPOConfig, description="PPO hyperparameters (algorithm.name=ppo).")
-    rnac: RNACConfig = Field(default_factory=RNACConfig, description="RNAC's robust critic (algorithm.name=ppo).")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _legacy_rnac(cls, data: Any) -> Any:
+        """Recipes and run folders written before RNAC was a registered algorithm said ``algorithm.name: ppo`` and
+        ``algorithm.rnac.{mode, kappa, num_candidates, noise}``: read as ``rnac_ipm`` / ``rnac_ds`` with options."""
+        if not isinstance(data, Mapping) or "rnac" not in data:
+            return data
+        data = dict(data)
+        rnac = data.pop("rnac")
+        mode = rnac.get("mode", "none") if isinstance(rnac, Mapping) else rnac
+        if mode in (None, "none"):
+            return data
+        if mode not in ("ipm", "ds") or data.get("name", "sac") != "ppo" or data.get("options"):
+            raise _Problems(
+                [
+                    (
+                        "rnac",
+                        _plain(rnac),
+                        "is the old form of the RNAC baselines (it needs name 'ppo' and mode 'ipm' or 'ds'); "
+                        "write algorithm.name: rnac_ipm (options: kappa) or rnac_ds (options: num_candidates, noise)",
+                    )
+                ]
+            )
+        keys = ("kappa",) if mode == "ipm" else ("num_candidates", "noise")
+        data["name"] = f"rnac_{mode}"
+        data["options"] = {k: rnac[k] for k in keys if k in rnac}
+        return data
 
     @field_validator("name")
     @classmethod
@@ -535,10 +561,22 @@ class AcceptConfig(_Section):
 
 class RankConfig(_Section):
     enabled: bool = Field(True, description="Run the adaptive rank controller (false = plain or fixed-rank SAC).")
-    rule: Literal["energy", "energy_inclusive", "ratio", "fixed", "policy_fit"] = Field(
+    rule: str = Field(
         "energy",
-        description="Rank rule: 'energy' = paper Eq. 10; 'energy_inclusive' = smallest rank with energy >= beta; "
-        "'ratio' = Eq. 33 (App. D.4); 'fixed' = target_rank; 'policy_fit' = fit/penalty trade-off with lam.",
+        description="Rank rule, a registered name (adarl.register_rank_rule; installed packages add names through "
+        "the 'adarl.plugins' entry-point group): 'energy' = paper Eq. 10; 'energy_inclusive' = smallest rank with "
+        "energy >= beta; 'ratio' = Eq. 33 (App. D.4); 'fixed' = target_rank; 'policy_fit' = fit/penalty trade-off "
+        "with lam; a plugin's rule takes rule_options (docs/adding-a-component.md).",
+        json_schema_extra={
+            "allowed": "a registered rank rule name ('energy', 'energy_inclusive', 'ratio', 'fixed', 'policy_fit', "
+            "or one an installed plugin adds)"
+        },
+    )
+    rule_options: dict[str, Any] = Field(
+        default_factory=dict,
+        description="A registered plugin rule's own keyword arguments (its pydantic model: unknown keys, types and "
+        "ranges are checked like every other key; every default is written into the run's recipe.yaml). adarl's "
+        "own rules have none: they read beta, target_rank and lam.",
     )
     beta: Annotated[Float, Field(gt=0, lt=1)] = Field(
         0.98, description="Energy threshold of the energy and ratio rules (paper: 0.98)."
@@ -568,8 +606,49 @@ class RankConfig(_Section):
         description="Acceptance step: whether the rule's candidate rank is applied (docs/rank-rules.md).",
     )
 
+    @field_validator("rule")
+    @classmethod
+    def _check_rule_name(cls, v: str) -> str:
+        try:
+            plugins.rank_rule(v)
+        except AdaRLValueError as err:
+            msg = str(err)
+            if msg.startswith("unknown rank.rule"):  # else: an installed plugin failed to load (named)
+                msg = "must be one of " + msg.split("allowed: ", 1)[-1]
+            raise _Problems([("", v, msg)]) from None
+        return v
+
     @model_validator(mode="after")
     def _check_rule(self) -> RankConfig:
+        spec = plugins.rank_rule(self.rule)
+        if spec.builtin and self.rule_options:
+            raise _Problems(
+                [
+                    (
+                        "rule_options",
+                        _plain(self.rule_options),
+                        f"must be empty with adarl's own rule {self.rule!r}: set rank.beta, rank.target_rank or "
+                        "rank.lam instead (rule_options are a registered plugin rule's keyword arguments)",
+                    )
+                ]
+            )
+        try:
+            checked = spec.options.model_validate(_plain(self.rule_options))
+        except ValidationError as err:
+            problems = []
+            for e in err.errors():
+                where = ".".join(str(x) for x in e["loc"])
+                allowed = list(spec.options.model_fields)
+                msg = e["msg"]
+                if e["type"] == "extra_forbidden":
+                    msg = (
+                        f"unknown option of rank rule {self.rule!r}; allowed: "
+                        f"{one_of(allowed) if allowed else 'none (it has no options)'}"
+                        f"{did_you_mean(str(e['loc'][-1]), allowed)}"
+                    )
+                problems.append((f"rule_options.{where}", e.get("input", NO_VALUE), msg))
+            raise _Problems(problems) from None
+        self.rule_options = checked.model_dump(mode="python")
         if self.rule == "fixed":
             if self.target_rank is None:
                 raise _Problems([("target_rank", None, "rule 'fixed' needs target_rank: an integer >= 1")])
@@ -821,7 +900,7 @@ class Recipe(_Section):
                     (
                         "rank.enabled",
                         True,
-                        "must be false with algorithm.name='ppo': the PPO loop runs the RNAC "
+                        f"must be false with algorithm.name={alg.name!r} (on the PPO loop): it runs the RNAC "
                         "baselines without rank adaptation (docs/custom-loss.md shows RankAdapter on another loss)",
                     )
                 )
@@ -837,15 +916,13 @@ class Recipe(_Section):
                         f"must be <= collector.frames_per_batch ({self.collector.frames_per_batch})",
                     )
                 )
-        elif alg.rnac.mode != "none":
-            p.append(("algorithm.rnac.mode", alg.rnac.mode, "needs algorithm.name='ppo' (RNAC is built on PPO)"))
-        if alg.rnac.mode == "ds":
+        if alg.name == "rnac_ds":
             if env.num_envs != 1:
                 p.append(
-                    ("env.num_envs", env.num_envs, "must be 1 with algorithm.rnac.mode='ds' (it steps one MuJoCo env)")
+                    ("env.num_envs", env.num_envs, "must be 1 with algorithm.name='rnac_ds' (it steps one MuJoCo env)")
                 )
-            if env.id == "CartPole-v1":
-                p.append(("algorithm.rnac.mode", "ds", f"needs a MuJoCo env; {env.id} is not one"))
+            if not is_mujoco(env.id):
+                p.append(("algorithm.name", "rnac_ds", f"needs a MuJoCo env; {env.id} is not one"))
         return p
 
 

@@ -35,7 +35,6 @@ from adarl.errors import AdaRLError, AdaRLValueError, CheckpointError
 from adarl.fast.collector import LeanCollector
 from adarl.runtime import metrics
 from adarl.runtime.builders.common import policy_specs
-from adarl.runtime.config import load_recipe, save_resolved
 from adarl.runtime.evaluation import EvalResult, evaluate_policy
 from adarl.runtime.guards import NonFiniteError, NonFiniteGuard
 from adarl.runtime.report import write_report
@@ -105,7 +104,7 @@ class BaseTrainer:
         if not _read_only:
             run_dir.lock()  # one process trains in a run folder at a time (released by close())
             if _resume_state is None and not run_dir.recipe_path.exists():
-                save_resolved(recipe, run_dir.recipe_path)  # a run started from Python resumes and loads like any
+                run_dir.save_recipe(recipe)  # a run started from Python resumes and loads like any
         # _log_from: the frames a resumed run's logs continue from (None: a new run, or evaluation only)
         self.logger = null_logger() if _read_only else run_dir.make_logger(recipe, step=_log_from)
         self._build(_resume_state)
@@ -197,7 +196,7 @@ class BaseTrainer:
         written, renamed or locked, and the replay buffer is not read; such a trainer evaluates, it does not train.
         """
         run_dir = RunDir.open(path)
-        recipe = load_recipe(str(run_dir.recipe_path))
+        recipe = run_dir.load_recipe()  # refuses, naming the package, a run whose algorithm is not installed
         target = trainer_class(recipe)
         cls = cls if issubclass(cls, target) else target
         read_only = not truncate_metrics if read_only is None else read_only

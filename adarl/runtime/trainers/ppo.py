@@ -1,12 +1,14 @@
 """The PPO loop of the RNAC baselines (Zhou et al., 2023): :class:`PPOTrainer` runs a recipe with
-``algorithm.name: ppo`` on the same perturbed envs, with the same run folder, logging, evaluation, checkpoints,
+a PPO-based ``algorithm.name`` (``ppo``, ``rnac_ipm``, ``rnac_ds`` or a plugin's, :mod:`adarl.plugins`) on the same
+perturbed envs, with the same run folder, logging, evaluation, checkpoints,
 divergence guards, Ctrl-C checkpoint and exact resume as AdaRL-SAC (all of :class:`BaseTrainer`).
 
 Each collected batch: reward scaling, advantages (GAE, or RNAC-IPM's shifted GAE), the advantage standardised over
 the whole batch (RNAC's trainer), ``epochs`` passes of minibatch ``ClipPPOLoss`` updates (each guarded: losses,
 gradients, parameters), then the observation statistics absorb the batch and the learning rate decays.
-``algorithm.rnac.mode`` picks plain PPO, RNAC-IPM (:class:`~adarl.baselines.rnac.IPMAdvantage`) or RNAC-DS
-(:class:`~adarl.baselines.rnac.DoubleSamplingTransform`). The networks: :mod:`adarl.runtime.builders.ppo`.
+The algorithm's hooks make it RNAC-IPM (its ``advantage``: :class:`~adarl.baselines.rnac.IPMAdvantage`) or RNAC-DS
+(its ``env_transform``: :class:`~adarl.baselines.rnac.DoubleSamplingTransform`). The networks:
+:mod:`adarl.runtime.builders.ppo`.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ import torch
 from tensordict import TensorDictBase
 
 from adarl.baselines.rnac import IPMAdvantage
+from adarl.errors import AdaRLValueError
 from adarl.runtime.builders.ppo import build_ppo_components, simulator_steps_per_frame
 from adarl.runtime.trainers.base import BaseTrainer
 
@@ -117,20 +120,34 @@ class PPOTrainer(BaseTrainer, algorithm="ppo"):
         """One guarded minibatch update: the loss (plus its terms), backward, clipping, the optimisers."""
         c = self.c
         td = c.modules.loss(minibatch)
-        self.guard.check_losses({k: td[k] for k in PPO_LOSSES if k in td.keys()}, self.updates)
-        loss = td["loss_objective"] + td["loss_critic"]
-        if "loss_entropy" in td.keys():
-            loss = loss + td["loss_entropy"]
-        for name, term in c.terms.items():
+        for term in c.terms.values():
             td = term.wrap_output(td)
-            loss = loss + td[f"loss_{name}"]
-        loss.backward()
+        # TorchRL's convention: every "loss_*" entry is summed (a registered algorithm's own included)
+        losses = {k: td[k] for k in td.keys() if isinstance(k, str) and k.startswith("loss_")}
+        missing = [k for k in PPO_LOSSES[:2] if k not in losses]
+        if missing:
+            raise AdaRLValueError(
+                f"{type(c.modules.loss).__name__}'s output lacks {missing}; a loss on the PPO loop returns "
+                f"{list(PPO_LOSSES[:2])} (and may add more loss_* entries and metrics)"
+            )
+        self.guard.check_losses(losses, self.updates)
+        sum(losses.values()).backward()
         self.guard.check_grads(self.updates)
         self._clip_and_step()
         self.guard.check_params(self.updates)
         self.updates += 1
-        keys = (*PPO_LOSSES, *(f"loss_{name}" for name in c.terms))
-        return {k: td[k].detach() for k in keys if k in td.keys()}
+        out = {k: v.detach() for k, v in losses.items()}
+        if c.plugin_metrics:  # a registered algorithm's loss: its own scalar entries are logged as train/<key>
+            out.update(
+                (k, v.detach())
+                for k, v in td.items()
+                if isinstance(k, str)
+                and k not in out
+                and isinstance(v, torch.Tensor)
+                and v.numel() == 1
+                and v.is_floating_point()
+            )
+        return out
 
     # ------------------------------------------------------------------ summary and checkpoints
     def _summary(self, elapsed: float) -> dict:
