@@ -71,10 +71,15 @@ def test_run_folder_has_every_output(tiny_run: Path):
         "report.md",
         "plots/return.png",
         "plots/ranks.png",
+        "plots/speed.png",
+        "plugins.json",
     ):
         assert (tiny_run / name).is_file(), name
-    for png in ("plots/return.png", "plots/ranks.png"):
+    for png in ("plots/return.png", "plots/ranks.png", "plots/speed.png"):
         assert (tiny_run / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    report = (tiny_run / "report.md").read_text()
+    assert "![speed](plots/speed.png)" in report and "median updates/s" in report  # the cost between rank events
+    assert json.loads((tiny_run / "plugins.json").read_text())["algorithm"]["package"] == "adarl"
     scalars = tiny_run / "metrics" / "scalars"
     for metric in (
         "train/episode_return",

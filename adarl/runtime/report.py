@@ -2,7 +2,8 @@
 
 ``plots/return.png``: training episode return and nominal-dynamics evaluation against frames, rank events as red
 dashed lines (paper Fig. 3). ``plots/ranks.png``: each low-rank layer's rank over optimisation steps (Fig. 4).
-matplotlib (Agg backend, no display) draws them.
+``plots/speed.png``: optimisation steps per second against optimisation steps, rank events marked (the cost of an
+update falls as the factorised layers lose rank). matplotlib (Agg backend, no display) draws them.
 """
 
 from __future__ import annotations
@@ -16,7 +17,16 @@ from adarl.runtime import metrics
 from adarl.runtime.results import download_results, is_url, join, upload_tree, write_atomic
 from adarl.runtime.run_dir import RunDir
 
-__all__ = ["write_report", "plot_returns", "plot_ranks", "pyplot", "named_ranks", "layer_label"]
+__all__ = [
+    "write_report",
+    "plot_returns",
+    "plot_ranks",
+    "plot_speed",
+    "speed_by_phase",
+    "pyplot",
+    "named_ranks",
+    "layer_label",
+]
 
 
 def pyplot():
@@ -93,6 +103,54 @@ def plot_ranks(run: RunDir, out: Path) -> Path | None:
     return out
 
 
+def _speed_series(run: RunDir) -> list[tuple[int, float]]:
+    """``(optimisation steps, updates/s)`` at each logging point: ``time/updates_per_s`` joined with
+    ``train/updates`` on the frame count both are logged at."""
+    scalars = run.scalars()
+    updates = dict(metrics.series(scalars, metrics.TRAIN_UPDATES))
+    return [(int(updates[f]), v) for f, v in metrics.series(scalars, metrics.UPDATES_PER_S) if f in updates and v > 0]
+
+
+def speed_by_phase(run: RunDir) -> list[dict]:
+    """Median updates/s between consecutive rank events (before the first, between events, after the last): the
+    figures the report's speed table shows."""
+    import statistics
+
+    series = _speed_series(run)
+    steps = sorted({int(ev.get("step", 0)) for ev in run.read_rank_history()})
+    edges = [0, *steps, float("inf")]
+    out = []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        vals = [v for s, v in series if lo < s <= hi]
+        if vals:
+            out.append(
+                {"from_step": lo, "to_step": hi, "points": len(vals), "median_updates_per_s": statistics.median(vals)}
+            )
+    return out
+
+
+def plot_speed(run: RunDir, out: Path) -> Path | None:
+    """Optimisation steps per second against optimisation steps, rank events as red dashed lines."""
+    series = _speed_series(run)
+    if not series:
+        return None
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(7, 3.5))
+    ax.plot([s for s, _ in series], [v for _, v in series], lw=1, marker=".", ms=3, label="updates/s")
+    steps = sorted({int(ev.get("step", 0)) for ev in run.read_rank_history()})
+    for i, step in enumerate(steps):
+        ax.axvline(step, color="red", ls="--", lw=1, label="rank event" if i == 0 else None)
+    ax.set_xlabel("optimisation steps")
+    ax.set_ylabel("updates per second")
+    ax.set_ylim(bottom=0)
+    ax.legend(loc="best", fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(out, dpi=120)
+    plt.close(fig)
+    return out
+
+
 def write_report(path: str | os.PathLike) -> Path | str:
     """Write ``report.md`` and ``plots/*.png`` for the run folder at ``path``; returns the report's path.
 
@@ -111,6 +169,7 @@ def write_report(path: str | os.PathLike) -> Path | str:
     plots.mkdir(exist_ok=True)
     ret = plot_returns(run, plots / "return.png")
     rk = plot_ranks(run, plots / "ranks.png")
+    sp = plot_speed(run, plots / "speed.png")
     summary_path = run.path / "summary.json"
     summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
     evals = run.read_eval()
@@ -188,6 +247,23 @@ def write_report(path: str | os.PathLike) -> Path | str:
         ]
     if rk:
         lines += ["Rank per low-rank layer.", "", "![ranks](plots/ranks.png)", ""]
+    if sp:
+        phases = speed_by_phase(run)
+        lines += [
+            "Optimisation steps per second (training loop wall time, collection and evaluation included); red "
+            "dashed lines mark rank events. Timings depend on what else ran on the machine.",
+            "",
+            "![speed](plots/speed.png)",
+            "",
+        ]
+        if history and phases:
+            lines += ["| optimisation steps | logging points | median updates/s |", "|---|---:|---:|"]
+            lines += [
+                f"| {p['from_step']} - {'end' if p['to_step'] == float('inf') else p['to_step']} | {p['points']} "
+                f"| {p['median_updates_per_s']:.1f} |"
+                for p in phases
+            ]
+            lines.append("")
     out = run.path / "report.md"
     out.write_text("\n".join(lines) + "\n")
     return out

@@ -331,6 +331,25 @@ def planned_updates(recipe) -> int:
     return max(1, int((c.total_frames - min(update_after(recipe), c.total_frames)) * recipe.algorithm.utd_ratio))
 
 
+def event_threads(setting, environ=None) -> int | None:
+    """``rank.num_threads`` as a thread count: ``'auto'`` = ``OMP_NUM_THREADS`` when set (a launcher's share of the
+    machine: 1 for ``adarl experiment -j N > 1``), else every core this process may use; None keeps the run's own.
+
+    >>> event_threads(3), event_threads(None), event_threads("auto", {"OMP_NUM_THREADS": "1"})
+    (3, None, 1)
+    """
+    if setting != "auto":
+        return setting
+    environ = os.environ if environ is None else environ
+    share = environ.get("OMP_NUM_THREADS", "")
+    if share.strip().isdigit() and int(share) > 0:
+        return int(share)
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not on Linux
+        return max(1, os.cpu_count() or 1)
+
+
 def make_rank_rule(rank) -> RankRule:
     """The rule of a recipe's ``rank`` section: adarl's own from ``beta`` / ``target_rank`` / ``lam``, a rule
     registered with :func:`adarl.register_rank_rule` as ``rule_class()(**rule_options)``. A rule whose class sets
@@ -374,7 +393,7 @@ def _rank_adapter(recipe, loss, optimizers, schedulers, replay_buffer) -> RankAd
         lr_schedulers=list(schedulers.values()),
         # the acceptance step (and, with 'always', the recorded error) compares outputs on recent transitions
         fit_data=RecentTransitions(replay_buffer, a.samples),
-        num_threads=r.num_threads,
+        num_threads=event_threads(r.num_threads),
         acceptance=acceptance,
     )
 

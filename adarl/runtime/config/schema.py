@@ -596,10 +596,12 @@ class RankConfig(_Section):
         description="Target critics after a truncation: 'sync' copies the new online factors; 'project' applies "
         "the same change of basis to the target factors (keeps the Polyak lag).",
     )
-    num_threads: PosInt | None = Field(
-        None,
-        description="Torch threads during a rank event (restored afterwards); null = the run's own "
-        "(algorithm.num_threads). Events on wide layers are float64 eigendecompositions that scale with cores.",
+    num_threads: Literal["auto"] | PosInt | None = Field(
+        "auto",
+        description="Torch threads during a rank event (restored afterwards; training is paused anyway): 'auto' = "
+        "every core this process may use, or OMP_NUM_THREADS when set (adarl experiment -j N>1 sets 1, Ray and SLURM "
+        "cpus_per_run); null = the run's own (algorithm.num_threads). Events on wide layers are float64 "
+        "eigendecompositions that scale with cores.",
     )
     accept: AcceptConfig = Field(
         default_factory=AcceptConfig,

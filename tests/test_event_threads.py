@@ -1,0 +1,43 @@
+"""rank.num_threads: 'auto' gives a rank event every core this process may use, or a launcher's share of them."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+
+from adarl import build_components, load_recipe
+from adarl.runtime.builders.sac import event_threads
+
+TINY = ["collector.total_frames=600", "collector.init_random_frames=100", "collector.frames_per_batch=50"]
+TINY += ["replay.size=600", "replay.warm_start.frames=50", "algorithm.batch_size=32"]
+
+
+def test_auto_is_the_launchers_share_or_every_core():
+    cores = len(os.sched_getaffinity(0))
+    assert event_threads("auto", {}) == cores
+    assert event_threads("auto", {"OMP_NUM_THREADS": "1"}) == 1  # adarl experiment -j N > 1
+    assert event_threads("auto", {"OMP_NUM_THREADS": "4"}) == 4  # Ray / SLURM cpus_per_run
+    assert event_threads("auto", {"OMP_NUM_THREADS": "junk"}) == cores
+    assert event_threads(3) == 3 and event_threads(None) is None
+
+
+@pytest.mark.parametrize("omp, expected", [(None, "cores"), ("1", 1)])
+def test_the_recipe_default_reaches_the_adapter(monkeypatch, omp, expected):
+    if omp is None:
+        monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    else:
+        monkeypatch.setenv("OMP_NUM_THREADS", omp)
+    recipe = load_recipe("quickstart", TINY)
+    assert recipe.rank.num_threads == "auto"
+    c = build_components(recipe)
+    try:
+        want = len(os.sched_getaffinity(0)) if expected == "cores" else expected
+        assert c.adapter.num_threads == want
+    finally:
+        c.close()
+    c = build_components(load_recipe("quickstart", [*TINY, "rank.num_threads=null"]))
+    try:
+        assert c.adapter.num_threads is None
+    finally:
+        c.close()
