@@ -4,7 +4,8 @@ The test writes a small plugin package (an RNAC-IPM-style robust SAC: ``SACLoss`
 ``kappa * ||theta_critic||``, registered as ``robust_sac`` through the ``adarl.plugins`` entry-point group),
 installs it with pip into a folder of its own (``pip install --target``, so the test venv is left as it was) and
 puts that folder on ``PYTHONPATH`` of the ``adarl`` commands it runs from another folder: ``adarl show``,
-``adarl run`` killed with SIGKILL and ``adarl resume``d, and a two-seed ``adarl experiment``. At each step the
+``adarl run`` killed with SIGKILL and ``adarl resume``d, and a two-seed ``adarl experiment`` (on Ray workers when
+Ray is installed). At each step the
 loss's own metric (``train/target_shift``, ``kappa * ||theta||``) must be logged; without the package, resuming
 the run is refused with a message naming the algorithm, and nothing in the run folder changes.
 """
@@ -12,6 +13,7 @@ the run is refused with a message naming the algorithm, and nothing in the run f
 from __future__ import annotations
 
 import csv
+import importlib.util
 import os
 import signal
 import subprocess
@@ -225,7 +227,9 @@ def test_a_plugin_loss_runs_resumes_and_goes_into_an_experiment(plugin: Path, tm
         + ", checkpoint.interval=300]\nseeds: [0, 1]\n"
     )
     out = tmp_path / "experiment"
-    proc = _adarl(plugin, elsewhere, "experiment", str(spec), "-o", str(out), "--workers", "1", "--no-live")
+    # on Ray workers when Ray is installed (CI installs it): the plugin reaches them through the environment
+    launcher = ["--launcher", "ray"] if importlib.util.find_spec("ray") else ["--workers", "1"]
+    proc = _adarl(plugin, elsewhere, "experiment", str(spec), "-o", str(out), *launcher, "--no-live")
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
     runs = sorted(p.parent for p in out.rglob("summary.json") if (p.parent / "recipe.yaml").is_file())
     assert len(runs) == 2, sorted(p.as_posix() for p in out.rglob("*"))[:50]
