@@ -417,7 +417,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="side-by-side SAC speed benchmark (AdaRL-SAC, no-rank, stock TorchRL, SB3)",
         description="Interleaved, repeated (median) speed benchmark of AdaRL-SAC against the same loop "
         "without rank adaptation, a stock TorchRL SAC loop and Stable-Baselines3 SAC (when installed: "
-        "pip install 'adarl[bench]'). Prints a table and writes a JSON report.",
+        "pip install 'adarl[bench]'). Prints a table and writes a JSON report. --whole-run: whole runs "
+        "instead, timed from process start to exit (docs/performance.md, 'Whole runs').",
     )
     bench_arguments(bn)
     bn.set_defaults(func=cmd_bench)

@@ -9,6 +9,11 @@ Each variant does one gradient update per environment step, batch 256, with the 
 critic, one torch thread unless told otherwise. ``adarl bench --help`` lists the options;
 ``python -m adarl.experiments.bench --worker ...`` is the per-measurement entry point the driver calls.
 
+``adarl bench --whole-run`` times whole runs instead, process start to exit, against SB3 SAC
+(:mod:`adarl.experiments.bench_whole_run`, the driver); its SB3 run (:func:`whole_run_sb3`) and the act()
+latencies of ``--inference`` (:func:`act_latency`) run here, in worker processes
+(``--whole-run-worker sb3``, ``--act-latency-worker``).
+
 The driver itself never imports torch, TorchRL or the recipe runtime (they load inside :func:`measure`, in each
 worker process): its caches and peak memory stay out of the measurements, and ``adarl --help`` builds the bench
 options from this module without them.
@@ -29,7 +34,16 @@ from pathlib import Path
 
 from adarl.errors import AdaRLValueError
 
-__all__ = ["VARIANTS", "run_benchmark", "measure", "rank_event_seconds", "format_table", "main"]
+__all__ = [
+    "VARIANTS",
+    "run_benchmark",
+    "measure",
+    "rank_event_seconds",
+    "format_table",
+    "whole_run_sb3",
+    "act_latency",
+    "main",
+]
 
 VARIANTS = ("adarl", "adarl_compiled", "adarl_process", "adarl_thread", "adarl_norank", "torchrl", "sb3")
 #: our loops, compared with the baselines
@@ -216,6 +230,162 @@ def rank_event_seconds(width: int, *, repeats: int = 3, threads: int = 1, event_
     return statistics.median(times)
 
 
+def whole_run_sb3(
+    env_id: str,
+    width: int,
+    *,
+    frames: int,
+    warmup: int,
+    batch: int = 256,
+    threads: int = 1,
+    eval_interval: int,
+    eval_episodes: int,
+) -> dict:
+    """One Stable-Baselines3 SAC run as ``adarl bench --whole-run`` times it (the driver times the process, from
+    its start to its exit; this returns what the run did, and ``loop_s``, the time inside ``learn()`` and the
+    final evaluation).
+
+    The settings of :func:`measure`'s sb3 variant: ``net_arch=[w, w]``, ``batch``, ``learning_starts=warmup``,
+    one gradient step per env step, a buffer of every frame, lr 3e-3, the entropy coefficient learnt from 1.0 (as
+    the quickstart recipe). An ``EvalCallback`` evaluates deterministically every ``eval_interval`` frames for
+    ``eval_episodes`` episodes, and once more at the end when the frames are not a multiple of the interval (as
+    adarl's trainer does)."""
+    import torch
+
+    torch.set_num_threads(threads)
+    import gymnasium as gym
+    from stable_baselines3 import SAC
+    from stable_baselines3.common.callbacks import EvalCallback
+    from stable_baselines3.common.evaluation import evaluate_policy
+    from stable_baselines3.common.monitor import Monitor
+
+    class CountingEval(EvalCallback):
+        evals, last, last_mean = 0, -1, None
+
+        def _on_step(self) -> bool:
+            due = self.eval_freq > 0 and self.n_calls % self.eval_freq == 0
+            out = super()._on_step()
+            if due:
+                self.evals, self.last, self.last_mean = self.evals + 1, self.num_timesteps, float(self.last_mean_reward)
+            return out
+
+    model = SAC(
+        "MlpPolicy",
+        gym.make(env_id),
+        batch_size=batch,
+        learning_starts=warmup,
+        train_freq=1,
+        gradient_steps=1,
+        buffer_size=frames,
+        policy_kwargs={"net_arch": [width, width]},
+        device="cpu",
+        learning_rate=3e-3,
+        seed=0,
+        verbose=0,
+    )
+    cb = CountingEval(
+        Monitor(gym.make(env_id)), eval_freq=eval_interval, n_eval_episodes=eval_episodes, deterministic=True
+    )
+    t = time.perf_counter()
+    model.learn(total_timesteps=frames, callback=cb)
+    if cb.last != model.num_timesteps:
+        mean, _ = evaluate_policy(model, cb.eval_env, n_eval_episodes=eval_episodes, deterministic=True)
+        cb.evals, cb.last_mean = cb.evals + 1, float(mean)
+    return {
+        "loop_s": time.perf_counter() - t,
+        "frames": int(model.num_timesteps),
+        "updates": int(model._n_updates),
+        "evals": cb.evals,
+        "eval_episodes": cb.evals * eval_episodes,
+        "final_eval_mean": cb.last_mean,
+    }
+
+
+def act_latency(env_id: str, width: int, *, rank: int = 7, calls: int = 2000) -> list[dict]:
+    """Median act() latency at batch 1, one thread, ``torch.no_grad``, of three ``(width, width)`` SAC actors
+    built as the quickstart recipe builds them: plain ``nn.Linear`` layers (what a full-rank SAC deploys), the
+    recipe's low-rank layers at full rank (AdaRL before its first rank event), and the same truncated to ``rank``
+    (each layer to at most its own largest rank).
+
+    ``act_us``: the deployed call, ``actor(TensorDict(observation=obs))`` with the deterministic action (what
+    :func:`adarl.load_policy` returns); ``network_us``: the MLP alone on the observation tensor and ``tanh`` of
+    its mean. The actors' calls are interleaved in rounds; the median over ``calls`` calls each."""
+    import copy
+
+    import gymnasium as gym
+    import torch
+    from tensordict import TensorDict
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+    from torchrl.modules import MLP
+
+    from adarl.core.lowrank import iter_low_rank
+    from adarl.runtime.builders.common import spec_env
+    from adarl.runtime.builders.sac import make_recipe_actor
+    from adarl.runtime.config import load_recipe
+
+    torch.set_num_threads(1)
+    env = gym.make(env_id)
+    obs_dim, act_dim = int(env.observation_space.shape[-1]), int(env.action_space.shape[-1])
+    specs = {
+        "observation_dim": obs_dim,
+        "action_kind": "box",
+        "action_low": torch.as_tensor(env.action_space.low, dtype=torch.float32),
+        "action_high": torch.as_tensor(env.action_space.high, dtype=torch.float32),
+    }
+    env.close()
+    cells = [f"network.actor.num_cells=[{width},{width}]"]
+
+    def build(extra):
+        torch.manual_seed(0)
+        return make_recipe_actor(load_recipe("quickstart", cells + extra), spec_env(specs, "cpu"))
+
+    low_rank = build([])
+    truncated = copy.deepcopy(low_rank)
+    for _, layer in iter_low_rank(truncated):
+        layer.truncate_(min(rank, layer.rank))
+    actors = {
+        "dense (nn.Linear)": build(["network.actor.low_rank_layers=[]", "rank.enabled=false"]),
+        "low-rank, full rank": low_rank,
+        f"low-rank, rank <= {rank}": truncated,
+    }
+    obs = torch.randn(obs_dim)
+    act_us: dict[str, list[float]] = {k: [] for k in actors}
+    net_us: dict[str, list[float]] = {k: [] for k in actors}
+    rounds = 10
+    per_round = max(1, calls // rounds)
+    clock = time.perf_counter_ns
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        nets = {}
+        for name, actor in actors.items():
+            actor.eval().requires_grad_(False)
+            nets[name] = next(m for m in actor.modules() if isinstance(m, MLP))
+            for _ in range(50):  # warm-up
+                actor(TensorDict(observation=obs))
+                torch.tanh(nets[name](obs)[..., :act_dim])
+        for _ in range(rounds):
+            for name, actor in actors.items():
+                net = nets[name]
+                for _ in range(per_round):
+                    t = clock()
+                    actor(TensorDict(observation=obs))
+                    act_us[name].append((clock() - t) / 1000)
+                for _ in range(per_round):
+                    t = clock()
+                    torch.tanh(net(obs)[..., :act_dim])
+                    net_us[name].append((clock() - t) / 1000)
+    return [
+        {
+            "actor": name,
+            "ranks": "/".join(str(layer.rank) for _, layer in iter_low_rank(actor)) or "dense",
+            "parameters": sum(p.numel() for p in actor.parameters()),
+            "act_us": statistics.median(act_us[name]),
+            "network_us": statistics.median(net_us[name]),
+            "calls": len(act_us[name]),
+        }
+        for name, actor in actors.items()
+    ]
+
+
 def _worker(args) -> int:
     os.environ.setdefault("RL_WARNINGS", "False")
     import warnings
@@ -234,6 +404,24 @@ def _worker(args) -> int:
         overrides=tuple(args.set),
     )
     print("ADARL_BENCH " + json.dumps(out))
+    return 0
+
+
+def _whole_run_worker(args) -> int:
+    import warnings
+
+    warnings.filterwarnings("ignore")
+    out = whole_run_sb3(
+        args.env,
+        args.width,
+        frames=args.frames,
+        warmup=args.warmup,
+        batch=args.batch,
+        threads=args.threads,
+        eval_interval=args.eval_interval,
+        eval_episodes=args.eval_episodes,
+    )
+    print("ADARL_WHOLE_RUN " + json.dumps(out))
     return 0
 
 
@@ -376,15 +564,21 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--variants",
         nargs="+",
-        default=list(VARIANTS),
+        default=None,
         choices=VARIANTS,
         help="adarl (fused, rank adaptation on), adarl_compiled (the same with algorithm.compile; its "
         "rank events, each a recompilation, are timed after the window), adarl_process / adarl_thread "
-        "(collector.overlap: process / thread), adarl_norank, torchrl (stock SACLoss loop), sb3",
+        "(collector.overlap: process / thread), adarl_norank, torchrl (stock SACLoss loop), sb3 (default: all; "
+        "--whole-run: adarl adarl_norank torchrl sb3, the only ones it runs)",
     )
     p.add_argument("--repeats", type=int, default=3, help="repeats per variant (the median is reported)")
     p.add_argument("--steps", type=int, default=1000, help="timed updates per measurement")
-    p.add_argument("--warmup", type=int, default=1000, help="random-action frames before updates start")
+    p.add_argument(
+        "--warmup",
+        type=int,
+        default=None,
+        help="random-action frames before updates start (default: 1000; --whole-run: 5000, the quickstart recipe's)",
+    )
     p.add_argument("--skip", type=int, default=100, help="untimed updates before the timed window")
     p.add_argument("--batch", type=int, default=256)
     p.add_argument("--threads", type=int, default=1, help="torch threads per measurement")
@@ -409,11 +603,59 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="recipe overrides for the adarl variants, e.g. network.actor.rank=64 network.critic.rank=64 "
         "to time the loop at the ranks a truncation leaves",
     )
-    p.add_argument("--output", default="bench.json", help="JSON report path")
+    p.add_argument(
+        "--output", default=None, help="JSON report path (default: bench.json; --whole-run: bench_whole_run.json)"
+    )
     p.add_argument("--quiet", action="store_true")
+    w = p.add_argument_group(
+        "whole runs (--whole-run)",
+        "Whole training runs timed from process start to exit, each in a fresh process: adarl (the quickstart "
+        "recipe with its rank events scaled), adarl_norank, torchrl (TorchRL's stock path in adarl's trainer) and "
+        "sb3 (Stable-Baselines3 SAC with an EvalCallback), same env, frames, update ratio, batch, widths, threads "
+        "and evaluations. --envs, --widths, --variants, --repeats, --warmup, --batch, --threads, --set and "
+        "--output apply too.",
+    )
+    w.add_argument("--whole-run", action="store_true", help="time whole runs end to end (docs/performance.md)")
+    w.add_argument("--frames", type=int, default=12000, help="env frames of each run (default: 12000)")
+    w.add_argument(
+        "--frames-per-batch",
+        type=int,
+        default=250,
+        help="adarl's collector batch (the quickstart recipe's 250); --frames, --warmup and --eval-interval "
+        "must be multiples of it",
+    )
+    w.add_argument("--eval-interval", type=int, default=4000, help="frames between evaluations (default: 4000)")
+    w.add_argument("--eval-episodes", type=int, default=3, help="deterministic episodes per evaluation (default: 3)")
+    w.add_argument(
+        "--rank-events",
+        type=int,
+        default=3,
+        help="adarl: rank events in the run (rank.interval = updates // (events + 1) + 1; default: 3)",
+    )
+    w.add_argument(
+        "--event-threads",
+        default="auto",
+        help="adarl: torch threads of a rank event (rank.num_threads; default auto: every core, as a user's "
+        "`adarl run` on an idle machine)",
+    )
+    w.add_argument(
+        "--inference",
+        action="store_true",
+        help="also time act() at batch 1 (one thread): dense, low-rank at full rank and truncated actors",
+    )
+    w.add_argument("--inference-rank", type=int, default=7, help="rank of the truncated actor's layers (default: 7)")
+    w.add_argument("--inference-calls", type=int, default=2000, help="timed act() calls per actor (default: 2000)")
+    w.add_argument("--markdown", default=None, metavar="PATH", help="also write the markdown table to PATH")
 
 
 def cli(a) -> int:
+    if a.whole_run:
+        from adarl.experiments.bench_whole_run import cli as whole_run_cli
+
+        return whole_run_cli(a)
+    a.variants = list(VARIANTS) if a.variants is None else a.variants
+    a.warmup = 1000 if a.warmup is None else a.warmup
+    a.output = "bench.json" if a.output is None else a.output
     for name in ("repeats", "steps", "warmup", "batch", "threads", "rank_interval"):
         if getattr(a, name) < 1:
             raise AdaRLValueError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(a, name)}")
@@ -436,7 +678,15 @@ def main(argv=None) -> int:
     p.add_argument("--variant", choices=VARIANTS, help=argparse.SUPPRESS)
     p.add_argument("--env", help=argparse.SUPPRESS)
     p.add_argument("--width", type=int, help=argparse.SUPPRESS)
+    p.add_argument("--whole-run-worker", choices=["sb3"], help=argparse.SUPPRESS)
+    p.add_argument("--act-latency-worker", action="store_true", help=argparse.SUPPRESS)
     a = p.parse_args(argv)
+    if a.whole_run_worker:
+        return _whole_run_worker(a)
+    if a.act_latency_worker:
+        rows = act_latency(a.env, a.width, rank=a.inference_rank, calls=a.inference_calls)
+        print("ADARL_ACT_LATENCY " + json.dumps(rows))
+        return 0
     return _worker(a) if a.worker else cli(a)
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import statistics
 import tempfile
 from pathlib import Path
 
@@ -114,8 +115,6 @@ def _speed_series(run: RunDir) -> list[tuple[int, float]]:
 def speed_by_phase(run: RunDir) -> list[dict]:
     """Median updates/s between consecutive rank events (before the first, between events, after the last): the
     figures the report's speed table shows."""
-    import statistics
-
     series = _speed_series(run)
     steps = sorted({int(ev.get("step", 0)) for ev in run.read_rank_history()})
     edges = [0, *steps, float("inf")]
