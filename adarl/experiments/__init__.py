@@ -9,5 +9,6 @@
 * :mod:`~adarl.experiments.aggregate` and :mod:`~adarl.experiments.stats` - reports across seeds, IQM and
   bootstrap intervals;
 * :mod:`~adarl.experiments.bench` - ``adarl bench``, the side-by-side speed benchmark.
-* :mod:`~adarl.experiments.bench_whole_run` - ``adarl bench --whole-run``: whole runs, process start to finished run folder, against SB3.
+* :mod:`~adarl.experiments.bench_whole_run` - ``adarl bench --whole-run``: whole runs, process start to finished
+  run folder, against SB3.
 """
