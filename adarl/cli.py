@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import signal
 import sys
 import time
 import warnings
@@ -499,7 +500,16 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _restore_sigint() -> None:
+    """A process started in the background by a non-interactive shell (``adarl experiment ... &`` in a script)
+    inherits SIGINT ignored, and Python then leaves it ignored: ``kill -INT`` would do nothing. Restore Python's
+    handler so that SIGINT stops adarl as Ctrl-C does (a terminal's Ctrl-C never reaches background jobs anyway)."""
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
 def main(argv: list[str] | None = None) -> int:
+    _restore_sigint()
     args = build_parser().parse_args(argv)
     _quiet_env(bool(getattr(args, "quiet", False)))
     _one_line_warnings()

@@ -303,3 +303,31 @@ def test_url_results_resume_on_a_fresh_scratch_and_match_local(tmp_path, local_r
     # finished runs are never re-run
     again = run_experiment(spec, output=url, scratch=scratch_b, report=False, log=lambda *_: None)
     assert sorted(r.status for r in again) == ["skipped-finished"] * 4
+
+
+@pytest.mark.slow
+def test_an_experiment_started_with_sigint_ignored_still_stops_on_sigint(tmp_path):
+    """`adarl experiment ... &` from a script inherits SIGINT ignored; `kill -INT` must still stop it (its runs go
+    with it and resume from their last checkpoint)."""
+    out = tmp_path / "exp"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "adarl.cli", "experiment", str(_spec(tmp_path)), "-o", str(out), "--no-live"],
+        cwd=REPO,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN),
+    )
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline and proc.poll() is None and not list(out.glob("*/recipe.yaml")):
+        time.sleep(0.2)
+    assert proc.poll() is None, "the experiment ended before it could be interrupted"
+    proc.send_signal(signal.SIGINT)
+    try:
+        _, err = proc.communicate(timeout=90)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        pytest.fail("SIGINT did not stop an experiment started with SIGINT ignored")
+    assert proc.returncode != 0, err[-2000:]
+    time.sleep(1)
+    assert _training_pids(str(out)) == []
