@@ -848,6 +848,13 @@ def _statistics_blocks(agg: Aggregate, out: Path) -> list[tuple]:
     ref = agg.report.get("reference")
     groups = sorted(agg.groups, key=lambda g: [_num_key(v) for _, v in g.key])
 
+    def _seed_counts(gs) -> str:
+        ns = sorted({len(g.finals) for g in gs if g.finals})
+        if not ns:
+            return "no finished seeds"
+        n = f"{ns[0]}" if len(ns) == 1 else f"{ns[0]}-{ns[-1]}"
+        return f"{n} seed{'s' if ns[-1] > 1 else ''} per setting"
+
     def partner(g: Group) -> Group | None:
         if ref is None or col_axis is None or dict(g.key).get(col_axis) == ref:
             return None
@@ -902,7 +909,7 @@ def _statistics_blocks(agg: Aggregate, out: Path) -> list[tuple]:
                 if ref is not None
                 else ""
             )
-            + ". With 5 seeds the intervals are wide. Data in statistics.csv.",
+            + f". With {_seed_counts(groups)} the intervals are wide. Data in statistics.csv.",
         ),
         ("table", header, rows, []),
     ]
