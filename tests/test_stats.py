@@ -155,3 +155,45 @@ def test_runs_csv_has_one_column_per_name_with_an_env_axis(tmp_path):
         rows = list(csv.DictReader(fh))
     assert len(header) == len(set(header)), header
     assert {(r["env"], r["env_id"]) for r in rows} == {("hopper", "LinearCartPole-v0")}
+
+
+def test_event_window_counts_each_seed_once_with_an_interval_and_compares_with_the_reference(tmp_path):
+    """The Fig. 9 table: the return dip after each rank event, per seed, refill against reset."""
+    from adarl.experiments.aggregate import write_aggregate_report
+
+    exp = tmp_path / "exp"
+    runs = []
+    dips = {"refill": [-10.0, -12.0, -8.0], "reset": [-50.0, -40.0, -60.0]}
+    for mode, values in dips.items():
+        for seed, dip in enumerate(values):
+            rid = f"warm_start={mode}__seed={seed}"
+            run = _fake_run(exp, rid, seed, 0, [(1000, 100.0), (2000, 100.0)])
+            scalars = run / "metrics" / "scalars"
+            (scalars / "warm_start").mkdir(parents=True)
+            (scalars / "train").mkdir(parents=True)
+            (scalars / "warm_start" / "frames.csv").write_text("1000,50\n")  # one rank event at frame 1000
+            rows = [(f, 100.0) for f in (800, 900, 1000)] + [(f, 100.0 + dip) for f in (1100, 1200)]
+            rows.append((1900, 500.0))  # outside the window: ignored
+            (scalars / "train" / "episode_return.csv").write_text("".join(f"{f},{v}\n" for f, v in rows))
+            runs.append(
+                {"run_id": rid, "axes": {"warm_start": mode}, "seed": seed, "recipe": "fake", "path": str(run)}
+                | {"status": "finished"}
+            )
+    (exp / "experiment.json").write_text(
+        json.dumps(
+            {
+                "name": "fake",
+                "axes": ["warm_start"],
+                "runs": runs,
+                "report": {"columns": "warm_start", "reference": "refill", "event_window": 500},
+            }
+        )
+    )
+    md = write_aggregate_report([exp]).read_text()
+    section = md.split("## Training return around rank events", 1)[1]
+    line = next(row for row in section.splitlines() if row.startswith("| warm_start=reset |"))
+    cells = [c.strip() for c in line.strip("|").split("|")]
+    assert cells[1:4] == ["3", "3", "-50.0"]  # events, seeds, mean change
+    assert cells[4].startswith("-50.0 [") and cells[-1] == "1.00 [1.00, 1.00]"  # every refill seed dips less
+    with (exp / "report" / "event_window.csv").open() as fh:
+        assert len(list(csv.DictReader(fh))) == 6

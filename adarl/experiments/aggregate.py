@@ -918,7 +918,7 @@ def _statistics_blocks(agg: Aggregate, out: Path) -> list[tuple]:
         blocks.append(("p", "Seeds found more than once (counted once, the first run found): " + "; ".join(dups)))
     window = agg.report.get("event_window")
     if window:
-        blocks += _event_window_blocks(groups, int(window), out)
+        blocks += _event_window_blocks(groups, int(window), out, col_axis=col_axis, ref=ref)
     at = list(agg.report.get("at_updates") or [])
     if at:
         head = ["setting"] + [f"at {u:,} steps" for u in at]
@@ -962,28 +962,54 @@ def event_dips(run: RunRecord, window: int) -> list[tuple[int, float, float]]:
     return out
 
 
-def _event_window_blocks(groups: list[Group], window: int, out: Path) -> list[tuple]:
-    rows, crow = [], []
+def _event_window_blocks(
+    groups: list[Group], window: int, out: Path, *, col_axis: str | None = None, ref: str | None = None
+) -> list[tuple]:
+    rows, crow, per_seed = [], [], {}
     for g in groups:
-        changes, afters = [], []
+        changes, afters, seeds = [], [], {}
         for r in g.scored:
             for e, before, after in event_dips(r, window):
                 changes.append(after - before)
+                seeds.setdefault(r.seed, []).append(after - before)
                 afters.append(after / before if before else math.nan)
                 crow.append([*[v for _, v in g.key], r.seed, e, before, after])
         if not changes:
             continue
+        # the seed is the unit: each seed's mean change over its events, then a bootstrap over seeds
+        per_seed[g.key] = [statistics.fmean(v) for v in seeds.values()]
         rows.append(
-            [
-                g.label,
-                str(len(changes)),
-                f"{statistics.fmean(changes):+.1f}",
-                f"{min(changes):+.1f}",
-                f"{statistics.fmean(a for a in afters if not math.isnan(a)):.2f}",
-            ]
+            (
+                g,
+                [
+                    g.label,
+                    str(len(changes)),
+                    str(len(seeds)),
+                    f"{statistics.fmean(changes):+.1f}",
+                    _ci(*interval_estimate(per_seed[g.key], "mean")),
+                    f"{min(changes):+.1f}",
+                    f"{statistics.fmean(a for a in afters if not math.isnan(a)):.2f}",
+                ],
+            )
         )
     if not rows:
         return []
+    header = ["setting", "events", "seeds", "mean change", "mean of seed means [95% CI]", "worst change"]
+    header.append("mean after / before")
+    with_ref = ref is not None and col_axis is not None
+    if with_ref:
+        header.append(f"P({ref} dips less) [95% CI]")
+    table = []
+    for g, row in rows:
+        if with_ref:
+            key = dict(g.key)
+            ref_key = tuple((a, ref if a == col_axis else v) for a, v in g.key)
+            if key.get(col_axis) != ref and ref_key in per_seed:
+                p = poi_estimate(per_seed[ref_key], per_seed[g.key])
+                row.append(f"{p[0]:.2f} [{p[1]:.2f}, {p[2]:.2f}]")
+            else:
+                row.append("–")
+        table.append(row)
     (out / "event_window.csv").write_text(
         _csv(crow, [*[a for a, _ in groups[0].key], "seed", "event_frames", "return_before", "return_after"])
     )
@@ -994,9 +1020,17 @@ def _event_window_blocks(groups: list[Group], window: int, out: Path) -> list[tu
             f"For every rank event that changed a rank, in every seed: the mean training episode return in "
             f"the {window:,} frames after the event minus the mean in the {window:,} frames before it (the "
             "transient dip of Fig. 9; training episodes run under the perturbed dynamics, so single values are "
-            "noisy). Data in event_window.csv.",
+            "noisy). Mean change: over all events; mean of seed means: each seed's mean over its events, counted "
+            "once, with a 95% bootstrap interval over seeds"
+            + (
+                f"; P({ref} dips less): the probability that a seed of {ref} has a higher mean change than a seed "
+                "of the setting (ties count half), with its bootstrap interval"
+                if with_ref
+                else ""
+            )
+            + ". Data in event_window.csv.",
         ),
-        ("table", ["setting", "events", "mean change", "worst change", "mean after / before"], rows, []),
+        ("table", header, table, []),
     ]
 
 
