@@ -268,15 +268,21 @@ def algorithm_names(*, load: bool = True) -> list[str]:
 
 def algorithm(name: str) -> Algorithm:
     """The :class:`Algorithm` registered as ``name``; installed plugins are loaded when it is not known yet."""
-    if name not in _algorithms:
+    return _lookup(_algorithms, name, "algorithm.name", HOW_TO_REGISTER, sorted)
+
+
+def _lookup(registry: dict, name: str, key: str, how: str, order: Callable = sorted):
+    """``registry[name]``, loading installed plugins first when it is not known; else an error that lists the
+    registered names (in ``order``), suggests a close one and says how to register."""
+    if name not in registry:
         load_entry_points()
-    if name not in _algorithms:
-        names = sorted(_algorithms)
+    if name not in registry:
+        names = order(registry)
         raise AdaRLValueError(
-            f"unknown algorithm.name {name!r}; allowed: {one_of(names)}{did_you_mean(str(name), names)} "
-            f"(no installed plugin registers it; {HOW_TO_REGISTER})"
+            f"unknown {key} {name!r}; allowed: {one_of(names)}{did_you_mean(str(name), names)} "
+            f"(no installed plugin registers it; {how})"
         )
-    return _algorithms[name]
+    return registry[name]
 
 
 def _builtin() -> None:
@@ -466,15 +472,7 @@ def rank_rule(name: str) -> RankRuleSpec:
         ...
     adarl.errors.AdaRLValueError: unknown rank.rule 'enrgy'; allowed: 'energy', ...; did you mean 'energy'? ...
     """
-    if name not in _rank_rules:
-        load_entry_points()
-    if name not in _rank_rules:
-        names = list(_rank_rules)
-        raise AdaRLValueError(
-            f"unknown rank.rule {name!r}; allowed: {one_of(names)}{did_you_mean(str(name), names)} "
-            f"(no installed plugin registers it; {HOW_TO_REGISTER_RANK_RULE})"
-        )
-    return _rank_rules[name]
+    return _lookup(_rank_rules, name, "rank.rule", HOW_TO_REGISTER_RANK_RULE, list)
 
 
 def _builtin_rank_rules() -> None:

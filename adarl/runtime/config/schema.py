@@ -508,23 +508,7 @@ class AlgorithmConfig(_Section):
     @model_validator(mode="after")
     def _check_options(self) -> AlgorithmConfig:
         spec = plugins.algorithm(self.name)
-        try:
-            checked = spec.options.model_validate(_plain(self.options))
-        except ValidationError as err:
-            problems = []
-            for e in err.errors():
-                where = ".".join(str(x) for x in e["loc"])
-                allowed = list(spec.options.model_fields)
-                msg = e["msg"]
-                if e["type"] == "extra_forbidden":
-                    msg = (
-                        f"unknown option of algorithm {self.name!r}; allowed: "
-                        f"{one_of(allowed) if allowed else 'none (it has no options)'}"
-                        f"{did_you_mean(str(e['loc'][-1]), allowed)}"
-                    )
-                problems.append((f"options.{where}", e.get("input", NO_VALUE), msg))
-            raise _Problems(problems) from None
-        self.options = checked.model_dump(mode="python")
+        self.options = _validated_options(spec.options, self.options, "options", f"algorithm {self.name!r}")
         return self
 
     @property
@@ -634,23 +618,9 @@ class RankConfig(_Section):
                     )
                 ]
             )
-        try:
-            checked = spec.options.model_validate(_plain(self.rule_options))
-        except ValidationError as err:
-            problems = []
-            for e in err.errors():
-                where = ".".join(str(x) for x in e["loc"])
-                allowed = list(spec.options.model_fields)
-                msg = e["msg"]
-                if e["type"] == "extra_forbidden":
-                    msg = (
-                        f"unknown option of rank rule {self.rule!r}; allowed: "
-                        f"{one_of(allowed) if allowed else 'none (it has no options)'}"
-                        f"{did_you_mean(str(e['loc'][-1]), allowed)}"
-                    )
-                problems.append((f"rule_options.{where}", e.get("input", NO_VALUE), msg))
-            raise _Problems(problems) from None
-        self.rule_options = checked.model_dump(mode="python")
+        self.rule_options = _validated_options(
+            spec.options, self.rule_options, "rule_options", f"rank rule {self.rule!r}"
+        )
         if self.rule == "fixed":
             if self.target_rank is None:
                 raise _Problems([("target_rank", None, "rule 'fixed' needs target_rank: an integer >= 1")])
@@ -926,6 +896,25 @@ class Recipe(_Section):
             if not is_mujoco(env.id):
                 p.append(("algorithm.name", "rnac_ds", f"needs a MuJoCo env; {env.id} is not one"))
         return p
+
+
+def _validated_options(model: type[BaseModel], options: Any, key: str, what: str) -> dict:
+    """``options`` checked by a registered options model (an algorithm's, a rank rule's: unknown key, type, range,
+    each a problem under ``key``), returned with every default filled in (what recipe.yaml records)."""
+    try:
+        return model.model_validate(_plain(options)).model_dump(mode="python")
+    except ValidationError as err:
+        allowed = list(model.model_fields)
+        problems = []
+        for e in err.errors():
+            msg = e["msg"]
+            if e["type"] == "extra_forbidden":
+                msg = (
+                    f"unknown option of {what}; allowed: {one_of(allowed) if allowed else 'none (it has no options)'}"
+                    f"{did_you_mean(str(e['loc'][-1]), allowed)}"
+                )
+            problems.append((f"{key}.{'.'.join(str(x) for x in e['loc'])}", e.get("input", NO_VALUE), msg))
+        raise _Problems(problems) from None
 
 
 def _show(v: Any, limit: int = 80) -> str:
