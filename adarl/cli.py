@@ -212,6 +212,10 @@ def _size(text: str) -> tuple[int, int]:
 
 
 def cmd_bench(args) -> int:
+    if args.whole_run:
+        from adarl.experiments.bench_whole_run import cli as whole_run_cli
+
+        return whole_run_cli(args)
     from adarl.experiments.bench import cli
 
     return cli(args)

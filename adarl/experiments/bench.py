@@ -36,6 +36,7 @@ from adarl.errors import AdaRLValueError
 
 __all__ = [
     "VARIANTS",
+    "interleave",
     "run_benchmark",
     "measure",
     "rank_event_seconds",
@@ -464,6 +465,19 @@ def _spawn(variant, env_id, width, a) -> dict:
     raise RuntimeError(f"benchmark worker {variant} {env_id} {width} failed:\n{proc.stderr[-2000:]}")
 
 
+def interleave(variants: list[str], repeats: int, run, report=None) -> dict[str, list[dict]]:
+    """``run(variant)`` for every variant, ``repeats`` times, interleaved with the order reversed on every other
+    repeat (a slow drift of the machine's load falls on every variant alike); ``report(variant, repeat, result)``
+    after each."""
+    runs: dict[str, list[dict]] = {v: [] for v in variants}
+    for rep in range(repeats):
+        for v in variants if rep % 2 == 0 else list(reversed(variants)):
+            runs[v].append(run(v))
+            if report is not None:
+                report(v, rep, runs[v][-1])
+    return runs
+
+
 def run_benchmark(a) -> dict:
     """Interleave variants x repeats for each (env, width); return medians, ratios and the raw runs."""
     variants = [v for v in a.variants if v != "sb3" or _sb3_available()]
@@ -471,18 +485,18 @@ def run_benchmark(a) -> dict:
     results = []
     for env_id in a.envs:
         for width in a.widths:
-            runs: dict[str, list[dict]] = {v: [] for v in variants}
-            for rep in range(a.repeats):
-                order = variants if rep % 2 == 0 else list(reversed(variants))  # interleaved, order alternates
-                for v in order:
-                    runs[v].append(_spawn(v, env_id, width, a))
-                    if not a.quiet:
-                        print(
-                            f"  {env_id} ({width},{width}) {v} #{rep + 1}: "
-                            f"{runs[v][-1]['updates_per_s']:.1f} updates/s",
-                            file=sys.stderr,
-                            flush=True,
-                        )
+            runs = interleave(
+                variants,
+                a.repeats,
+                lambda v, env_id=env_id, width=width: _spawn(v, env_id, width, a),
+                None
+                if a.quiet
+                else lambda v, rep, r, env_id=env_id, width=width: print(
+                    f"  {env_id} ({width},{width}) {v} #{rep + 1}: {r['updates_per_s']:.1f} updates/s",
+                    file=sys.stderr,
+                    flush=True,
+                ),
+            )
             row = {"env": env_id, "width": width, "variants": {}}
             for v, rs in runs.items():
                 events = [t for r in rs for t in r["rank_event_s"]]
@@ -649,10 +663,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def cli(a) -> int:
-    if a.whole_run:
-        from adarl.experiments.bench_whole_run import cli as whole_run_cli
-
-        return whole_run_cli(a)
+    """``adarl bench`` (the update window; ``--whole-run`` goes to :mod:`adarl.experiments.bench_whole_run`)."""
+    if getattr(a, "whole_run", False):  # `python -m adarl.experiments.bench --whole-run`: not this driver's mode
+        raise AdaRLValueError("--whole-run is timed by `adarl bench --whole-run` (adarl.experiments.bench_whole_run)")
     a.variants = list(VARIANTS) if a.variants is None else a.variants
     a.warmup = 1000 if a.warmup is None else a.warmup
     a.output = "bench.json" if a.output is None else a.output

@@ -46,6 +46,7 @@ from importlib import metadata
 from pathlib import Path
 
 from adarl.errors import AdaRLValueError
+from adarl.experiments.bench import interleave
 from adarl.runtime.config import load_recipe
 
 __all__ = [
@@ -347,19 +348,19 @@ def run_whole_runs(a) -> dict:
     results = []
     for env_id in a.envs:
         for width in a.widths:
-            runs: dict[str, list[dict]] = {v: [] for v in variants}
-            for rep in range(a.repeats):
-                order = variants if rep % 2 == 0 else list(reversed(variants))  # interleaved, order alternates
-                for v in order:
-                    runs[v].append(run_one(v, env_id, width, a))
-                    if not a.quiet:
-                        r = runs[v][-1]
-                        print(
-                            f"  whole run {env_id} ({width},{width}) {v} #{rep + 1}: {r['wall_s']:.1f} s, "
-                            f"{r['updates']} updates, {r['rank_events']} rank events",
-                            file=sys.stderr,
-                            flush=True,
-                        )
+            runs = interleave(
+                variants,
+                a.repeats,
+                lambda v, env_id=env_id, width=width: run_one(v, env_id, width, a),
+                None
+                if a.quiet
+                else lambda v, rep, r, env_id=env_id, width=width: print(
+                    f"  whole run {env_id} ({width},{width}) {v} #{rep + 1}: {r['wall_s']:.1f} s, "
+                    f"{r['updates']} updates, {r['rank_events']} rank events",
+                    file=sys.stderr,
+                    flush=True,
+                ),
+            )
             row: dict = {"env": env_id, "width": width, "variants": {}}
             for v, rs in runs.items():
                 d = {k: statistics.median(r[k] for r in rs) for k in _SUMMED}
