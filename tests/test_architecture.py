@@ -178,7 +178,7 @@ def test_core_depends_on_torch_torchrl_errors_and_the_plugin_registry_only():
         if _wing(m) == "core"
         for n, _, _ in _imports(p, m)
         if n.split(".")[0] not in stdlib | CORE_THIRD_PARTY | {"__future__"}
-        and not (n.startswith(("adarl.core", "adarl.errors", "adarl.plugins")) or n == "adarl")
+        and not n.startswith(("adarl.core", "adarl.errors", "adarl.plugins"))
     ]
     assert bad == []
 
