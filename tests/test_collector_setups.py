@@ -42,6 +42,9 @@ ROWS = {
     "`Collector(env, copy.deepcopy(actor))`, a policy copy": "test_collector_running_a_policy_copy",
     "`MultiSyncCollector([make_env] * n, actor)`, worker processes": "test_process_collector",
     "`(env, actor)` pair (warm start only)": "test_env_policy_pair",
+    "`LeanCollector(env, actor)`, adarl's (a run's collector for one env and a TanhNormal actor)": (
+        "test_lean_collector_of_a_run"
+    ),
 }
 
 
@@ -313,3 +316,40 @@ def test_process_collector():
     finally:
         collector.shutdown()
     assert i == 3
+
+
+def test_lean_collector_of_a_run():
+    """adarl's LeanCollector: after an event the warm start collects through it (``rollout()``) with the truncated
+    actor, and the buffer gets what an ``(env, actor)`` pair's ``env.rollout`` gives, bit for bit, from the same
+    seeds (the random phase off while it collects)."""
+    from adarl.fast.collector import LeanCollector
+    from adarl.runtime.builders.sac import build_components
+    from adarl.runtime.config import load_recipe
+
+    overrides = [
+        "collector.total_frames=2000",
+        "collector.init_random_frames=100",
+        "collector.frames_per_batch=50",
+        "replay.size=2000",
+        "replay.warm_start.frames=120",
+    ]
+
+    def run(pair: bool):
+        torch.manual_seed(0)
+        c = build_components(load_recipe("quickstart", overrides))
+        assert isinstance(c.collector, LeanCollector) and c.warm_start.source is c.collector
+        if pair:
+            c.warm_start.source = (c.env, c.modules.actor)  # the path the lean collector's rollout() replaced
+        batch = next(iter(c.collector))
+        c.replay_buffer.extend(batch.reshape(-1))
+        torch.manual_seed(1)
+        event = c.adapter.adapt()
+        return event, c
+
+    event, lean = run(pair=False)
+    _, ref = run(pair=True)
+    assert event.changed and len(lean.replay_buffer) == len(ref.replay_buffer) == 120
+    assert lean.collector.frames == 50 and lean.collector.init_random_frames == 100  # the iteration's, untouched
+    got, want = stored(lean.replay_buffer), stored(ref.replay_buffer)
+    for key in ("observation", "action", ("next", "observation"), ("next", "reward"), ("next", "done")):
+        assert torch.equal(got.get(key), want.get(key)), key

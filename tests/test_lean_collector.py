@@ -349,3 +349,39 @@ def test_the_worker_exits_when_its_trainer_is_killed(tmp_path):
         time.sleep(0.2)
     os.kill(pid, signal.SIGKILL)
     raise AssertionError("the collector worker outlived its killed trainer")
+
+
+def test_warm_start_rollout_equals_torchrls_env_rollout_and_leaves_the_iteration_alone():
+    """The warm start after a rank event collects through LeanCollector.rollout() (about 3x faster a frame than
+    TorchRL's env.rollout, which it replaces): from the same seeds the buffer gets the frames env.rollout with the
+    actor gave, bit for bit, exactly ``frames`` of them, from the policy (the random phase off while it collects),
+    and the collector's frame count and random phase are as before."""
+    from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+
+    from adarl.core.warmstart import ReplayWarmStart
+    from adarl.runtime.builders.common import train_env_factory
+    from adarl.runtime.builders.sac import make_sac_modules
+
+    recipe = load_recipe("quickstart", OVR)
+    factory = train_env_factory(recipe)
+    env_lean, env_torchrl = factory(), factory()
+    torch.manual_seed(0)
+    actor = make_sac_modules(recipe, env_lean).actor
+    lean = LeanCollector(env_lean, actor, frames_per_batch=40, init_random_frames=1000)
+    buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(500))
+    warm = ReplayWarmStart(buffer, lean, frames=100)
+    torch.manual_seed(5)
+    record = warm()
+    assert record.frames_added == 100 and len(buffer) == 100
+    assert lean.frames == 0 and lean.init_random_frames == 1000
+    torch.manual_seed(5)
+    with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
+        want = env_torchrl.rollout(100, policy=actor, auto_reset=True, break_when_any_done=False)
+    got = buffer[:100]
+    assert int(want["next", "done"].sum()) >= 1  # an episode ended and was reset inside the warm start
+    for key in ("observation", "action", ("next", "observation"), ("next", "reward"), ("next", "done")):
+        assert torch.equal(got.get(key), want.get(key)), key
+
+
+def test_the_trainers_warm_start_collects_through_the_lean_collector(comps):
+    assert comps.warm_start is not None and comps.warm_start.source is comps.collector

@@ -66,7 +66,8 @@ class ReplayWarmStart:
 
     Args:
         replay_buffer: the TorchRL replay buffer the loss samples from.
-        source: a ``torchrl.collectors.Collector`` or an ``(env, policy)`` pair.
+        source: a ``torchrl.collectors.Collector`` (or :class:`~adarl.fast.collector.LeanCollector`, which has the
+            same ``reset`` / ``rollout`` contract) or an ``(env, policy)`` pair.
         frames: frames to add (exactly this many: a collector's last batch is trimmed when the buffer is extended
             here; a collector that writes into the buffer itself adds whole batches of ``frames_per_batch``).
         mode: ``"refill"`` (default, paper D.5.3), ``"prefill"``, ``"reset"`` (empty only) or ``"keep"``.

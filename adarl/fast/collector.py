@@ -194,6 +194,24 @@ class LeanCollector:
         self.frames += self.frames_per_batch
         return batch
 
+    def rollout(self) -> TensorDictBase:
+        """One batch of ``frames_per_batch`` frames from the current policy, here and now, outside the iteration.
+
+        What :class:`~adarl.core.warmstart.ReplayWarmStart` collects after a rank event (the contract of
+        ``torchrl.collectors.Collector.rollout``): a batch being prefetched is finished and kept first, so the
+        frames come from the env where the iteration left it (call :meth:`reset` before for fresh episodes, as the
+        warm start does). The frames do not count towards :attr:`frames` (the random phase and ``total_frames``
+        belong to the iteration); the policy acts unless ``init_random_frames`` is above the frames collected so
+        far (the warm start sets it to 0 while it collects). Synchronous in every ``overlap`` mode, on the caller's
+        env, with the global RNG, like TorchRL's env rollout this replaces (about 3x faster a frame on Hopper).
+        """
+        self.drain(keep=True)
+        frames = self.frames
+        try:
+            return self._collect(None, None)
+        finally:
+            self.frames = frames
+
     def _prefetch(self) -> None:
         """Start collecting the next batch in the background with a snapshot of the current policy."""
         if self.mode == "process":

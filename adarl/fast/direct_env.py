@@ -174,11 +174,18 @@ class DirectStepper:
         return set(td.keys(True, True)) - {"action"} == set(self.state_keys)
 
     def rollout(
-        self, td: TensorDictBase | None, n: int, act: Callable[[torch.Tensor, int], torch.Tensor]
-    ) -> tuple[TensorDictBase, TensorDictBase]:
+        self,
+        td: TensorDictBase | None,
+        n: int,
+        act: Callable[[torch.Tensor, int], torch.Tensor],
+        *,
+        until_done: bool = False,
+    ) -> tuple[TensorDictBase, TensorDictBase | None]:
         """``n`` frames from the carrier ``td`` (None: reset first): the batch and the carrier that follows.
 
-        ``act(observation, i)`` gives frame ``i``'s action from its float32 observation."""
+        ``act(observation, i)`` gives frame ``i``'s action from its float32 observation. ``until_done``: stop at the
+        first episode end instead (the batch is cut there and no carrier is made, so the env is not reset: what
+        ``env.rollout(n, policy, break_when_any_done=True)`` leaves, the evaluation's episode)."""
         env = self.env
         gym = env.base_env._env  # the gymnasium env with its wrappers (TimeLimit, OrderEnforcing, ...)
         if td is None:
@@ -205,6 +212,8 @@ class DirectStepper:
                     break
                 obs = observations[i - 1].clone()  # a tensor of its own, as TorchRL hands the policy
             self._finish(batch, td, start, i)
+            if until_done:
+                return batch[:i], None
             # TorchRL's own step_mdp and (at an episode end) reset make the next carrier (tensors of its own)
             td = env.maybe_reset(env._step_mdp(batch[i - 1]).clone())
         return batch, td

@@ -534,9 +534,8 @@ def build_components(
     if recipe.rank.enabled:
         w = recipe.replay.warm_start
         if w.mode == "reset" or (w.mode != "keep" and w.frames > 0):
-            # the lean collector is no torchrl Collector: the warm start rolls the same env and policy out itself
-            source = (env, modules.actor) if lean else collector
-            warm_start = ReplayWarmStart(replay_buffer, source, frames=w.frames, mode=w.mode)
+            # LeanCollector.rollout() collects with the loss's own actor, as TorchRL's Collector.rollout() does
+            warm_start = ReplayWarmStart(replay_buffer, collector, frames=w.frames, mode=w.mode)
         adapter = _rank_adapter(recipe, loss, optimizers, schedulers, replay_buffer)
     update = _update_step(recipe, modules, optimizers, schedulers, replay_buffer, generator, fused=fused, terms=terms)
     effects = None
