@@ -6,7 +6,7 @@
 
 It runs the same commands as ``adarl bench --whole-run`` (the same options and overrides, built by its own
 functions: :func:`adarl.experiments.bench_whole_run.adarl_overrides` and ``sb3_command``), once each, under
-``py-spy record`` (100 samples a second of the main thread, idle samples dropped), and files every sample under the
+``py-spy record`` (100 samples a second; idle samples and background threads dropped), and files every sample under the
 first phase whose marker is on its stack: rank events (SVD and re-factorisation), their warm starts, evaluation,
 checkpoints, the report, updates, collection, building, imports. Why py-spy and not cProfile: cProfile's per-call
 overhead inflates Python-heavy code (the collectors, TorchRL's TensorDict bookkeeping) several times over and would
@@ -48,19 +48,22 @@ OTHER = "other (argument parsing, recipe, interpreter)"
 
 
 def classify(raw: str) -> dict[str, float]:
-    """Seconds per phase from py-spy's raw (collapsed-stack) output: ``frame;frame;... count`` per line."""
+    """Seconds per phase from py-spy's raw (collapsed-stack) output: ``frame;frame;... count`` per line, root first.
+
+    Only the main thread counts: a stack rooted in ``Thread._bootstrap`` is a background thread (tqdm's monitor,
+    which py-spy does not always see as idle while it waits), and an empty stack holds no Python frame."""
     seconds: dict[str, float] = collections.defaultdict(float)
     for line in raw.splitlines():
         stack, _, count = line.rpartition(" ")
-        if not stack:
+        if not stack or stack.startswith("Thread._bootstrap"):
             continue
         phase = next((name for name, marks in PHASES if any(m in stack for m in marks)), OTHER)
         seconds[phase] += int(count) / RATE
     return dict(seconds)
 
 
-def profile(cmd: list[str], env: dict, py_spy: str, workdir: Path) -> tuple[dict[str, float], float]:
-    raw = workdir / "stacks.txt"
+def profile(cmd: list[str], env: dict, py_spy: str, workdir: Path, keep: Path | None) -> tuple[dict[str, float], float]:
+    raw = workdir / "stacks.txt" if keep is None else keep
     prof = [py_spy, "record", "--rate", str(RATE), "--format", "raw", "--output", str(raw), "--"]
     t0 = time.perf_counter()
     proc = subprocess.run(prof + cmd, env=env, cwd=workdir, capture_output=True, text=True)
@@ -74,6 +77,7 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     bench.add_arguments(p)
     p.add_argument("--py-spy", default=shutil.which("py-spy") or "py-spy", help="the py-spy binary")
+    p.add_argument("--raw-dir", type=Path, default=None, help="keep py-spy's raw stacks here, one file per run")
     a = p.parse_args(argv)
     for key, value in DEFAULTS.items():
         if getattr(a, key) is None:
@@ -84,6 +88,8 @@ def main(argv=None) -> int:
         a.output = "profile_whole_run.json"
     threads = str(a.threads)
     env = dict(os.environ, OMP_NUM_THREADS=threads, MKL_NUM_THREADS=threads)
+    if a.raw_dir is not None:
+        a.raw_dir.mkdir(parents=True, exist_ok=True)
     results = []
     for env_id in a.envs:
         for width in a.widths:
@@ -94,7 +100,8 @@ def main(argv=None) -> int:
                     else:
                         cmd = [sys.executable, "-m", "adarl.cli", "run", RECIPE]
                         cmd += [*adarl_overrides(a, env_id, width, variant), "-o", f"{tmp}/run", "--quiet"]
-                    phases, wall = profile(cmd, env, a.py_spy, Path(tmp))
+                    keep = None if a.raw_dir is None else a.raw_dir / f"{env_id}_{width}_{variant}.txt"
+                    phases, wall = profile(cmd, env, a.py_spy, Path(tmp), keep)
                 results.append({"env": env_id, "width": width, "variant": variant, "wall_s": wall, "phases": phases})
                 print(f"  profiled {env_id} ({width},{width}) {variant}: {wall:.1f} s", file=sys.stderr, flush=True)
     Path(a.output).write_text(json.dumps({"argv": sys.argv, "results": results}, indent=2) + "\n")

@@ -33,6 +33,8 @@ def test_samples_go_to_the_first_matching_phase(prof):
             _line("main", "BaseTrainer._train_batches", "BaseTrainer._evaluate", "episode_runner", count=30),
             _line("<module>", "_find_and_load", count=400),
             _line("<module>", "parse_args", count=7),
+            _line("Thread._bootstrap", "Thread._bootstrap_inner", "TMonitor.run", "Event.wait", count=90),  # tqdm's
+            " 40",  # no Python frame
             "",
         ]
     )
