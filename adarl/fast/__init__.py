@@ -9,8 +9,10 @@ Each module names the TorchRL piece it mirrors and the test that proves the two 
 * :mod:`adarl.fast.adam` - fused Adam's ``step()`` without its per-call Python;
 * :mod:`adarl.fast.replay` - :class:`~adarl.fast.replay.UniformTensorSampler`: ``rb.sample()`` into tensors;
 * :mod:`adarl.fast.collector` - :class:`~adarl.fast.collector.LeanCollector`: TorchRL's ``Collector`` for one env;
-* :mod:`adarl.fast.direct_env` - a ``make_env`` env's ``step_and_maybe_reset`` without TorchRL's wrapper.
+* :mod:`adarl.fast.direct_env` - a ``make_env`` env's ``step_and_maybe_reset`` without TorchRL's wrapper;
+* :mod:`adarl.fast.evaluation` - a deterministic SAC episode: ``env.rollout(n, actor, break_when_any_done=True)``.
 
 Recipes turn it on with ``algorithm.fused`` and ``collector.lean`` (``'auto'``: wherever it applies); switched
-off, a run uses TorchRL's own pieces. Nothing here depends on the recipe runtime.
+off, a run uses TorchRL's own pieces. Evaluation takes the fast path wherever it reproduces ``env.rollout``
+exactly (a SAC actor on a ``make_env`` env), in every run. Nothing here depends on the recipe runtime.
 """
