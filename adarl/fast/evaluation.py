@@ -1,9 +1,10 @@
 """Deterministic evaluation episodes without TorchRL's per-step cost: the same returns, about 3x faster a frame.
 
 Why: :func:`adarl.runtime.evaluation.evaluate_policy` runs ``env.rollout(max_steps, policy,
-break_when_any_done=True)``, which spends ~2 ms a Hopper frame in TensorDict and policy-wrapper bookkeeping on top
-of the simulator; the evaluations of a run and, above all, the robustness sweeps of an experiment (7 dynamics x 10
-episodes x up to 1000 steps per policy) pay it. :func:`episode_runner` steps the env with
+break_when_any_done=True)``, which took 1.1-1.3 ms a Hopper frame (TensorDict and policy-wrapper bookkeeping on top
+of the simulator) where this path takes 0.41-0.45 ms (docs/performance.md, "Whole runs"); the evaluations of a run
+and, above all, the robustness sweeps of an experiment (7 dynamics x 10 episodes x up to 1000 steps per policy) pay
+it. :func:`episode_runner` steps the env with
 :class:`~adarl.fast.direct_env.DirectStepper` and computes the action from the actor's network and its own
 distribution class: ``distribution_class(loc, scale, **distribution_kwargs).deterministic_sample``, what the
 ``ProbabilisticActor`` returns in ``ExplorationType.DETERMINISTIC``.
