@@ -5,7 +5,7 @@
         --eval-interval 4000 --eval-episodes 3 --rank-events 3 --markdown profile.md
 
 It runs the same commands as ``adarl bench --whole-run`` (the same options and overrides, built by its own
-functions: :func:`adarl.experiments.bench_whole_run.adarl_overrides` and ``sb3_command``), once each, under
+functions: :func:`adarl.experiments.bench_whole_run.adarl_command` and ``sb3_command``), once each, under
 ``py-spy record`` (100 samples a second; idle samples and background threads dropped), and files every sample under the
 first phase whose marker is on its stack: rank events (SVD and re-factorisation), their warm starts, evaluation,
 checkpoints, the report, updates, collection, building, imports. Why py-spy and not cProfile: cProfile's per-call
@@ -28,7 +28,7 @@ import time
 from pathlib import Path
 
 from adarl.experiments import bench
-from adarl.experiments.bench_whole_run import DEFAULTS, RECIPE, adarl_overrides, event_threads, sb3_command
+from adarl.experiments.bench_whole_run import DEFAULTS, adarl_command, event_threads, sb3_command
 
 RATE = 100  # samples a second
 
@@ -98,8 +98,7 @@ def main(argv=None) -> int:
                     if variant == "sb3":
                         cmd = sb3_command(a, env_id, width)
                     else:
-                        cmd = [sys.executable, "-m", "adarl.cli", "run", RECIPE]
-                        cmd += [*adarl_overrides(a, env_id, width, variant), "-o", f"{tmp}/run", "--quiet"]
+                        cmd = adarl_command(a, env_id, width, variant, Path(tmp) / "run")
                     keep = None if a.raw_dir is None else a.raw_dir / f"{env_id}_{width}_{variant}.txt"
                     phases, wall = profile(cmd, env, a.py_spy, Path(tmp), keep)
                 results.append({"env": env_id, "width": width, "variant": variant, "wall_s": wall, "phases": phases})

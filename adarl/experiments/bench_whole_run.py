@@ -55,6 +55,7 @@ __all__ = [
     "validate",
     "rank_interval",
     "adarl_overrides",
+    "adarl_command",
     "run_whole_runs",
     "format_whole_run_table",
     "command_line",
@@ -224,12 +225,17 @@ def _eval_rows(run: Path) -> list[dict]:
         return list(csv.DictReader(f))
 
 
+def adarl_command(a, env_id: str, width: int, variant: str, run: Path) -> list[str]:
+    """The process an adarl variant's whole run is: ``python -m adarl.cli run quickstart ... -o run --quiet``."""
+    cmd = [sys.executable, "-m", "adarl.cli", "run", RECIPE, *adarl_overrides(a, env_id, width, variant)]
+    return cmd + ["-o", str(run), "--quiet"]
+
+
 def run_adarl(variant: str, env_id: str, width: int, a) -> dict:
     """One adarl variant's whole run (``python -m adarl.cli run quickstart ...``), timed; what its run folder says."""
     with tempfile.TemporaryDirectory(prefix="adarl-whole-run-") as tmp:
         run = Path(tmp) / "run"
-        cmd = [sys.executable, "-m", "adarl.cli", "run", RECIPE, *adarl_overrides(a, env_id, width, variant)]
-        cmd += ["-o", str(run), "--quiet"]
+        cmd = adarl_command(a, env_id, width, variant, run)
         res = _timed(cmd, _env(a), Path(tmp))
         if res["returncode"] != 0 or not (run / "summary.json").exists():
             raise _failed(f"{variant} {env_id} {width}", res)
