@@ -9,6 +9,7 @@ import pytest
 import torch
 from torchrl.objectives import ValueEstimators
 
+from adarl.baselines.parseval import ParsevalRegularizer
 from adarl.errors import AdaRLValueError
 from adarl.fast.adam import make_adam
 from adarl.fast.sac import FusedSACUpdate, wants_fused
@@ -168,12 +169,15 @@ def _snapshot(loss):
     return {k: getattr(loss, k).flatten_keys().clone() for k in keys} | {"log_alpha": loss.log_alpha.detach().clone()}
 
 
+@pytest.mark.parametrize("parseval", [False, True], ids=["sac", "parseval"])
 @pytest.mark.parametrize("backward", ["manual", "autograd"])
-def test_full_step_matches_plain_step(filled, backward):
-    """Two steps: SACLoss + for-loop Adam + clipping + SoftUpdate vs fused update + fused Adam + foreach lerp."""
+def test_full_step_matches_plain_step(filled, backward, parseval):
+    """Two steps: SACLoss + for-loop Adam + clipping + SoftUpdate vs fused update + fused Adam + foreach lerp; with
+    a parameter-only loss term (Parseval, strong enough to move the step) added on both paths."""
     c, batch = filled
     loss = c.modules.loss
     start = _snapshot(loss)
+    terms = {"parseval": ParsevalRegularizer(loss, lam=1e-2)} if parseval else {}
 
     def restore():
         with torch.no_grad():
@@ -190,9 +194,13 @@ def test_full_step_matches_plain_step(filled, backward):
 
     plain_opts = opts(False)
     torch.manual_seed(5)
+    plain_terms = []
     for _ in range(2):
         td = loss(batch.clone())
-        (td["loss_actor"] + td["loss_qvalue"] + td["loss_alpha"]).backward()
+        for term in terms.values():
+            td = term.wrap_output(td)
+            plain_terms.append(td["loss_parseval"].detach())
+        sum(v for k, v in td.items() if k.startswith("loss_")).backward()
         for o in plain_opts:
             for g in o.param_groups:
                 torch.nn.utils.clip_grad_norm_(g["params"], 1.0)
@@ -202,15 +210,47 @@ def test_full_step_matches_plain_step(filled, backward):
     plain = _snapshot(loss)
 
     restore()
-    fu = FusedSACUpdate(loss, opts(True), tau=0.005, max_grad_norm=1.0, backward=backward)
+    fu = FusedSACUpdate(loss, opts(True), tau=0.005, max_grad_norm=1.0, backward=backward, terms=terms)
     torch.manual_seed(5)
-    for _ in range(2):
-        fu(batch)
+    fused_terms = [fu(batch).get("loss_parseval") for _ in range(2)]
     fused = _snapshot(loss)
     restore()
     for k in plain:
         torch.testing.assert_close(fused[k], plain[k], rtol=1e-4, atol=1e-6, msg=k)
     assert not torch.equal(plain["log_alpha"], start["log_alpha"])  # the step did move things
+    if parseval:
+        torch.testing.assert_close(torch.stack(fused_terms), torch.stack(plain_terms))
+        # the term moved the step: without it the parameters end elsewhere
+        fu = FusedSACUpdate(loss, opts(True), tau=0.005, max_grad_norm=1.0, backward=backward)
+        torch.manual_seed(5)
+        for _ in range(2):
+            fu(batch)
+        without = _snapshot(loss)
+        restore()
+        key = "module.0.module.0.0.w1"  # the actor's first (low-rank) layer
+        assert not torch.allclose(without["actor_network_params"][key], fused["actor_network_params"][key])
+
+
+def test_fused_update_refuses_a_loss_term_that_reads_the_batch(filled):
+    c, _ = filled
+
+    class BatchTerm(torch.nn.Module):  # no reads_batch = False: it may read the batch
+        def wrap_output(self, td):
+            return td
+
+    with pytest.raises(AdaRLValueError, match="'batchy' .*BatchTerm.* does not say so"):
+        FusedSACUpdate(c.modules.loss, [], tau=0.005, terms={"batchy": BatchTerm()})
+
+
+def test_a_parseval_recipe_keeps_the_fused_update():
+    """algorithm.parseval on the quickstart networks: the update is the fused step and logs loss_parseval."""
+    recipe = load_recipe("quickstart", OVR + ["algorithm.parseval.enabled=true"])
+    c = build_components(recipe)
+    assert isinstance(c.update, FusedStep)
+    c.replay_buffer.extend(c.env.rollout(100, break_when_any_done=False).reshape(-1))
+    out = c.update()
+    assert out["loss_parseval"].item() > 0 and {"loss_actor", "loss_qvalue", "loss_alpha"} <= set(out)
+    c.close()
 
 
 @pytest.mark.parametrize("backward", ["manual", "autograd"])

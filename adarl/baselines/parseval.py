@@ -144,6 +144,10 @@ class ParsevalRegularizer(nn.Module):
     ['loss_actor', 'loss_parseval']
     """
 
+    #: the term reads the parameters alone, never the batch: adarl's fused SAC update adds it (and its gradient)
+    #: itself, so a Parseval run keeps the fast path (:func:`adarl.fast.sac.check_fusable_terms`)
+    reads_batch = False
+
     def __init__(
         self,
         loss: nn.Module,

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import inspect
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import torch
 from tensordict import NestedKey, TensorDictBase
@@ -51,6 +51,7 @@ __all__ = [
     "FUSABLE_OVERRIDES",
     "FusedSACUpdate",
     "check_fusable",
+    "check_fusable_terms",
     "fused_fallback_reason",
     "supported_activation",
     "wants_fused",
@@ -270,6 +271,25 @@ def check_fusable(loss) -> tuple[NestedKey, ...]:
     return obs_key, action_key, ("next", keys.reward), ("next", obs_key), ("next", keys.terminated)
 
 
+def check_fusable_terms(terms: Mapping[str, nn.Module] | None) -> dict[str, nn.Module]:
+    """The loss terms the fused update can add, or an error naming the one it cannot.
+
+    A term (e.g. :class:`~adarl.baselines.parseval.ParsevalRegularizer`) declares ``reads_batch = False`` when its
+    value depends on the parameters alone: the fused update calls it with no arguments after the SAC gradients
+    and adds its gradient to theirs, which is what ``(sum of every loss_*).backward()`` gives on TorchRL's path. A
+    term that reads the batch (no such attribute, or ``True``) needs TorchRL's path."""
+    terms = dict(terms or {})
+    for name, term in terms.items():
+        if getattr(term, "reads_batch", True):
+            raise AdaRLValueError(
+                f"the fused SAC update adds loss terms of the parameters alone (reads_batch = False); the loss term "
+                f"{name!r} ({type(term).__name__}) does not say so (set algorithm.fused: false or 'auto')"
+            )
+        if name in ("actor", "qvalue", "alpha"):
+            raise AdaRLValueError(f"a loss term may not be named {name!r}: SAC's own loss_{name} has that name")
+    return terms
+
+
 class FusedSACUpdate:
     """One SAC optimisation step (losses, backward, optimisers, LR schedules, Polyak update) on ``loss``'s tensors.
 
@@ -286,6 +306,9 @@ class FusedSACUpdate:
             fewer operations, no autograd graph); ``"autograd"``: the losses as plain tensor code and
             ``loss.backward()``; ``"auto"``: manual unless a network the manual backward does not know (see
             :func:`adarl.fast.manual_backward.unsupported_reason`). ``compile`` compiles whichever is used.
+        terms: loss terms of the parameters alone (``{name: term}``, each with ``reads_batch = False``, e.g. the
+            Parseval regulariser): each ``term()`` is added to the total, its gradient to the SAC gradients before
+            clipping, and its value returned as ``loss_<name>`` (:func:`check_fusable_terms`).
 
     A loss setting the update does not compute as ``SACLoss`` does (a TD(lambda) estimator, ``reduction="sum"``,
     critics that do not read ``[observation, action]``, ...) raises :class:`~adarl.errors.AdaRLValueError` naming
@@ -331,14 +354,18 @@ class FusedSACUpdate:
         compile: bool = False,
         compile_backend: str = "inductor",
         backward: str = "auto",
+        terms: Mapping[str, nn.Module] | None = None,
     ) -> None:
         self.keys = check_fusable(loss)
+        self.terms = check_fusable_terms(terms)
         if not 0 < tau <= 1:
             raise AdaRLValueError(f"tau must be in (0, 1], got {tau}")
         self.loss = loss
         self.optimizers = list(optimizers)
         # Adam(fused=True).step() + zero_grad() without their Python overhead (same kernels, falls back by itself)
         self._adam_steps = [DirectAdamStep(o) for o in self.optimizers]
+        # the tensors a loss term's gradient may reach: what the optimisers step
+        self._term_params = [p for o in self.optimizers for g in o.param_groups for p in g["params"]]
         self.schedulers = list(schedulers)
         self.tau = float(tau)
         self.max_grad_norm = max_grad_norm
@@ -483,6 +510,7 @@ class FusedSACUpdate:
         else:
             loss_actor, loss_q, loss_alpha, alpha, entropy = self._fn(*args)
             (loss_actor + loss_q + loss_alpha).backward()
+        term_values = self._add_terms() if self.terms else {}
         if self.max_grad_norm is not None:
             for opt in self.optimizers:
                 for group in opt.param_groups:
@@ -499,5 +527,27 @@ class FusedSACUpdate:
             "loss_alpha": loss_alpha.detach(),
             "alpha": alpha,
             "entropy": entropy,
+            **term_values,
             **({} if shift is None else {"target_shift": shift}),
         }
+
+    def _add_terms(self) -> dict[str, torch.Tensor]:
+        """Each loss term's value (``loss_<name>``), its gradient added to the parameters' SAC gradients."""
+        values = {}
+        with torch.enable_grad():
+            total = None
+            for name, term in self.terms.items():
+                value = term()
+                values[f"loss_{name}"] = value.detach()
+                total = value if total is None else total + value
+            params = [p for p in self._term_params if p.requires_grad]
+            grads = torch.autograd.grad(total, params, allow_unused=True)
+        with torch.no_grad():
+            for p, g in zip(params, grads, strict=True):
+                if g is None:
+                    continue
+                if p.grad is None:
+                    p.grad = g
+                else:
+                    p.grad.add_(g)
+        return values

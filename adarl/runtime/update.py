@@ -118,7 +118,7 @@ class FusedStep(UpdateStep):
     def __call__(self, guard: NonFiniteGuard | None = None, *, update: int = 0) -> dict[str, torch.Tensor]:
         out = self.fused.step(*self.sampler())
         if guard is not None:
-            guard.check_losses({k: out[k] for k in SAC_LOSSES}, update)
+            guard.check_losses({k: v for k, v in out.items() if k.startswith("loss_")}, update)
             guard.check_params(update)
         return out
 

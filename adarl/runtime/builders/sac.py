@@ -413,11 +413,13 @@ def _update_step(
                 max_grad_norm=alg.max_grad_norm,
                 compile=alg.compile,
                 backward=alg.backward,
+                terms=terms,
             )
         except AdaRLValueError:
             if alg.fused is True or alg.backward == "manual":  # asked for explicitly: say why not
                 raise
-            # 'auto' with layers the fused step does not know (e.g. the sparsification layer): TorchRL's path.
+            # 'auto' with layers the fused step does not know (e.g. the sparsification layer), or a loss term that
+            # reads the batch: TorchRL's path.
         else:
             # the same indices rb.sample() would draw, gathered straight into the update's five tensors
             return FusedStep(update, replay_buffer, generator)
@@ -465,14 +467,6 @@ def build_components(
             FusedFallbackWarning,
             stacklevel=2,
         )
-    if terms and fused:
-        # The fused step computes SACLoss's terms only; a loss term (Parseval) needs the TorchRL path.
-        if alg.fused is True:
-            raise AdaRLValueError(
-                f"algorithm.fused: true cannot add the loss terms {sorted(terms)} (e.g. "
-                "algorithm.parseval.enabled: true); allowed with them: algorithm.fused: 'auto' or false"
-            )
-        fused = False
     optimizers = {
         "actor": make_adam(actor_params, alg.lr, fused=fused),
         "critic": make_adam(critic_params, alg.lr, fused=fused),
