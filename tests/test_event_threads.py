@@ -5,8 +5,11 @@ from __future__ import annotations
 import os
 
 import pytest
+import torch
 
 from adarl import build_components, load_recipe
+from adarl.errors import AdaRLValueError
+from adarl.runtime.builders import build_ppo_components
 from adarl.runtime.builders.sac import event_threads
 
 TINY = ["collector.total_frames=600", "collector.init_random_frames=100", "collector.frames_per_batch=50"]
@@ -41,3 +44,24 @@ def test_the_recipe_default_reaches_the_adapter(monkeypatch, omp, expected):
         assert c.adapter.num_threads is None
     finally:
         c.close()
+
+
+@pytest.mark.parametrize(
+    "name, build", [("quickstart", build_components), ("baselines/hopper_rnac_ipm", build_ppo_components)]
+)
+def test_algorithm_num_threads_is_applied_by_every_builder(name, build):
+    """algorithm.num_threads (base.yaml: 1) is the training loop's torch thread count for SAC and the PPO loop alike
+    (the PPO builder once ignored it: two RNAC runs side by side on two cores then fought over four threads)."""
+    torch.set_num_threads(1)
+    try:
+        c = build(load_recipe(name, ["algorithm.num_threads=2"]))
+        c.close()
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(1)
+
+
+def test_build_components_refuses_a_ppo_recipe_by_name():
+    """The SAC builder on an RNAC recipe names the builder to use (it once failed deep inside, on a missing critic)."""
+    with pytest.raises(AdaRLValueError, match="rnac_ipm.*'ppo' loop.*build_ppo_components"):
+        build_components(load_recipe("baselines/hopper_rnac_ipm"))

@@ -25,6 +25,7 @@ from adarl.errors import AdaRLValueError
 __all__ = [
     "RunComponents",
     "ACTIVATIONS",
+    "apply_num_threads",
     "check_device",
     "make_mlp",
     "make_recipe_mlp",
@@ -44,6 +45,15 @@ ACTIVATIONS: dict[str, type[nn.Module]] = {
     "elu": nn.ELU,
     "gelu": nn.GELU,
 }
+
+
+def apply_num_threads(recipe) -> None:
+    """``torch.set_num_threads(algorithm.num_threads)`` when the recipe sets it (base.yaml: 1, the fastest at
+    (64, 64) on CPU; two runs side by side on two cores otherwise fight over each other's threads). Every
+    algorithm's builder calls it, so the key means the same for SAC and the PPO loop."""
+    threads = recipe.algorithm.num_threads
+    if threads is not None:
+        torch.set_num_threads(threads)
 
 
 def check_device(device: str | torch.device) -> torch.device:

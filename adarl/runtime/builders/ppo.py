@@ -33,6 +33,7 @@ from adarl.baselines.rnac import DoubleSamplingTransform
 from adarl.runtime.builders.common import (
     RunComponents,
     action_spec,
+    apply_num_threads,
     check_device,
     init_network,
     make_envs,
@@ -169,6 +170,7 @@ def make_ppo_modules(recipe, env) -> PPOModules:
 def build_ppo_components(recipe) -> PPOComponents:
     """Env (+ RNAC-DS), evaluation env, networks, loss, optimisers, LR decay and collector of a PPO recipe."""
     check_device(recipe.device)
+    apply_num_threads(recipe)
     seed_everything(recipe.seed)
     env, eval_env = make_envs(recipe)
     modules = make_ppo_modules(recipe, env)

@@ -50,6 +50,7 @@ from adarl.fast.sac import FusedSACUpdate, fused_fallback_reason, wants_fused
 from adarl.runtime.builders.common import (
     RunComponents,
     action_spec,
+    apply_num_threads,
     check_device,
     is_discrete,
     make_envs,
@@ -444,10 +445,17 @@ def build_components(
     and optimisers as the plain path). ``scratch_dir`` holds a memmap replay storage. The rank adapter's
     ``on_truncate``/``on_event`` callbacks are left to the trainer (:meth:`adarl.runtime.trainers.sac.Trainer.
     rank_event_effects` assembles them in one place); in a loop of your own, register ``c.update.on_rank_event``
-    as an ``on_truncate`` callback when it compiles (``algorithm.compile``)."""
+    as an ``on_truncate`` callback when it compiles (``algorithm.compile``). A recipe on the PPO loop (RNAC) is
+    refused by name: its components come from :func:`~adarl.runtime.builders.ppo.build_ppo_components`."""
+    base = recipe.algorithm.base
+    if base != "sac":
+        raise AdaRLValueError(
+            f"build_components builds the SAC loop; algorithm.name {recipe.algorithm.name!r} runs on the {base!r} "
+            f"loop: use adarl.runtime.builders.build_ppo_components(recipe) "
+            f"(adarl.runtime.trainers.trainer_class(recipe) gives the trainer that runs it)"
+        )
     check_device(recipe.device)
-    if recipe.algorithm.num_threads is not None:
-        torch.set_num_threads(recipe.algorithm.num_threads)
+    apply_num_threads(recipe)
     seed_everything(recipe.seed)
     env, eval_env = make_envs(recipe)
     modules = make_sac_modules(recipe, env)
