@@ -1,0 +1,71 @@
+"""The committed reproduction reports (docs/reports/*/) re-derive from their runs: each run's score is read again
+from its committed small files (eval.csv, recipe.yaml) by the report's own loader, must equal runs.csv's
+``final_return``, and the per-setting n, mean, std and IQM must equal statistics.csv. A report edited by hand, a run
+folder swapped, or a run left out of the statistics fails here (issue 16: "numbers can be re-derived")."""
+
+from __future__ import annotations
+
+import csv
+import math
+import statistics
+from pathlib import Path
+
+import pytest
+
+from adarl.experiments.aggregate import _load_run
+from adarl.experiments.stats import iqm
+
+REPORTS = Path(__file__).resolve().parents[1] / "docs" / "reports"
+DERIVABLE = sorted(
+    d.name
+    for d in REPORTS.iterdir()
+    if (d / "runs.csv").is_file() and (d / "statistics.csv").is_file() and (d / "runs").is_dir()
+)
+
+
+def _rows(path: Path) -> tuple[list[str], list[list[str]]]:
+    with path.open(newline="") as f:
+        rows = list(csv.reader(f))
+    return rows[0], rows[1:]
+
+
+def test_the_laptop_reports_are_all_checked():
+    """Every claim's laptop report is among the checked ones (a report committed without its runs would drop out)."""
+    for name in ["cartpole_rank_sweep-laptop", "rank_trajectory-laptop", "table1-laptop", "table2-laptop"]:
+        assert name in DERIVABLE
+    assert "warmstart_ablation-laptop" in DERIVABLE
+
+
+@pytest.mark.parametrize("report", DERIVABLE)
+def test_report_statistics_re_derive_from_its_committed_runs(report):
+    folder = REPORTS / report
+    header, rows = _rows(folder / "runs.csv")
+    axes = header[1 : header.index("seed")]  # runs.csv: path, the experiment's axes, seed, ...
+    col = {name: header.index(name) for name in ("seed", "final_return")}
+    groups: dict[tuple, dict[int, float]] = {}
+    for row in rows:
+        run = folder / "runs" / Path(row[0]).name
+        assert run.is_dir(), f"{report}: runs.csv lists {row[0]}, but runs/{run.name} is not committed"
+        rec = _load_run(run, None)
+        assert rec is not None and rec.final is not None, f"{report}: {run.name} has no nominal evaluation"
+        assert rec.seed == int(row[col["seed"]]), f"{report}: {run.name}'s recipe has seed {rec.seed}"
+        assert rec.final == pytest.approx(float(row[col["final_return"]]), rel=1e-9, abs=1e-9), run.name
+        seeds = groups.setdefault(tuple(row[1 : 1 + len(axes)]), {})
+        assert rec.seed not in seeds, f"{report}: seed {rec.seed} counted twice in {dict(zip(axes, row[1:]))}"
+        seeds[rec.seed] = rec.final
+
+    s_header, s_rows = _rows(folder / "statistics.csv")
+    s_axes = s_header[: s_header.index("n_seeds")]
+    assert len(s_axes) == len(axes), f"{report}: statistics.csv's settings {s_axes} against runs.csv's {axes}"
+    s_col = {name: s_header.index(name) for name in ("n_seeds", "mean", "std", "iqm")}
+    assert len(s_rows) == len(groups), f"{report}: {len(s_rows)} settings in statistics.csv, {len(groups)} in runs"
+    for s in s_rows:
+        key = tuple(s[: len(s_axes)])
+        assert key in groups, f"{report}: statistics.csv's setting {key} has no runs in runs.csv"
+        scores = list(groups[key].values())
+        assert int(s[s_col["n_seeds"]]) == len(scores), key
+        assert float(s[s_col["mean"]]) == pytest.approx(statistics.fmean(scores), rel=1e-9), key
+        std = statistics.stdev(scores) if len(scores) > 1 else 0.0
+        assert float(s[s_col["std"]]) == pytest.approx(std, rel=1e-9, abs=1e-9), key
+        assert float(s[s_col["iqm"]]) == pytest.approx(iqm(scores), rel=1e-9), key
+        assert not math.isnan(float(s[s_col["mean"]]))
