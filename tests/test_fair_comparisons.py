@@ -127,9 +127,17 @@ def test_reproduction_specs_compare_what_the_paper_compares():
     sweep = load_experiment("hopper_sweep")
     assert {"adarl", "sac_full", "sparse"} <= set(names(sweep, "algorithm"))  # Fig. 8: Tiwari et al. beside SAC
     t1 = load_experiment("table1")
-    assert {"adarl", "sac_full", "sac_fixed", "parseval", "sparse", "rnac_ipm", "rnac_ds"} == set(
-        names(t1, "algorithm")
-    )
+    assert {
+        "adarl",
+        "sac_full",
+        "sac_fixed",
+        "sac_restarts",
+        "fixed_final",
+        "parseval",
+        "sparse",
+        "rnac_ipm",
+        "rnac_ds",
+    } == set(names(t1, "algorithm"))
     assert {s.name for s in t1.sweeps} == {"torso_length", "foot_length"} and t1.report.reference == "adarl"
     lam = load_experiment("parseval_lambda")
     assert names(lam, "lam") == ["1.0e-3", "1.0e-4", "1.0e-5"]
@@ -140,3 +148,105 @@ def test_reproduction_specs_compare_what_the_paper_compares():
     runs = plan_runs(ws, "/x", "laptop")
     assert {r.axes["warm_start"] for r in runs} == {"refill", "reset"}
     assert all("replay.warm_start.count_frames=false" in r.overrides for r in runs)  # equal optimisation steps
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Issue 34's control arms: one factor each
+
+
+def _lr_restart_steps(trainer: Trainer) -> list[int]:
+    """Steps at which the actor's learning-rate schedule restarted (its WarmupCosine's restart points)."""
+    (fn,) = trainer.c.schedulers["actor"].lr_lambdas[:1]
+    return [fn.last_restart] if fn.restarts else []
+
+
+@pytest.mark.slow
+def test_sac_restarts_restarts_where_adarl_does_and_truncates_nothing(tmp_path):
+    from adarl.core.lowrank import iter_low_rank
+    from adarl.core.restarts import ScheduledRestarts
+
+    restarts, s_restarts = _run(
+        tmp_path / "restarts",
+        "rank.truncate=false",
+        "network.actor.low_rank_layers=[]",
+        "network.critic.low_rank_layers=[]",
+    )
+    adarl, s_adarl = _run(tmp_path / "adarl")  # accept.mode=always: every event changes a rank
+    assert isinstance(restarts.c.adapter, ScheduledRestarts)
+    assert not list(iter_low_rank(restarts.c.modules.actor))  # dense: the control truncates nothing
+    steps = [e.step for e in restarts.c.adapter.history]
+    assert steps == [e.step for e in adarl.c.adapter.history] and len(steps) >= 2
+    assert all(e.changed for e in adarl.c.adapter.history)
+    # the same restarts: the LR warm-up restarted at the last event, the buffer refilled at every event
+    fn = restarts.c.schedulers["actor"].lr_lambdas[0]
+    assert fn.restarts == len(steps) and fn.last_restart == steps[-1]
+    assert [r.step for r in restarts.c.warm_start.records] == steps
+    assert all(r.emptied and r.frames_added == 100 for r in restarts.c.warm_start.records)
+    assert s_restarts["rank_events"] == s_adarl["rank_events"] and s_restarts["updates"] == s_adarl["updates"]
+    assert s_restarts["warm_start_frames"] == s_adarl["warm_start_frames"]
+    records = json.loads((tmp_path / "restarts" / "ranks.json").read_text())
+    assert [r["step"] for r in records] == steps and all(r["restart"] and r["layers"] == [] for r in records)
+
+
+def test_scheduled_restarts_checkpoint_and_refuse_bad_input():
+    from adarl.core.lr_schedule import make_lr_scheduler
+    from adarl.core.restarts import ScheduledRestarts
+
+    opt = torch.optim.Adam([torch.nn.Parameter(torch.zeros(2))], lr=1.0)
+    sch = make_lr_scheduler(opt, warmup_steps=4)
+    r = ScheduledRestarts(2, [sch])
+    for _ in range(5):
+        opt.step()
+        sch.step()
+        r.step()
+    other = ScheduledRestarts(2, [sch])
+    other.load_state_dict(r.state_dict())
+    assert other.step_count == 5 and [e.step for e in other.history] == [2, 4]
+    with pytest.raises(AdaRLValueError, match="interval must be an integer >= 1"):
+        ScheduledRestarts(0, [sch])
+    with pytest.raises(AdaRLValueError, match="cannot restart"):
+        ScheduledRestarts(2, [torch.optim.lr_scheduler.StepLR(opt, 10)])
+    with pytest.raises(AdaRLValueError, match="step_count"):
+        other.load_state_dict({"ranks": {}})
+
+
+def test_fixed_final_ranks_are_one_per_layer():
+    from adarl.core.lowrank import iter_low_rank
+    from adarl.errors import RecipeError
+    from adarl.runtime.builders.sac import make_sac_modules
+    from adarl.runtime.builders.common import make_envs
+
+    recipe = load_recipe(
+        "baselines/hopper_sac_fixed", ["network.actor.rank=[9,30]", "network.critic.rank=[12,17]", *SMALL]
+    )
+    env, _ = make_envs(recipe)
+    modules = make_sac_modules(recipe, env)
+    assert [layer.rank for _, layer in iter_low_rank(modules.actor)] == [9, 30]
+    assert [layer.rank for _, layer in iter_low_rank(modules.loss.qvalue_network)] == [12, 17]
+    with pytest.raises(RecipeError, match=r"network.actor.rank .*has 3 entries but low_rank_layers \[0, 1\] has 2"):
+        load_recipe("baselines/hopper_sac_fixed", ["network.actor.rank=[9,30,4]"])
+    with pytest.raises(RecipeError, match="layer 1's rank 65 must be <= 64"):
+        load_recipe("baselines/hopper_sac_fixed", ["network.actor.rank=[9,65]"])
+
+
+def test_every_reproduction_spec_runs_the_papers_physics():
+    """Issue 34: the reproduction budgets resolve to OMPO's geometry-only edits; only the budgets named
+    *_consistent (our extension, reported separately) change that."""
+    from adarl.experiments.spec import load_experiment, plan_runs, shipped_experiments
+
+    from adarl.errors import RecipeError
+
+    checked = 0
+    for name in shipped_experiments():
+        spec = load_experiment(name)
+        for budget in spec.budgets:
+            for run in plan_runs(spec, "/x", budget):
+                try:
+                    recipe = load_recipe(run.recipe, run.overrides)
+                except RecipeError as err:  # an arm whose recipe is not written for this env (flagged, skipped)
+                    assert str(err).startswith(f"no recipe named {run.recipe!r}"), err
+                    continue
+                want = "consistent" if budget.endswith("consistent") else "ompo"
+                assert recipe.env.perturbation.mode == want, f"{name} --budget {budget}: {run.run_id}"
+                checked += 1
+    assert checked > 400  # every shipped spec and budget: 479 runs on 2026-11-25

@@ -111,12 +111,14 @@ def _results(run: Path) -> dict[str, str]:
         ("quickstart", RUN, [], []),
         ("quickstart", RUN, ["collector.overlap=process"], ["collector.overlap=thread"]),
         ("baselines/hopper_rnac_ipm", PPO_RUN, [], []),
+        ("baselines/hopper_sac_restarts", RUN, [], []),
     ],
-    ids=["default", "overlap", "ppo"],
+    ids=["default", "overlap", "ppo", "restarts"],
 )
 def test_kill_9_at_random_moments_then_resume_matches_an_uninterrupted_run(tmp_path, recipe, base, extra, ref_extra):
     # "overlap": the killed run collects in a worker process (killed with it), the reference in a thread; both
     # overlap modes must give the very same run. "ppo": the RNAC baselines' loop (same BaseTrainer resume).
+    # "restarts": the sac_restarts control (events that restart the LR and refill the buffer, truncating nothing).
     seed = int(os.environ.get("ADARL_KILL_SEED", random.randrange(10**6)))
     rng = random.Random(seed)
     ref, killed = tmp_path / "reference", tmp_path / "killed"

@@ -85,6 +85,8 @@ def plot_ranks(run: RunDir, out: Path) -> Path | None:
             name = layer_label(layer)
             pts = series.setdefault(name, [(0, int(layer["old_rank"]))])
             pts.append((step, int(layer["new_rank"])))
+    if not series:  # events that truncate nothing (rank.truncate: false): no rank to draw
+        return None
     summary = run.path / "summary.json"
     end = int(json.loads(summary.read_text()).get("updates", 0)) if summary.is_file() else 0
     plt = pyplot()

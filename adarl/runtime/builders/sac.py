@@ -39,6 +39,7 @@ from adarl import plugins
 from adarl.baselines import registry
 from adarl.core.acceptance import ProjectionAcceptance, RecentTransitions
 from adarl.core.adapter import RankAdapter
+from adarl.core.restarts import ScheduledRestarts
 from adarl.core.lowrank import LowRankLinear
 from adarl.core.lr_schedule import make_lr_scheduler
 from adarl.core.rank import RankRule, make_rule
@@ -299,7 +300,7 @@ class Components(RunComponents):
     replay_buffer: TensorDictReplayBuffer
     collector: Collector | LeanCollector
     update: UpdateStep
-    adapter: RankAdapter | None
+    adapter: RankAdapter | ScheduledRestarts | None
     warm_start: ReplayWarmStart | None
     total_updates: int
     sampling_generator: torch.Generator
@@ -538,7 +539,10 @@ def build_components(
         if w.mode == "reset" or (w.mode != "keep" and w.frames > 0):
             # LeanCollector.rollout() collects with the loss's own actor, as TorchRL's Collector.rollout() does
             warm_start = ReplayWarmStart(replay_buffer, collector, frames=w.frames, mode=w.mode)
-        adapter = _rank_adapter(recipe, loss, optimizers, schedulers, replay_buffer)
+        if recipe.rank.truncate:
+            adapter = _rank_adapter(recipe, loss, optimizers, schedulers, replay_buffer)
+        else:  # the events' restarts without their truncations (the sac_restarts control)
+            adapter = ScheduledRestarts(recipe.rank.interval, list(schedulers.values()))
     update = _update_step(recipe, modules, optimizers, schedulers, replay_buffer, generator, fused=fused, terms=terms)
     effects = None
     if adapter is not None:

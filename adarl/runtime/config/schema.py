@@ -116,9 +116,10 @@ class PerturbationConfig(_Section):
         "cycle?}; parameter names and ranges come from adarl.envs.env_parameters(env.id).",
     )
     mode: Literal["consistent", "ompo"] = Field(
-        "consistent",
-        description="'consistent' recompiles the body so mass/inertia follow the new lengths; 'ompo' edits the "
-        "live model in place like OMPO's code (the paper's perturbation code).",
+        "ompo",
+        description="'ompo' (the paper's: OMPO's perturbation code) edits the live model's geometry in place, mass "
+        "and inertia unchanged; 'consistent' (our extension) recompiles the body so mass/inertia follow the new "
+        "lengths (docs/perturbed-dynamics.md).",
     )
     key: str = Field(
         "dynamics", min_length=1, description="TensorDict key under which the episode's dynamics parameters are logged."
@@ -272,10 +273,15 @@ class MLPConfig(_Section):
         "maps the input); the paper factorises the first two.",
         json_schema_extra={"allowed": "a list of distinct hidden-layer indices 0 .. len(num_cells)-1"},
     )
-    rank: PosInt | None = Field(
+    rank: PosInt | list[PosInt] | None = Field(
         None,
-        description="Initial rank of the factorised layers; null = full rank (the rank controller then shrinks it).",
-        json_schema_extra={"allowed": "null or an integer >= 1, <= the smallest width of the low-rank layers"},
+        description="Initial rank of the factorised layers: one integer for all, or one per layer in the order of "
+        "low_rank_layers (sorted), e.g. [9, 30] for the ranks another run ended with; null = full rank (the rank "
+        "controller then shrinks it).",
+        json_schema_extra={
+            "allowed": "null, an integer >= 1 <= the smallest width of the low-rank layers, or a list of one such "
+            "integer per low-rank layer (each <= that layer's width)"
+        },
     )
     sparse: SparseLayerConfig = Field(
         default_factory=SparseLayerConfig, description="Optional sparsification layer (Tiwari et al. baseline)."
@@ -294,12 +300,21 @@ class MLPConfig(_Section):
                 caps[i] = self.num_cells[i] if i == 0 else min(self.num_cells[i - 1], self.num_cells[i])
         return caps
 
+    def layer_ranks(self) -> dict[int, int | None]:
+        """``{layer: initial rank}`` of each low-rank layer (``None`` = full rank), from one rank or a list."""
+        layers = sorted(self.low_rank_layers)
+        if isinstance(self.rank, list):
+            return dict(zip(layers, self.rank))
+        return {i: self.rank for i in layers}
+
     def max_rank(self) -> int | None:
-        """The initial rank of the factorised layers if set, else the smallest known layer width (None: no layer)."""
+        """The smallest initial rank of the factorised layers if set, else the smallest known layer width (None: no
+        layer)."""
         caps = self.layer_max_ranks()
         if not caps:
             return None
-        return self.rank if self.rank is not None else min(caps.values())
+        ranks = [caps[i] if r is None else r for i, r in self.layer_ranks().items() if i in caps]
+        return min(ranks) if ranks else min(caps.values())
 
     @model_validator(mode="after")
     def _check_layers(self) -> MLPConfig:
@@ -318,7 +333,25 @@ class MLPConfig(_Section):
         dup = sorted({i for i in self.low_rank_layers if self.low_rank_layers.count(i) > 1})
         if dup:
             problems.append(("low_rank_layers", self.low_rank_layers, f"entries must be distinct; repeated: {dup}"))
-        if not problems and self.rank is not None and self.low_rank_layers:
+        if not problems and isinstance(self.rank, list):
+            caps = self.layer_max_ranks()
+            layers = sorted(self.low_rank_layers)
+            if len(self.rank) != len(layers):
+                problems.append(
+                    (
+                        "rank",
+                        self.rank,
+                        f"has {len(self.rank)} entries but low_rank_layers {layers} has {len(layers)}: give one rank "
+                        "per low-rank layer (in that order) or a single integer",
+                    )
+                )
+            else:
+                for i, r in zip(layers, self.rank):
+                    if r > caps[i]:
+                        problems.append(
+                            ("rank", self.rank, f"layer {i}'s rank {r} must be <= {caps[i]}, the layer's width")
+                        )
+        elif not problems and self.rank is not None and self.low_rank_layers:
             caps = self.layer_max_ranks()
             cap = min(caps.values())
             if self.rank > cap:
@@ -545,6 +578,12 @@ class AcceptConfig(_Section):
 
 class RankConfig(_Section):
     enabled: bool = Field(True, description="Run the adaptive rank controller (false = plain or fixed-rank SAC).")
+    truncate: bool = Field(
+        True,
+        description="false: the events run every `interval` steps and do everything an event that changed a rank "
+        "does (LR warm-up from zero, replay.warm_start) but truncate nothing: the control arm that separates AdaRL's "
+        "restarts from its truncations (recipes/baselines/*_sac_restarts.yaml); the networks may then be dense.",
+    )
     rule: str = Field(
         "energy",
         description="Rank rule, a registered name (adarl.register_rank_rule; installed packages add names through "
@@ -837,7 +876,7 @@ class Recipe(_Section):
             )
         p += self._algorithm_checks()
         r = self.rank
-        if r.enabled:
+        if r.enabled and r.truncate:
             scoped = ["actor", "critic"] if r.scope == "both" else [r.scope]
             for net in scoped:
                 mlp: MLPConfig = getattr(self.network, net)

@@ -165,7 +165,7 @@ class Trainer(BaseTrainer, algorithm="sac"):
 
     def _load_module_state(self, state: dict) -> None:
         c = self.c
-        if state.get("adapter") is not None and c.adapter is not None:  # the checkpoint's ranks, before its tensors
+        if state.get("adapter") is not None and isinstance(c.adapter, RankAdapter):  # its ranks, before its tensors
             resize_to_ranks(c.modules.loss, state["adapter"], optimizers=list(c.optimizers.values()))
         c.modules.loss.load_state_dict(state["loss"])
 
