@@ -213,8 +213,8 @@ def test_scheduled_restarts_checkpoint_and_refuse_bad_input():
 def test_fixed_final_ranks_are_one_per_layer():
     from adarl.core.lowrank import iter_low_rank
     from adarl.errors import RecipeError
-    from adarl.runtime.builders.sac import make_sac_modules
     from adarl.runtime.builders.common import make_envs
+    from adarl.runtime.builders.sac import make_sac_modules
 
     recipe = load_recipe(
         "baselines/hopper_sac_fixed", ["network.actor.rank=[9,30]", "network.critic.rank=[12,17]", *SMALL]
@@ -232,9 +232,8 @@ def test_fixed_final_ranks_are_one_per_layer():
 def test_every_reproduction_spec_runs_the_papers_physics():
     """Issue 34: the reproduction budgets resolve to OMPO's geometry-only edits; only the budgets named
     *_consistent (our extension, reported separately) change that."""
-    from adarl.experiments.spec import load_experiment, plan_runs, shipped_experiments
-
     from adarl.errors import RecipeError
+    from adarl.experiments.spec import load_experiment, plan_runs, shipped_experiments
 
     checked = 0
     for name in shipped_experiments():

@@ -39,10 +39,10 @@ from adarl import plugins
 from adarl.baselines import registry
 from adarl.core.acceptance import ProjectionAcceptance, RecentTransitions
 from adarl.core.adapter import RankAdapter
-from adarl.core.restarts import ScheduledRestarts
 from adarl.core.lowrank import LowRankLinear
 from adarl.core.lr_schedule import make_lr_scheduler
 from adarl.core.rank import RankRule, make_rule
+from adarl.core.restarts import ScheduledRestarts
 from adarl.core.warmstart import ReplayWarmStart
 from adarl.errors import AdaRLValueError, AdaRLWarning
 from adarl.fast.adam import make_adam
