@@ -123,7 +123,8 @@ def test_rank_settling_reads_the_last_change_and_the_events_after_it(tmp_path):
     ]
     (run / "ranks.json").write_text(json.dumps(history))
     d = rank_settling(_load_run(run, None))
-    assert d["actor:a"] == {"initial": 11, "final": 7, "min": 7, "last_change": 20, "events_after": 2}
+    want = {"initial": 11, "final": 7, "min": 7, "last_change": 20, "events_after": 2, "last_candidate": None}
+    assert d["actor:a"] == want
     assert d["critic:c"]["last_change"] is None and d["critic:c"]["events_after"] == 4
 
 
@@ -194,6 +195,46 @@ def test_event_window_counts_each_seed_once_with_an_interval_and_compares_with_t
     line = next(row for row in section.splitlines() if row.startswith("| warm_start=reset |"))
     cells = [c.strip() for c in line.strip("|").split("|")]
     assert cells[1:4] == ["3", "3", "-50.0"]  # events, seeds, mean change
-    assert cells[4].startswith("-50.0 [") and cells[-1] == "1.00 [1.00, 1.00]"  # every refill seed dips less
+    assert cells[4].startswith("-50.0 [") and cells[-2] == "1.00 [1.00, 1.00]"  # every refill seed dips less
+    assert cells[-1] == "refill beats reset"  # the decision rule: the interval excludes 0.5
     with (exp / "report" / "event_window.csv").open() as fh:
         assert len(list(csv.DictReader(fh))) == 6
+
+
+def test_score_is_the_mean_of_the_last_evaluations_with_plateau_counts_and_verdicts(tmp_path):
+    """Issue 34's protocol: a run scores the mean of its last three evaluations; the report counts the seeds whose
+    best evaluation left the plateau and states the decision rule's verdict for each setting against the
+    reference."""
+    from adarl.experiments.aggregate import verdict, write_aggregate_report
+
+    exp = tmp_path / "exp"
+    curves = {  # the last three evaluations decide, not the last one alone
+        "adarl": [[100, 2000, 1600, 1700, 1800], [100, 900, 1700, 1600, 1500], [100, 1000, 1400, 1500, 1600]],
+        "sac": [[100, 3000, 900, 1000, 1100], [100, 1000, 1000, 1000, 1000], [100, 1100, 1000, 900, 1000]],
+    }
+    runs = []
+    for algo, per_seed in curves.items():
+        for seed, vals in enumerate(per_seed):
+            rid = f"algorithm={algo}__seed={seed}"
+            _fake_run(exp, rid, seed, 0, [(100 * (i + 1), v) for i, v in enumerate(vals)])
+            runs.append(
+                {"run_id": rid, "axes": {"algorithm": algo}, "seed": seed, "recipe": "f", "path": str(exp / rid)}
+            )
+    report = {"columns": "algorithm", "reference": "adarl", "score_last": 3, "plateau": 1500}
+    (exp / "experiment.json").write_text(
+        json.dumps({"name": "f", "axes": ["algorithm"], "runs": runs, "report": report})
+    )
+    md = write_aggregate_report([exp]).read_text()
+    out = exp / "report"
+    rows = {(r["algorithm"], r["seed"]): r for r in csv.DictReader((out / "runs.csv").open())}
+    assert (
+        float(rows["adarl", "0"]["score"]) == pytest.approx(1700.0) and rows["adarl", "0"]["final_return"] == "1800.0"
+    )
+    assert float(rows["sac", "0"]["best_eval"]) == 3000.0 and rows["sac", "0"]["score_last"] == "3"
+    stats = {r["algorithm"]: r for r in csv.DictReader((out / "statistics.csv").open())}
+    assert float(stats["adarl"]["mean"]) == pytest.approx(np.mean([1700, 1600, 1500]))
+    assert stats["adarl"]["above_plateau"] == "3" and stats["sac"]["above_plateau"] == "1"  # best > 1500
+    assert float(stats["sac"]["poi_ref"]) == 1.0 and "adarl beats sac" in md and "3/3" in md and "1/3" in md
+    assert "the mean of its last 3 evaluations" in md and (out / "learning_curves_by_seed.png").is_file()
+    assert verdict((0.5, 0.2, 0.8), "a", "b") == "no difference shown"
+    assert verdict((0.1, 0.0, 0.45), "a", "b") == "b beats a"

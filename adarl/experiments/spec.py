@@ -137,6 +137,16 @@ class ReportSpec(_Model):
         description="Optimisation steps at which to report each run's score as well (e.g. the "
         "ends of the paper's iterations 1, 3 and 5 in Table 2): the first evaluation at or after each.",
     )
+    score_last: Annotated[int, Field(ge=1)] = Field(
+        1,
+        description="A run's score is the mean of its last `score_last` nominal evaluations (issue 34's protocol: 3; "
+        "1 = the last evaluation alone).",
+    )
+    plateau: Annotated[float, Field(allow_inf_nan=False)] | None = Field(
+        None,
+        description="A return threshold: the report counts, per setting, the seeds whose best nominal evaluation "
+        "exceeds it (Hopper's stand-still plateau: 1500 in issue 34's protocol).",
+    )
 
 
 class ResourcesSpec(_Model):

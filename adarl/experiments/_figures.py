@@ -1,0 +1,245 @@
+"""The report's figures: learning curves (with rank events and restarts marked), rank trajectories against
+2*d_a+1, return against a numeric axis (Fig. 1) and robustness sweeps (Fig. 8). Each writes its PNG (matplotlib,
+Agg) and the CSV it was drawn from. Private module of :mod:`adarl.experiments.aggregate`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import statistics
+from pathlib import Path
+
+from adarl.experiments._blocks import csv_text
+from adarl.experiments._runs import Aggregate, Group, _num_key, _rank_series, intrinsic_rank
+from adarl.runtime.report import pyplot
+
+
+def _panels(agg: Aggregate) -> tuple[str | None, dict[str, list[Group]]]:
+    """Panels (one per row-key when a column axis exists) and the groups drawn in each."""
+    col_axis = agg.report.get("columns") or ("algorithm" if "algorithm" in agg.axes else None)
+    if col_axis is None or len(agg.axes) < 2:
+        return None, {"": sorted(agg.groups, key=lambda g: [_num_key(v) for _, v in g.key])}
+    panels: dict[str, list[Group]] = {}
+    for g in agg.groups:
+        d = dict(g.key)
+        panels.setdefault(", ".join(d[a] for a in agg.axes if a != col_axis), []).append(g)
+    return col_axis, panels
+
+
+def _line_label(g: Group, col_axis: str | None) -> str:
+    return dict(g.key)[col_axis] if col_axis else g.label
+
+
+def _subplots(plt, n: int):
+    ncols = min(n, 3)
+    nrows = math.ceil(n / ncols)
+    fig, axs = plt.subplots(nrows, ncols, figsize=(5.2 * ncols, 3.6 * nrows), squeeze=False)
+    for ax in axs.flat[n:]:
+        ax.set_visible(False)
+    return fig, list(axs.flat[:n])
+
+
+def plot_learning_curves(agg: Aggregate, out: Path) -> tuple[Path | None, str]:
+    """Nominal-dynamics evaluation vs frames, mean across seeds with a ±std band; rank events dotted."""
+    col_axis, panels = _panels(agg)
+    rows = []
+    if not any(r.evals for g in agg.groups for r in g.runs):
+        return None, ""
+    plt = pyplot()
+    fig, axs = _subplots(plt, len(panels))
+    cmap = plt.get_cmap("viridis" if len(agg.groups) > 8 else "tab10")
+    for ax, (title, groups) in zip(axs, panels.items()):
+        for i, g in enumerate(groups):
+            color = cmap(i / max(1, len(groups) - 1)) if len(agg.groups) > 8 else cmap(i % 10)
+            # Seeds evaluate at slightly different frames when warm-start frames count towards the budget: each
+            # evaluation goes to the end of its eval.interval bin, so the seeds' curves line up.
+            width = int((g.runs[0].recipe.get("eval") or {}).get("interval") or 1)
+            binned = [[(-(-ff // width) * width, m) for ff, m in r.evals] for r in g.scored]
+            frames = sorted({f for ev in binned for f, _ in ev})
+            xs, ms, ss = [], [], []
+            for f in frames:
+                vals = [m for ev in binned for ff, m in ev if ff == f]
+                xs.append(f)
+                ms.append(statistics.fmean(vals))
+                ss.append(statistics.stdev(vals) if len(vals) > 1 else 0.0)
+                rows.append([g.label, f, ms[-1], ss[-1], len(vals)])
+            ax.plot(xs, ms, "o-", ms=3, color=color, label=_line_label(g, col_axis))
+            ax.fill_between(
+                xs, [m - s for m, s in zip(ms, ss)], [m + s for m, s in zip(ms, ss)], color=color, alpha=0.15
+            )
+            for f in g.runs[0].events:
+                ax.axvline(f, color=color, ls=":", lw=1)
+        ax.set_title(title or "nominal-dynamics evaluation", fontsize=9)
+        ax.set_xlabel("frames (evaluations binned by eval.interval)")
+        ax.set_ylabel("return (mean ± std over seeds)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, ncol=2 if len(groups) > 6 else 1)
+    fig.tight_layout()
+    fig.savefig(out / "learning_curves.png", dpi=110)
+    plt.close(fig)
+    data = csv_text(rows, ["group", "frames", "mean", "std", "seeds"])
+    (out / "learning_curves.csv").write_text(data)
+    return out / "learning_curves.png", data
+
+
+def plot_setting_curves(agg: Aggregate, out: Path, plateau: float | None = None) -> Path | None:
+    """One panel per setting: every seed's nominal evaluations against frames (thin), their mean (bold), each
+    seed's rank events or restarts (dotted verticals) and the plateau threshold (dashed), so that what an event does
+    to each run can be read off. Data: learning_curves_by_seed.csv."""
+    groups = [g for g in sorted(agg.groups, key=lambda g: [_num_key(v) for _, v in g.key]) if g.scored]
+    if not groups:
+        return None
+    plt = pyplot()
+    fig, axs = _subplots(plt, len(groups))
+    cmap = plt.get_cmap("tab10")
+    rows = []
+    top = max(m for g in groups for r in g.scored for _, m in r.evals)
+    for ax, g in zip(axs, groups):
+        for i, r in enumerate(g.scored):
+            color = cmap(i % 10)
+            ax.plot([f for f, _ in r.evals], [m for _, m in r.evals], "-", lw=0.8, alpha=0.7, color=color)
+            for e in r.events:
+                ax.axvline(e, color=color, ls=":", lw=0.8, alpha=0.6)
+            rows += [[g.label, r.seed, f, m, "event" if f in r.events else ""] for f, m in r.evals]
+            rows += [[g.label, r.seed, e, "", "event"] for e in r.events]
+        frames = sorted({f for r in g.scored for f, _ in r.evals})
+        means = [statistics.fmean([m for r in g.scored for ff, m in r.evals if ff == f]) for f in frames]
+        ax.plot(frames, means, "k-", lw=2, label=f"mean of {len(g.scored)} seeds")
+        if plateau is not None:
+            ax.axhline(plateau, color="grey", ls="--", lw=1, label=f"plateau threshold {plateau:g}")
+        ax.set_ylim(0, top * 1.05)
+        ax.set_title(
+            f"{g.label}: {g.plateau_count(plateau) if plateau is not None else len(g.scored)}"
+            + (f"/{len(g.scored)} seeds above the plateau" if plateau is not None else " seeds"),
+            fontsize=9,
+        )
+        ax.set_xlabel("frames (dotted: each seed's rank events / restarts)")
+        ax.set_ylabel("nominal return")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, loc="upper left")
+    fig.tight_layout()
+    fig.savefig(out / "learning_curves_by_seed.png", dpi=110)
+    plt.close(fig)
+    (out / "learning_curves_by_seed.csv").write_text(csv_text(rows, ["group", "seed", "frames", "mean", "event"]))
+    return out / "learning_curves_by_seed.png"
+
+
+def plot_rank_trajectories(agg: Aggregate, out: Path) -> Path | None:
+    """Rank of each low-rank layer over optimisation steps, every seed, with the 2*d_a+1 line (Fig. 4)."""
+    groups = [g for g in agg.groups if any(r.rank_history for r in g.runs)]
+    if not groups:
+        return None
+    groups = groups[:12]
+    plt = pyplot()
+    fig, axs = _subplots(plt, len(groups))
+    rows = []
+    for ax, g in zip(axs, groups):
+        colors: dict[str, object] = {}
+        cmap = plt.get_cmap("tab10")
+        for r in g.runs:
+            for name, pts in _rank_series(r).items():
+                c = colors.setdefault(name, cmap(len(colors) % 10))
+                ax.step(
+                    [p[0] for p in pts],
+                    [p[1] for p in pts],
+                    where="post",
+                    color=c,
+                    alpha=0.7,
+                    lw=1,
+                    label=name if r is g.runs[0] else None,
+                )
+                rows += [[g.label, r.seed, name, s, k] for s, k in pts]
+        ref = agg.report.get("intrinsic_rank") or intrinsic_rank(g.runs[0].env_id)
+        if ref:
+            ax.axhline(ref, color="red", ls="--", lw=1, label=f"intrinsic rank {ref}")
+        ax.set_yscale("log", base=2)
+        ax.set_title(f"{g.label} ({len(g.runs)} seeds)", fontsize=9)
+        ax.set_xlabel("optimisation steps")
+        ax.set_ylabel("rank")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=6)
+    fig.tight_layout()
+    fig.savefig(out / "ranks.png", dpi=110)
+    plt.close(fig)
+    (out / "ranks.csv").write_text(csv_text(rows, ["group", "seed", "layer", "step", "rank"]))
+    return out / "ranks.png"
+
+
+def plot_return_vs(agg: Aggregate, axis: str, out: Path) -> Path | None:
+    """Final return (mean ± std across seeds, error bars) against a numeric axis such as the rank (Fig. 1)."""
+    if axis not in agg.axes:
+        return None
+    try:
+        [float(dict(g.key)[axis]) for g in agg.groups]
+    except ValueError:
+        return None
+    others = [a for a in agg.axes if a != axis]
+    lines: dict[str, list[Group]] = {}
+    for g in agg.groups:
+        d = dict(g.key)
+        lines.setdefault(", ".join(f"{a}={d[a]}" for a in others), []).append(g)
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(6.5, 4))
+    rows = []
+    for label, gs in lines.items():
+        gs = sorted((g for g in gs if g.scores), key=lambda g: float(dict(g.key)[axis]))
+        x = [float(dict(g.key)[axis]) for g in gs]
+        ax.errorbar(x, [g.mean for g in gs], yerr=[g.std for g in gs], fmt="o-", capsize=4, label=label or None)
+        rows += [[label, dict(g.key)[axis], g.mean, g.std, len(g.scores), json.dumps(g.scores)] for g in gs]
+    ref = agg.report.get("intrinsic_rank")
+    if ref and axis == "rank":
+        ax.axvline(ref, color="red", ls="--", lw=1, label=f"intrinsic rank {ref}")
+    ax.set_xlabel(axis)
+    ax.set_ylabel("final nominal return (mean ± std over seeds)")
+    ax.grid(alpha=0.3)
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out / f"return_vs_{axis}.png", dpi=110)
+    plt.close(fig)
+    (out / f"return_vs_{axis}.csv").write_text(csv_text(rows, ["line", axis, "mean", "std", "seeds", "finals"]))
+    return out / f"return_vs_{axis}.png"
+
+
+def plot_sweeps(agg: Aggregate, out: Path) -> list[tuple[str, Path, list[list]]]:
+    """Per 1-D sweep name: mean across seeds of each grid point's mean, ±std band, red stars at the worst case."""
+    names = sorted({n for g in agg.groups for r in g.runs for n, s in r.sweeps.items() if len(s.params) == 1})
+    made = []
+    for name in names:
+        plt = pyplot()
+        fig, ax = plt.subplots(figsize=(6.5, 4))
+        rows, summary = [], []
+        for g in agg.groups:
+            results = [r.sweeps[name] for r in g.runs if name in r.sweeps]
+            if not results:
+                continue
+            param = results[0].params[0]
+            xs = [p.values[param] for p in results[0].points]
+            ms, ss, ws = [], [], []
+            for i, _ in enumerate(xs):
+                vals = [res.points[i].mean for res in results]
+                ms.append(statistics.fmean(vals))
+                ss.append(statistics.stdev(vals) if len(vals) > 1 else 0.0)
+                ws.append(min(res.points[i].worst for res in results))
+                rows.append([g.label, param, xs[i], ms[-1], ss[-1], ws[-1], len(vals)])
+            line = ax.plot(xs, ms, "o-", ms=3, label=g.label)[0]
+            ax.fill_between(
+                xs, [m - s for m, s in zip(ms, ss)], [m + s for m, s in zip(ms, ss)], color=line.get_color(), alpha=0.15
+            )
+            ax.plot(xs, ws, "*", color="red", ms=9)
+            summary.append([g.label, len(results), statistics.fmean(ms), min(ms), min(ws)])
+            ax.set_xlabel(param)
+        ax.plot([], [], "*", color="red", label="worst case")
+        ax.set_ylabel("return")
+        ax.set_title(f"sweep {name}", fontsize=9)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+        fig.tight_layout()
+        fig.savefig(out / f"sweep_{name}.png", dpi=110)
+        plt.close(fig)
+        (out / f"sweep_{name}.csv").write_text(
+            csv_text(rows, ["group", "param", "value", "mean", "std", "worst", "seeds"])
+        )
+        made.append((name, out / f"sweep_{name}.png", summary))
+    return made

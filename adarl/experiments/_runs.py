@@ -1,0 +1,356 @@
+r"""The runs a report reads: run folders (or experiment folders) become :class:`RunRecord`\ s grouped by their axes.
+
+Nothing is typed in: every number comes from the run folders' ``eval.csv``, ``ranks.json``, ``metrics/``, ``sweeps/``
+and ``summary.json``. A run's score follows the report's rule (``report.score_last``: the mean of its last N nominal
+evaluations); seeds are the replicates of a setting (:class:`Group`). Private module of
+:mod:`adarl.experiments.aggregate`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import statistics
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import yaml
+
+from adarl.errors import AdaRLError
+from adarl.experiments.execute import run_is_finished
+from adarl.experiments.sweep import read_sweep
+from adarl.runtime import metrics
+from adarl.runtime.report import layer_label
+from adarl.runtime.results import exists, is_url, join
+from adarl.runtime.run_dir import RunDir
+
+#: Action dimension of the paper's environments: the intrinsic rank of Tiwari et al. is 2 * d_a + 1.
+ACTION_DIMS = {
+    "Hopper-v5": 3,
+    "Walker2d-v5": 6,
+    "Ant-v5": 8,
+    "Humanoid-v5": 17,
+    "HalfCheetah-v5": 6,
+    "InvertedPendulum-v5": 1,
+    "CartPole-v1": 1,
+    "LinearCartPole-v0": 1,
+}
+
+
+def intrinsic_rank(env_id: str) -> int | None:
+    """``2 * d_a + 1`` (Tiwari et al. 2025; paper Fig. 4) for a known env, else None."""
+    d = ACTION_DIMS.get(env_id)
+    return None if d is None else 2 * d + 1
+
+
+def is_single_run(path: str | os.PathLike) -> bool:
+    if is_url(path):
+        return exists(join(path, "recipe.yaml"))
+    return (Path(path) / "recipe.yaml").is_file()
+
+
+@dataclass
+class RunRecord:
+    """What the report needs from one run folder."""
+
+    path: Path
+    axes: dict[str, str]
+    seed: int
+    env_id: str
+    recipe: dict
+    evals: list[tuple[int, float]]  # (frames, mean) of each nominal-dynamics evaluation
+    events: list[int]  # frames of rank events (truncations)
+    rank_history: list[dict]
+    updates: int
+    sweeps: dict = field(default_factory=dict)  # name -> adarl.experiments.sweep.SweepResult
+    eval_updates: list[int] = field(default_factory=list)  # optimisation steps at each evaluation
+
+    def score(self, last: int = 1) -> float | None:
+        """The mean of the last ``last`` nominal evaluations (all of them when it has fewer), None without one."""
+        if not self.evals:
+            return None
+        return statistics.fmean(m for _, m in self.evals[-last:])
+
+    @property
+    def best(self) -> float | None:
+        """Its best nominal evaluation (None without one)."""
+        return max((m for _, m in self.evals), default=None)
+
+    def score_at_updates(self, updates: int) -> float | None:
+        """The first evaluation at or after ``updates`` optimisation steps (an iteration's end), else None."""
+        for (_, mean), u in zip(self.evals, self.eval_updates):
+            if u >= updates:
+                return mean
+        return None
+
+    @property
+    def final(self) -> float | None:
+        return self.evals[-1][1] if self.evals else None
+
+
+@dataclass
+class Group:
+    """Runs that differ only in their seed."""
+
+    key: tuple[tuple[str, str], ...]
+    runs: list[RunRecord]
+    score_last: int = 1  # the report's rule: a run's score is the mean of its last `score_last` evaluations
+
+    @property
+    def label(self) -> str:
+        return ", ".join(f"{a}={v}" for a, v in self.key) or "all"
+
+    @property
+    def scored(self) -> list[RunRecord]:
+        """The runs with a score, one per seed (a seed found twice, e.g. in two experiment folders, counts once:
+        the first found)."""
+        out, seen = [], set()
+        for r in self.runs:
+            if r.final is not None and r.seed not in seen:
+                seen.add(r.seed)
+                out.append(r)
+        return out
+
+    @property
+    def duplicate_seeds(self) -> list[int]:
+        seeds = [r.seed for r in self.runs if r.final is not None]
+        return sorted({s for s in seeds if seeds.count(s) > 1})
+
+    @property
+    def scores(self) -> list[float]:
+        """One score per seed, by the report's rule (:meth:`RunRecord.score`)."""
+        return [r.score(self.score_last) for r in self.scored]
+
+    finals = scores  # the name of a report whose score was the last evaluation alone
+
+    def plateau_count(self, threshold: float) -> int:
+        """Seeds whose best nominal evaluation exceeds ``threshold`` (left Hopper's stand-still plateau)."""
+        return sum(1 for r in self.scored if r.best is not None and r.best > threshold)
+
+    @property
+    def mean(self) -> float:
+        f = self.scores
+        return statistics.fmean(f) if f else math.nan
+
+    @property
+    def std(self) -> float:
+        f = self.scores
+        return statistics.stdev(f) if len(f) > 1 else 0.0
+
+    @property
+    def seeds(self) -> list[int]:
+        return sorted(r.seed for r in self.scored)
+
+
+@dataclass
+class Aggregate:
+    groups: list[Group]
+    axes: list[str]
+    report: dict
+    sources: list[str]
+    info: dict
+
+    def group(self, **axes: str) -> Group:
+        for g in self.groups:
+            if dict(g.key) == {k: str(v) for k, v in axes.items()}:
+                return g
+        raise KeyError(axes)
+
+
+def _load_run(path: Path, axes: dict[str, str] | None) -> RunRecord | None:
+    if not is_single_run(path):
+        return None
+    run = RunDir(path)
+    recipe = yaml.safe_load((path / "recipe.yaml").read_text()) or {}
+    rows = run.read_eval()
+    evals = [(int(r["frames"]), float(r["mean"])) for r in rows]
+    eval_updates = [int(r["updates"]) for r in rows]
+    events = sorted({step for step, _ in metrics.series(run.scalars(), metrics.WARM_START_FRAMES)})
+    summary_path = path / "summary.json"
+    summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
+    sweeps = {}
+    sweep_dir = path / "sweeps"
+    if sweep_dir.is_dir():
+        for f in sorted(sweep_dir.glob("*.csv")):
+            sweeps[f.stem] = read_sweep(f)
+    if axes is None:
+        axes = {"recipe": str(recipe.get("name", path.name))}
+    return RunRecord(
+        path,
+        axes,
+        int(recipe.get("seed", 0)),
+        str(recipe.get("env", {}).get("id", "?")),
+        recipe,
+        evals,
+        events,
+        run.read_rank_history(),
+        int(summary.get("updates", 0)),
+        sweeps,
+        eval_updates,
+    )
+
+
+def collect_runs(dirs: list[str | os.PathLike]) -> tuple[list[RunRecord], dict]:
+    """Run records from run folders, experiment folders (``experiment.json``) or folders holding run folders."""
+    runs: list[RunRecord] = []
+    info: dict = {"experiments": [], "missing": [], "unfinished": []}
+    seen: set[Path] = set()
+
+    def add(rec: RunRecord | None) -> None:
+        if rec is not None and rec.path.resolve() not in seen:
+            seen.add(rec.path.resolve())
+            runs.append(rec)
+
+    for d in dirs:
+        p = Path(d)
+        if not p.is_dir():
+            raise AdaRLError(
+                f"{str(p)!r} is not a folder (expected a run folder, an experiment folder, or a folder of runs)"
+            )
+        exp = p / "experiment.json"
+        if exp.is_file():
+            state = json.loads(exp.read_text())
+            info["experiments"].append(
+                {k: state.get(k) for k in ("name", "description", "budget", "command", "axes", "report")}
+            )
+            for r in state.get("runs", []):
+                if is_url(r["path"]):  # an experiment at a URL, read from a local copy (write_aggregate_report)
+                    r = {**r, "path": str(p / r["path"].rstrip("/").rsplit("/", 1)[-1])}
+                rp = Path(r["path"])
+                if not rp.is_absolute() and not rp.exists():
+                    rp = p / rp.name
+                if r.get("status") == "missing-recipe":
+                    info["missing"].append(f"{r['run_id']} ({r['recipe']})")
+                    continue
+                rp = rp if rp.exists() else p / Path(r["path"]).name
+                if not run_is_finished(rp):
+                    info["unfinished"].append(r["run_id"])
+                    continue
+                add(_load_run(rp, dict(r["axes"])))
+        elif is_single_run(p):
+            add(_load_run(p, None))
+        else:
+            for sub in sorted(p.rglob("recipe.yaml")):
+                if len(sub.relative_to(p).parts) <= 3:
+                    add(_load_run(sub.parent, None))
+    if not runs:
+        raise AdaRLError(f"no run folders (with recipe.yaml) found in {[str(d) for d in dirs]}")
+    _split_loose_variants(runs)
+    return runs, info
+
+
+def _flat(d: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flat(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+# Keys that differ between the seeds of one setting (or do not change what is learned).
+_NOT_A_SETTING = ("seed", "name", "description", "output.")
+
+
+def _split_loose_variants(runs: list[RunRecord]) -> None:
+    """Loose run folders are grouped by recipe name; runs of one name with different settings (other than the
+    seed) would then pool as replicates of one setting. Give those a ``variant`` axis naming the keys that differ."""
+    by_name: dict[str, list[RunRecord]] = {}
+    for r in runs:
+        if set(r.axes) == {"recipe"}:
+            by_name.setdefault(r.axes["recipe"], []).append(r)
+    for group in by_name.values():
+        flats = [{k: v for k, v in _flat(r.recipe).items() if not k.startswith(_NOT_A_SETTING)} for r in group]
+        keys = sorted({k for f in flats for k in f if len({repr(g.get(k)) for g in flats}) > 1})
+        if not keys:
+            continue
+        for r, f in zip(group, flats):
+            r.axes["variant"] = ",".join(f"{k}={f.get(k)}" for k in keys)
+
+
+def aggregate_runs(dirs: list[str | os.PathLike]) -> Aggregate:
+    """Group the runs found in ``dirs`` by their axes (seeds are replicates)."""
+    runs, info = collect_runs(dirs)
+    axes: list[str] = []
+    for r in runs:
+        axes += [a for a in r.axes if a not in axes]
+    groups: dict[tuple, Group] = {}
+    for r in runs:
+        key = tuple((a, r.axes.get(a, "-")) for a in axes)
+        groups.setdefault(key, Group(key, [])).runs.append(r)
+    report = {}
+    for e in info["experiments"]:
+        report.update({k: v for k, v in (e.get("report") or {}).items() if v is not None})
+    last = int(report.get("score_last") or 1)
+    for g in groups.values():
+        g.runs.sort(key=lambda r: r.seed)
+        g.score_last = last
+    return Aggregate(list(groups.values()), axes, report, [str(d) for d in dirs], info)
+
+
+def _num_key(v: str):
+    try:
+        return (0, float(v), v)
+    except ValueError:
+        return (1, 0.0, v)
+
+
+def _rank_series(run: RunRecord) -> dict[str, list[tuple[int, int]]]:
+    series: dict[str, list[tuple[int, int]]] = {}
+    for ev in run.rank_history:
+        step = int(ev.get("step", 0))
+        for layer in ev.get("layers", []):
+            name = layer_label(layer)
+            pts = series.setdefault(name, [(0, int(layer["old_rank"]))])
+            pts.append((step, int(layer["new_rank"])))
+    for pts in series.values():
+        if run.updates > pts[-1][0]:
+            pts.append((run.updates, pts[-1][1]))
+    return series
+
+
+def rank_settling(run: RunRecord) -> dict[str, dict]:
+    """Per layer: the final rank, the smallest rank it had, the step of its last change (None: never changed),
+    how many rank events followed that change without changing it (the evidence that it settled), and the rule's
+    own candidate at the last event (``last_candidate``: Eq. 10's proposal before the acceptance step; None when not
+    recorded) beside the rank kept there."""
+    out: dict[str, dict] = {}
+    steps = [int(ev.get("step", 0)) for ev in run.rank_history]
+    for ev in run.rank_history:
+        step = int(ev.get("step", 0))
+        for layer in ev.get("layers", []):
+            name = layer_label(layer)
+            d = out.setdefault(
+                name,
+                {
+                    "initial": int(layer["old_rank"]),
+                    "final": int(layer["old_rank"]),
+                    "min": int(layer["old_rank"]),
+                    "last_change": None,
+                },
+            )
+            new = int(layer["new_rank"])
+            if new != d["final"]:
+                d["last_change"] = step
+            d["final"] = new
+            d["min"] = min(d["min"], new)
+            d["last_candidate"] = layer.get("candidate")
+    for d in out.values():
+        d["events_after"] = sum(1 for s in steps if d["last_change"] is None or s > d["last_change"])
+    return out
+
+
+def event_dips(run: RunRecord, window: int) -> list[tuple[int, float, float]]:
+    """``(event frame, mean training return in the window before, mean in the window after)`` per rank event
+    that changed a rank, from the run's ``train/episode_return`` log (``train.episode_return`` in run folders of
+    an older adarl; events without episodes on both sides are left out)."""
+    returns = metrics.series(RunDir(run.path).scalars(), metrics.TRAIN_RETURN)
+    out = []
+    for e in run.events:
+        before = [v for f, v in returns if e - window < f <= e]
+        after = [v for f, v in returns if e < f <= e + window]
+        if before and after:
+            out.append((e, statistics.fmean(before), statistics.fmean(after)))
+    return out
