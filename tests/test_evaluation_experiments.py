@@ -351,3 +351,25 @@ def test_hopper_sweep_writes_fig8_plot_and_worst_case(tmp_path):
     bad = adarl("eval", str(run), "--sweep", "pole_length=0.1:0.2:2")
     assert bad.returncode == 2 and "unknown sweep parameter 'pole_length'" in bad.stderr
     assert not math.isnan(summary["worst_mean"])
+
+
+def test_an_axis_value_may_run_fewer_seeds_than_its_budget():
+    """table1's pilot: fixed_final and Parseval run seeds 0-4 beside arms at seeds 0-7 (issue 34)."""
+    from adarl.experiments.spec import ExperimentSpec, load_experiment, plan_runs
+
+    spec = ExperimentSpec.model_validate(
+        {
+            "kind": "experiment",
+            "name": "x",
+            "recipe": "quickstart",
+            "seeds": [0, 1, 2],
+            "axes": {"arm": ["a", {"name": "b", "seeds": [1, 5]}]},
+        }
+    )
+    assert [(r.axes["arm"], r.seed) for r in plan_runs(spec, "/x")] == [("a", 0), ("a", 1), ("a", 2), ("b", 1)]
+    pilot = plan_runs(load_experiment("table1"), "/x", "pilot")
+    per_arm = {
+        a: sorted(r.seed for r in pilot if r.axes["algorithm"] == a) for a in {r.axes["algorithm"] for r in pilot}
+    }
+    assert per_arm["adarl"] == per_arm["sac_full"] == per_arm["sac_restarts"] == list(range(8))
+    assert per_arm["fixed_final"] == per_arm["parseval"] == list(range(5))

@@ -2,8 +2,8 @@
 
 A spec names a base ``recipe`` and ``axes``; every combination of axis values times every seed is one run, whose
 recipe and overrides are templates filled with the axis values (``"{env}_adarl"``, ``"network.actor.rank={rank}"``).
-An axis value is a scalar or ``{name, recipe?, overrides?}``. ``budgets`` name smaller (or larger) versions of the
-same experiment: other seeds, extra overrides, fewer grid values. Example (``recipes/experiments/``)::
+An axis value is a scalar or ``{name, recipe?, overrides?, seeds?}``. ``budgets`` name smaller (or larger) versions of
+the same experiment: other seeds, extra overrides, fewer grid values. Example (``recipes/experiments/``)::
 
     name: table2
     recipe: "{env}_adarl"
@@ -66,6 +66,11 @@ class AxisValue(_Model):
     name: str = Field(description="Label of the value; `{axis}` in templates becomes it.")
     recipe: str | None = Field(None, description="Recipe template for runs with this value (overrides the spec's).")
     overrides: list[str] = Field(default_factory=list, description="Recipe overrides (templates) this value adds.")
+    seeds: list[int] | None = Field(
+        None,
+        description="The only seeds runs with this value use, within the budget's (e.g. a costly control at 5 "
+        "seeds beside arms at 8); default: every seed of the budget.",
+    )
 
     @field_validator("name")
     @classmethod
@@ -78,7 +83,7 @@ class AxisValue(_Model):
 def _as_axis_value(v: Any) -> Any:
     if isinstance(v, bool) or v is None:
         raise ValueError(
-            f"an axis value must be a number, a string or a mapping {{name, recipe, overrides}}, got {v!r}"
+            f"an axis value must be a number, a string or a mapping {{name, recipe, overrides, seeds}}, got {v!r}"
         )
     if isinstance(v, (int, float, str)):
         return {"name": str(v)}
@@ -381,6 +386,8 @@ def plan_runs(spec: ExperimentSpec, output: str | os.PathLike, budget: str | Non
     for combo in itertools.product(*axes.values()) if axes else [()]:
         named = dict(zip(axes, combo))
         for seed in seeds:
+            if any(v.seeds is not None and seed not in v.seeds for v in named.values()):
+                continue
             values = {a: v.name for a, v in named.items()} | {"seed": str(seed)}
             recipe_t = spec.recipe
             overrides_t = list(spec.overrides)
