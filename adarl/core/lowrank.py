@@ -331,10 +331,13 @@ class LowRankLinear(nn.Module):
         written in place (``copy_``), so optimisers and modules holding them keep working.
         """
         weight = torch.as_tensor(weight).detach()
-        if weight.shape != (self.out_features, self.in_features):
+        shape = (self.out_features, self.in_features)
+        lead = tuple(self.w1.shape[:-2])  # a stacked ensemble's members (TorchRL's vmapped Q networks)
+        if tuple(weight.shape) not in (shape, lead + shape):
             raise AdaRLValueError(
-                f"set_weight_: the weight must have shape (out_features, in_features) = "
-                f"({self.out_features}, {self.in_features}), got {tuple(weight.shape)}"
+                f"set_weight_: the weight must have shape (out_features, in_features) = {shape}"
+                + (f" or one per ensemble member, {lead + shape}" if lead else "")
+                + f", got {tuple(weight.shape)}"
             )
         if not bool(torch.isfinite(weight).all()):
             raise AdaRLValueError("set_weight_: the weight holds NaN or inf values")
@@ -351,12 +354,17 @@ class LowRankLinear(nn.Module):
 
         ``init(dense, *args, **kwargs)`` fills a dense float64 ``(out_features, in_features)`` tensor in place
         (e.g. ``layer.init_weight_(nn.init.orthogonal_, gain=math.sqrt(2))``, the baselines' orthogonal init).
-        Initialising the factors themselves would not give the product the init's distribution.
+        Initialising the factors themselves would not give the product the init's distribution. With stacked
+        factors (a TorchRL loss's Q ensemble, whose parameters ``TensorDictParams.to_module`` swaps in, e.g. under
+        ``loss.reset_parameters_recursive()``) every member gets a draw of its own: one draw copied into all of
+        them would make the twin critics identical for the rest of training.
         """
         if not callable(init):
             raise AdaRLValueError(f"init_weight_: init must be a callable such as nn.init.orthogonal_, got {init!r}")
-        dense = torch.empty(self.out_features, self.in_features, dtype=torch.float64, device=self.w1.device)
-        init(dense, *args, **kwargs)
+        lead = tuple(self.w1.shape[:-2])
+        dense = torch.empty(*lead, self.out_features, self.in_features, dtype=torch.float64, device=self.w1.device)
+        for member in dense.view(-1, self.out_features, self.in_features):  # each 2-D slice: the init's own fans
+            init(member, *args, **kwargs)
         return self.set_weight_(dense)
 
     @torch.no_grad()

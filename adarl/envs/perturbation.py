@@ -275,9 +275,20 @@ class PerturbedDynamicsEnvTransform(Transform):
     def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
         return self._write(next_tensordict)
 
+    def set_container(self, container) -> None:
+        """Attach to an env (TorchRL calls this); a batched env is refused here, where it is built, not at its first
+        reset: the transform edits one MuJoCo model and must live inside each worker's env."""
+        super().set_container(container)
+        parent = self.parent
+        if parent is not None:
+            find_gym_env(parent)
+
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        # Outside an env (e.g. in a replay buffer) there is nothing to do.
-        return tensordict
+        # As TorchRL's env-only transforms: outside an env (a replay buffer, a module) there are no dynamics to draw.
+        raise AdaRLValueError(
+            "PerturbedDynamicsEnvTransform cannot be executed without a parent environment (it draws and applies "
+            "dynamics at each reset of the env it is attached to): use it in TransformedEnv(GymEnv(...), ...)"
+        )
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
         shape, device = observation_spec.shape, observation_spec.device
