@@ -334,3 +334,27 @@ def test_an_experiment_started_with_sigint_ignored_still_stops_on_sigint(tmp_pat
     assert proc.returncode != 0, err[-2000:]
     time.sleep(1)
     assert _training_pids(str(out)) == []
+
+
+def test_progress_counts_the_frames_of_runs_that_have_not_started(tmp_path):
+    """0/4 runs done must not read as most of the frames: a pending run has no recipe.yaml yet, but its planned
+    budget (known once its recipe validated) counts towards the total."""
+    from adarl.experiments.orchestrate import _check_recipes
+
+    spec = tmp_path / "s.yaml"
+    spec.write_text(
+        "kind: experiment\nname: s\nrecipe: quickstart\nseeds: [0, 1, 2, 3]\n"
+        "overrides: [collector.total_frames=1000, collector.init_random_frames=100]\n"
+    )
+    runs = plan_runs(load_experiment(spec), tmp_path / "out")
+    _check_recipes(runs)
+    assert [r.total_frames for r in runs] == [1000] * 4
+    first = Path(runs[0].path)
+    (first / "metrics" / "scalars" / "train").mkdir(parents=True)
+    (first / "recipe.yaml").write_text("collector: {total_frames: 1000}\n")
+    (first / "metrics" / "scalars" / "train" / "updates.csv").write_text("800,700\n")
+    board = ProgressBoard(runs)
+    board.running.add(runs[0].run_id)
+    _, totals = board.snapshot()
+    assert (totals.done_frames, totals.all_frames, totals.n_done, totals.n) == (800, 4000, 0, 4)
+    assert "0/4 runs done, 20% of frames" in totals.line(10)

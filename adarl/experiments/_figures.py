@@ -12,7 +12,8 @@ from pathlib import Path
 
 from adarl.experiments._blocks import csv_text
 from adarl.experiments._runs import Aggregate, Group, _num_key, _rank_series, intrinsic_rank
-from adarl.runtime.report import pyplot
+from adarl.experiments.stats import interval_estimate, poi_estimate
+from adarl.runtime.report import pyplot, rank_ticks
 
 
 def _panels(agg: Aggregate) -> tuple[str | None, dict[str, list[Group]]]:
@@ -41,7 +42,8 @@ def _subplots(plt, n: int):
 
 
 def plot_learning_curves(agg: Aggregate, out: Path) -> tuple[Path | None, str]:
-    """Nominal-dynamics evaluation vs frames, mean across seeds with a ±std band; rank events dotted."""
+    """Nominal-dynamics evaluation vs frames: mean across seeds with its 95% bootstrap interval (a band of ± std
+    over a few seeds says little about the mean); rank events dotted. The CSV keeps the std too."""
     col_axis, panels = _panels(agg)
     rows = []
     if not any(r.evals for g in agg.groups for r in g.runs):
@@ -57,28 +59,29 @@ def plot_learning_curves(agg: Aggregate, out: Path) -> tuple[Path | None, str]:
             width = int((g.runs[0].recipe.get("eval") or {}).get("interval") or 1)
             binned = [[(-(-ff // width) * width, m) for ff, m in r.evals] for r in g.scored]
             frames = sorted({f for ev in binned for f, _ in ev})
-            xs, ms, ss = [], [], []
+            xs, ms, los, his = [], [], [], []
             for f in frames:
                 vals = [m for ev in binned for ff, m in ev if ff == f]
+                mean, lo, hi = interval_estimate(vals, "mean")
                 xs.append(f)
-                ms.append(statistics.fmean(vals))
-                ss.append(statistics.stdev(vals) if len(vals) > 1 else 0.0)
-                rows.append([g.label, f, ms[-1], ss[-1], len(vals)])
-            ax.plot(xs, ms, "o-", ms=3, color=color, label=_line_label(g, col_axis))
-            ax.fill_between(
-                xs, [m - s for m, s in zip(ms, ss)], [m + s for m, s in zip(ms, ss)], color=color, alpha=0.15
-            )
+                ms.append(mean)
+                los.append(mean if math.isnan(lo) else lo)
+                his.append(mean if math.isnan(hi) else hi)
+                sd = statistics.stdev(vals) if len(vals) > 1 else 0.0
+                rows.append([g.label, f, mean, sd, len(vals), lo, hi])
+            ax.plot(xs, ms, "o-", ms=3, color=color, label=f"{_line_label(g, col_axis)} (n={len(g.scored)})")
+            ax.fill_between(xs, los, his, color=color, alpha=0.15)
             for f in g.runs[0].events:
                 ax.axvline(f, color=color, ls=":", lw=1)
         ax.set_title(title or "nominal-dynamics evaluation", fontsize=9)
-        ax.set_xlabel("frames (evaluations binned by eval.interval)")
-        ax.set_ylabel("return (mean ± std over seeds)")
+        ax.set_xlabel("environment frames (evaluations binned by eval.interval)")
+        ax.set_ylabel("nominal return (mean, 95% CI over seeds)")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7, ncol=2 if len(groups) > 6 else 1)
     fig.tight_layout()
     fig.savefig(out / "learning_curves.png", dpi=110)
     plt.close(fig)
-    data = csv_text(rows, ["group", "frames", "mean", "std", "seeds"])
+    data = csv_text(rows, ["group", "frames", "mean", "std", "seeds", "mean_lo", "mean_hi"])
     (out / "learning_curves.csv").write_text(data)
     return out / "learning_curves.png", data
 
@@ -153,7 +156,7 @@ def plot_rank_trajectories(agg: Aggregate, out: Path) -> Path | None:
         ref = agg.report.get("intrinsic_rank") or intrinsic_rank(g.runs[0].env_id)
         if ref:
             ax.axhline(ref, color="red", ls="--", lw=1, label=f"intrinsic rank {ref}")
-        ax.set_yscale("log", base=2)
+        rank_ticks(ax, [k for row in rows if row[0] == g.label for k in row[4:5]] + ([ref] if ref else []))
         ax.set_title(f"{g.label} ({len(g.runs)} seeds)", fontsize=9)
         ax.set_xlabel("optimisation steps")
         ax.set_ylabel("rank")
@@ -227,10 +230,13 @@ def plot_sweeps(agg: Aggregate, out: Path) -> list[tuple[str, Path, list[list]]]
             ax.fill_between(
                 xs, [m - s for m, s in zip(ms, ss)], [m + s for m, s in zip(ms, ss)], color=line.get_color(), alpha=0.15
             )
-            ax.plot(xs, ws, "*", color="red", ms=9)
+            ax.plot(xs, ws, ":", color=line.get_color(), lw=1)  # the worst episode at each grid point
+            k = ws.index(min(ws))
+            ax.plot([xs[k]], [ws[k]], "*", color="red", ms=12, zorder=5)  # the setting's worst case
             summary.append([g.label, len(results), statistics.fmean(ms), min(ms), min(ws)])
             ax.set_xlabel(param)
-        ax.plot([], [], "*", color="red", label="worst case")
+        ax.plot([], [], ":", color="grey", label="worst episode at each point")
+        ax.plot([], [], "*", color="red", ms=12, label="worst case of a setting")
         ax.set_ylabel("return")
         ax.set_title(f"sweep {name}", fontsize=9)
         ax.grid(alpha=0.3)
@@ -243,3 +249,82 @@ def plot_sweeps(agg: Aggregate, out: Path) -> list[tuple[str, Path, list[list]]]
         )
         made.append((name, out / f"sweep_{name}.png", summary))
     return made
+
+
+def plot_rliable(agg: Aggregate, out: Path, ref: str | None, col_axis: str | None) -> Path | None:
+    """rliable's three figures (Agarwal et al. 2021) from the scores: interval estimates (mean and IQM with 95%
+    stratified-bootstrap intervals per setting), the performance profile (the share of runs scoring above tau, with
+    a bootstrap band) and, against the reference, the probability of improvement with its interval. Drawn with
+    matplotlib from :mod:`adarl.experiments.stats` (rliable's estimators; the package itself is not needed).
+    Data: rliable.csv."""
+    groups = [g for g in sorted(agg.groups, key=lambda g: [_num_key(v) for _, v in g.key]) if len(g.scores) >= 2]
+    if not groups:
+        return None
+    plt = pyplot()
+    others = [g for g in groups if ref is not None and col_axis is not None and dict(g.key).get(col_axis) != ref]
+    refs = {
+        tuple((a, v) for a, v in g.key if a != col_axis): g
+        for g in groups
+        if col_axis and dict(g.key).get(col_axis) == ref
+    }
+    pairs = [(refs.get(tuple((a, v) for a, v in g.key if a != col_axis)), g) for g in others]
+    pairs = [(r, g) for r, g in pairs if r is not None]
+    n = 3 if pairs else 2
+    fig, axs = plt.subplots(1, n, figsize=(5.2 * n, 0.5 * len(groups) + 2.4), squeeze=False)
+    axs = axs[0]
+    rows = []
+    labels = [g.label for g in groups]
+    y = list(range(len(groups)))
+    for j, stat in enumerate(("mean", "iqm")):
+        est = [interval_estimate(g.scores, stat) for g in groups]
+        pts = [e[0] for e in est]
+        lo = [p - e[1] for p, e in zip(pts, est)]
+        hi = [e[2] - p for p, e in zip(pts, est)]
+        axs[0].errorbar(
+            pts,
+            [v + (0.15 if j else -0.15) for v in y],
+            xerr=[lo, hi],
+            fmt="o" if j else "s",
+            capsize=3,
+            label=stat.upper() if j else "mean",
+        )
+        rows += [[g.label, stat, e[0], e[1], e[2]] for g, e in zip(groups, est)]
+    axs[0].set_yticks(y, labels, fontsize=7)
+    axs[0].set_xlabel("score (95% CI)")
+    axs[0].set_title("interval estimates", fontsize=9)
+    axs[0].legend(fontsize=7)
+    axs[0].grid(alpha=0.3)
+    everything = [s for g in groups for s in g.scores]
+    taus = [min(everything) + (max(everything) - min(everything)) * k / 60 for k in range(61)]
+    for g in groups:
+        share = [sum(s > t for s in g.scores) / len(g.scores) for t in taus]
+        axs[1].plot(taus, share, label=g.label)
+        rows += [[g.label, "profile", t, v, ""] for t, v in zip(taus, share)]
+    axs[1].set_xlabel("score threshold tau")
+    axs[1].set_ylabel("share of runs with score > tau")
+    axs[1].set_title("performance profile", fontsize=9)
+    axs[1].legend(fontsize=7)
+    axs[1].grid(alpha=0.3)
+    if pairs:
+        est = [poi_estimate(r.scores, g.scores) for r, g in pairs]
+        pts = [e[0] for e in est]
+        yy = list(range(len(pairs)))
+        axs[2].errorbar(
+            pts,
+            yy,
+            xerr=[[p - e[1] for p, e in zip(pts, est)], [e[2] - p for p, e in zip(pts, est)]],
+            fmt="o",
+            capsize=3,
+        )
+        axs[2].axvline(0.5, color="grey", ls="--", lw=1)
+        axs[2].set_yticks(yy, [f"P({ref} > {dict(g.key)[col_axis]})" for _, g in pairs], fontsize=7)
+        axs[2].set_xlim(0, 1)
+        axs[2].set_xlabel("probability of improvement (95% CI)")
+        axs[2].set_title("probability of improvement", fontsize=9)
+        axs[2].grid(alpha=0.3)
+        rows += [[g.label, f"P({ref} > setting)", e[0], e[1], e[2]] for (_, g), e in zip(pairs, est)]
+    fig.tight_layout()
+    fig.savefig(out / "rliable.png", dpi=110)
+    plt.close(fig)
+    (out / "rliable.csv").write_text(csv_text(rows, ["setting", "statistic", "value", "low", "high"]))
+    return out / "rliable.png"

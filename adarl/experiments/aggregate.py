@@ -31,6 +31,7 @@ from adarl.experiments._figures import (
     plot_learning_curves,
     plot_rank_trajectories,
     plot_return_vs,
+    plot_rliable,
     plot_setting_curves,
     plot_sweeps,
 )
@@ -166,6 +167,18 @@ def write_aggregate_report(
 
     blocks += _statistics_blocks(agg, out)
 
+    col_axis = agg.report.get("columns") or ("algorithm" if "algorithm" in agg.axes else None)
+    p = plot_rliable(agg, out, agg.report.get("reference"), col_axis)
+    if p is not None:
+        blocks += [
+            Heading(2, "Interval estimates, performance profile, probability of improvement"),
+            Paragraph(
+                "rliable's figures (Agarwal et al. 2021) from the same scores: mean and IQM with 95% stratified-"
+                "bootstrap intervals, the share of runs scoring above each threshold, and the probability that the "
+                "reference improves on each setting (dashed line: 0.5, no difference). Data in rliable.csv."
+            ),
+            Image(p.name, "interval estimates, performance profile, probability of improvement"),
+        ]
     x_axis = agg.report.get("x_axis") or ("rank" if "rank" in agg.axes else None)
     if x_axis:
         p = plot_return_vs(agg, x_axis, out)

@@ -55,7 +55,7 @@ def _check_recipes(runs: list[PlannedRun]) -> None:
     problems = []
     for run in runs:
         try:
-            load_recipe(run.recipe, run.overrides)
+            run.total_frames = load_recipe(run.recipe, run.overrides).collector.total_frames
         except RecipeError as err:
             if str(err).startswith(f"no recipe named {run.recipe!r}") or "not found" in str(err).split("\n")[0]:
                 run.status, run.message = "missing-recipe", str(err).split(";")[0]

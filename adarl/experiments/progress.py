@@ -150,7 +150,8 @@ class ProgressBoard:
                 if prog.frames > f0 and now > t0:
                     prog.eta_s = (prog.total_frames - prog.frames) * (now - t0) / (prog.frames - f0)
             if state != "missing-recipe":
-                total = prog.total_frames or 0
+                # a run that has not started has no recipe.yaml yet: its planned budget counts all the same
+                total = prog.total_frames or getattr(r, "total_frames", None) or 0
                 all_frames += total
                 done_frames += total if state in ("finished", "skipped-finished") else min(prog.frames, total)
                 n_done += state in ("finished", "skipped-finished", "failed")

@@ -260,6 +260,7 @@ class PlannedRun:
     path: str
     status: str = "pending"  # pending | finished | skipped-finished | missing-recipe | failed
     message: str = ""
+    total_frames: int | None = None  # the recipe's frame budget, known once it validated (progress before it starts)
     wall_time_s: float = 0.0
     scratch: str | None = None  # URL runs: local folder to train in (None: $TMPDIR/adarl-scratch of the worker)
 

@@ -262,7 +262,10 @@ def plot_sweep(result: SweepResult, out: str | os.PathLike) -> Path:
         s = [p.std for p in result.points]
         ax.plot(x, m, "o-", label=f"mean over {result.episodes} episodes")
         ax.fill_between(x, [a - b for a, b in zip(m, s)], [a + b for a, b in zip(m, s)], alpha=0.25, label="± std")
-        ax.plot(x, [p.worst for p in result.points], "*", color="red", ms=11, label="worst case")
+        worst = [p.worst for p in result.points]
+        ax.plot(x, worst, ":", color="red", lw=1, label="worst episode at each point")
+        k = worst.index(min(worst))
+        ax.plot([x[k]], [worst[k]], "*", color="red", ms=13, label="worst case")
         ax.set_xlabel(k)
         ax.set_ylabel("episode return")
         ax.legend(fontsize=8)
@@ -279,7 +282,9 @@ def plot_sweep(result: SweepResult, out: str | os.PathLike) -> Path:
         ax.set_yticks(range(len(ys)), [f"{v:.3g}" for v in ys])
         for i, row in enumerate(grid):
             for j, v in enumerate(row):
-                ax.text(j, i, f"{v:.0f}", ha="center", va="center", fontsize=7, color="white")
+                # dark text on the light (high) end of viridis, white on the dark end: readable everywhere
+                light = not math.isnan(v) and im.norm(v) > 0.6
+                ax.text(j, i, f"{v:.0f}", ha="center", va="center", fontsize=7, color="black" if light else "white")
         fig.colorbar(im, ax=ax, label="mean return")
         ax.set_xlabel(kx)
         ax.set_ylabel(ky)

@@ -14,6 +14,8 @@ import statistics
 import tempfile
 from pathlib import Path
 
+import yaml
+
 from adarl.runtime import metrics
 from adarl.runtime.results import download_results, is_url, join, upload_tree, write_atomic
 from adarl.runtime.run_dir import RunDir
@@ -41,6 +43,29 @@ def pyplot():
     return plt
 
 
+def _title(run: RunDir, what: str) -> str:
+    """``"<what>: <recipe name>, <env>, seed <s>"`` from the run's recipe (a plot read alone says whose it is)."""
+    try:
+        recipe = yaml.safe_load((run.path / "recipe.yaml").read_text()) or {}
+    except (OSError, ValueError):
+        recipe = {}
+    env = (recipe.get("env") or {}).get("id", "?")
+    return f"{what}: {recipe.get('name', run.path.name)}, {env}, seed {recipe.get('seed', '?')}"
+
+
+def rank_ticks(ax, ranks) -> None:
+    """A log2 rank axis whose ticks are the ranks the layers actually had (2^k ticks hid 11 and 14)."""
+    from matplotlib.ticker import FixedLocator, NullLocator, ScalarFormatter
+
+    ticks = sorted({int(r) for r in ranks if r})
+    ax.set_yscale("log", base=2)
+    ax.yaxis.set_major_locator(FixedLocator(ticks))
+    ax.yaxis.set_minor_locator(NullLocator())
+    ax.yaxis.set_major_formatter(ScalarFormatter())
+    if len(ticks) > 14:  # too many to print: keep every other one and the ends
+        ax.yaxis.set_major_locator(FixedLocator(sorted(set(ticks[::2]) | {ticks[0], ticks[-1]})))
+
+
 def _event_frames(run: RunDir) -> list[int]:
     rows = metrics.series(run.scalars(), metrics.WARM_START_FRAMES)  # one row per event (older runs: rank.*)
     return sorted({step for step, _ in rows})
@@ -65,6 +90,7 @@ def plot_returns(run: RunDir, out: Path) -> Path | None:
         ax.axvline(f, color="red", ls="--", lw=1, label="rank event" if i == 0 else None)
     ax.set_xlabel("environment frames")
     ax.set_ylabel("episode return")
+    ax.set_title(_title(run, "return"), fontsize=9)
     ax.legend(loc="best", fontsize=8)
     ax.grid(alpha=0.3)
     fig.tight_layout()
@@ -97,7 +123,8 @@ def plot_ranks(run: RunDir, out: Path) -> Path | None:
         ax.step([p[0] for p in pts], [p[1] for p in pts], where="post", marker="o", ms=3, label=name)
     ax.set_xlabel("optimisation steps")
     ax.set_ylabel("rank")
-    ax.set_yscale("log", base=2)
+    rank_ticks(ax, [p[1] for pts in series.values() for p in pts])
+    ax.set_title(_title(run, "ranks"), fontsize=9)
     ax.legend(loc="best", fontsize=7)
     ax.grid(alpha=0.3)
     fig.tight_layout()
@@ -143,6 +170,7 @@ def plot_speed(run: RunDir, out: Path) -> Path | None:
         ax.axvline(step, color="red", ls="--", lw=1, label="rank event" if i == 0 else None)
     ax.set_xlabel("optimisation steps")
     ax.set_ylabel("updates per second")
+    ax.set_title(_title(run, "speed"), fontsize=9)
     ax.set_ylim(bottom=0)
     ax.legend(loc="best", fontsize=8)
     ax.grid(alpha=0.3)
