@@ -38,9 +38,13 @@ def _subpackages() -> list[str]:
 def test_pyproject_lists_every_subpackage_and_maps_the_recipes():
     tomllib = pytest.importorskip("tomllib")
     cfg = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]
-    assert sorted(set(cfg["packages"]) - {"adarl.recipes"}) == _subpackages()
+    recipes = {p for p in cfg["packages"] if p == "adarl.recipes" or p.startswith("adarl.recipes.")}
+    assert sorted(set(cfg["packages"]) - recipes) == _subpackages()
     assert cfg["package-dir"] == {"adarl.recipes": "recipes"}
     assert "**/*.yaml" in cfg["package-data"]["adarl.recipes"]
+    # every recipe folder is declared a package (else setuptools warns once per folder on every install)
+    folders = {"adarl.recipes." + d.name for d in (REPO / "recipes").iterdir() if d.is_dir()}
+    assert folders <= recipes and all(cfg["package-data"][f] == ["*.yaml"] for f in folders)
 
 
 def test_source_checkout_finds_the_top_level_recipes():
