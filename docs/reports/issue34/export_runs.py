@@ -9,6 +9,8 @@ import shutil
 import sys
 from pathlib import Path
 
+from adarl.experiments.execute import run_is_finished
+
 SMALL = [
     "recipe.yaml",
     "eval.csv",
@@ -24,7 +26,7 @@ SMALL = [
 
 def export(exp: Path, report: Path) -> list[str]:
     copied = []
-    for run in sorted(p.parent for p in exp.glob("*/summary.json")):
+    for run in sorted(p.parent for p in exp.glob("*/summary.json") if run_is_finished(p.parent)):
         dest = report / "runs" / run.name
         files = [f for f in SMALL if (run / f).is_file()]
         files += [str(p.relative_to(run)) for p in sorted((run / "sweeps").glob("*.csv"))]
