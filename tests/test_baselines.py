@@ -568,7 +568,8 @@ def test_baseline_recipes_say_what_they_run(env):
         assert r.collector.frames_per_batch == 2048 and r.algorithm.lr == 3e-4 and r.algorithm.max_grad_norm == 0.5
     assert load_recipe(f"ablations/{env}_scope_actor").rank.scope == "actor"
     assert load_recipe(f"ablations/{env}_ratio_rule").rank.rule == "ratio"
-    assert load_recipe(f"ablations/{env}_no_warm_start").replay.warm_start.mode == "keep"
+    # the paper's control (App. D.5.3): the buffer is emptied at each rank update and refilled by the new policy
+    assert load_recipe(f"ablations/{env}_no_warm_start").replay.warm_start.mode == "reset"
     assert load_recipe(f"ablations/{env}_softplus").network.actor.activation == "softplus"
 
 
