@@ -33,7 +33,7 @@ _EXPORTS: dict[str, str] = {
         ["LowRankLinear", "low_rank_mlp", "factor_svd", "refactorize", "truncation_error", "iter_low_rank"],
         "adarl.core.lowrank",
     ),
-    "reinit_low_rank_ensemble": "adarl.runtime.builders.sac",
+    "reinit_low_rank_ensemble": "adarl.core.ensemble",
     **dict.fromkeys(
         [
             "RankRule",
