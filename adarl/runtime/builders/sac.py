@@ -41,7 +41,7 @@ from adarl.core.acceptance import ProjectionAcceptance, RecentTransitions
 from adarl.core.adapter import RankAdapter
 from adarl.core.ensemble import reinit_low_rank_ensemble
 from adarl.core.lr_schedule import make_lr_scheduler
-from adarl.core.rank import RankRule, make_rule
+from adarl.core.rank import RankRule
 from adarl.core.restarts import ScheduledRestarts
 from adarl.core.warmstart import ReplayWarmStart
 from adarl.errors import AdaRLValueError, AdaRLWarning
@@ -305,24 +305,23 @@ def event_threads(setting, environ=None) -> int | None:
 
 
 def make_rank_rule(rank) -> RankRule:
-    """The rule of a recipe's ``rank`` section: adarl's own from ``beta`` / ``target_rank`` / ``lam``, a rule
-    registered with :func:`adarl.register_rank_rule` as ``rule_class()(**rule_options)``. A rule whose class sets
-    ``needs_fit = True`` gets ``fit(rank)`` from the adapter (on replay states), as ``policy_fit`` does."""
+    """The rule of a recipe's ``rank`` section, built one way for every registered rule (adarl's own and a plugin's):
+    ``rule_class()(**arguments)``, the arguments being adarl's own rules' keys (``rank.beta``, ``rank.target_rank``,
+    ``rank.lam``) or a plugin rule's ``rank.rule_options`` (:meth:`adarl.plugins.RankRuleSpec.arguments`). A rule
+    whose class sets ``needs_fit = True`` gets ``fit(rank)`` from the adapter (on replay states), as ``policy_fit``
+    does."""
     spec = plugins.rank_rule(rank.rule)
-    if spec.builtin:
-        if rank.rule == "fixed":
-            return make_rule("fixed", rank=rank.target_rank)
-        if rank.rule == "policy_fit":
-            return make_rule("policy_fit", lam=rank.lam)
-        return make_rule(rank.rule, beta=rank.beta)
     cls = spec.rule_class()
-    where = f"rank rule {spec.name!r} ({spec.rule_path}, from {spec.provider or 'a register_rank_rule call'})"
+    provider = spec.provider or ("adarl" if spec.builtin else "a register_rank_rule call")
+    where = f"rank rule {spec.name!r} ({spec.rule_path}, from {provider})"
     if not (isinstance(cls, type) and issubclass(cls, RankRule)):
         raise AdaRLValueError(f"{where} is not an adarl.core.rank.RankRule subclass (got {cls!r})")
+    kwargs = spec.arguments(rank)
     try:
-        return cls(**rank.rule_options)
+        return cls(**kwargs)
     except TypeError as err:
-        raise AdaRLValueError(f"{where} cannot be built from rank.rule_options {rank.rule_options}: {err}") from None
+        source = f"its rank keys {kwargs}" if spec.builtin else f"rank.rule_options {rank.rule_options}"
+        raise AdaRLValueError(f"{where} cannot be built from {source}: {err}") from None
 
 
 def _rank_adapter(recipe, loss, optimizers, schedulers, replay_buffer) -> RankAdapter:
