@@ -58,7 +58,8 @@ _EXPORTS: dict[str, str] = {
     **dict.fromkeys(
         ["register_algorithm", "algorithm_names", "register_rank_rule", "rank_rule_names"], "adarl.plugins"
     ),
-    **dict.fromkeys(["register_env", "register_parameter", "ParameterInfo"], "adarl.envs.parameters"),
+    **dict.fromkeys(["register_env", "register_parameter"], "adarl.envs.registration"),
+    "ParameterInfo": "adarl.envs.registry",
     **dict.fromkeys(
         [
             "PerturbedDynamicsEnvTransform",

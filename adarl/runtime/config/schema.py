@@ -14,7 +14,7 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from adarl import plugins
-from adarl.envs.parameters import (
+from adarl.envs.registry import (
     HOW_TO_REGISTER_ENV,
     check_env_id,
     env_parameters,
