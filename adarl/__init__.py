@@ -13,7 +13,8 @@ The public components, importable from here:
 - :class:`CollectorRebuild`: a collector rebuilt after each rank event (process collectors, policy copies).
 - :class:`PerturbedDynamicsEnvTransform` / :func:`make_env`: per-episode MuJoCo dynamics, a TorchRL ``Transform``.
 - :func:`register_env` / :func:`register_parameter`: env ids and perturbation parameters from your own package.
-- :func:`load_recipe`, :func:`build_components`, :class:`Trainer`: recipes and the AdaRL-SAC loop.
+- :func:`load_recipe`, :func:`build_sac_components`, :class:`SACTrainer`: recipes and the AdaRL-SAC loop
+  (``build_components``, ``Components`` and ``Trainer`` are aliases: their names before the PPO loop had its own).
 - :func:`load_policy`: a trained run's policy as a TorchRL actor, without its env, buffer or collector.
 
 Every name is imported on first use (PEP 562): ``import adarl`` itself loads neither torch nor TorchRL (~4.5 s
@@ -75,8 +76,10 @@ _EXPORTS: dict[str, str] = {
         "adarl.envs",
     ),
     **dict.fromkeys(["load_recipe", "list_recipes"], "adarl.runtime.config"),
-    **dict.fromkeys(["build_components", "Components"], "adarl.runtime.builders.sac"),
-    "Trainer": "adarl.runtime.trainers.sac",
+    **dict.fromkeys(
+        ["build_sac_components", "SACComponents", "build_components", "Components"], "adarl.runtime.builders.sac"
+    ),
+    **dict.fromkeys(["SACTrainer", "Trainer"], "adarl.runtime.trainers.sac"),
     "load_policy": "adarl.runtime.policy",
 }
 

@@ -1,19 +1,20 @@
 """Where a SAC recipe becomes objects: actor, critic and ``SACLoss`` (stock TorchRL pieces with
 :class:`~adarl.core.lowrank.LowRankLinear` layers), then every component of a run wired together
-(:func:`build_components`): envs, optimisers, LR schedules, replay buffer, collector, the update step, the rank
-adapter with its acceptance step, and the warm start.
+(:func:`build_sac_components`, :class:`SACComponents`): envs, optimisers, LR schedules, replay buffer, collector, the
+update step, the rank adapter with its acceptance step, the warm start, and what a rank event sets off.
+``build_components`` and ``Components`` are aliases of the two, the names they had before the PPO loop had its own.
 
 Each network builder takes plain arguments (not the recipe) so that users composing in Python can call them
-directly; :func:`make_sac_modules` and :func:`build_components` are the recipe-facing ones. The baselines plug in
+directly; :func:`make_sac_modules` and :func:`build_sac_components` are the recipe-facing ones. The baselines plug in
 through :mod:`adarl.baselines.registry` (network variants, init schemes, loss terms); the speed engine
 (:mod:`adarl.fast`) replaces the collector and the update step where it applies (``collector.lean``,
 ``algorithm.fused``).
 
->>> from adarl import build_components, load_recipe
+>>> from adarl import build_sac_components, load_recipe
 >>> recipe = load_recipe("quickstart", ["collector.total_frames=500", "collector.init_random_frames=100",
 ...                                     "collector.frames_per_batch=100", "replay.size=500",
 ...                                     "replay.warm_start.frames=100"])
->>> c = build_components(recipe)
+>>> c = build_sac_components(recipe)
 >>> type(c.update).__name__, type(c.collector).__name__, c.adapter.named_ranks["actor.layer0"]
 ('FusedStep', 'LeanCollector', 11)
 >>> c.close()
@@ -38,7 +39,7 @@ from torchrl.objectives import DiscreteSACLoss, SACLoss, SoftUpdate, ValueEstima
 from adarl import plugins
 from adarl.baselines import registry
 from adarl.core.acceptance import ProjectionAcceptance, RecentTransitions
-from adarl.core.adapter import RankAdapter
+from adarl.core.adapter import RankAdapter, resize_to_ranks
 from adarl.core.ensemble import reinit_low_rank_ensemble
 from adarl.core.lr_schedule import make_lr_scheduler
 from adarl.core.rank import RankRule
@@ -58,6 +59,7 @@ from adarl.runtime.builders.common import (
     make_mlp,
     train_env_factory,
 )
+from adarl.runtime.families import check_family
 from adarl.runtime.rank_events import RankEventEffects
 from adarl.runtime.state import seed_everything
 from adarl.runtime.update import FusedStep, LossStep, UpdateStep
@@ -70,6 +72,8 @@ __all__ = [
     "SACModules",
     "make_recipe_actor",
     "make_sac_modules",
+    "SACComponents",
+    "build_sac_components",
     "Components",
     "build_components",
     "sac_parameters",
@@ -235,13 +239,14 @@ def make_sac_modules(recipe, env: EnvBase) -> SACModules:
 
 
 @dataclass
-class Components(RunComponents):
-    """Everything a SAC recipe builds, wired together (no training has happened yet).
+class SACComponents(RunComponents):
+    """Everything a SAC recipe builds, wired together (no training has happened yet), and its checkpoint state.
 
     ``update`` is the optimisation step (:class:`~adarl.runtime.update.UpdateStep`: TorchRL's ``SACLoss`` step or
     the fused one); ``sampling_generator`` draws the replay indices (checkpointed for exact resume);
     ``rank_events`` the side effects of rank events, registered on ``adapter``
-    (:class:`~adarl.runtime.rank_events.RankEventEffects`)."""
+    (:class:`~adarl.runtime.rank_events.RankEventEffects`). In a checkpoint (:meth:`state_dict`): the loss (its
+    networks and targets), the adapter and the warm start; the replay buffer is saved beside it."""
 
     recipe: object
     env: object
@@ -257,6 +262,31 @@ class Components(RunComponents):
     total_updates: int
     sampling_generator: torch.Generator
     rank_events: RankEventEffects | None = None
+
+    def guarded_parameters(self) -> dict[str, torch.Tensor]:
+        return sac_parameters(self.modules.loss, self.recipe.algorithm.fixed_alpha)
+
+    def _own_state(self) -> dict:
+        return {
+            "loss": self.modules.loss.state_dict(),
+            "adapter": self.adapter.state_dict() if self.adapter is not None else None,
+            "warm_start": self.warm_start.state_dict() if self.warm_start is not None else None,
+        }
+
+    def _load_networks(self, state: dict) -> None:
+        if state.get("adapter") is not None and isinstance(self.adapter, RankAdapter):  # its ranks, then its tensors
+            resize_to_ranks(self.modules.loss, state["adapter"], optimizers=list(self.optimizers.values()))
+        self.modules.loss.load_state_dict(state["loss"])
+
+    def _load_own_state(self, state: dict) -> None:
+        if self.adapter is not None and state.get("adapter") is not None:
+            self.adapter.load_state_dict(state["adapter"])
+        if self.warm_start is not None and state.get("warm_start") is not None:
+            self.warm_start.load_state_dict(state["warm_start"])
+
+
+#: the name :class:`SACComponents` had before the PPO loop had its own (kept: an alias)
+Components = SACComponents
 
 
 class FusedFallbackWarning(AdaRLWarning):
@@ -387,25 +417,17 @@ def _update_step(
     )
 
 
-def build_components(
+def build_sac_components(
     recipe, *, init_random_frames: int | None = None, scratch_dir: str | os.PathLike | None = None
-) -> Components:
+) -> SACComponents:
     """Build env, networks, SAC loss, optimisers, LR schedules, buffer, collector, update step, rank adapter and
-    warm start.
+    warm start, and wire what a rank event sets off (:class:`~adarl.runtime.rank_events.RankEventEffects`,
+    registered on the adapter: a loop of your own gets the same effects as the recipe's trainer).
 
     With ``algorithm.fused`` the update step is a :class:`~adarl.runtime.update.FusedStep` (same parameters, losses
-    and optimisers as the plain path). ``scratch_dir`` holds a memmap replay storage. The rank adapter's
-    ``on_truncate``/``on_event`` callbacks are left to the trainer (:meth:`adarl.runtime.trainers.sac.Trainer.
-    rank_event_effects` assembles them in one place); in a loop of your own, register ``c.update.on_rank_event``
-    as an ``on_truncate`` callback when it compiles (``algorithm.compile``). A recipe on the PPO loop (RNAC) is
-    refused by name: its components come from :func:`~adarl.runtime.builders.ppo.build_ppo_components`."""
-    base = recipe.algorithm.base
-    if base != "sac":
-        raise AdaRLValueError(
-            f"build_components builds the SAC loop; algorithm.name {recipe.algorithm.name!r} runs on the {base!r} "
-            f"loop: use adarl.runtime.builders.build_ppo_components(recipe) "
-            f"(adarl.runtime.trainers.trainer_class(recipe) gives the trainer that runs it)"
-        )
+    and optimisers as the plain path). ``scratch_dir`` holds a memmap replay storage. A recipe on another loop
+    (RNAC's PPO) is refused, naming its builder (:func:`adarl.runtime.families.check_family`)."""
+    check_family(recipe, "sac")
     check_device(recipe.device)
     apply_num_threads(recipe)
     seed_everything(recipe.seed)
@@ -500,7 +522,7 @@ def build_components(
         factors = {k: v for k, v in sac_parameters(loss, alg.fixed_alpha).items() if k.endswith((".w1", ".w2"))}
         effects = RankEventEffects(update, collector, warm_start, factors)
         effects.register(adapter)
-    return Components(
+    return SACComponents(
         recipe,
         env,
         eval_env,
@@ -516,3 +538,7 @@ def build_components(
         generator,
         effects,
     )
+
+
+#: the name :func:`build_sac_components` had before the PPO loop had its own (kept: an alias)
+build_components = build_sac_components
