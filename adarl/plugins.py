@@ -1,5 +1,5 @@
 """Extension points by name: the generic :class:`Registry`, the ``adarl.plugins`` entry-point group, and the two
-registries recipes validate against without torch: algorithms and rank rules (docs/custom-loss.md).
+registries recipes validate against: algorithms and rank rules (docs/custom-loss.md). No torch, nor TorchRL, here.
 
 Every name-based extension point of adarl is a :class:`Registry` (here; env ids in :mod:`adarl.envs.registry`; the
 baselines' variants, init schemes and loss terms in :mod:`adarl.baselines.registry`; the training loops in
@@ -23,8 +23,6 @@ in its pyproject.toml::
 Entry points are loaded lazily, only when a recipe names an algorithm that is not registered yet (or when the
 registered names are listed): a recipe never imports code that is not installed, and a run whose algorithm is
 no longer installed is refused by name (``adarl resume`` included) instead of being rebuilt as another one.
-
-This module imports neither torch nor TorchRL: recipes are validated without them.
 
 >>> sorted(algorithm_names(load=False))
 ['ppo', 'rnac_ds', 'rnac_ipm', 'sac']
@@ -111,8 +109,8 @@ def load_entry_points() -> None:
 
 
 def current_provider() -> str | None:
-    """The distribution whose entry point is loading now (None outside an entry point: adarl's own entries, and
-    those registered in-process): what a registration records as its entry's provider."""
+    """The distribution whose entry point is loading now: what a registration records as its entry's ``provider``
+    (None outside an entry point: adarl's own entries, and those registered in-process)."""
     return _current_provider[0]
 
 
@@ -142,8 +140,7 @@ class Registry(Generic[T]):
         how: how to register one, ending the unknown-name error (None: the error lists the allowed names only).
         plugins: whether a name not known yet loads the installed plugins' entry points before the error.
         order: how names are listed (``sorted``; ``list``: the order they were registered in).
-        entries: the dict the entries live in, or a callable returning it, read at every call (a test swaps the
-            dict for a copy and puts it back); default: a dict of the registry's own.
+        entries: the dict of entries (default: a new one), or a callable returning it at each call (tests swap it).
         describe: an entry in the name-taken error (``"loss torchrl.objectives:SACLoss, from adarl"``).
         same: whether a registration under a taken name is the same entry again (then allowed without ``replace``).
         protected: names that can never be registered again (adarl's own rank rules).
@@ -200,9 +197,8 @@ class Registry(Generic[T]):
     def unknown(self, name: Any) -> AdaRLValueError:
         """The error for a name nobody registered: the allowed names, a close one, and how to register."""
         names = list(self.order(self.entries))
-        where = ""
-        if self.how is not None:
-            where = f" (no installed plugin registers it; {self.how})" if self.plugins else f" ({self.how})"
+        plugin = "no installed plugin registers it; " if self.plugins else ""
+        where = "" if self.how is None else f" ({plugin}{self.how})"
         return AdaRLValueError(
             f"unknown {self.key} {name!r}; allowed: {one_of(names)}{did_you_mean(str(name), names)}{where}"
         )
@@ -222,6 +218,10 @@ class Registry(Generic[T]):
             raise AdaRLValueError(
                 f"{self.what} {name!r} is already registered{detail}; pick another {self.noun} or pass replace=True"
             )
+
+    def provenance(self, name: str) -> dict:
+        """Where the entry registered as ``name`` came from (its ``provider``, :func:`provenance`): plugins.json's."""
+        return provenance(getattr(self.get(name), "provider", None))
 
     def register(self, name: str, entry: T, *, replace: bool = False) -> T:
         """Add ``entry`` as ``name`` (:meth:`check_free` first); returns it."""

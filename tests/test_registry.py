@@ -66,5 +66,6 @@ def test_the_store_is_read_at_every_call():
 def test_provenance_names_the_package_and_its_version():
     assert provenance(None)["package"] == "adarl"
     assert provenance("no-such-distribution-xyz") == {"package": "no-such-distribution-xyz", "version": None}
+    assert plugins.ALGORITHMS.provenance("sac") == provenance(None)
     record = plugins.algorithm("sac").provenance()
     assert list(record) == ["name", "base", "loss", "package", "version"] and record["package"] == "adarl"
