@@ -2,8 +2,9 @@
 ranges, presets by name, what each registered parameter edits, and the envs' data (action dimensions).
 
 The registry needs no live environment and imports neither MuJoCo nor TorchRL, so recipes are validated before
-anything is built; the appliers that edit a live env are :mod:`adarl.envs.mujoco_appliers`, the presets'
-schedules :mod:`adarl.envs.presets`. :mod:`adarl.envs.parameters` re-exports the public names of all three.
+anything is built. Installed packages add ids and parameters through :mod:`adarl.envs.registration`; the presets'
+schedules are :mod:`adarl.envs.presets`, the appliers that edit a live env :mod:`adarl.envs.mujoco_appliers`;
+:mod:`adarl.envs.parameters` re-exports the public names of all four.
 
 Parameters (lengths are half-lengths, as MuJoCo capsule sizes and the paper's schedules are):
 
@@ -237,7 +238,8 @@ class _RegisteredEnv:
 
 class _EnvIds(plugins.Registry):
     """The env ids: adarl's own (:data:`SUPPORTED_ENVS`, registered first, through the same registry) and those of
-    :func:`register_env`. An unknown id of another version of a known env is pointed at the supported version."""
+    :func:`~adarl.envs.registration.register_env`. An unknown id of another version of a known env is pointed at
+    the supported version."""
 
     def unknown(self, env_id: Any) -> AdaRLValueError:
         known = tuple(self.names(load=False))
