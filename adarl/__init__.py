@@ -13,7 +13,8 @@ The public components, importable from here:
 - :class:`CollectorRebuild`: a collector rebuilt after each rank event (process collectors, policy copies).
 - :class:`PerturbedDynamicsEnvTransform` / :func:`make_env`: per-episode MuJoCo dynamics, a TorchRL ``Transform``.
 - :func:`register_env` / :func:`register_parameter`: env ids and perturbation parameters from your own package.
-- :func:`load_recipe`, :func:`build_components`, :class:`Trainer`: recipes and the AdaRL-SAC loop.
+- :func:`load_recipe`, :func:`build_sac_components`, :class:`SACTrainer`: recipes and the AdaRL-SAC loop
+  (``build_components``, ``Components`` and ``Trainer`` are aliases: their names before the PPO loop had its own).
 - :func:`load_policy`: a trained run's policy as a TorchRL actor, without its env, buffer or collector.
 
 Every name is imported on first use (PEP 562): ``import adarl`` itself loads neither torch nor TorchRL (~4.5 s
@@ -33,7 +34,7 @@ _EXPORTS: dict[str, str] = {
         ["LowRankLinear", "low_rank_mlp", "factor_svd", "refactorize", "truncation_error", "iter_low_rank"],
         "adarl.core.lowrank",
     ),
-    "reinit_low_rank_ensemble": "adarl.runtime.builders.sac",
+    "reinit_low_rank_ensemble": "adarl.core.ensemble",
     **dict.fromkeys(
         [
             "RankRule",
@@ -58,7 +59,8 @@ _EXPORTS: dict[str, str] = {
     **dict.fromkeys(
         ["register_algorithm", "algorithm_names", "register_rank_rule", "rank_rule_names"], "adarl.plugins"
     ),
-    **dict.fromkeys(["register_env", "register_parameter", "ParameterInfo"], "adarl.envs.parameters"),
+    **dict.fromkeys(["register_env", "register_parameter"], "adarl.envs.registration"),
+    "ParameterInfo": "adarl.envs.registry",
     **dict.fromkeys(
         [
             "PerturbedDynamicsEnvTransform",
@@ -74,8 +76,10 @@ _EXPORTS: dict[str, str] = {
         "adarl.envs",
     ),
     **dict.fromkeys(["load_recipe", "list_recipes"], "adarl.runtime.config"),
-    **dict.fromkeys(["build_components", "Components"], "adarl.runtime.builders.sac"),
-    "Trainer": "adarl.runtime.trainers.sac",
+    **dict.fromkeys(
+        ["build_sac_components", "SACComponents", "build_components", "Components"], "adarl.runtime.builders.sac"
+    ),
+    **dict.fromkeys(["SACTrainer", "Trainer"], "adarl.runtime.trainers.sac"),
     "load_policy": "adarl.runtime.policy",
 }
 

@@ -1,11 +1,18 @@
-"""Algorithms by name, and the entry-point group through which installed packages add names (docs/custom-loss.md).
+"""Extension points by name: the generic :class:`Registry`, the ``adarl.plugins`` entry-point group, and the two
+registries recipes validate against: algorithms and rank rules (docs/custom-loss.md). No torch, nor TorchRL, here.
+
+Every name-based extension point of adarl is a :class:`Registry` (here; env ids in :mod:`adarl.envs.registry`; the
+baselines' variants, init schemes and loss terms in :mod:`adarl.baselines.registry`; the training loops in
+:mod:`adarl.runtime.families`): lookup by name, an unknown name's error listing the allowed ones with a close one,
+installed plugins loaded first, a name taken twice refused unless ``replace=True``, and provenance (the package
+that registered an entry: a run folder's plugins.json). adarl's own entries register through the same calls.
 
 A recipe's ``algorithm.name`` is looked up here. Each name is *declared* with :func:`register_algorithm`: the
 training loop it runs on (``base``: ``"sac"`` or ``"ppo"``), its TorchRL loss class (a class, or a lazy
 ``"module:Class"`` path), and a pydantic model of its own options (the recipe's ``algorithm.options``,
 validated like every other key, written into the run's recipe.yaml). adarl's own algorithms (``sac``, ``ppo`` and
 the RNAC baselines ``rnac_ipm`` and ``rnac_ds``, PPO with a hook each) are declared with the same call at the end of
-this module.
+their section.
 
 A package adds names by declaring an entry point in the group ``adarl.plugins`` (pip's and pytest's habit), e.g.
 in its pyproject.toml::
@@ -16,8 +23,6 @@ in its pyproject.toml::
 Entry points are loaded lazily, only when a recipe names an algorithm that is not registered yet (or when the
 registered names are listed): a recipe never imports code that is not installed, and a run whose algorithm is
 no longer installed is refused by name (``adarl resume`` included) instead of being rebuilt as another one.
-
-This module imports neither torch nor TorchRL: recipes are validated without them.
 
 >>> sorted(algorithm_names(load=False))
 ['ppo', 'rnac_ds', 'rnac_ipm', 'sac']
@@ -32,11 +37,11 @@ adarl.errors.AdaRLValueError: unknown algorithm.name 'sca'; allowed: ...; did yo
 from __future__ import annotations
 
 import importlib
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from importlib import metadata
 from importlib.metadata import entry_points
-from typing import Any
+from typing import Any, Generic, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -44,6 +49,10 @@ from adarl.errors import AdaRLValueError, did_you_mean, one_of
 
 __all__ = [
     "ENTRY_POINT_GROUP",
+    "Registry",
+    "load_entry_points",
+    "current_provider",
+    "provenance",
     "BASES",
     "Algorithm",
     "NoOptions",
@@ -52,13 +61,180 @@ __all__ = [
     "register_algorithm",
     "algorithm",
     "algorithm_names",
-    "load_entry_points",
     "HOW_TO_REGISTER",
+    "ALGORITHMS",
+    "BUILTIN_RANK_RULES",
+    "BUILTIN_RANK_RULE_KEYS",
+    "HOW_TO_REGISTER_RANK_RULE",
+    "RANK_RULES",
+    "RankRuleSpec",
+    "register_rank_rule",
+    "rank_rule",
+    "rank_rule_names",
 ]
 
 #: the entry-point group installed packages declare their plugins in
 ENTRY_POINT_GROUP = "adarl.plugins"
-#: the training loops an algorithm can run on
+
+# =====================================================================================================================
+# Entry points and provenance
+# =====================================================================================================================
+
+_loaded: set[str] = set()  # entry points already loaded (by "name = value")
+_current_provider: list[str | None] = [None]
+Plugin = Callable[[], None]  # a callable that registers (the value of a "module:function" entry point)
+
+
+def load_entry_points() -> None:
+    """Load every ``adarl.plugins`` entry point not loaded yet: a module is imported, a function is called. A
+    plugin that fails to load is an error naming it (a half-registered plugin would run as something else)."""
+    for ep in entry_points(group=ENTRY_POINT_GROUP):
+        key = f"{ep.name} = {ep.value}"
+        if key in _loaded:
+            continue
+        _loaded.add(key)
+        dist = getattr(getattr(ep, "dist", None), "name", None)
+        _current_provider[0] = dist
+        try:
+            obj = ep.load()
+            if callable(obj) and not isinstance(obj, type):
+                obj()
+        except Exception as err:  # noqa: BLE001 - any failure of third-party code, named with its plugin
+            raise AdaRLValueError(
+                f"the adarl plugin {ep.name!r} ({ep.value}, package {dist or '?'}) failed to load: "
+                f"{type(err).__name__}: {err}"
+            ) from err
+        finally:
+            _current_provider[0] = None
+
+
+def current_provider() -> str | None:
+    """The distribution whose entry point is loading now: what a registration records as its entry's ``provider``
+    (None outside an entry point: adarl's own entries, and those registered in-process)."""
+    return _current_provider[0]
+
+
+def provenance(provider: str | None) -> dict:
+    """``{"package", "version"}`` of an entry's provider: the distribution and its installed version, or adarl's."""
+    package = provider or "adarl"
+    try:
+        version = metadata.version(package)
+    except metadata.PackageNotFoundError:
+        version = None
+    return {"package": package, "version": version}
+
+
+# =====================================================================================================================
+# The registry
+# =====================================================================================================================
+
+T = TypeVar("T")
+
+
+class Registry(Generic[T]):
+    """Entries by name: what every extension point of adarl is (see the module docstring).
+
+    Args:
+        key: what a name is called in messages (``"algorithm.name"``, ``"rank.rule"``, ``"init scheme"``).
+        what: what an entry is called in messages about registering (``"algorithm"``; default: ``key``).
+        how: how to register one, ending the unknown-name error (None: the error lists the allowed names only).
+        plugins: whether a name not known yet loads the installed plugins' entry points before the error.
+        order: how names are listed (``sorted``; ``list``: the order they were registered in).
+        entries: the dict of entries (default: a new one), or a callable returning it at each call (tests swap it).
+        describe: an entry in the name-taken error (``"loss torchrl.objectives:SACLoss, from adarl"``).
+        same: whether a registration under a taken name is the same entry again (then allowed without ``replace``).
+        protected: names that can never be registered again (adarl's own rank rules).
+        noun: what to pick another of, in the name-taken error (``"name"``, ``"id"``).
+    """
+
+    def __init__(
+        self,
+        key: str,
+        *,
+        what: str | None = None,
+        how: str | None = None,
+        plugins: bool = True,
+        order: Callable[[Iterable[str]], list[str]] = sorted,
+        entries: dict[str, T] | Callable[[], dict[str, T]] | None = None,
+        describe: Callable[[T], str] | None = None,
+        same: Callable[[T, T], bool] | None = None,
+        protected: Iterable[str] = (),
+        noun: str = "name",
+    ) -> None:
+        self.key, self.what, self.how, self.plugins, self.order = key, what or key, how, plugins, order
+        store = {} if entries is None else entries
+        self._entries = store if callable(store) else (lambda: store)
+        self.describe, self.same, self.protected, self.noun = describe, same, tuple(protected), noun
+
+    @property
+    def entries(self) -> dict[str, T]:
+        """``{name: entry}`` as registered (nothing loaded)."""
+        return self._entries()
+
+    def __contains__(self, name: object) -> bool:
+        return name in self.entries
+
+    def load(self) -> None:
+        """Load the installed plugins' entry points (when this registry takes plugins)."""
+        if self.plugins:
+            load_entry_points()
+
+    def names(self, *, load: bool = True) -> list[str]:
+        """The registered names, in :attr:`order` (``load``: the installed plugins' entry points first)."""
+        if load:
+            self.load()
+        return list(self.order(self.entries))
+
+    def get(self, name: str) -> T:
+        """The entry registered as ``name``; installed plugins are loaded when it is not known yet, and an unknown
+        name is an :class:`~adarl.errors.AdaRLValueError` listing the registered ones (:meth:`unknown`)."""
+        if name not in self.entries:
+            self.load()
+        if name not in self.entries:
+            raise self.unknown(name)
+        return self.entries[name]
+
+    def unknown(self, name: Any) -> AdaRLValueError:
+        """The error for a name nobody registered: the allowed names, a close one, and how to register."""
+        names = list(self.order(self.entries))
+        plugin = "no installed plugin registers it; " if self.plugins else ""
+        where = "" if self.how is None else f" ({plugin}{self.how})"
+        return AdaRLValueError(
+            f"unknown {self.key} {name!r}; allowed: {one_of(names)}{did_you_mean(str(name), names)}{where}"
+        )
+
+    def check_free(self, name: str, entry: T | None = None, *, replace: bool = False) -> None:
+        """Refuse a taken ``name`` (unless ``replace``, or :attr:`same` says ``entry`` is the one registered), and
+        a :attr:`protected` one always: before anything is registered."""
+        old = self.entries.get(name)
+        if old is not None and name in self.protected:
+            raise AdaRLValueError(
+                f"{self.what} {name!r} is one of adarl's own ({one_of(self.protected)}) and cannot be replaced; "
+                f"pick another {self.noun}"
+            )
+        again = entry is not None and self.same is not None and old is not None and self.same(old, entry)
+        if old is not None and not replace and not again:
+            detail = f" ({self.describe(old)})" if self.describe is not None else ""
+            raise AdaRLValueError(
+                f"{self.what} {name!r} is already registered{detail}; pick another {self.noun} or pass replace=True"
+            )
+
+    def provenance(self, name: str) -> dict:
+        """Where the entry registered as ``name`` came from (its ``provider``, :func:`provenance`): plugins.json's."""
+        return provenance(getattr(self.get(name), "provider", None))
+
+    def register(self, name: str, entry: T, *, replace: bool = False) -> T:
+        """Add ``entry`` as ``name`` (:meth:`check_free` first); returns it."""
+        self.check_free(name, entry, replace=replace)
+        self.entries[name] = entry
+        return entry
+
+
+# =====================================================================================================================
+# Algorithms by name
+# =====================================================================================================================
+
+#: the training loops an algorithm can run on (each is a family of :mod:`adarl.runtime.families`)
 BASES = ("sac", "ppo")
 HOW_TO_REGISTER = (
     f"register one with adarl.register_algorithm(...) in a package that declares an {ENTRY_POINT_GROUP!r} entry "
@@ -129,20 +305,9 @@ class Algorithm:
         return 1 if self.simulator_steps_per_frame is None else int(self.simulator_steps_per_frame(options))
 
     def provenance(self) -> dict:
-        """Where this name came from: the package (and its version) whose entry point registered it, the loss."""
-        version = None
-        if self.provider is not None:
-            try:
-                version = metadata.version(self.provider)
-            except metadata.PackageNotFoundError:
-                version = None
-        return {
-            "name": self.name,
-            "base": self.base,
-            "loss": self.loss_path,
-            "package": self.provider or "adarl",
-            "version": version if self.provider else _adarl_version(),
-        }
+        """Where this name came from (the run folder's plugins.json): the loss, the package whose entry point
+        registered it and its version."""
+        return {"name": self.name, "base": self.base, "loss": self.loss_path, **provenance(self.provider)}
 
 
 def _path_of(obj: Any) -> str:
@@ -160,16 +325,15 @@ def _resolve(obj: Any) -> Any:
     return out
 
 
-def _adarl_version() -> str | None:
-    try:
-        return metadata.version("adarl")
-    except metadata.PackageNotFoundError:
-        return None
-
-
 _algorithms: dict[str, Algorithm] = {}
-_loaded: set[str] = set()  # entry points already loaded (by "name = value")
-_current_provider: list[str | None] = [None]
+ALGORITHMS: Registry[Algorithm] = Registry(
+    "algorithm.name",
+    what="algorithm",
+    how=HOW_TO_REGISTER,
+    entries=lambda: _algorithms,
+    describe=lambda old: f"loss {old.loss_path}, from {old.provider or 'adarl'}",
+    same=lambda old, new: old.loss_path == new.loss_path,
+)
 
 
 def register_algorithm(
@@ -211,24 +375,19 @@ def register_algorithm(
     def _register(cls):
         if cls is None:
             raise AdaRLValueError(f"register_algorithm({name!r}) needs a loss class or a 'module:Class' path")
-        old = _algorithms.get(name)
-        if old is not None and not replace and old.loss_path != Algorithm(name, base, cls).loss_path:
-            raise AdaRLValueError(
-                f"algorithm {name!r} is already registered (loss {old.loss_path}, from "
-                f"{old.provider or 'adarl'}); pick another name or pass replace=True"
-            )
-        _algorithms[name] = Algorithm(
+        entry = Algorithm(
             name=name,
             base=base,
             loss=cls,
             options=options or NoOptions,
             description=description,
-            provider=_current_provider[0],
+            provider=current_provider(),
             options_to_loss=options_to_loss,
             advantage=advantage,
             env_transform=env_transform,
             simulator_steps_per_frame=simulator_steps_per_frame,
         )
+        ALGORITHMS.register(name, entry, replace=replace)
         return cls
 
     if loss is None:
@@ -236,108 +395,67 @@ def register_algorithm(
     return _register(loss)
 
 
-def load_entry_points() -> None:
-    """Load every ``adarl.plugins`` entry point not loaded yet: a module is imported, a function is called. A
-    plugin that fails to load is an error naming it (a half-registered plugin would run as something else)."""
-    for ep in entry_points(group=ENTRY_POINT_GROUP):
-        key = f"{ep.name} = {ep.value}"
-        if key in _loaded:
-            continue
-        _loaded.add(key)
-        dist = getattr(getattr(ep, "dist", None), "name", None)
-        _current_provider[0] = dist
-        try:
-            obj = ep.load()
-            if callable(obj) and not isinstance(obj, type):
-                obj()
-        except Exception as err:  # noqa: BLE001 - any failure of third-party code, named with its plugin
-            raise AdaRLValueError(
-                f"the adarl plugin {ep.name!r} ({ep.value}, package {dist or '?'}) failed to load: "
-                f"{type(err).__name__}: {err}"
-            ) from err
-        finally:
-            _current_provider[0] = None
-
-
 def algorithm_names(*, load: bool = True) -> list[str]:
     """The registered algorithm names (``load``: installed plugins first)."""
-    if load:
-        load_entry_points()
-    return sorted(_algorithms)
+    return ALGORITHMS.names(load=load)
 
 
 def algorithm(name: str) -> Algorithm:
     """The :class:`Algorithm` registered as ``name``; installed plugins are loaded when it is not known yet."""
-    return _lookup(_algorithms, name, "algorithm.name", HOW_TO_REGISTER, sorted)
+    return ALGORITHMS.get(name)
 
 
-def _lookup(registry: dict, name: str, key: str, how: str, order: Callable = sorted):
-    """``registry[name]``, loading installed plugins first when it is not known; else an error that lists the
-    registered names (in ``order``), suggests a close one and says how to register."""
-    if name not in registry:
-        load_entry_points()
-    if name not in registry:
-        names = order(registry)
-        raise AdaRLValueError(
-            f"unknown {key} {name!r}; allowed: {one_of(names)}{did_you_mean(str(name), names)} "
-            f"(no installed plugin registers it; {how})"
-        )
-    return registry[name]
-
-
-def _builtin() -> None:
-    register_algorithm(
-        "sac",
-        "torchrl.objectives:SACLoss",
-        base="sac",
-        description="SAC as in the paper (DiscreteSACLoss for discrete-action envs); AdaRL and the SAC baselines",
-    )
-    register_algorithm(
-        "ppo",
-        "torchrl.objectives:ClipPPOLoss",
-        base="ppo",
-        description="TorchRL's ClipPPOLoss + GAE, with RNAC's original trainer settings (the RNAC baselines' base)",
-    )
-    # The RNAC baselines (Zhou et al., 2023) are registered like any plugin: PPO's loss, and a hook each.
-    register_algorithm(
-        "rnac_ipm",
-        "torchrl.objectives:ClipPPOLoss",
-        base="ppo",
-        options=RNACIPMOptions,
-        options_to_loss=False,
-        advantage="adarl.baselines.rnac:make_ipm_advantage",
-        description="RNAC-IPM: PPO with GAE on the reward shifted by kappa * ||theta_critic|| (adarl.baselines.rnac)",
-    )
-    register_algorithm(
-        "rnac_ds",
-        "torchrl.objectives:ClipPPOLoss",
-        base="ppo",
-        options=RNACDSOptions,
-        options_to_loss=False,
-        env_transform="adarl.baselines.rnac:make_double_sampling",
-        simulator_steps_per_frame=lambda options: int(options["num_candidates"]) + 1,
-        description="RNAC-DS: PPO collecting the worst of m noisy next states w.p. 1/(m+1) (adarl.baselines.rnac)",
-    )
-
-
-_builtin()
-
-#: a callable that registers (the value of a "module:function" entry point)
-Plugin = Callable[[], None]
+# adarl's own, declared as a plugin would
+register_algorithm(
+    "sac",
+    "torchrl.objectives:SACLoss",
+    base="sac",
+    description="SAC as in the paper (DiscreteSACLoss for discrete-action envs); AdaRL and the SAC baselines",
+)
+register_algorithm(
+    "ppo",
+    "torchrl.objectives:ClipPPOLoss",
+    base="ppo",
+    description="TorchRL's ClipPPOLoss + GAE, with RNAC's original trainer settings (the RNAC baselines' base)",
+)
+# The RNAC baselines (Zhou et al., 2023) are registered like any plugin: PPO's loss, and a hook each.
+register_algorithm(
+    "rnac_ipm",
+    "torchrl.objectives:ClipPPOLoss",
+    base="ppo",
+    options=RNACIPMOptions,
+    options_to_loss=False,
+    advantage="adarl.baselines.rnac:make_ipm_advantage",
+    description="RNAC-IPM: PPO with GAE on the reward shifted by kappa * ||theta_critic|| (adarl.baselines.rnac)",
+)
+register_algorithm(
+    "rnac_ds",
+    "torchrl.objectives:ClipPPOLoss",
+    base="ppo",
+    options=RNACDSOptions,
+    options_to_loss=False,
+    env_transform="adarl.baselines.rnac:make_double_sampling",
+    simulator_steps_per_frame=lambda options: int(options["num_candidates"]) + 1,
+    description="RNAC-DS: PPO collecting the worst of m noisy next states w.p. 1/(m+1) (adarl.baselines.rnac)",
+)
 
 
 # =====================================================================================================================
-# Rank rules by name
-#
-# A recipe's ``rank.rule`` is looked up here the same way as ``algorithm.name``: each name is declared with
-# :func:`register_rank_rule` (its :class:`adarl.core.rank.RankRule` subclass, or a lazy ``"module:Class"`` path, and a
-# pydantic model of the rule's own keyword arguments: the recipe's ``rank.rule_options``), and installed packages add
-# names through the same ``adarl.plugins`` entry-point group. adarl's five rules are declared below; they keep their
-# own recipe keys (``rank.beta``, ``rank.target_rank``, ``rank.lam``) and take no ``rank.rule_options``.
+# Rank rules by name: ``rank.rule`` is looked up as ``algorithm.name`` is. A rule's keyword arguments are the
+# recipe's ``rank.rule_options`` (a pydantic model per rule); adarl's five rules read their own rank-section keys
+# instead (``rank.beta``, ``rank.target_rank``, ``rank.lam``: :data:`BUILTIN_RANK_RULE_KEYS`).
 # =====================================================================================================================
 
 #: adarl's own rank rules, in the order error messages list them (their recipe keys: rank.beta, target_rank, lam)
 BUILTIN_RANK_RULES = ("energy", "energy_inclusive", "ratio", "fixed", "policy_fit")
+#: the rank-section keys each of adarl's own rules is built from: ``{rule: {keyword argument: rank.<key>}}``
+BUILTIN_RANK_RULE_KEYS: dict[str, dict[str, str]] = {
+    "energy": {"beta": "beta"},
+    "energy_inclusive": {"beta": "beta"},
+    "ratio": {"beta": "beta"},
+    "fixed": {"rank": "target_rank"},
+    "policy_fit": {"lam": "lam"},
+}
 HOW_TO_REGISTER_RANK_RULE = (
     f"register one with adarl.register_rank_rule(...) in a package that declares an {ENTRY_POINT_GROUP!r} entry "
     "point, then pip install it (docs/adding-a-component.md)"
@@ -351,7 +469,7 @@ class RankRuleSpec:
     ``rule``: the :class:`adarl.core.rank.RankRule` subclass, or a ``"module:Class"`` path imported when a run is
     built (so this module never imports torch). ``options``: a pydantic model of ``rank.rule_options``, the rule's
     own keyword arguments (unknown keys, types and ranges are its job; give it ``extra="forbid"``); a run builds
-    ``rule_class()(**rank.rule_options)``. ``provider``: the distribution whose entry point registered it (None for
+    ``rule_class()(**arguments(rank))``. ``provider``: the distribution whose entry point registered it (None for
     adarl's own and for rules registered in-process). ``builtin``: one of adarl's five rules, built from
     ``rank.beta`` / ``rank.target_rank`` / ``rank.lam`` instead of ``rank.rule_options``."""
 
@@ -364,29 +482,38 @@ class RankRuleSpec:
 
     @property
     def rule_path(self) -> str:
-        if isinstance(self.rule, str):
-            return self.rule
-        return f"{self.rule.__module__}:{self.rule.__qualname__}"
+        return _path_of(self.rule)
 
     def rule_class(self) -> type:
         """The rule class (a ``"module:Class"`` path is imported now; a failure is an error naming the rule)."""
-        if not isinstance(self.rule, str):
-            return self.rule
-        module, _, attr = self.rule.partition(":")
         try:
-            obj = importlib.import_module(module)
-            for part in attr.split("."):
-                obj = getattr(obj, part)
+            return _resolve(self.rule)
         except (ImportError, AttributeError) as err:
             raise AdaRLValueError(
                 f"rank rule {self.name!r} (from {self.provider or 'adarl'}) names {self.rule!r}, which cannot be "
                 f"imported: {type(err).__name__}: {err}"
             ) from err
-        return obj
+
+    def arguments(self, rank) -> dict:
+        """The keyword arguments a recipe's ``rank`` section builds the rule with: adarl's own rules read their keys
+        of the section (:data:`BUILTIN_RANK_RULE_KEYS`), a plugin's rule its ``rank.rule_options``."""
+        keys = BUILTIN_RANK_RULE_KEYS.get(self.name) if self.builtin else None
+        if keys is None:
+            return dict(rank.rule_options)
+        return {arg: getattr(rank, key) for arg, key in keys.items()}
 
 
 _rank_rules: dict[str, RankRuleSpec] = {}
-_registering_builtins = [False]  # True while adarl declares its own five
+RANK_RULES: Registry[RankRuleSpec] = Registry(
+    "rank.rule",
+    what="rank rule",
+    how=HOW_TO_REGISTER_RANK_RULE,
+    order=list,
+    entries=lambda: _rank_rules,
+    describe=lambda old: f"rule {old.rule_path}, from {old.provider or 'adarl'}",
+    same=lambda old, new: old.rule_path == new.rule_path,
+    protected=BUILTIN_RANK_RULES,
+)
 
 
 def register_rank_rule(
@@ -428,26 +555,15 @@ def register_rank_rule(
             raise AdaRLValueError(
                 f"register_rank_rule({name!r}): rule must be a RankRule subclass or a 'module:Class' path, got {cls!r}"
             )
-        new = RankRuleSpec(
+        entry = RankRuleSpec(
             name=name,
             rule=cls,
             options=options or NoOptions,
             description=description,
-            provider=_current_provider[0],
-            builtin=_registering_builtins[0],
+            provider=current_provider(),
+            builtin=name in BUILTIN_RANK_RULES,
         )
-        old = _rank_rules.get(name)
-        if old is not None and old.builtin and not new.builtin:
-            raise AdaRLValueError(
-                f"rank rule {name!r} is one of adarl's own ({one_of(BUILTIN_RANK_RULES)}) and cannot be replaced; "
-                "pick another name"
-            )
-        if old is not None and not replace and old.rule_path != new.rule_path:
-            raise AdaRLValueError(
-                f"rank rule {name!r} is already registered (rule {old.rule_path}, from {old.provider or 'adarl'}); "
-                "pick another name or pass replace=True"
-            )
-        _rank_rules[name] = new
+        RANK_RULES.register(name, entry, replace=replace)
         return cls
 
     if rule is None:
@@ -457,9 +573,7 @@ def register_rank_rule(
 
 def rank_rule_names(*, load: bool = True) -> list[str]:
     """The registered rank rule names, adarl's own first (``load``: installed plugins first)."""
-    if load:
-        load_entry_points()
-    return list(_rank_rules)
+    return RANK_RULES.names(load=load)
 
 
 def rank_rule(name: str) -> RankRuleSpec:
@@ -472,31 +586,15 @@ def rank_rule(name: str) -> RankRuleSpec:
         ...
     adarl.errors.AdaRLValueError: unknown rank.rule 'enrgy'; allowed: 'energy', ...; did you mean 'energy'? ...
     """
-    return _lookup(_rank_rules, name, "rank.rule", HOW_TO_REGISTER_RANK_RULE, list)
+    return RANK_RULES.get(name)
 
 
-def _builtin_rank_rules() -> None:
-    _registering_builtins[0] = True
-    try:
-        for name, cls, what in (
-            ("energy", "EnergyRule", "paper Eq. 10 (rank.beta)"),
-            ("energy_inclusive", "InclusiveEnergyRule", "smallest rank with energy share >= rank.beta"),
-            ("ratio", "RatioRule", "paper Eq. 33, App. D.4 (rank.beta)"),
-            ("fixed", "FixedRank", "truncate to rank.target_rank"),
-            ("policy_fit", "PolicyFitRule", "fit/penalty trade-off of Eq. 8 (rank.lam)"),
-        ):
-            register_rank_rule(name, f"adarl.core.rank:{cls}", description=what)
-    finally:
-        _registering_builtins[0] = False
-
-
-_builtin_rank_rules()
-
-__all__ += [
-    "BUILTIN_RANK_RULES",
-    "HOW_TO_REGISTER_RANK_RULE",
-    "RankRuleSpec",
-    "register_rank_rule",
-    "rank_rule",
-    "rank_rule_names",
-]
+# adarl's own, declared as a plugin's would be
+for _name, _cls, _what in (
+    ("energy", "EnergyRule", "paper Eq. 10 (rank.beta)"),
+    ("energy_inclusive", "InclusiveEnergyRule", "smallest rank with energy share >= rank.beta"),
+    ("ratio", "RatioRule", "paper Eq. 33, App. D.4 (rank.beta)"),
+    ("fixed", "FixedRank", "truncate to rank.target_rank"),
+    ("policy_fit", "PolicyFitRule", "fit/penalty trade-off of Eq. 8 (rank.lam)"),
+):
+    register_rank_rule(_name, f"adarl.core.rank:{_cls}", description=_what)

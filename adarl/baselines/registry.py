@@ -8,7 +8,7 @@ the recipe switches on (Parseval regularisation). Each baseline module registers
 is imported; your own code registers more the same way. Algorithms (``algorithm.name``: a loss, its options and
 its base loop) register in :mod:`adarl.plugins` (``register_algorithm``, re-exported here), which installed packages
 reach through the ``adarl.plugins`` entry-point group; it lives below every wing because recipes are validated
-without torch.
+without torch. Each table here is an :class:`adarl.plugins.Registry` too.
 
 >>> from adarl.baselines import registry
 >>> sorted(registry.init_schemes())
@@ -25,8 +25,8 @@ from typing import Any
 
 from torch import nn
 
-from adarl.errors import AdaRLValueError, one_of
-from adarl.plugins import register_algorithm
+from adarl.errors import AdaRLValueError
+from adarl.plugins import Registry, register_algorithm
 
 __all__ = [
     "register_algorithm",
@@ -60,74 +60,73 @@ class Init:
     loss: Callable[..., Any]
 
 
-_variants: dict[str, NetworkVariant] = {}
-_variant_builder: list[Callable[..., nn.Module]] = []
-_inits: dict[str, Init] = {}
-_loss_terms: dict[str, LossTerm] = {}
+# Each a registry of adarl.plugins (by name, in registration order; a later registration of a name replaces it, as
+# re-importing a baseline module does). 'default' is an init scheme like the others: each layer keeps its own init.
+_variants: Registry[NetworkVariant] = Registry("network variant", plugins=False, order=list)
+_variant_builder: Registry[Callable[..., nn.Module]] = Registry("variant builder", plugins=False)
+_inits: Registry[Init | None] = Registry("init scheme", plugins=False, order=list)
+_loss_terms: Registry[LossTerm] = Registry("loss term", plugins=False, order=list)
+_inits.register("default", None)
 
 
 def register_network_variant(name: str, kwargs: NetworkVariant) -> None:
     """Register a network variant: ``kwargs(mlp_config, algorithm_config, action_dim)`` returns the variant
     builder's arguments it wants for that network section (``{}`` when the recipe does not ask for it)."""
-    _variants[name] = kwargs
+    _variants.register(name, kwargs, replace=True)
 
 
 def register_variant_builder(build: Callable[..., nn.Module]) -> None:
     """The builder of every variant network: ``build(in_features, out_features, num_cells, activation_class,
     low_rank_layers, rank, device=..., **variant_kwargs)``."""
-    _variant_builder[:] = [build]
+    _variant_builder.register("network", build, replace=True)
 
 
 def register_init(scheme: str, module: Callable[..., Any], loss: Callable[..., Any]) -> None:
     """Register ``network.<net>.init.scheme: <scheme>`` (see :class:`Init`)."""
-    _inits[scheme] = Init(module, loss)
+    _inits.register(scheme, Init(module, loss), replace=True)
 
 
 def register_loss_term(name: str, make: LossTerm) -> None:
     """Register a loss term: ``make(loss, algorithm_config)`` builds it when the recipe switches it on, else None."""
-    _loss_terms[name] = make
+    _loss_terms.register(name, make, replace=True)
 
 
 def network_kwargs(mlp_config, algorithm_config, action_dim: int) -> dict:
     """The variant builder's arguments for one ``network.<net>`` section (``{}``: a plain or low-rank MLP)."""
     out: dict = {}
-    for kwargs in _variants.values():
+    for kwargs in _variants.entries.values():
         out.update(kwargs(mlp_config, algorithm_config, action_dim))
     return out
 
 
 def build_variant_network(*args, **kwargs) -> nn.Module:
     """Build a network with variants (:func:`register_variant_builder`)."""
-    if not _variant_builder:
+    if "network" not in _variant_builder:
         raise AdaRLValueError(
             f"network variants {sorted(kwargs)} asked for, but no variant builder is registered "
             "(import adarl.baselines)"
         )
-    return _variant_builder[0](*args, **kwargs)
+    return _variant_builder.get("network")(*args, **kwargs)
 
 
 def init_schemes() -> list[str]:
     """``network.<net>.init.scheme`` values: ``'default'`` (each layer's own init) and the registered ones."""
-    return ["default", *_inits]
+    return _inits.names(load=False)
 
 
 def init_scheme(scheme: str) -> Init | None:
     """The registered :class:`Init` of ``scheme``; None for ``'default'`` (each layer keeps its own init)."""
-    if scheme == "default":
-        return None
-    if scheme not in _inits:
-        raise AdaRLValueError(f"unknown init scheme {scheme!r}; allowed: {one_of(init_schemes())}")
-    return _inits[scheme]
+    return _inits.get(scheme)
 
 
 def loss_term_names() -> list[str]:
-    return list(_loss_terms)
+    return _loss_terms.names(load=False)
 
 
 def loss_terms(loss: nn.Module, algorithm_config) -> dict[str, nn.Module]:
     """``{name: term}`` of every registered loss term the recipe's ``algorithm`` section switches on."""
     out = {}
-    for name, make in _loss_terms.items():
+    for name, make in _loss_terms.entries.items():
         term = make(loss, algorithm_config)
         if term is not None:
             out[name] = term

@@ -9,5 +9,6 @@
   TorchRL loss;
 * :mod:`~adarl.core.lr_schedule` - the restartable warm-up + cosine learning-rate schedule;
 * :mod:`~adarl.core.warmstart` - the warm-start replay buffer after a truncation;
-* :mod:`~adarl.core.collector_rebuild` - a collector rebuilt after each rank event (process collectors).
+* :mod:`~adarl.core.collector_rebuild` - a collector rebuilt after each rank event (process collectors);
+* :mod:`~adarl.core.ensemble` - a TorchRL Q ensemble's low-rank members drawn with their own init.
 """

@@ -19,28 +19,51 @@ The layers are found generically, not only for SAC: every network attribute of t
 ``loss.modules()``); each LowRankLinear's module path is mapped to keys of ``<name>_params`` and, if present,
 ``target_<name>_params``. Stacked ensembles (the ``[num_qvalue_nets, ...]`` Q parameters run under vmap) get one
 rank per layer: the largest of the members' choices, so no member is cut below what its own spectrum asks for.
+
+This module is the hub: the adapter itself, and every public name of its parts, each a private module with one job
+(as TorchRL splits its transforms): ``_sites`` (finding the layers; the supported and refused loss tables),
+``_records`` (:class:`LayerRecord`, :class:`RankEvent`), ``_surgery`` (the in-place resize, targets and optimiser
+state; :func:`resize_to_ranks`), ``_probes`` (the acceptance step's measurements), ``_adapter_args`` (the
+constructor's checks). Import from here.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import itertools
-import math
-import numbers
-import warnings
-from collections.abc import Callable, Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDictBase
 from torch import nn
-from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.trainers.trainers import TrainerHookBase
 
-from adarl.core.acceptance import ProjectionAcceptance, relative_output_error
-from adarl.core.lowrank import LowRankLinear, factor_svd, is_integer, refactorize, truncation_error
-from adarl.core.lowrank import replace_data as _set_data
+from adarl.core._adapter_args import check_adapter_args
+from adarl.core._probes import SiteMeasure, _NetworkProbe, fit_function
+from adarl.core._records import LayerRecord, RankEvent
+from adarl.core._sites import (
+    ACTOR_NETWORK_NAMES,
+    SCOPES,
+    SUPPORTED_LOSSES,
+    UNSUPPORTED_LOSSES,
+    LowRankSite,
+    _name_sites,
+    check_loss_supported,
+    find_low_rank_layers,
+    layer_indices,
+    network_candidates,
+)
+from adarl.core._surgery import (
+    PROJECT_COND_LIMIT,
+    TARGET_MODES,
+    _erase_loss_caches,
+    _padded_factors,
+    apply_rank,
+    resize_to_ranks,
+)
+from adarl.core.acceptance import ProjectionAcceptance
+from adarl.core.lowrank import factor_svd, truncation_error
 from adarl.core.lr_schedule import restart_lr_scheduler, warmup_cosine_lambdas
 from adarl.core.rank import RankRule, energy_share
 from adarl.errors import AdaRLValueError, CheckpointError
@@ -61,583 +84,41 @@ __all__ = [
     "check_loss_supported",
 ]
 
-SCOPES = ("actor", "critic", "both")
-TARGET_MODES = ("sync", "project")
-#: Network attributes of a loss that count as the actor (everything else with LowRankLinear layers is a critic).
-ACTOR_NETWORK_NAMES = ("actor_network", "actor", "policy_network", "policy")
-#: ``target_mode="project"`` falls back to "sync" when cond(R1) or cond(R2) exceeds this (float64).
-PROJECT_COND_LIMIT = 1e6
-
-_ENSEMBLE = "stacked ensemble"
-#: Stock TorchRL losses RankAdapter is tested on (tests/test_adapter_losses.py runs a truncation through each one:
-#: shapes, optimiser state, target updates, the user's actor): ``{class name: the networks adapted (role)}``.
-#: docs/rank-adapter.md's "Supported losses" table is this dict (a test checks it).
-SUPPORTED_LOSSES: dict[str, str] = {
-    "SACLoss": f"actor_network (actor); qvalue_network (critic, {_ENSEMBLE}, targets)",
-    "DiscreteSACLoss": f"actor_network (actor); qvalue_network (critic, {_ENSEMBLE}, targets)",
-    "REDQLoss": f"actor_network (actor); qvalue_network (critic, {_ENSEMBLE} of num_qvalue_nets, targets)",
-    "TQCLoss": f"actor_network (actor); qvalue_network (critic: quantile critics, {_ENSEMBLE}, targets)",
-    "CrossQLoss": f"actor_network (actor); qvalue_network (critic, {_ENSEMBLE}, no targets)",
-    "TD3Loss": f"actor_network (actor, targets); qvalue_network (critic, {_ENSEMBLE}, targets)",
-    "TD3BCLoss": f"actor_network (actor, targets); qvalue_network (critic, {_ENSEMBLE}, targets)",
-    "DDPGLoss": "actor_network (actor); value_network (critic, targets)",
-    "IQLLoss": f"actor_network (actor); qvalue_network (critic, {_ENSEMBLE}, targets); value_network (critic)",
-    "DiscreteIQLLoss": f"actor_network (actor); qvalue_network (critic, {_ENSEMBLE}, targets); value_network (critic)",
-    "CQLLoss": f"actor_network (actor); qvalue_network (critic, {_ENSEMBLE}, targets)",
-    "DiscreteCQLLoss": "value_network (critic: the Q-network the policy acts greedily on, targets)",
-    "DQNLoss": "value_network (critic: the Q-network the policy acts greedily on, targets)",
-    "DistributionalDQNLoss": "value_network (critic: the distributional Q-network the policy acts on, targets)",
-    "PPOLoss": "actor_network (actor); critic_network (critic)",
-    "ClipPPOLoss": "actor_network (actor); critic_network (critic)",
-    "KLPENPPOLoss": "actor_network (actor); critic_network (critic)",
-    "A2CLoss": "actor_network (actor); critic_network (critic)",
-    "ReinforceLoss": "actor_network (actor); critic_network (critic)",
-    "BCLoss": "actor_network (actor)",
-}
-#: Stock TorchRL losses RankAdapter refuses, by name: ``{class name: why}``. Subclasses are refused too.
-UNSUPPORTED_LOSSES: dict[str, str] = {
-    "ACTLoss": "trains an action-chunking transformer (a CVAE over action sequences); untested",
-    "DTLoss": "trains a decision transformer (a sequence model over trajectories); untested",
-    "OnlineDTLoss": "trains a decision transformer (a sequence model over trajectories); untested",
-    "DiffusionBCLoss": "trains a diffusion denoiser by behaviour cloning; untested",
-    "DreamerActorLoss": "model-based: the actor learns in imagination through a world-model env; untested",
-    "DreamerModelLoss": "trains a world model, not a policy or a critic",
-    "DreamerValueLoss": "model-based: the value is learnt in imagination through a world-model env; untested",
-    "DreamerV3ActorLoss": "model-based: the actor learns in imagination through a world-model env; untested",
-    "DreamerV3Loss": "model-based: combines the world-model, actor and value losses of DreamerV3; untested",
-    "DreamerV3ModelLoss": "trains a world model, not a policy or a critic",
-    "DreamerV3ValueLoss": "model-based: the value is learnt in imagination through a world-model env; untested",
-    "WorldModelLoss": "trains a world model, not a policy or a critic",
-    "GAILLoss": "trains a discriminator only (another loss trains the policy); nothing of the paper's actor/critic",
-    "RNDLoss": "trains an exploration-bonus predictor against a fixed random network, not a policy or a critic",
-    "ExponentialQuadraticCost": "a fixed cost function (PILCO) with no trained network",
-    "QMixerLoss": "multi-agent: per-agent Q-networks mixed by a mixer network; untested",
-    "IPPOLoss": "multi-agent: agent-stacked parameters would get one rank per layer across agents; untested",
-    "MAPPOLoss": "multi-agent: agent-stacked parameters would get one rank per layer across agents; untested",
-}
-
-
-def check_loss_supported(loss_module: nn.Module) -> None:
-    """Refuse, by name, a stock TorchRL loss adarl does not support; warn about a stock one it has not been tested on.
-
-    The first TorchRL loss class in the loss's method resolution order decides, so a subclass of ``SACLoss`` is a
-    ``SACLoss`` and a subclass of ``IPPOLoss`` is refused. Losses of your own (subclassing ``LossModule``
-    directly) are not refused: the adapter finds their networks by TorchRL's ``convert_to_functional``
-    convention (docs/custom-loss.md).
-    """
-    for cls in type(loss_module).__mro__:
-        if not cls.__module__.startswith("torchrl.objectives") or cls.__name__.startswith("_"):
-            continue
-        name = cls.__name__
-        if name in UNSUPPORTED_LOSSES:
-            raise AdaRLValueError(
-                f"RankAdapter does not support TorchRL's {name}: {UNSUPPORTED_LOSSES[name]}. Supported TorchRL losses: "
-                f"{sorted(SUPPORTED_LOSSES)} (docs/rank-adapter.md, 'Supported losses'); a loss of your own built with "
-                f"convert_to_functional works too (docs/custom-loss.md)"
-            )
-        if name in SUPPORTED_LOSSES or name == "LossModule":
-            return
-        warnings.warn(
-            f"RankAdapter has not been tested on TorchRL's {name} (tested: {sorted(SUPPORTED_LOSSES)}); check that "
-            f"adapter.layers lists the layers you expect and that a truncation keeps training working",
-            UserWarning,
-            stacklevel=3,
-        )
-        return
-
-
-# ----------------------------------------------------------------------------------------------------------------
-# Finding the layers behind a loss's functional parameters
-# ----------------------------------------------------------------------------------------------------------------
-
-
-@dataclass(eq=False)
-class LowRankSite:
-    """One LowRankLinear as the loss trains it: its online and target factor tensors.
-
-    ``w1``/``w2`` are the tensors the optimiser steps (the ``Parameter`` objects in ``<network>_params``, stacked
-    ``[members, ...]`` for an ensemble); ``target_w1``/``target_w2`` those of ``target_<network>_params`` or
-    ``None``; ``template`` the module the loss runs under ``to_module``; ``extra`` parameters of that module that
-    are distinct objects from ``w1``/``w2`` (the Q template's own, unused parameters), resized to stay consistent.
-    """
-
-    path: str  # "<network attribute>.<module path>", e.g. "qvalue_network.module.mlp.0"
-    network_name: str  # the loss attribute, e.g. "qvalue_network"
-    role: str  # "actor" | "critic"
-    module_path: str
-    network: nn.Module
-    template: LowRankLinear
-    params: TensorDictBase | None  # <network>_params (None for a non-functional network)
-    w1: torch.Tensor
-    w2: torch.Tensor
-    target_w1: torch.Tensor | None
-    target_w2: torch.Tensor | None
-    extra: tuple[torch.Tensor, torch.Tensor] | None
-    name: str = ""  # what a person reads: "<role>.layer<k>" (see layer_names), e.g. "actor.layer0"
-
-    @property
-    def key(self) -> tuple[str, ...]:
-        return tuple(self.module_path.split(".")) if self.module_path else ()
-
-    @property
-    def batch_shape(self) -> torch.Size:
-        """Leading (ensemble) dimensions of the factors; empty for a single network."""
-        return self.w1.shape[:-2]
-
-    @property
-    def rank(self) -> int:
-        return int(self.w2.shape[-2])
-
-    @property
-    def max_rank(self) -> int:
-        return self.template.max_rank
-
-
-def network_candidates(loss: nn.Module) -> list[tuple[str, nn.Module]]:
-    """``(attribute name, network)`` of every network a TorchRL loss holds (``actor_network``, ``qvalue_network``,
-    ...), those with functional parameters first: how :class:`RankAdapter` (and the Parseval term) find layers."""
-    found: dict[int, tuple[str, nn.Module]] = {}
-    items = list(vars(loss).items()) + list(getattr(loss, "_modules", {}).items())
-    for name, mod in items:
-        if name.startswith("_") or not isinstance(mod, nn.Module) or isinstance(mod, TensorDictBase):
-            continue
-        if name.endswith("_params"):
-            continue
-        prev = found.get(id(mod))
-        # The same module under two names: keep the one with functional parameters.
-        if prev is None or (
-            getattr(loss, f"{prev[0]}_params", None) is None and getattr(loss, f"{name}_params", None) is not None
-        ):
-            found[id(mod)] = (name, mod)
-    # Networks with functional parameters first: a layer reachable from two networks belongs to the one the loss
-    # trains. (DDPGLoss also keeps a wrapper, actor_critic = [actor_network, value_network], without parameters of
-    # its own: found first, it would claim every layer as a critic's, without the value network's targets.)
-    return sorted(found.values(), key=lambda nm: getattr(loss, f"{nm[0]}_params", None) is None)
-
-
-def _role(name: str) -> str:
-    return "actor" if name in ACTOR_NETWORK_NAMES else "critic"
-
-
-def layer_indices(network: nn.Module) -> dict[str, int]:
-    """``{module path: k}`` of the network's weight layers in forward order (``nn.Linear``, ``LowRankLinear``; a
-    layer inside another counted one is not counted again): ``k`` is the hidden-layer index a recipe's
-    ``low_rank_layers`` uses."""
-    out: dict[str, int] = {}
-    for path, module in network.named_modules():
-        if isinstance(module, (nn.Linear, LowRankLinear)) and not any(path.startswith(p + ".") for p in out):
-            out[path] = len(out)
-    return out
-
-
-def _name_sites(sites: list[LowRankSite]) -> None:
-    """Give each site its human name, ``<role>.layer<k>`` (``actor.layer0``, ``critic.layer1``). Where two networks
-    of a loss share a role (IQL's Q and V critics), the network's attribute less ``_network`` stands for the role
-    (``qvalue.layer0``, ``value.layer0``)."""
-    roles: dict[str, set[str]] = {}
-    for s in sites:
-        roles.setdefault(s.role, set()).add(s.network_name)
-    indices: dict[int, dict[str, int]] = {}
-    for s in sites:
-        idx = indices.setdefault(id(s.network), layer_indices(s.network))
-        prefix = s.role if len(roles[s.role]) == 1 else s.network_name.removesuffix("_network")
-        k = idx.get(s.module_path)
-        s.name = f"{prefix}.layer{k}" if k is not None else f"{prefix}.{s.module_path or s.network_name}"
-
-
-def find_low_rank_layers(loss_module: nn.Module, scope: str = "both") -> tuple[list[LowRankSite], list[str]]:
-    """All :class:`LowRankSite` of ``loss_module`` in ``scope``, and the networks searched (for error messages).
-
-    Works for any TorchRL loss that keeps its networks as attributes (``convert_to_functional``: module in
-    ``__dict__``, parameters in ``<name>_params``, optional ``target_<name>_params``) and for plain modules
-    registered on the loss (non-functional losses, e.g. ``ClipPPOLoss(functional=False)``).
-    """
-    if scope not in SCOPES:
-        raise AdaRLValueError(f"scope must be one of {list(SCOPES)}, got {scope!r}")
-    sites: list[LowRankSite] = []
-    searched: list[str] = []
-    seen_params: set[int] = set()
-    seen_layers: set[int] = set()
-    for name, network in network_candidates(loss_module):
-        role = _role(name)
-        searched.append(f"{name} ({role})")
-        if scope != "both" and role != scope:  # out of scope, but its layers are its own (not a wrapper's)
-            seen_layers.update(id(m) for m in network.modules() if isinstance(m, LowRankLinear))
-            continue
-        params = getattr(loss_module, f"{name}_params", None)
-        if params is not None and not isinstance(params, TensorDictBase):
-            params = None
-        target = loss_module._modules.get(f"target_{name}_params") if hasattr(loss_module, "_modules") else None
-        if target is not None and not isinstance(target, TensorDictBase):
-            target = None
-        for module_path, layer in network.named_modules():
-            if not isinstance(layer, LowRankLinear) or id(layer) in seen_layers:
-                continue
-            seen_layers.add(id(layer))
-            path = f"{name}.{module_path}" if module_path else name
-            key = tuple(module_path.split(".")) if module_path else ()
-            if params is not None:
-                w1 = params.get(key + ("w1",), None)
-                w2 = params.get(key + ("w2",), None)
-                if w1 is None or w2 is None:
-                    raise AdaRLValueError(
-                        f"cannot map LowRankLinear {path!r} to keys of {name}_params (looked for "
-                        f"{key + ('w1',)} and {key + ('w2',)}; "
-                        f"available: {sorted(map(str, params.keys(True, True)))[:8]}...)"
-                    )
-            else:
-                w1, w2 = layer.w1, layer.w2
-            if not isinstance(w1, nn.Parameter) or not isinstance(w2, nn.Parameter):
-                raise AdaRLValueError(
-                    f"LowRankLinear {path!r}: its factors in {name}_params are not trainable Parameters (a view of "
-                    f"another network's parameters: shared layers are not supported by RankAdapter)"
-                )
-            if id(w1) in seen_params:
-                continue  # the same parameters reached through another network: handled once
-            seen_params.add(id(w1))
-            tw1 = tw2 = None
-            if target is not None:
-                tw1 = target.get(key + ("w1",), None)
-                tw2 = target.get(key + ("w2",), None)
-                if (tw1 is None) != (tw2 is None):
-                    raise AdaRLValueError(f"target_{name}_params holds only one factor of {path!r}")
-            extra = None
-            if layer.w1 is not w1 and isinstance(layer.w1, nn.Parameter) and id(layer.w1) not in seen_params:
-                extra = (layer.w1, layer.w2)
-            sites.append(LowRankSite(path, name, role, module_path, network, layer, params, w1, w2, tw1, tw2, extra))
-    _name_sites(sites)
-    return sites, searched
-
-
-# ----------------------------------------------------------------------------------------------------------------
-# Records
-# ----------------------------------------------------------------------------------------------------------------
+#: reached here before the split (the Parseval term, tests, the calibration benchmark): kept importable from here
+_ALSO_HERE = (network_candidates, PROJECT_COND_LIMIT, _name_sites, _NetworkProbe, _padded_factors)
 
 
 @dataclass
-class LayerRecord:
-    """What one rank event did to one layer.
+class _Proposal:
+    """What the rule proposes for one layer: its SVD, each member's choice (and why a member kept its rank)."""
 
-    For a stacked ensemble, ``singular_values``, ``retained_energy`` and ``truncation_error`` are per member
-    (lists), and ``member_ranks`` holds each member's own choice (the layer takes the largest).
-    ``retained_energy`` and ``truncation_error`` (``||W - Pi_r(W)||_F``) are at the applied ``new_rank``.
-    ``skipped`` is ``None`` when the layer changed, otherwise why not. ``target`` says how the target factors were
-    given the new shape (``"sync"``, ``"project"``, ``"sync (fallback: ...)"``) or ``None`` (no target / no change).
+    u: torch.Tensor
+    s: torch.Tensor
+    vh: torch.Tensor
+    members: list[tuple]
+    choices: list[int]
+    reasons: list[str]
 
-    The acceptance step (:mod:`adarl.core.acceptance`) fills the rest: ``candidate`` is the rule's proposal (the
-    largest member's), ``candidate_error`` and ``error`` the relative output error of the layer's network with the
-    layer at the candidate and at ``new_rank`` (the truncations already accepted for earlier layers of the same
-    network in place; ``None`` when nothing was measured, ``0`` when the rank is kept), ``tolerance`` the bound
-    (``None`` without an acceptance step: every candidate is applied), ``tried`` every ``[rank, error]``
-    measured and ``note`` why a refused candidate led to another rank.
-    """
+    @property
+    def candidate(self) -> int:
+        """The layer's candidate: the largest member's choice (no member is cut below what it asks for)."""
+        return max(self.choices)
 
-    step: int
-    layer: str
-    network: str  # "actor" | "critic"
-    old_rank: int
-    new_rank: int
-    singular_values: list
-    retained_energy: Any
-    truncation_error: Any
-    skipped: str | None = None
-    member_ranks: list[int] | None = None
-    target: str | None = None
-    candidate: int | None = None
+    @property
+    def svd(self) -> tuple:
+        return self.u, self.s, self.vh
+
+
+@dataclass
+class _Verdict:
+    """The rank a layer gets, and what was measured to decide it (``None``: nothing measured)."""
+
+    rank: int
     candidate_error: float | None = None
     error: float | None = None
     tolerance: float | None = None
     tried: list | None = None
     note: str | None = None
-    name: str | None = None  # the layer's human name ("actor.layer0"); ``layer`` keeps the module path
-
-    @property
-    def changed(self) -> bool:
-        return self.new_rank != self.old_rank
-
-    def as_dict(self) -> dict:
-        return dataclasses.asdict(self)
-
-
-@dataclass
-class RankEvent:
-    """One call of :meth:`RankAdapter.adapt`: the optimisation step it ran at and one record per layer."""
-
-    step: int
-    index: int
-    layers: list[LayerRecord] = field(default_factory=list)
-    #: the adapter that ran the event (``None`` for an event read back from a checkpoint): callbacks such as
-    #: :class:`~adarl.core.warmstart.ReplayWarmStart` use it to check that their policy holds the loss's tensors.
-    adapter: Any = field(default=None, repr=False, compare=False)
-
-    @property
-    def changed(self) -> bool:
-        """Whether any layer's rank changed (only then are caches, schedulers and callbacks touched)."""
-        return any(r.changed for r in self.layers)
-
-    @property
-    def ranks(self) -> dict[str, int]:
-        return {r.layer: r.new_rank for r in self.layers}
-
-    def as_dict(self) -> dict:
-        return {"step": self.step, "index": self.index, "layers": [r.as_dict() for r in self.layers]}
-
-    @classmethod
-    def from_dict(cls, d: Mapping, names: Mapping[str, str] | None = None) -> RankEvent:
-        """An event from :meth:`as_dict`; ``names`` (``{layer_path: human name}``) fills the names of records saved
-        before layers had them."""
-        layers = []
-        for r in d["layers"]:
-            rec = LayerRecord(**r)
-            if rec.name is None and names:
-                rec.name = names.get(rec.layer)
-            layers.append(rec)
-        return cls(int(d["step"]), int(d["index"]), layers)
-
-
-# ----------------------------------------------------------------------------------------------------------------
-# In-place tensor surgery
-# ----------------------------------------------------------------------------------------------------------------
-
-
-def _erase_loss_caches(loss: nn.Module) -> None:
-    """Drop the loss's cached detached / stacked parameter views (they would still point at the old tensors)."""
-    cache = loss.__dict__.get("_cache")
-    if isinstance(cache, dict):
-        cache.clear()
-    erase = getattr(loss, "_erase_cache", None)
-    if callable(erase):
-        erase()
-
-
-def _forget_optimizer_state(optimizers: Iterable[torch.optim.Optimizer], tensors: Iterable[torch.Tensor]) -> None:
-    tensors = list(tensors)
-    for opt in optimizers:
-        for t in tensors:
-            opt.state.pop(t, None)
-
-
-def _project_basis(w1: torch.Tensor, w2: torch.Tensor, rank: int):
-    """The online rank-``rank`` factors and the change of basis that produced them (float64, batched).
-
-    ``W1 = Q1 R1``, ``W2^T = Q2 R2``, ``R1 R2^T = Uc S Vch``. The new online factors are
-    ``W1' = Q1 Uc_k sqrt(S_k) = W1 T'`` and ``W2' = sqrt(S_k) Vch_k Q2^T = T W2`` with
-    ``T' = R1^-1 Uc_k sqrt(S_k)`` (r x k) and ``T = sqrt(S_k) Vch_k R2^-T`` (k x r). Returns
-    ``(W1', W2', T', T, cond)`` where ``cond`` is the worst condition number of R1/R2. The online factors come
-    from this same decomposition (not from :func:`factor_svd`, whose singular vectors may differ by signs) so that
-    the target factors ``W1t T'``, ``T W2t`` stay in the online factors' basis: SoftUpdate lerps them elementwise.
-    """
-    a = w1.detach().to(torch.float64)
-    b = w2.detach().to(torch.float64)
-    q1, r1 = torch.linalg.qr(a, mode="reduced")
-    q2, r2 = torch.linalg.qr(b.transpose(-1, -2), mode="reduced")
-    cond = max(float(torch.linalg.cond(r1).max()), float(torch.linalg.cond(r2).max()))
-    uc, s, vhc = torch.linalg.svd(r1 @ r2.transpose(-1, -2), full_matrices=False)
-    root = s[..., :rank].sqrt()
-    left = uc[..., :, :rank] * root.unsqueeze(-2)  # Uc_k sqrt(S_k), r x k
-    right = root.unsqueeze(-1) * vhc[..., :rank, :]  # sqrt(S_k) Vch_k, k x r
-    new_w1 = q1 @ left
-    new_w2 = right @ q2.transpose(-1, -2)
-    if not math.isfinite(cond):
-        return new_w1, new_w2, None, None, cond
-    t_right = torch.linalg.solve_triangular(r1, left, upper=True)
-    t_left = torch.linalg.solve_triangular(r2, right.transpose(-1, -2), upper=True).transpose(-1, -2)
-    return new_w1, new_w2, t_right, t_left, cond
-
-
-def _resize_site(site: LowRankSite, w1: torch.Tensor, w2: torch.Tensor, optimizers) -> None:
-    """Give a site's online, target and template factors new values (in place, identities kept)."""
-    _set_data(site.w1, w1)
-    _set_data(site.w2, w2)
-    _forget_optimizer_state(optimizers, (site.w1, site.w2))
-    if site.extra is not None:
-        e1, e2 = site.extra
-        lead = (0,) * len(site.batch_shape)
-        _set_data(e1, w1[lead].clone())
-        _set_data(e2, w2[lead].clone())
-        _forget_optimizer_state(optimizers, (e1, e2))
-
-
-def _padded_factors(u, s, vh, rank: int, width: int, dtype) -> tuple[torch.Tensor, torch.Tensor]:
-    """Rank-``rank`` factors stored at width ``width`` (zero columns/rows beyond ``rank``)."""
-    s = s.clone()
-    s[..., rank:] = 0
-    return refactorize(u, s, vh, width, dtype)
-
-
-def resize_to_ranks(
-    loss_module: nn.Module,
-    ranks: Mapping,
-    optimizers: torch.optim.Optimizer | Sequence[torch.optim.Optimizer] = (),
-) -> dict[str, tuple[int, int]]:
-    """Give a freshly built loss the ranks of a checkpoint, so ``loss.load_state_dict`` can load it.
-
-    A rank event changes parameter *shapes*; ``loss.load_state_dict`` of a truncated checkpoint into a freshly
-    built (full-rank) loss fails, even with ``strict=False``. Call this first::
-
-        resize_to_ranks(loss, checkpoint["adapter"], optimizer)   # or checkpoint["loss"], or {path: rank}
-        loss.load_state_dict(checkpoint["loss"])
-        optimizer.load_state_dict(checkpoint["optimizer"])
-        adapter.load_state_dict(checkpoint["adapter"])
-
-    ``ranks`` may be ``{layer_path: rank}`` (see :attr:`RankAdapter.ranks`), a :meth:`RankAdapter.state_dict`
-    (its ``"ranks"``) or the loss's own ``state_dict()`` (ranks read from the ``w2`` shapes). Every LowRankLinear of
-    the loss (actor and critics, online, stacked ensemble, targets, template) is resized in place (``.data``; the
-    values are a truncated projection, or zero-padded when growing, and are meant to be overwritten by the load),
-    and the optimiser state of resized parameters is dropped (``optimizer.load_state_dict`` restores it).
-    Returns ``{layer_path: (old_rank, new_rank)}`` for the resized layers.
-    """
-    if isinstance(optimizers, torch.optim.Optimizer):
-        optimizers = [optimizers]
-    sites, searched = find_low_rank_layers(loss_module, "both")
-    if not sites:
-        raise CheckpointError(f"no LowRankLinear layers found in {type(loss_module).__name__}; searched {searched}")
-    by_path = {s.path: s for s in sites}
-    wanted = _ranks_from_source(ranks, sites)
-    unknown = sorted(set(wanted) - set(by_path))
-    if unknown:
-        raise CheckpointError(f"checkpoint has ranks for unknown layers {unknown}; this model has {sorted(by_path)}")
-    changed: dict[str, tuple[int, int]] = {}
-    with torch.no_grad():
-        for path, rank in wanted.items():
-            site = by_path[path]
-            if isinstance(rank, bool) or not isinstance(rank, int) or not 1 <= rank <= site.max_rank:
-                raise CheckpointError(f"rank for {path!r} must be an integer in [1, {site.max_rank}], got {rank!r}")
-            old = site.rank
-            if rank == old:
-                continue
-            w1, w2 = _resized(site.w1, site.w2, rank)
-            _resize_site(site, w1, w2, optimizers)
-            if site.target_w1 is not None:
-                t1, t2 = _resized(site.target_w1, site.target_w2, rank)
-                _set_data(site.target_w1, t1)
-                _set_data(site.target_w2, t2)
-            changed[path] = (old, rank)
-    if changed:
-        _erase_loss_caches(loss_module)
-    return changed
-
-
-def _resized(w1: torch.Tensor, w2: torch.Tensor, rank: int) -> tuple[torch.Tensor, torch.Tensor]:
-    old = int(w2.shape[-2])
-    u, s, vh = factor_svd(w1, w2)
-    a, b = refactorize(u, s, vh, min(rank, old), w1.dtype)
-    if rank > old:
-        pad = rank - old
-        a = torch.cat([a, a.new_zeros(*a.shape[:-1], pad)], -1)
-        b = torch.cat([b, b.new_zeros(*b.shape[:-2], pad, b.shape[-1])], -2)
-    return a, b
-
-
-def _ranks_from_source(source: Mapping, sites: list[LowRankSite]) -> dict[str, int]:
-    if not isinstance(source, Mapping):
-        raise CheckpointError(
-            f"ranks must be a mapping (ranks, adapter state_dict or loss state_dict), got {type(source)}"
-        )
-    if "ranks" in source and isinstance(source["ranks"], Mapping):
-        source = source["ranks"]
-    if any(isinstance(v, torch.Tensor) for v in source.values()):
-        out = {}
-        for site in sites:
-            owner = f"{site.network_name}_params" if site.params is not None else site.network_name
-            key = ".".join(p for p in (owner, site.module_path, "w2") if p)
-            if key in source:
-                out[site.path] = int(source[key].shape[-2])
-        if not out:
-            raise CheckpointError(
-                "the state_dict holds no LowRankLinear factor of this model (no '...w2' keys matched)"
-            )
-        return out
-    bad = {k: v for k, v in source.items() if isinstance(v, bool) or not isinstance(v, numbers.Integral)}
-    if bad:
-        raise CheckpointError(f"ranks must be integers, got {bad}")
-    try:
-        return {str(k): int(v) for k, v in source.items()}
-    except (TypeError, ValueError) as err:
-        raise CheckpointError(f"cannot read ranks from {type(source).__name__}: {err}") from None
-
-
-# ----------------------------------------------------------------------------------------------------------------
-# Policy-fit measurement (PolicyFitRule)
-# ----------------------------------------------------------------------------------------------------------------
-
-
-def _float_keys(td: TensorDictBase, keys) -> list:
-    return [k for k in keys if k in td.keys(True) and torch.is_floating_point(td.get(k))]
-
-
-class _NetworkProbe:
-    """Runs one network (one ensemble member) on a fixed batch with some factors replaced; compares its outputs.
-
-    Used by the acceptance step and :class:`~adarl.core.rank.PolicyFitRule`. The network runs on a detached copy of its
-    parameters, so nothing the loss trains is touched. Replacement factors keep the current width (ranks beyond
-    the projected one are zero columns/rows), so no shape changes during the measurement. :meth:`commit` makes a
-    replacement permanent for the later measurements of this probe: the layers of one network are decided in
-    order, each with the earlier layers' accepted truncations in place.
-    """
-
-    def __init__(
-        self, network_name: str, network: nn.Module, params: TensorDictBase | None, member: tuple, batch: TensorDictBase
-    ) -> None:
-        self.network_name = network_name
-        self.network = network
-        if params is not None:
-            base = params.detach().clone()
-        else:
-            base = TensorDict.from_module(network, as_module=False).detach().clone()
-        if member:
-            base = base[member] if len(base.batch_size) >= len(member) else base.apply(lambda t: t[member])
-        self.base = base
-        self.batch = batch
-        self.reference = self._run()
-
-    def _run(self) -> torch.Tensor:
-        net = self.network
-        in_keys = getattr(net, "in_keys", None)
-        x = self.batch.select(*in_keys, strict=False) if in_keys is not None else self.batch.clone(False)
-        with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC), self.base.to_module(net):
-            if hasattr(net, "get_dist_params") and hasattr(net, "dist_params_keys"):
-                out = net.get_dist_params(x)
-                keys = list(net.dist_params_keys)
-            else:
-                out = net(x)
-                keys = list(getattr(net, "out_keys", []))
-        keys = _float_keys(out, keys)
-        if not keys:
-            raise AdaRLValueError(
-                f"network {self.network_name!r} produced no float outputs to compare (out keys "
-                f"{list(getattr(net, 'out_keys', []))})"
-            )
-        n = out.batch_size.numel()
-        return torch.cat([out.get(k).reshape(n, -1).to(torch.float64) for k in keys], -1)
-
-    def outputs(self, replace: Mapping[tuple, torch.Tensor]) -> torch.Tensor:
-        """The network's outputs with the factors in ``replace`` (``{key: tensor}``) swapped in."""
-        old = {k: self.base.get(k) for k in replace}
-        for k, v in replace.items():
-            self.base.set(k, v)
-        try:
-            return self._run()
-        finally:
-            for k, v in old.items():
-                self.base.set(k, v)
-
-    def distance(self, replace: Mapping[tuple, torch.Tensor]) -> float:
-        """Mean L2 distance between the outputs with ``replace`` and the reference (PolicyFitRule's fit)."""
-        return float((self.outputs(replace) - self.reference).norm(dim=-1).mean())
-
-    def relative_error(self, replace: Mapping[tuple, torch.Tensor]) -> float:
-        """:func:`adarl.core.acceptance.relative_output_error` of the outputs with ``replace`` against the reference."""
-        return relative_output_error(self.outputs(replace), self.reference)
-
-    def commit(self, replace: Mapping[tuple, torch.Tensor]) -> None:
-        for k, v in replace.items():
-            self.base.set(k, v)
-
-
-# ----------------------------------------------------------------------------------------------------------------
-# The adapter
-# ----------------------------------------------------------------------------------------------------------------
 
 
 class RankAdapter(TrainerHookBase):
@@ -733,87 +214,37 @@ class RankAdapter(TrainerHookBase):
         on_event: Sequence[Callable] | Callable = (),
         log_step: Callable[[], int] | None = None,
     ) -> None:
-        check_loss_supported(loss_module)
-        if num_threads is not None and (not is_integer(num_threads) or num_threads < 1):
-            raise AdaRLValueError(
-                f"num_threads must be an integer >= 1 or None (keep the process's), got {num_threads!r}"
-            )
-        if not is_integer(interval) or interval < 1:
-            raise AdaRLValueError(
-                f"interval must be an integer >= 1 (optimisation steps between events), got {interval!r}"
-            )
-        if scope not in SCOPES:
-            raise AdaRLValueError(f"scope must be one of {list(SCOPES)}, got {scope!r}")
-        if target_mode not in TARGET_MODES:
-            raise AdaRLValueError(f"target_mode must be one of {list(TARGET_MODES)}, got {target_mode!r}")
-        if not is_integer(min_rank) or min_rank < 1:
-            raise AdaRLValueError(f"min_rank must be an integer >= 1, got {min_rank!r}")
-        if log_step is not None and not callable(log_step):
-            raise AdaRLValueError(
-                f"log_step must be a callable returning the x-axis value (e.g. collected frames) or "
-                f"None (the optimisation step), got {type(log_step).__name__}"
-            )
-        if not isinstance(rule, RankRule):
-            raise AdaRLValueError(
-                f"rule must be an adarl.core.rank.RankRule (e.g. EnergyRule(0.98)), got {type(rule).__name__}"
-            )
-        if isinstance(optimizers, torch.optim.Optimizer):
-            optimizers = [optimizers]
-        optimizers = list(optimizers)
-        bad = [type(o).__name__ for o in optimizers if not isinstance(o, torch.optim.Optimizer)]
-        if bad:
-            raise AdaRLValueError(f"optimizers must be torch.optim.Optimizer instances, got {bad}")
-        lr_schedulers = list(lr_schedulers)
-        for sch in lr_schedulers:
-            if not warmup_cosine_lambdas(sch) and not callable(getattr(sch, "restart", None)):
-                raise AdaRLValueError(
-                    f"lr_schedulers must be LambdaLR schedulers with WarmupCosine lambdas (adarl.make_lr_scheduler) "
-                    f"or objects with a restart() method, got {type(sch).__name__}"
-                )
-        if callable(on_truncate):
-            on_truncate = [on_truncate]
-        on_truncate = list(on_truncate)
-        for cb in on_truncate:
-            if not callable(cb):
-                raise AdaRLValueError(f"on_truncate entries must be callables fn(event), got {type(cb).__name__}")
-        if callable(on_event):
-            on_event = [on_event]
-        on_event = list(on_event)
-        for cb in on_event:
-            if not callable(cb):
-                raise AdaRLValueError(f"on_event entries must be callables fn(event), got {type(cb).__name__}")
-        if acceptance is not None and not isinstance(acceptance, ProjectionAcceptance):
-            raise AdaRLValueError(
-                f"acceptance must be an adarl.ProjectionAcceptance or None (apply every candidate), "
-                f"got {type(acceptance).__name__}"
-            )
-        for needs, what in (
-            (rule.needs_fit, f"{type(rule).__name__} measures"),
-            (acceptance is not None, "the acceptance step measures"),
-        ):
-            if needs and fit_data is None:
-                raise AdaRLValueError(
-                    f"{what} the network's outputs: pass fit_data (a callable returning a TensorDict batch, e.g. "
-                    f"adarl.RecentTransitions(replay_buffer, 2048), or a replay buffer)"
-                )
-        if fit_data is not None and not callable(fit_data) and not callable(getattr(fit_data, "sample", None)):
-            raise AdaRLValueError(f"fit_data must be a callable or a replay buffer, got {type(fit_data).__name__}")
-
+        check_loss_supported(loss_module)  # first: its warning points at the caller's line (stacklevel)
+        args = check_adapter_args(
+            optimizers=optimizers,
+            rule=rule,
+            interval=interval,
+            scope=scope,
+            min_rank=min_rank,
+            target_mode=target_mode,
+            lr_schedulers=lr_schedulers,
+            on_truncate=on_truncate,
+            on_event=on_event,
+            fit_data=fit_data,
+            num_threads=num_threads,
+            acceptance=acceptance,
+            log_step=log_step,
+        )
         self.loss_module = loss_module
-        self.optimizers = optimizers
+        self.optimizers = args.optimizers
         self.rule = rule
-        self.interval = int(interval)
-        self.scope = scope
-        self.min_rank = int(min_rank)
-        self.target_mode = target_mode
-        self.lr_schedulers = lr_schedulers
-        self.on_truncate = on_truncate
-        self.on_event = on_event
+        self.interval = args.interval
+        self.scope = args.scope
+        self.min_rank = args.min_rank
+        self.target_mode = args.target_mode
+        self.lr_schedulers = args.lr_schedulers
+        self.on_truncate = args.on_truncate
+        self.on_event = args.on_event
         self.acceptance = acceptance
         self.fit_data = fit_data
         self.logger = logger
         self.log_step = log_step
-        self.num_threads = None if num_threads is None else int(num_threads)
+        self.num_threads = args.num_threads
         self.sites, searched = find_low_rank_layers(loss_module, scope)
         if not self.sites:
             raise AdaRLValueError(
@@ -942,7 +373,7 @@ class RankAdapter(TrainerHookBase):
                         check(event)  # e.g. ReplayWarmStart: its policy must run the loss's own factors
             for site, record, svd in plans:
                 if record.changed:
-                    record.target = self._apply(site, record.new_rank, *svd)
+                    record.target = apply_rank(site, record.new_rank, *svd, self.target_mode, self.optimizers)
         finally:
             torch.set_num_threads(threads)
         self.history.append(event)
@@ -964,19 +395,9 @@ class RankAdapter(TrainerHookBase):
             cb(event)
         return event
 
-    def _member_probes(self, site: LowRankSite, batch, probes: dict) -> list[_NetworkProbe]:
-        """One probe per ensemble member of the site's network, shared by the layers of that network."""
-        out = []
-        for m in itertools.product(*[range(n) for n in site.batch_shape]):
-            key = (site.network_name, tuple(m))
-            if key not in probes:
-                probes[key] = _NetworkProbe(site.network_name, site.network, site.params, tuple(m), batch)
-            out.append(probes[key])
-        return out
-
     def _decide(self, site: LowRankSite, step: int, batch, probes: dict) -> tuple[LayerRecord, tuple | None]:
-        current = site.rank
-        lead = site.batch_shape
+        """One layer's rank at an event: the rule proposes, the probes measure, the acceptance step accepts, the
+        record says what happened and why. Returns the record and the SVD the change is applied from."""
         nonfinite = [name for name, t in (("w1", site.w1), ("w2", site.w2)) if not bool(torch.isfinite(t).all())]
         if nonfinite:  # the SVD would raise; the event must not act on a diverged layer
             reason = f"non-finite values in {' and '.join(nonfinite)} (training diverged?); rank kept"
@@ -984,76 +405,88 @@ class RankAdapter(TrainerHookBase):
                 step=step,
                 layer=site.path,
                 network=site.role,
-                old_rank=current,
-                new_rank=current,
+                old_rank=site.rank,
+                new_rank=site.rank,
                 singular_values=[],
                 retained_energy=float("nan"),
                 truncation_error=float("nan"),
                 skipped=reason,
                 name=site.name,
             ), None
+        proposal = self._propose(site, batch)
+        verdict = self._accept(site, proposal, batch, probes)
+        return self._record(site, step, proposal, verdict), proposal.svd
+
+    def _propose(self, site: LowRankSite, batch) -> _Proposal:
+        """The rule's choice for every ensemble member, from the layer's singular values."""
+        current = site.rank
+        lead = site.batch_shape
         u, s, vh = factor_svd(site.w1, site.w2)
         members = list(itertools.product(*[range(n) for n in lead]))  # [()] for a single network
         choices, reasons = [], []
         for m in members:
             idx = tuple(m)
-            fit = None
-            if self.rule.needs_fit:
-                fit = self._make_fit(site, idx, u[idx], s[idx], vh[idx], batch)
+            fit = fit_function(site, idx, u[idx], s[idx], vh[idx], batch) if self.rule.needs_fit else None
             d = self.rule(s[idx], current, min_rank=self.min_rank, fit=fit)
             choices.append(int(d.rank))
             if d.skipped:
                 reasons.append(d.skipped if not lead else f"member {idx}: {d.skipped}")
-        candidate = max(choices)
-        new = candidate
-        measured = batch is not None and not reasons and candidate < current
-        cand_err = err_new = tol = tried = note = None
-        if measured:
-            member_probes = self._member_probes(site, batch, probes)
-            key1, key2 = site.key + ("w1",), site.key + ("w2",)
+        return _Proposal(u, s, vh, members, choices, reasons)
 
-            def replacement(rank: int) -> list[dict]:
-                w1, w2 = _padded_factors(u, s, vh, int(rank), current, site.w1.dtype)
-                w1, w2 = w1.to(site.w1.device), w2.to(site.w1.device)
-                return [{key1: w1[m], key2: w2[m]} for m in members]
+    def _measure(self, site: LowRankSite, proposal: _Proposal, batch, probes: dict) -> SiteMeasure:
+        """The network's output error with the layer at a given rank (on ``fit_data``, every member)."""
+        return SiteMeasure(site, proposal.u, proposal.s, proposal.vh, proposal.members, batch, probes)
 
-            def error_at(rank: int) -> float:
-                errs = [p.relative_error(r) for p, r in zip(member_probes, replacement(rank))]
-                return math.nan if any(math.isnan(e) for e in errs) else max(errs)
+    def _accept(self, site: LowRankSite, proposal: _Proposal, batch, probes: dict) -> _Verdict:
+        """The rank the layer gets: the candidate, unless the acceptance step refuses it (``r_new = r_old``) or
+        settles on another. A lower rank is measured when ``fit_data`` is given (recorded even without acceptance)."""
+        current, candidate = site.rank, proposal.candidate
+        if batch is None or proposal.reasons:
+            return _Verdict(candidate)  # nothing to measure on, or the rule kept the rank: nothing measured
+        if candidate >= current:
+            return _Verdict(candidate, candidate_error=0.0, error=0.0)
+        measure = self._measure(site, proposal, batch, probes)
+        if self.acceptance is not None and not measure.finite:  # nothing to compare against: keep it, say why
+            verdict = _Verdict(
+                current,
+                note=(
+                    f"the {site.role}'s outputs on fit_data are non-finite (NaN/inf weights "
+                    f"elsewhere in the network, or in the batch); rank kept"
+                ),
+            )
+        elif self.acceptance is not None:
+            result = self.acceptance.resolve(candidate, current, measure.error_at, site.role)
+            verdict = _Verdict(
+                result.rank,
+                candidate_error=result.candidate_error,
+                error=result.error,
+                tolerance=result.tolerance,
+                tried=[list(t) for t in result.tried],
+                note=result.reason,
+            )
+        else:
+            err = measure.error_at(candidate)
+            verdict = _Verdict(candidate, candidate_error=err, error=err, tried=[[candidate, err]])
+        if verdict.rank < current:  # later layers of this network are measured with this truncation in place
+            measure.commit(verdict.rank)
+        return verdict
 
-            broken = not all(bool(torch.isfinite(p.reference).all()) for p in member_probes)
-            if broken and self.acceptance is not None:  # nothing to compare against: keep the rank, say why
-                new, note = (
-                    current,
-                    (
-                        f"the {site.role}'s outputs on fit_data are non-finite (NaN/inf weights "
-                        f"elsewhere in the network, or in the batch); rank kept"
-                    ),
-                )
-            elif self.acceptance is not None:
-                result = self.acceptance.resolve(candidate, current, error_at, site.role)
-                new, cand_err, err_new = result.rank, result.candidate_error, result.error
-                tol, tried, note = result.tolerance, [list(t) for t in result.tried], result.reason
-            else:
-                cand_err = err_new = error_at(candidate)
-                tried = [[candidate, cand_err]]
-            if new < current:  # later layers of this network are measured with this truncation in place
-                for p, r in zip(member_probes, replacement(new)):
-                    p.commit(r)
-        elif batch is not None and not reasons:
-            cand_err = err_new = 0.0
-        flat_s = s.reshape(-1, s.shape[-1])
+    def _record(self, site: LowRankSite, step: int, proposal: _Proposal, verdict: _Verdict) -> LayerRecord:
+        """The event's record of one layer: spectrum, energy and error at the new rank, and why it kept its rank."""
+        current, candidate, new = site.rank, proposal.candidate, verdict.rank
+        lead = site.batch_shape
+        flat_s = proposal.s.reshape(-1, proposal.s.shape[-1])
         energies = [energy_share(row, new) for row in flat_s]
         errors = [float(truncation_error(row, new)) for row in flat_s]
         skipped = None
         if new == current:
-            if reasons:
-                skipped = "; ".join(reasons)
+            if proposal.reasons:
+                skipped = "; ".join(proposal.reasons)
             elif candidate < current:
-                skipped = note
+                skipped = verdict.note
             else:
                 skipped = f"rule kept rank {current}"
-        record = LayerRecord(
+        return LayerRecord(
             step=step,
             layer=site.path,
             network=site.role,
@@ -1063,57 +496,15 @@ class RankAdapter(TrainerHookBase):
             retained_energy=energies if lead else energies[0],
             truncation_error=errors if lead else errors[0],
             skipped=skipped,
-            member_ranks=choices if lead else None,
+            member_ranks=proposal.choices if lead else None,
             candidate=candidate,
-            candidate_error=cand_err,
-            error=err_new,
-            tolerance=tol,
-            tried=tried,
-            note=note if new != current else None,
+            candidate_error=verdict.candidate_error,
+            error=verdict.error,
+            tolerance=verdict.tolerance,
+            tried=verdict.tried,
+            note=verdict.note if new != current else None,
             name=site.name,
         )
-        return record, (u, s, vh)
-
-    def _make_fit(self, site, member, u, s, vh, batch) -> Callable[[int], float]:
-        probe = _NetworkProbe(site.network_name, site.network, site.params, member, batch)
-        width = site.rank
-        dtype = site.w1.dtype
-        device = site.w1.device
-        key1, key2 = site.key + ("w1",), site.key + ("w2",)
-
-        def fit(rank: int) -> float:
-            w1, w2 = _padded_factors(u, s, vh, int(rank), width, dtype)
-            return probe.distance({key1: w1.to(device), key2: w2.to(device)})
-
-        return fit
-
-    def _apply(self, site: LowRankSite, rank: int, u, s, vh) -> str | None:
-        dtype = site.w1.dtype
-        mode = None
-        w1 = w2 = t1 = t2 = None
-        if site.target_w1 is not None:
-            mode = self.target_mode
-            if mode == "project":
-                p1, p2, t_right, t_left, cond = _project_basis(site.w1, site.w2, rank)
-                if not math.isfinite(cond) or cond > PROJECT_COND_LIMIT:
-                    mode = f"sync (fallback: cond(R1, R2) = {cond:.3g} > {PROJECT_COND_LIMIT:.0g})"
-                else:
-                    tw1 = site.target_w1.detach().to(torch.float64)
-                    tw2 = site.target_w2.detach().to(torch.float64)
-                    t1, t2 = tw1 @ t_right, t_left @ tw2
-                    if torch.isfinite(t1).all() and torch.isfinite(t2).all():
-                        w1, w2 = p1.to(dtype), p2.to(dtype)
-                    else:
-                        mode, t1, t2 = "sync (fallback: non-finite projected target)", None, None
-        if w1 is None:
-            w1, w2 = refactorize(u, s, vh, rank, dtype)
-        _resize_site(site, w1, w2, self.optimizers)
-        if site.target_w1 is not None:
-            if t1 is None:
-                t1, t2 = w1.clone(), w2.clone()
-            _set_data(site.target_w1, t1)
-            _set_data(site.target_w2, t2)
-        return mode
 
     # -- checkpointing ------------------------------------------------------------------------------------------
 

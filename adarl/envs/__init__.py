@@ -1,11 +1,16 @@
 """Perturbed dynamics for robust RL: per-episode schedules of physical parameters, as a TorchRL transform.
 
 See ``docs/perturbed-dynamics.md``. The package's names load on first use (PEP 562), so that the schedule grammar
-(:mod:`adarl.envs.schedules`) and the parameter registry (:mod:`adarl.envs.parameters`), which the recipe schema
+(:mod:`adarl.envs.schedules`) and the env registry (:mod:`adarl.envs.registry`), which the recipe schema
 validates against, import without TorchRL or MuJoCo.
 
 * :mod:`adarl.envs.schedules` - episode schedules and their grammar (``{kind: sinusoid | uniform | fixed | list}``);
-* :mod:`adarl.envs.parameters` - which parameters each env has, their ranges, presets, and the appliers;
+* :mod:`adarl.envs.registry` - env ids, which parameters each env has and their ranges, presets by name, the envs'
+  data (:func:`intrinsic_rank`);
+* :mod:`adarl.envs.registration` - :func:`register_env` / :func:`register_parameter` for installed packages;
+* :mod:`adarl.envs.presets` - the presets' schedules (the paper's, Table 2's boxes, ours);
+* :mod:`adarl.envs.mujoco_appliers` - the appliers that put parameter values into a live env (MuJoCo, CartPole);
+* :mod:`adarl.envs.parameters` - all of the four above, by their public names (as before they were split);
 * :mod:`adarl.envs.perturbation` - :class:`PerturbedDynamicsEnvTransform`, the TorchRL ``Transform``;
 * :mod:`adarl.envs.factory` - :func:`make_env` / :func:`make_eval_env`;
 * :mod:`adarl.envs.state` - snapshots of live envs mid-episode (exact resume);
@@ -49,9 +54,9 @@ _EXPORTS: dict[str, str] = {
             "SUPPORTED_ENVS",
             "PAPER_ENVS",
             "MODES",
-            "PRESETS",
             "AIR_DENSITY",
             "AIR_VISCOSITY",
+            "ACTION_DIMS",
             "ParameterInfo",
             "check_env_id",
             "env_parameters",
@@ -59,17 +64,18 @@ _EXPORTS: dict[str, str] = {
             "validate_schedule",
             "make_schedule",
             "preset_names",
-            "DynamicsApplier",
-            "MujocoDynamics",
-            "CartPoleDynamics",
-            "LinearCartPoleDynamics",
-            "make_applier",
             "quiet_mujoco",
-            "register_env",
-            "register_parameter",
             "supported_envs",
+            "action_dim",
+            "intrinsic_rank",
         ],
-        "adarl.envs.parameters",
+        "adarl.envs.registry",
+    ),
+    "PRESETS": "adarl.envs.presets",
+    **dict.fromkeys(["register_env", "register_parameter"], "adarl.envs.registration"),
+    **dict.fromkeys(
+        ["DynamicsApplier", "MujocoDynamics", "CartPoleDynamics", "LinearCartPoleDynamics", "make_applier"],
+        "adarl.envs.mujoco_appliers",
     ),
     **dict.fromkeys(
         ["LinearCartPoleEnv", "LINEAR_CARTPOLE_ID", "linear_cartpole_matrices"], "adarl.envs.linear_cartpole"

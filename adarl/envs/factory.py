@@ -23,8 +23,9 @@ from torchrl.envs.batched_envs import BatchedEnvBase
 from torchrl.envs.libs.gym import GymEnv
 
 from adarl.envs.linear_cartpole import LINEAR_CARTPOLE_ID, LinearCartPoleEnv
-from adarl.envs.parameters import (
-    PRESETS,
+from adarl.envs.perturbation import PerturbedDynamicsEnvTransform
+from adarl.envs.presets import PRESETS
+from adarl.envs.registry import (
     check_env_id,
     check_mode,
     make_schedule,
@@ -32,7 +33,6 @@ from adarl.envs.parameters import (
     quiet_mujoco,
     validate_values,
 )
-from adarl.envs.perturbation import PerturbedDynamicsEnvTransform
 from adarl.envs.schedules import FixedSchedule, Schedule, as_schedule
 from adarl.errors import AdaRLValueError
 

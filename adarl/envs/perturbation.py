@@ -33,12 +33,11 @@ from torchrl.data import Composite, Unbounded
 from torchrl.envs import EnvBase, Transform, TransformedEnv
 from torchrl.envs.batched_envs import BatchedEnvBase
 
-from adarl.envs.parameters import (
-    DynamicsApplier,
+from adarl.envs.mujoco_appliers import DynamicsApplier, make_applier
+from adarl.envs.registry import (
     check_env_id,
     check_mode,
     env_parameters,
-    make_applier,
     make_schedule,
     validate_schedule,
     validate_values,

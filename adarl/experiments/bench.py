@@ -17,6 +17,9 @@ latencies of ``--inference`` (:func:`act_latency`) run here, in worker processes
 The driver itself never imports torch, TorchRL or the recipe runtime (they load inside :func:`measure`, in each
 worker process): its caches and peak memory stay out of the measurements, and ``adarl --help`` builds the bench
 options from this module without them.
+
+Long because: the driver and the worker entry points it starts (``--worker``, ``--whole-run-worker``,
+``--act-latency-worker``) are one command line, ``python -m adarl.experiments.bench``, sharing its option parser.
 """
 
 from __future__ import annotations
@@ -103,11 +106,11 @@ def _recipe(
 def _measure_torchrl(variant, env_id, width, warmup, steps, skip, batch, rank_interval, overrides=()) -> dict:
     import torch
 
-    from adarl.runtime.builders.sac import build_components
+    from adarl.runtime.builders.sac import build_sac_components
 
     total = warmup + skip + steps
     extra = tuple(overrides) if variant.startswith("adarl") else ()  # --set applies to our loops only
-    c = build_components(_recipe(env_id, width, variant, warmup, total, rank_interval, batch, extra))
+    c = build_sac_components(_recipe(env_id, width, variant, warmup, total, rank_interval, batch, extra))
     event_s: list[float] = []
 
     def update():
@@ -216,14 +219,14 @@ def rank_event_seconds(width: int, *, repeats: int = 3, threads: int = 1, event_
     ``threads`` is the loop's torch thread count, ``event_threads`` the recipe's ``rank.num_threads``."""
     import torch
 
-    from adarl.runtime.builders.sac import build_components
+    from adarl.runtime.builders.sac import build_sac_components
 
     torch.set_num_threads(threads)
     extra = () if event_threads is None else (f"rank.num_threads={event_threads}",)
     times = []
     for _ in range(repeats):
         r = _recipe("Hopper-v5", width, "adarl", 10, 100, 10**9, 8, extra)
-        c = build_components(r)
+        c = build_sac_components(r)
         t = time.perf_counter()
         c.adapter.adapt()
         times.append(time.perf_counter() - t)

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from adarl.envs.factory import make_eval_env, resolve_schedule
-from adarl.envs.parameters import env_parameters
+from adarl.envs.registry import env_parameters
 from adarl.errors import AdaRLValueError
 from adarl.runtime.evaluation import EvalResult, evaluate_policy
 from adarl.runtime.report import pyplot

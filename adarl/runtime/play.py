@@ -25,8 +25,8 @@ from torchrl.envs.libs.gym import GymWrapper
 
 from adarl.envs.factory import make_env, resolve_schedule
 from adarl.envs.linear_cartpole import LINEAR_CARTPOLE_ID
-from adarl.envs.parameters import quiet_mujoco, validate_values
 from adarl.envs.perturbation import PerturbedDynamicsEnvTransform
+from adarl.envs.registry import quiet_mujoco, validate_values
 from adarl.envs.schedules import FixedSchedule
 from adarl.errors import AdaRLError, AdaRLValueError
 from adarl.runtime.evaluation import evaluate_policy

@@ -17,7 +17,7 @@ import torch
 
 from adarl.core.lowrank import LowRankLinear
 from adarl.envs.linear_cartpole import LINEAR_CARTPOLE_ID, LinearCartPoleEnv
-from adarl.envs.parameters import quiet_mujoco
+from adarl.envs.registry import quiet_mujoco
 from adarl.errors import AdaRLValueError, CheckpointError
 from adarl.runtime.builders.common import check_device, policy_specs, spec_env
 from adarl.runtime.builders.ppo import make_ppo_modules

@@ -1,9 +1,10 @@
-"""Everything a rank event sets off besides the truncation itself, assembled in one place.
+"""Everything a rank event sets off besides the truncation itself, assembled and wired in one place.
 
 :class:`~adarl.core.adapter.RankAdapter` changes the factors' shapes in place and restarts the LR schedules; the
 rest of a run must follow. :class:`RankEventEffects` holds that rest, in order, and is registered on the adapter
-as one ``on_truncate`` and one ``on_event`` callback (:func:`~adarl.runtime.builders.sac.build_components` does
-it, so a loop of your own gets the same effects as the recipe's trainer):
+as one ``on_truncate`` and one ``on_event`` callback (:func:`~adarl.runtime.builders.sac.build_sac_components` does
+it, so a loop of your own gets the same effects as the recipe's trainer); a trainer adds its records with
+:meth:`RankEventEffects.record_run` (:class:`RunRecords`: the only other place rank events are handled):
 
 after an event that changed a rank (``on_truncate``):
 
@@ -13,11 +14,11 @@ after an event that changed a rank (``on_truncate``):
    (:func:`~adarl.runtime.guards.check_live_layers`);
 4. the warm start refills (or empties) the replay buffer with the truncated policy, then each ``after_warm_start``
    hook gets its :class:`~adarl.core.warmstart.WarmStartRecord` (``None`` without a warm start): the trainer counts
-   the frames and logs them;
+   the frames and logs them (:meth:`RunRecords.count_warm_start`);
 5. the lean collector starts a fresh episode (the warm start stepped the env);
 
 after every event, changed or not (``on_event``): each ``after_event`` hook (the trainer's rank records and logs: a
-refused candidate is a result too).
+refused candidate is a result too; :meth:`RunRecords.record_event`).
 """
 
 from __future__ import annotations
@@ -28,10 +29,11 @@ import torch
 
 from adarl.core.warmstart import ReplayWarmStart, WarmStartRecord
 from adarl.fast.collector import LeanCollector
+from adarl.runtime import metrics
 from adarl.runtime.guards import check_live_layers
 from adarl.runtime.update import UpdateStep
 
-__all__ = ["RankEventEffects"]
+__all__ = ["RankEventEffects", "RunRecords"]
 
 
 class RankEventEffects:
@@ -81,3 +83,41 @@ class RankEventEffects:
     def on_event(self, event) -> None:
         for hook in self.after_event:
             hook(event)
+
+    def record_run(self, trainer) -> RunRecords:
+        """Add a trainer's records of every event (:class:`RunRecords`) to the effects; returns them."""
+        records = RunRecords(trainer)
+        self.after_warm_start.append(records.count_warm_start)
+        self.after_event.append(records.record_event)
+        return records
+
+
+class RunRecords:
+    """What a trainer keeps of rank events: the warm start's frames (counted towards the budget unless
+    ``replay.warm_start.count_frames`` is false, and logged), and after every event the ranks and acceptance errors
+    logged and the rank history written. ``trainer``: a :class:`~adarl.runtime.trainers.base.BaseTrainer` (its
+    counters, logger, run folder and components)."""
+
+    def __init__(self, trainer) -> None:
+        self.trainer = trainer
+
+    def count_warm_start(self, record: WarmStartRecord | None) -> None:
+        """After a rank event's warm start: its frames count towards the budget unless
+        ``replay.warm_start.count_frames`` is false; ``warm_start/frames`` is logged (0 without a warm start)."""
+        t = self.trainer
+        added = int(record.frames_added) if record is not None else 0
+        t.warm_start_frames += added
+        if t.recipe.replay.warm_start.count_frames:
+            t.frames += added
+        t.logger.log_scalar(metrics.WARM_START_FRAMES, added, step=t.frames)
+
+    def record_event(self, event) -> None:
+        """After every rank event, changed or not (a refused candidate is a result too): ranks and history."""
+        t = self.trainer
+        adapter = t.c.adapter
+        for name, rank in adapter.named_ranks.items():
+            t.logger.log_scalar(metrics.rank(name), rank, step=t.frames)
+        for record in event.layers:
+            if record.error is not None:
+                t.logger.log_scalar(metrics.rank_error(record.name or record.layer), float(record.error), step=t.frames)
+        t.run_dir.write_rank_history(adapter.history, frames=t.frames)

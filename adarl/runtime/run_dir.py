@@ -20,6 +20,9 @@ Only training (``adarl run``, ``adarl resume``) writes the training records; eva
 Checkpoints are written to a temporary file, fsync'ed and renamed, so a crash or a full disk mid-write leaves the
 previous one intact; the last ``keep_last`` are kept. Each names the recipe fingerprint it was written under
 (:func:`recipe_fingerprint`), checked before any of its tensors is used.
+
+Long because: one class, :class:`RunDir`, knows the whole layout above and writes every file of it safely (atomic
+renames, fsync, the lock, free-space checks); split by file kind, the layout would be spread over modules.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """One SAC optimisation step, behind one interface: TorchRL's ``SACLoss`` step or the fused one.
 
-:func:`~adarl.runtime.builders.sac.build_components` picks the step (``algorithm.fused``) and the trainer calls it,
+:func:`~adarl.runtime.builders.sac.build_sac_components` picks the step (``algorithm.fused``) and the trainer calls it,
 whichever it is: ``losses = components.update(guard, update=n)``. Both sample a batch from the replay buffer
 (the same indices from the same generator), compute SAC's three losses, back-propagate, clip, step the optimisers
 and LR schedules and update the target critics; both return the detached loss values by name. The divergence

@@ -2,11 +2,12 @@
 
 * :mod:`~adarl.runtime.builders.common` - the device check, the MLP of a ``network.<net>`` section (plain,
   low-rank, or a registered baseline's variant), the training and evaluation envs, an actor's specs;
-* :mod:`~adarl.runtime.builders.sac` - SAC's actor, critic and ``SACLoss``; :func:`build_components` for AdaRL-SAC
-  and the SAC baselines;
+* :mod:`~adarl.runtime.builders.sac` - SAC's actor, critic and ``SACLoss``; :func:`build_sac_components` (alias
+  ``build_components``) for AdaRL-SAC and the SAC baselines;
 * :mod:`~adarl.runtime.builders.ppo` - the RNAC baselines' PPO modules; :func:`build_ppo_components`.
 
-The baselines plug in through :mod:`adarl.baselines.registry`; nothing here names one.
+The baselines plug in through :mod:`adarl.baselines.registry`; nothing here names one. Which builder a recipe needs is
+its loop's (:mod:`adarl.runtime.families`).
 """
 
 from adarl.runtime.builders.common import (
@@ -21,8 +22,10 @@ from adarl.runtime.builders.common import (
 from adarl.runtime.builders.ppo import PPOComponents, PPOModules, build_ppo_components, make_ppo_modules
 from adarl.runtime.builders.sac import (
     Components,
+    SACComponents,
     SACModules,
     build_components,
+    build_sac_components,
     make_recipe_actor,
     make_sac_actor,
     make_sac_critic,
@@ -48,6 +51,8 @@ __all__ = [
     "make_sac_modules",
     "reinit_low_rank_ensemble",
     "SACModules",
+    "SACComponents",
+    "build_sac_components",
     "Components",
     "build_components",
     "planned_updates",

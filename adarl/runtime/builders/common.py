@@ -19,8 +19,11 @@ from torchrl.modules import MLP
 
 from adarl.baselines import registry
 from adarl.core.lowrank import low_rank_mlp
-from adarl.envs.factory import make_env, make_eval_env
+from adarl.envs.factory import dynamics_state_dict, load_dynamics_state_dict, make_env, make_eval_env
+from adarl.envs.state import env_state_dict, gym_rng_state_dict, load_env_state_dict, load_gym_rng_state_dict
 from adarl.errors import AdaRLValueError
+from adarl.fast.collector import LeanCollector
+from adarl.runtime.state import collector_state_dict, load_collector_state_dict
 
 __all__ = [
     "RunComponents",
@@ -225,8 +228,14 @@ def spec_env(specs: dict, device) -> SimpleNamespace:
 
 
 class RunComponents:
-    """What the SAC and PPO component bundles share: the policy the collector runs and a close that shuts the
-    collector and both envs once. Subclasses are dataclasses with ``modules``, ``collector``, ``env``, ``eval_env``."""
+    """What every family's component bundle shares: the policy the collector runs, a close that shuts the collector
+    and both envs once, and its own checkpoint state (:meth:`state_dict` / :meth:`load_state_dict`), so that a
+    trainer saves and loads a run without knowing what its family built.
+
+    Subclasses are dataclasses with ``modules``, ``optimizers``, ``schedulers``, ``collector``, ``env``,
+    ``eval_env``, ``sampling_generator``, and ``replay_buffer``, ``adapter``, ``warm_start``, ``rank_events``
+    (None where the family has none); they say what else they hold (:meth:`guarded_parameters`,
+    :meth:`_own_state`, :meth:`_load_networks`, :meth:`_load_own_state`)."""
 
     @property
     def policy(self):
@@ -240,3 +249,58 @@ class RunComponents:
                 closable.shutdown() if hasattr(closable, "shutdown") else closable.close()
             except Exception:  # noqa: BLE001 - already closed
                 pass
+
+    # ------------------------------------------------------------------ what a family provides
+    def guarded_parameters(self) -> dict[str, torch.Tensor]:
+        """``{readable name: tensor}`` of every trained parameter the divergence guard checks."""
+        raise NotImplementedError
+
+    def _own_state(self) -> dict:
+        """The checkpoint entries only this family has (networks, loss, adapter, ...)."""
+        raise NotImplementedError
+
+    def _load_networks(self, state: dict) -> None:
+        """Load the networks of :meth:`_own_state` (before the optimisers: their state follows the shapes)."""
+        raise NotImplementedError
+
+    def _load_own_state(self, state: dict) -> None:
+        """Load the rest of :meth:`_own_state` (after the optimisers and schedules)."""
+
+    # ------------------------------------------------------------------ checkpoint state
+    def state_dict(self) -> dict:
+        """Everything the components hold that a run continues from: the family's own entries, optimisers, schedules,
+        the live episode (dynamics, simulator and gymnasium state, the collector's carrier and counters), the
+        evaluation env's generators, the sampling generator, and the specs :func:`adarl.load_policy` builds the
+        actor from. A lean collector's prefetched batch is finished first (it moves the env)."""
+        if isinstance(self.collector, LeanCollector):
+            self.collector.drain(keep=True)
+        return {
+            **self._own_state(),
+            "optimizers": {k: o.state_dict() for k, o in self.optimizers.items()},
+            "schedulers": {k: s.state_dict() for k, s in self.schedulers.items()},
+            "dynamics": dynamics_state_dict(self.env),
+            "sampling_rng": self.sampling_generator.get_state(),
+            "env_state": env_state_dict(self.env),
+            "collector": collector_state_dict(self.collector),
+            "eval_rng": gym_rng_state_dict(self.eval_env),
+            "policy_specs": policy_specs(self.env),
+        }
+
+    def load_state_dict(self, state: dict, *, fill_replay_buffer: Callable[[object], None] | None = None) -> None:
+        """Put back what :meth:`state_dict` saved, in the order exact resume needs: networks, optimisers, schedules,
+        the family's other state, the replay buffer (``fill_replay_buffer(buffer)``: it lies in the run folder,
+        beside the checkpoint), then the live episode and the generators. The global RNGs are the caller's (last)."""
+        self._load_networks(state)
+        for k, o in self.optimizers.items():
+            o.load_state_dict(state["optimizers"][k])
+        for k, s in self.schedulers.items():
+            s.load_state_dict(state["schedulers"][k])
+        self._load_own_state(state)
+        if fill_replay_buffer is not None and self.replay_buffer is not None:
+            fill_replay_buffer(self.replay_buffer)
+        load_dynamics_state_dict(self.env, state["dynamics"])
+        live_episode = load_env_state_dict(self.env, state.get("env_state"))
+        if state.get("collector") is not None:
+            load_collector_state_dict(self.collector, state["collector"], carrier=live_episode)
+        load_gym_rng_state_dict(self.eval_env, state.get("eval_rng"))
+        self.sampling_generator.set_state(state["sampling_rng"])

@@ -13,6 +13,7 @@ from the original. The loop is :class:`~adarl.runtime.trainers.ppo.PPOTrainer`.
 
 from __future__ import annotations
 
+import ast
 import math
 from dataclasses import dataclass, field
 
@@ -39,6 +40,7 @@ from adarl.runtime.builders.common import (
     make_envs,
     make_recipe_mlp,
 )
+from adarl.runtime.families import check_family
 from adarl.runtime.state import seed_everything
 
 __all__ = [
@@ -65,8 +67,10 @@ class PPOModules:
 
 @dataclass
 class PPOComponents(RunComponents):
-    """Everything a PPO recipe builds, wired together (no training has happened yet). ``terms``: the loss terms the
-    recipe switches on (:mod:`adarl.baselines.registry`: Parseval); ``sampling_generator`` draws the minibatches."""
+    """Everything a PPO recipe builds, wired together (no training has happened yet), and its checkpoint state.
+    ``terms``: the loss terms the recipe switches on (:mod:`adarl.baselines.registry`: Parseval);
+    ``sampling_generator`` draws the minibatches. In a checkpoint (:meth:`state_dict`): actor and critic (their
+    observation statistics included), the reward scaler, RNAC-DS's generator and counters."""
 
     recipe: object
     env: object
@@ -82,11 +86,44 @@ class PPOComponents(RunComponents):
     terms: dict[str, nn.Module] = field(default_factory=dict)
     #: log the loss's other scalar entries (a plugin's loss; ClipPPOLoss's own diagnostics are left out as before)
     plugin_metrics: bool = False
+    #: what the SAC loop has and this one does not (a trainer asks every family's components the same)
+    replay_buffer: None = None
+    adapter: None = None
+    warm_start: None = None
+    rank_events: None = None
 
     @property
     def double_sampling(self) -> DoubleSamplingTransform | None:
         """RNAC-DS's transform when the algorithm's env hook added one (its counters and generator are checkpointed)."""
         return self.env_transform if isinstance(self.env_transform, DoubleSamplingTransform) else None
+
+    def guarded_parameters(self) -> dict[str, torch.Tensor]:
+        named = {f"actor.{k}": p for k, p in self.modules.actor.named_parameters()}
+        named.update({f"critic.{k}": p for k, p in self.modules.critic.named_parameters()})
+        return named
+
+    def _own_state(self) -> dict:
+        ds = self.double_sampling
+        return {
+            "actor": self.modules.actor.state_dict(),
+            "critic": self.modules.critic.state_dict(),
+            "reward_scaler": self.reward_scaler.state_dict() if self.reward_scaler is not None else None,
+            "ds_rng": repr(ds.rng_state()) if ds is not None else None,
+            "ds_counts": [ds.worst_picks, ds.steps] if ds is not None else None,
+        }
+
+    def _load_networks(self, state: dict) -> None:
+        self.modules.actor.load_state_dict(state["actor"])
+        self.modules.critic.load_state_dict(state["critic"])
+
+    def _load_own_state(self, state: dict) -> None:
+        if self.reward_scaler is not None and state.get("reward_scaler") is not None:
+            self.reward_scaler.load_state_dict(state["reward_scaler"])
+        ds = self.double_sampling
+        if ds is not None and state.get("ds_rng"):
+            ds.set_rng_state(ast.literal_eval(state["ds_rng"]))
+        if ds is not None and state.get("ds_counts") is not None:
+            ds.worst_picks, ds.steps = (int(v) for v in state["ds_counts"])
 
 
 class LinearDecay:
@@ -168,7 +205,9 @@ def make_ppo_modules(recipe, env) -> PPOModules:
 
 
 def build_ppo_components(recipe) -> PPOComponents:
-    """Env (+ RNAC-DS), evaluation env, networks, loss, optimisers, LR decay and collector of a PPO recipe."""
+    """Env (+ RNAC-DS), evaluation env, networks, loss, optimisers, LR decay and collector of a PPO recipe (a recipe
+    on another loop is refused, naming its builder: :func:`adarl.runtime.families.check_family`)."""
+    check_family(recipe, "ppo")
     check_device(recipe.device)
     apply_num_threads(recipe)
     seed_everything(recipe.seed)

@@ -1,19 +1,20 @@
 """Where a SAC recipe becomes objects: actor, critic and ``SACLoss`` (stock TorchRL pieces with
 :class:`~adarl.core.lowrank.LowRankLinear` layers), then every component of a run wired together
-(:func:`build_components`): envs, optimisers, LR schedules, replay buffer, collector, the update step, the rank
-adapter with its acceptance step, and the warm start.
+(:func:`build_sac_components`, :class:`SACComponents`): envs, optimisers, LR schedules, replay buffer, collector, the
+update step, the rank adapter with its acceptance step, the warm start, and what a rank event sets off.
+``build_components`` and ``Components`` are aliases of the two, the names they had before the PPO loop had its own.
 
 Each network builder takes plain arguments (not the recipe) so that users composing in Python can call them
-directly; :func:`make_sac_modules` and :func:`build_components` are the recipe-facing ones. The baselines plug in
+directly; :func:`make_sac_modules` and :func:`build_sac_components` are the recipe-facing ones. The baselines plug in
 through :mod:`adarl.baselines.registry` (network variants, init schemes, loss terms); the speed engine
 (:mod:`adarl.fast`) replaces the collector and the update step where it applies (``collector.lean``,
 ``algorithm.fused``).
 
->>> from adarl import build_components, load_recipe
+>>> from adarl import build_sac_components, load_recipe
 >>> recipe = load_recipe("quickstart", ["collector.total_frames=500", "collector.init_random_frames=100",
 ...                                     "collector.frames_per_batch=100", "replay.size=500",
 ...                                     "replay.warm_start.frames=100"])
->>> c = build_components(recipe)
+>>> c = build_sac_components(recipe)
 >>> type(c.update).__name__, type(c.collector).__name__, c.adapter.named_ranks["actor.layer0"]
 ('FusedStep', 'LeanCollector', 11)
 >>> c.close()
@@ -38,10 +39,10 @@ from torchrl.objectives import DiscreteSACLoss, SACLoss, SoftUpdate, ValueEstima
 from adarl import plugins
 from adarl.baselines import registry
 from adarl.core.acceptance import ProjectionAcceptance, RecentTransitions
-from adarl.core.adapter import RankAdapter
-from adarl.core.lowrank import LowRankLinear
+from adarl.core.adapter import RankAdapter, resize_to_ranks
+from adarl.core.ensemble import reinit_low_rank_ensemble
 from adarl.core.lr_schedule import make_lr_scheduler
-from adarl.core.rank import RankRule, make_rule
+from adarl.core.rank import RankRule
 from adarl.core.restarts import ScheduledRestarts
 from adarl.core.warmstart import ReplayWarmStart
 from adarl.errors import AdaRLValueError, AdaRLWarning
@@ -58,6 +59,7 @@ from adarl.runtime.builders.common import (
     make_mlp,
     train_env_factory,
 )
+from adarl.runtime.families import check_family
 from adarl.runtime.rank_events import RankEventEffects
 from adarl.runtime.state import seed_everything
 from adarl.runtime.update import FusedStep, LossStep, UpdateStep
@@ -70,6 +72,8 @@ __all__ = [
     "SACModules",
     "make_recipe_actor",
     "make_sac_modules",
+    "SACComponents",
+    "build_sac_components",
     "Components",
     "build_components",
     "sac_parameters",
@@ -168,54 +172,6 @@ def make_sac_loss(
     return loss
 
 
-@torch.no_grad()
-def reinit_low_rank_ensemble(loss, network: str = "qvalue_network") -> int:
-    """Give every member of a TorchRL Q ensemble's low-rank layers :class:`LowRankLinear`'s own initialisation.
-
-    Why: a TorchRL loss builds its ensemble (``num_qvalue_nets`` copies, ``expand_dim`` in
-    ``LossModule.convert_to_functional``) by resampling every stacked parameter uniformly in ``[min, max]`` of the
-    template's values. For a dense ``nn.Linear`` that is its own init distribution; for the factors ``W1``, ``W2``
-    it is not: the product of two independent uniform factors starts ~2-5x larger than ``nn.Linear`` (64 wide)
-    and with its condition number squared. This redraws each member's ``w1``, ``w2`` and bias as a fresh
-    ``LowRankLinear`` (a factorised ``nn.Linear`` init) and copies them into the target parameters. Call it right
-    after building the loss (``make_sac_loss`` does). Returns how many layers were redrawn.
-    """
-    params = getattr(loss, f"{network}_params", None)
-    module = getattr(loss, network, None)
-    if params is None or module is None:
-        raise AdaRLValueError(f"{type(loss).__name__} has no {network}_params to re-initialise")
-    online = dict(params.flatten_keys(".").items())
-    target = getattr(loss, f"target_{network}_params", None)
-    target = dict(target.flatten_keys(".").items()) if target is not None else {}
-    count = 0
-    for name, layer in module.named_modules():
-        if not isinstance(layer, LowRankLinear):
-            continue
-        keys = [f"{name}.{p}" for p in ("w1", "w2", "bias") if getattr(layer, p, None) is not None]
-        if not all(k in online for k in keys):
-            continue
-        members = online[keys[0]].shape[0] if online[keys[0]].dim() == 3 else None
-        if members is None:  # not stacked: the layer kept its own init
-            continue
-        device, dtype = online[keys[0]].device, online[keys[0]].dtype
-        for i in range(members):
-            fresh = LowRankLinear(
-                layer.in_features,
-                layer.out_features,
-                rank=layer.rank,
-                bias=layer.bias is not None,
-                device=device,
-                dtype=dtype,
-            )
-            for k, p in zip(keys, ("w1", "w2", "bias")):
-                online[k].data[i].copy_(getattr(fresh, p))
-        for k in keys:
-            if k in target:
-                target[k].data.copy_(online[k].data)
-        count += 1
-    return count
-
-
 @dataclass
 class SACModules:
     """The networks and loss of one SAC agent, with the policy the collector and evaluator run."""
@@ -283,13 +239,14 @@ def make_sac_modules(recipe, env: EnvBase) -> SACModules:
 
 
 @dataclass
-class Components(RunComponents):
-    """Everything a SAC recipe builds, wired together (no training has happened yet).
+class SACComponents(RunComponents):
+    """Everything a SAC recipe builds, wired together (no training has happened yet), and its checkpoint state.
 
     ``update`` is the optimisation step (:class:`~adarl.runtime.update.UpdateStep`: TorchRL's ``SACLoss`` step or
     the fused one); ``sampling_generator`` draws the replay indices (checkpointed for exact resume);
     ``rank_events`` the side effects of rank events, registered on ``adapter``
-    (:class:`~adarl.runtime.rank_events.RankEventEffects`)."""
+    (:class:`~adarl.runtime.rank_events.RankEventEffects`). In a checkpoint (:meth:`state_dict`): the loss (its
+    networks and targets), the adapter and the warm start; the replay buffer is saved beside it."""
 
     recipe: object
     env: object
@@ -305,6 +262,31 @@ class Components(RunComponents):
     total_updates: int
     sampling_generator: torch.Generator
     rank_events: RankEventEffects | None = None
+
+    def guarded_parameters(self) -> dict[str, torch.Tensor]:
+        return sac_parameters(self.modules.loss, self.recipe.algorithm.fixed_alpha)
+
+    def _own_state(self) -> dict:
+        return {
+            "loss": self.modules.loss.state_dict(),
+            "adapter": self.adapter.state_dict() if self.adapter is not None else None,
+            "warm_start": self.warm_start.state_dict() if self.warm_start is not None else None,
+        }
+
+    def _load_networks(self, state: dict) -> None:
+        if state.get("adapter") is not None and isinstance(self.adapter, RankAdapter):  # its ranks, then its tensors
+            resize_to_ranks(self.modules.loss, state["adapter"], optimizers=list(self.optimizers.values()))
+        self.modules.loss.load_state_dict(state["loss"])
+
+    def _load_own_state(self, state: dict) -> None:
+        if self.adapter is not None and state.get("adapter") is not None:
+            self.adapter.load_state_dict(state["adapter"])
+        if self.warm_start is not None and state.get("warm_start") is not None:
+            self.warm_start.load_state_dict(state["warm_start"])
+
+
+#: the name :class:`SACComponents` had before the PPO loop had its own (kept: an alias)
+Components = SACComponents
 
 
 class FusedFallbackWarning(AdaRLWarning):
@@ -353,24 +335,23 @@ def event_threads(setting, environ=None) -> int | None:
 
 
 def make_rank_rule(rank) -> RankRule:
-    """The rule of a recipe's ``rank`` section: adarl's own from ``beta`` / ``target_rank`` / ``lam``, a rule
-    registered with :func:`adarl.register_rank_rule` as ``rule_class()(**rule_options)``. A rule whose class sets
-    ``needs_fit = True`` gets ``fit(rank)`` from the adapter (on replay states), as ``policy_fit`` does."""
+    """The rule of a recipe's ``rank`` section, built one way for every registered rule (adarl's own and a plugin's):
+    ``rule_class()(**arguments)``, the arguments being adarl's own rules' keys (``rank.beta``, ``rank.target_rank``,
+    ``rank.lam``) or a plugin rule's ``rank.rule_options`` (:meth:`adarl.plugins.RankRuleSpec.arguments`). A rule
+    whose class sets ``needs_fit = True`` gets ``fit(rank)`` from the adapter (on replay states), as ``policy_fit``
+    does."""
     spec = plugins.rank_rule(rank.rule)
-    if spec.builtin:
-        if rank.rule == "fixed":
-            return make_rule("fixed", rank=rank.target_rank)
-        if rank.rule == "policy_fit":
-            return make_rule("policy_fit", lam=rank.lam)
-        return make_rule(rank.rule, beta=rank.beta)
     cls = spec.rule_class()
-    where = f"rank rule {spec.name!r} ({spec.rule_path}, from {spec.provider or 'a register_rank_rule call'})"
+    provider = spec.provider or ("adarl" if spec.builtin else "a register_rank_rule call")
+    where = f"rank rule {spec.name!r} ({spec.rule_path}, from {provider})"
     if not (isinstance(cls, type) and issubclass(cls, RankRule)):
         raise AdaRLValueError(f"{where} is not an adarl.core.rank.RankRule subclass (got {cls!r})")
+    kwargs = spec.arguments(rank)
     try:
-        return cls(**rank.rule_options)
+        return cls(**kwargs)
     except TypeError as err:
-        raise AdaRLValueError(f"{where} cannot be built from rank.rule_options {rank.rule_options}: {err}") from None
+        source = f"its rank keys {kwargs}" if spec.builtin else f"rank.rule_options {rank.rule_options}"
+        raise AdaRLValueError(f"{where} cannot be built from {source}: {err}") from None
 
 
 def _rank_adapter(recipe, loss, optimizers, schedulers, replay_buffer) -> RankAdapter:
@@ -436,25 +417,17 @@ def _update_step(
     )
 
 
-def build_components(
+def build_sac_components(
     recipe, *, init_random_frames: int | None = None, scratch_dir: str | os.PathLike | None = None
-) -> Components:
+) -> SACComponents:
     """Build env, networks, SAC loss, optimisers, LR schedules, buffer, collector, update step, rank adapter and
-    warm start.
+    warm start, and wire what a rank event sets off (:class:`~adarl.runtime.rank_events.RankEventEffects`,
+    registered on the adapter: a loop of your own gets the same effects as the recipe's trainer).
 
     With ``algorithm.fused`` the update step is a :class:`~adarl.runtime.update.FusedStep` (same parameters, losses
-    and optimisers as the plain path). ``scratch_dir`` holds a memmap replay storage. The rank adapter's
-    ``on_truncate``/``on_event`` callbacks are left to the trainer (:meth:`adarl.runtime.trainers.sac.Trainer.
-    rank_event_effects` assembles them in one place); in a loop of your own, register ``c.update.on_rank_event``
-    as an ``on_truncate`` callback when it compiles (``algorithm.compile``). A recipe on the PPO loop (RNAC) is
-    refused by name: its components come from :func:`~adarl.runtime.builders.ppo.build_ppo_components`."""
-    base = recipe.algorithm.base
-    if base != "sac":
-        raise AdaRLValueError(
-            f"build_components builds the SAC loop; algorithm.name {recipe.algorithm.name!r} runs on the {base!r} "
-            f"loop: use adarl.runtime.builders.build_ppo_components(recipe) "
-            f"(adarl.runtime.trainers.trainer_class(recipe) gives the trainer that runs it)"
-        )
+    and optimisers as the plain path). ``scratch_dir`` holds a memmap replay storage. A recipe on another loop
+    (RNAC's PPO) is refused, naming its builder (:func:`adarl.runtime.families.check_family`)."""
+    check_family(recipe, "sac")
     check_device(recipe.device)
     apply_num_threads(recipe)
     seed_everything(recipe.seed)
@@ -549,7 +522,7 @@ def build_components(
         factors = {k: v for k, v in sac_parameters(loss, alg.fixed_alpha).items() if k.endswith((".w1", ".w2"))}
         effects = RankEventEffects(update, collector, warm_start, factors)
         effects.register(adapter)
-    return Components(
+    return SACComponents(
         recipe,
         env,
         eval_env,
@@ -565,3 +538,7 @@ def build_components(
         generator,
         effects,
     )
+
+
+#: the name :func:`build_sac_components` had before the PPO loop had its own (kept: an alias)
+build_components = build_sac_components

@@ -4,6 +4,9 @@ Every model forbids unknown keys and NaN/inf. A validator that finds problems ra
 relative to the model, value, message), which :mod:`adarl.runtime.config.validation` turns into
 :class:`~adarl.errors.RecipeError` lines. Env ids, presets, parameter names and schedules are checked against
 :mod:`adarl.envs` (its registry and schedule grammar), never against a copy.
+
+Long because: it is the recipe's reference, one model per section with every key's description, default and range
+(``adarl show`` and docs/recipes.md are read from it), each cross-check next to the keys it relates.
 """
 
 from __future__ import annotations
@@ -14,7 +17,7 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from adarl import plugins
-from adarl.envs.parameters import (
+from adarl.envs.registry import (
     HOW_TO_REGISTER_ENV,
     check_env_id,
     env_parameters,

@@ -6,13 +6,16 @@ back to the last checkpoint with a lower learning rate), the first SIGINT/SIGTER
 :class:`~adarl.runtime.signals.RunInterrupted`), and exact resume (counters, RNGs, the live episode and the
 collector's state in every checkpoint). A subclass builds its components and consumes one collected batch:
 
-* :meth:`_build_components` - the components (``self.c``: ``env``, ``eval_env``, ``modules.actor``,
-  ``optimizers``, ``schedulers``, ``collector``, ``sampling_generator``) and the parameters the guard checks;
+* :meth:`_build_components` - the components (``self.c``, a
+  :class:`~adarl.runtime.builders.common.RunComponents`: they save and load their own checkpoint state, say which
+  parameters the divergence guard checks, and hold the replay buffer, rank adapter and rank events if any);
 * :meth:`_consume` - one batch: count its frames, log its episodes, run the updates; return the losses;
-* :meth:`_module_state` / :meth:`_load_module_state` - the networks (and what else only it knows) in a checkpoint.
+* :attr:`counters` - its own counters, checkpointed with the common ones.
 
-The loop (:meth:`train` and :meth:`_train_batches`) reads top to bottom: collect, consume, log, evaluate,
-checkpoint, stop on a signal or at the frame budget.
+What a rank event sets off, the trainer's records included, is wired in :mod:`adarl.runtime.rank_events`. Which
+trainer runs a recipe is the one dispatcher's answer (:func:`trainer_class`, :mod:`adarl.runtime.families`). The
+loop (:meth:`train` and :meth:`_train_batches`) reads top to bottom: collect, consume, log, evaluate, checkpoint,
+stop on a signal or at the frame budget.
 """
 
 from __future__ import annotations
@@ -29,18 +32,16 @@ import torch
 from tensordict import TensorDictBase
 from tqdm import auto as tqdm_auto
 
-from adarl.envs.factory import dynamics_state_dict, load_dynamics_state_dict
-from adarl.envs.state import env_state_dict, gym_rng_state_dict, load_env_state_dict, load_gym_rng_state_dict
 from adarl.errors import AdaRLError, AdaRLValueError, CheckpointError
-from adarl.fast.collector import LeanCollector
 from adarl.runtime import metrics
-from adarl.runtime.builders.common import policy_specs
+from adarl.runtime.builders.common import RunComponents
 from adarl.runtime.evaluation import EvalResult, evaluate_policy
+from adarl.runtime.families import family
 from adarl.runtime.guards import NonFiniteError, NonFiniteGuard
 from adarl.runtime.report import write_report
 from adarl.runtime.run_dir import RunDir, null_logger, recipe_fingerprint
 from adarl.runtime.signals import GracefulInterrupt, RunInterrupted
-from adarl.runtime.state import collector_state_dict, load_collector_state_dict, rng_state, set_rng_state
+from adarl.runtime.state import rng_state, set_rng_state
 
 __all__ = ["BaseTrainer", "trainer_class"]
 
@@ -48,20 +49,21 @@ __all__ = ["BaseTrainer", "trainer_class"]
 class BaseTrainer:
     """Runs one recipe in one run folder: train, evaluate on nominal dynamics, checkpoint, report.
 
-    ``Trainer(recipe, run_dir).train()`` for a new run; ``Trainer.resume(run_dir).train()`` to continue one (the
-    recipe's ``algorithm.name`` picks the subclass: :func:`trainer_class`). Subclasses declare the algorithm they
-    run: ``class PPOTrainer(BaseTrainer, algorithm="ppo")``.
+    ``SACTrainer(recipe, run_dir).train()`` for a new run; ``BaseTrainer.resume(run_dir).train()`` to continue one (the
+    recipe's ``algorithm.base`` picks the subclass: :func:`trainer_class`). Subclasses declare the loop they run:
+    ``class PPOTrainer(BaseTrainer, algorithm="ppo")``, and are named in :mod:`adarl.runtime.families`.
     """
 
-    #: the ``algorithm.name`` a subclass runs, and every subclass by it
+    #: the loop (``algorithm.base``) a subclass runs
     algorithm: ClassVar[str | None] = None
-    _by_algorithm: ClassVar[dict[str, type[BaseTrainer]]] = {}
+    #: the subclass's own counters, checkpointed with the common ones: ``{attribute: (type, value a checkpoint
+    #: without it resumes from)}``, ``None`` for a counter every checkpoint has; each starts at 0
+    counters: ClassVar[dict[str, tuple[type, int | float | None]]] = {}
 
     def __init_subclass__(cls, algorithm: str | None = None, **kwargs) -> None:
         super().__init_subclass__(**kwargs)
         if algorithm is not None:
             cls.algorithm = algorithm
-            BaseTrainer._by_algorithm[algorithm] = cls
 
     def __init__(
         self,
@@ -101,6 +103,8 @@ class BaseTrainer:
         self._bar = None
         self._clock: tuple[float, int, int] | None = None
         self._fps_frames: int | None = None
+        for name, (kind, _) in self.counters.items():
+            setattr(self, name, kind(0))
         if not _read_only:
             run_dir.lock()  # one process trains in a run folder at a time (released by close())
             if _resume_state is None and not run_dir.recipe_path.exists():
@@ -110,37 +114,14 @@ class BaseTrainer:
         self._build(_resume_state)
 
     # ------------------------------------------------------------------ what a subclass provides
-    def _build_components(self, state: dict | None):
-        """Build the components ``self.c`` (to continue from checkpoint ``state`` when given) and return the
-        parameters the divergence guard checks, ``{readable name: tensor}``."""
+    def _build_components(self, state: dict | None) -> RunComponents:
+        """Build the run's components (to continue from checkpoint ``state`` when given)."""
         raise NotImplementedError
 
     def _consume(self, batch: TensorDictBase) -> list[dict[str, torch.Tensor]] | None:
         """One collected batch: count its frames, log its episodes, run the updates it allows. Returns the
         updates' losses (None when it ran none, as before the first update: nothing is logged then)."""
         raise NotImplementedError
-
-    def _module_state(self) -> dict:
-        """The checkpoint entries only the subclass knows (networks, loss, adapter, ...)."""
-        raise NotImplementedError
-
-    def _load_module_state(self, state: dict) -> None:
-        """Load the networks of :meth:`_module_state` (before the optimisers are loaded)."""
-        raise NotImplementedError
-
-    def _load_extra_state(self, state: dict) -> None:
-        """Load the rest of :meth:`_module_state` (after the counters)."""
-
-    def _extra_counters(self) -> dict:
-        """Counters of the subclass's own, saved with the common ones."""
-        return {}
-
-    def _load_extra_counters(self, counters: dict) -> None:
-        """Read back :meth:`_extra_counters`."""
-
-    def _replay_buffer_to_save(self):
-        """The replay buffer saved beside a checkpoint (None: none)."""
-        return None
 
     def _postfix(self) -> dict:
         """The progress bar's postfix."""
@@ -149,12 +130,16 @@ class BaseTrainer:
     @property
     def adapter(self):
         """The rank adapter of the run (None: no rank adaptation)."""
-        return None
+        return self.c.adapter
 
     # ------------------------------------------------------------------ construction
     def _build(self, state: dict | None) -> None:
-        """Build the components (fresh, or to continue from checkpoint ``state``) and the divergence guard."""
-        self.guard = NonFiniteGuard(self._build_components(state))
+        """Build the components (fresh, or to continue from checkpoint ``state``), this run's records of their rank
+        events, and the divergence guard."""
+        self.c = self._build_components(state)
+        if self.c.rank_events is not None:
+            self.c.rank_events.record_run(self)
+        self.guard = NonFiniteGuard(self.c.guarded_parameters())
         if state is not None:
             self._load_checked(state)
 
@@ -185,7 +170,7 @@ class BaseTrainer:
     ) -> BaseTrainer:
         """Continue the run in ``path`` from its latest loadable checkpoint (metrics after it are dropped first).
 
-        The trainer is the recipe's (:func:`trainer_class`: ``Trainer.resume`` of a PPO run gives a
+        The trainer is the recipe's (:func:`trainer_class`: ``SACTrainer.resume`` of a PPO run gives a
         :class:`~adarl.runtime.trainers.ppo.PPOTrainer`) unless ``cls`` is a subclass of it.
         ``checkpoint``: None, the newest checkpoint that loads (a damaged or foreign newer one is skipped with a
         :class:`~adarl.errors.CheckpointFallbackWarning` naming it and why); ``"latest"``, the newest or a
@@ -429,31 +414,24 @@ class BaseTrainer:
             "best_eval": self.best_eval,
             "last_ckpt_frames": self.last_ckpt_frames,
             "rollbacks": self.rollbacks,
-            **self._extra_counters(),
+            **{name: getattr(self, name) for name in self.counters},
             "loss_sums": dict(self._loss_sums),
             "loss_count": self._loss_count,
             "last_log_frames": self._last_log_frames,
         }
 
     def state_dict(self) -> dict:
-        """Everything needed to continue this run (the replay buffer is dumped beside it when configured)."""
-        c = self.c
-        if isinstance(c.collector, LeanCollector):  # a batch being prefetched moves the env: snapshot after it
-            c.collector.drain(keep=True)
-        return {
-            "counters": self._counters(),
-            **self._module_state(),
-            "optimizers": {k: o.state_dict() for k, o in c.optimizers.items()},
-            "schedulers": {k: s.state_dict() for k, s in c.schedulers.items()},
-            "rng": rng_state(),
-            "dynamics": dynamics_state_dict(c.env),
-            "sampling_rng": c.sampling_generator.get_state(),
-            # The live episode (exact resume): simulator + gymnasium state, the collector's carrier and counters.
-            "env_state": env_state_dict(c.env),
-            "collector": collector_state_dict(c.collector),
-            "eval_rng": gym_rng_state_dict(c.eval_env),
-            "policy_specs": policy_specs(c.env),  # adarl.load_policy builds the actor from these, without an env
-        }
+        """Everything needed to continue this run: the counters, the components' own state (networks, optimisers,
+        the live episode, ...; :meth:`~adarl.runtime.builders.common.RunComponents.state_dict`) and the global RNGs
+        (the replay buffer is dumped beside it when configured)."""
+        counters = self._counters()
+        components = self.c.state_dict()  # first: a lean collector's prefetched batch is finished before the RNGs
+        return {"counters": counters, **components, "rng": rng_state()}
+
+    def _replay_buffer_to_save(self):
+        """The replay buffer saved beside a checkpoint (None: none, or ``checkpoint.replay_buffer`` is false)."""
+        rb = self.c.replay_buffer
+        return rb if rb is not None and self.recipe.checkpoint.replay_buffer and len(rb) else None
 
     def save_checkpoint(self, *, scheduled: bool = True) -> Path:
         """Write a checkpoint (atomically; metric files are fsync'ed first so they are as durable as it).
@@ -475,12 +453,6 @@ class BaseTrainer:
         )
 
     def _load_state(self, state: dict) -> None:
-        c = self.c
-        self._load_module_state(state)
-        for k, o in c.optimizers.items():
-            o.load_state_dict(state["optimizers"][k])
-        for k, s in c.schedulers.items():
-            s.load_state_dict(state["schedulers"][k])
         cnt = state["counters"]
         self.frames, self.updates, self.episodes = int(cnt["frames"]), int(cnt["updates"]), int(cnt["episodes"])
         self.last_eval_frames = int(cnt["last_eval_frames"])
@@ -490,15 +462,26 @@ class BaseTrainer:
         self._loss_sums = {k: float(v) for k, v in cnt.get("loss_sums", {}).items()}
         self._loss_count = int(cnt.get("loss_count", 0))
         self._last_log_frames = int(cnt.get("last_log_frames", self.frames))
-        self._load_extra_counters(cnt)
-        self._load_extra_state(state)
-        load_dynamics_state_dict(c.env, state["dynamics"])
-        live_episode = load_env_state_dict(c.env, state.get("env_state"))
-        if state.get("collector") is not None:
-            load_collector_state_dict(c.collector, state["collector"], carrier=live_episode)
-        load_gym_rng_state_dict(c.eval_env, state.get("eval_rng"))
-        c.sampling_generator.set_state(state["sampling_rng"])
+        for name, (kind, default) in self.counters.items():
+            setattr(self, name, kind(cnt[name] if default is None else cnt.get(name, default)))
+        self.c.load_state_dict(state, fill_replay_buffer=lambda rb: self._load_replay_buffer(rb, state))
+        if self.adapter is not None and not self.read_only:  # the rank history as of the checkpoint resumed
+            self.run_dir.write_rank_history(self.adapter.history, frames=self.frames)
         set_rng_state(state["rng"])  # last: nothing after it may draw random numbers
+
+    def _load_replay_buffer(self, replay_buffer, state: dict) -> None:
+        """Fill the replay buffer from the one saved beside the checkpoint (a buffer saved but missing is an error);
+        an evaluator (read-only) leaves it empty."""
+        saved = state.get("replay_buffer_saved")
+        if self.read_only or not (saved or (saved is None and self.recipe.checkpoint.replay_buffer)):
+            return
+        source = state.get("checkpoint_file")  # the buffer lies beside the checkpoint file, wherever it is
+        loaded = self.run_dir.load_replay_buffer(replay_buffer, frames=self.frames, checkpoint=source)
+        if not loaded and saved:
+            raise CheckpointError(
+                f"the replay buffer saved with the checkpoint at {self.frames} frames is missing "
+                f"from {Path(source).parent if source else self.run_dir.checkpoint_dir}"
+            )
 
     def _summary(self, elapsed: float) -> dict:
         adapter, warm_start_frames = self.adapter, self.warm_start_frames
@@ -532,9 +515,6 @@ class BaseTrainer:
 
 
 def trainer_class(recipe) -> type[BaseTrainer]:
-    """The trainer that runs ``recipe``: the subclass declared for the base loop of its ``algorithm.name``
-    (a plugin's algorithm runs on its base's trainer, :mod:`adarl.plugins`)."""
-    name = recipe.algorithm.base
-    if name not in BaseTrainer._by_algorithm:
-        raise AdaRLValueError(f"no trainer runs algorithm.name: {name!r}; allowed: {sorted(BaseTrainer._by_algorithm)}")
-    return BaseTrainer._by_algorithm[name]
+    """The trainer that runs ``recipe``: its loop's (``algorithm.base``: a plugin's algorithm runs on its base's
+    trainer, :mod:`adarl.plugins`), as the one dispatcher says (:func:`adarl.runtime.families.family`)."""
+    return family(recipe).trainer_class()

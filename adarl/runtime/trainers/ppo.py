@@ -13,14 +13,12 @@ The algorithm's hooks make it RNAC-IPM (its ``advantage``: :class:`~adarl.baseli
 
 from __future__ import annotations
 
-import ast
-
 import torch
 from tensordict import TensorDictBase
 
 from adarl.baselines.rnac import IPMAdvantage
 from adarl.errors import AdaRLValueError
-from adarl.runtime.builders.ppo import build_ppo_components, simulator_steps_per_frame
+from adarl.runtime.builders.ppo import PPOComponents, build_ppo_components, simulator_steps_per_frame
 from adarl.runtime.trainers.base import BaseTrainer
 
 __all__ = ["PPOTrainer", "normalize_advantage_"]
@@ -47,30 +45,15 @@ def normalize_advantage_(batch: TensorDictBase, key: str = "advantage", eps: flo
 
 
 class PPOTrainer(BaseTrainer, algorithm="ppo"):
-    """Runs a PPO/RNAC recipe in a run folder; same outputs as the SAC :class:`~adarl.runtime.trainers.sac.Trainer`
-    (and ``simulator_steps_per_frame``/``simulator_steps`` in the summary)."""
+    """Runs a PPO/RNAC recipe in a run folder; same outputs as :class:`~adarl.runtime.trainers.sac.SACTrainer`
+    (and ``simulator_steps_per_frame``/``simulator_steps`` in the summary). Its components
+    (:class:`~adarl.runtime.builders.ppo.PPOComponents`) save and load their own state."""
 
-    def __init__(
-        self,
-        recipe,
-        run_dir,
-        *,
-        quiet: bool = False,
-        _resume_state: dict | None = None,
-        _log_from: int | None = None,
-        _read_only: bool = False,
-    ) -> None:
-        self.iterations = 0
-        super().__init__(
-            recipe, run_dir, quiet=quiet, _resume_state=_resume_state, _log_from=_log_from, _read_only=_read_only
-        )
+    #: PPO iterations done (one per collected batch)
+    counters = {"iterations": (int, 0)}
 
-    def _build_components(self, state: dict | None) -> dict[str, torch.Tensor]:
-        self.c = build_ppo_components(self.recipe)
-        m = self.c.modules
-        named = {f"actor.{k}": p for k, p in m.actor.named_parameters()}
-        named.update({f"critic.{k}": p for k, p in m.critic.named_parameters()})
-        return named
+    def _build_components(self, state: dict | None) -> PPOComponents:
+        return build_ppo_components(self.recipe)
 
     # ------------------------------------------------------------------ one batch
     def _consume(self, batch: TensorDictBase) -> list[dict[str, torch.Tensor]]:
@@ -149,7 +132,7 @@ class PPOTrainer(BaseTrainer, algorithm="ppo"):
             )
         return out
 
-    # ------------------------------------------------------------------ summary and checkpoints
+    # ------------------------------------------------------------------ summary
     def _summary(self, elapsed: float) -> dict:
         """The common summary plus the simulator's cost: RNAC-DS takes ``m + 1`` env steps per frame, so a comparison
         at equal frames gives it ``m + 1`` times the simulator steps of the other methods."""
@@ -158,33 +141,3 @@ class PPOTrainer(BaseTrainer, algorithm="ppo"):
         summary["simulator_steps_per_frame"] = per_frame
         summary["simulator_steps"] = self.frames * per_frame
         return summary
-
-    def _extra_counters(self) -> dict:
-        return {"iterations": self.iterations}
-
-    def _load_extra_counters(self, counters: dict) -> None:
-        self.iterations = int(counters.get("iterations", 0))
-
-    def _module_state(self) -> dict:
-        c = self.c
-        ds = c.double_sampling
-        return {
-            "actor": c.modules.actor.state_dict(),
-            "critic": c.modules.critic.state_dict(),
-            "reward_scaler": c.reward_scaler.state_dict() if c.reward_scaler is not None else None,
-            "ds_rng": repr(ds.rng_state()) if ds is not None else None,
-            "ds_counts": [ds.worst_picks, ds.steps] if ds is not None else None,
-        }
-
-    def _load_module_state(self, state: dict) -> None:
-        self.c.modules.actor.load_state_dict(state["actor"])
-        self.c.modules.critic.load_state_dict(state["critic"])
-
-    def _load_extra_state(self, state: dict) -> None:
-        c = self.c
-        if c.reward_scaler is not None and state.get("reward_scaler") is not None:
-            c.reward_scaler.load_state_dict(state["reward_scaler"])
-        if c.double_sampling is not None and state.get("ds_rng"):
-            c.double_sampling.set_rng_state(ast.literal_eval(state["ds_rng"]))
-        if c.double_sampling is not None and state.get("ds_counts") is not None:
-            c.double_sampling.worst_picks, c.double_sampling.steps = (int(v) for v in state["ds_counts"])
