@@ -15,6 +15,7 @@ import json
 import os
 import re
 import shutil
+import stat
 import subprocess
 import sys
 from pathlib import Path
@@ -127,6 +128,51 @@ def test_eval_names_a_refused_checkpoint_and_renames_nothing(finished, tmp_path,
     _one_error_line(proc, evil.name, "Python object")
     assert "weights_only" not in proc.stderr
     assert not marker.exists()
+
+
+@pytest.mark.parametrize("damage", ["missing", "truncated", "python object", "fifo"])
+def test_damaged_newest_replay_buffer_falls_back_like_a_missing_one(finished, tmp_path, damage):
+    run = _copy(finished, tmp_path / "run")
+    ckpts = RunDir(run).checkpoints()
+    newest = ckpts[-1]
+    rb = RunDir._replay_buffer_dir(newest)
+    buffer = rb / "buffer.pt"
+    if damage == "missing":
+        shutil.rmtree(rb)
+    elif damage == "truncated":
+        buffer.write_bytes(buffer.read_bytes()[: buffer.stat().st_size // 2])  # a copy or a disk cut it short
+    elif damage == "python object":
+        torch.save({"_storage": _Evil()}, buffer)
+    else:
+        buffer.unlink()
+        os.mkfifo(buffer)  # reading it would wait forever for a writer
+    proc = adarl("resume", str(run), "--checkpoint", "latest", "--quiet", timeout=300)
+    _one_error_line(proc, newest.name, "has lost its replay buffer", "--checkpoint latest")
+    proc = adarl("resume", str(run), "--quiet", timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    [line] = _warnings(proc)
+    assert line.startswith(
+        f"adarl: warning: skipped checkpoint {newest.name} (renamed {newest.name}.corrupt): has lost"
+    )
+    assert f"using {ckpts[-2].name} instead" in line
+    assert {"truncated": "truncated", "python object": "Python object", "fifo": "a FIFO"}.get(damage, "") in line
+    assert newest.with_name(newest.name + ".corrupt").exists()  # set aside (the resumed run writes its own again)
+    assert json.loads((run / "summary.json").read_text())["frames"] >= 300
+
+
+def test_fifo_in_place_of_the_newest_checkpoint_is_refused_unread(finished, tmp_path):
+    run = _copy(finished, tmp_path / "run")
+    ckpts = RunDir(run).checkpoints()
+    newest = ckpts[-1]
+    newest.unlink()
+    os.mkfifo(newest)  # torch.load of it waited forever for a writer: `adarl eval` hung
+    proc = adarl("eval", str(run), "--episodes", "1", timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    [line] = _warnings(proc)
+    assert newest.name in line and "not a regular file (a FIFO)" in line and f"using {ckpts[-2].name}" in line
+    assert stat.S_ISFIFO(newest.stat().st_mode)  # evaluation renames nothing
+    proc = adarl("eval", str(run), "--checkpoint", "latest", "--episodes", "1", timeout=300)
+    _one_error_line(proc, newest.name, "not a regular file (a FIFO)")
 
 
 # ------------------------------------------------------------------------------------------ foreign checkpoints

@@ -36,6 +36,7 @@ import pickle
 import re
 import shutil
 import socket
+import stat
 import time
 import uuid
 import warnings
@@ -142,6 +143,7 @@ class RunDir:
 
     def __init__(self, path: str | os.PathLike) -> None:
         self.path = Path(path)
+        self._buffer_cache: tuple[Path, dict] | None = None  # (rb folder, its buffer.pt) read by load_checkpoint
 
     # ------------------------------------------------------------------ creation and locking
     @classmethod
@@ -600,19 +602,20 @@ class RunDir:
         """Load one checkpoint safely (``weights_only=True``: no code runs from the file) and check it fits.
 
         ``fingerprint`` (:func:`recipe_fingerprint` of the run): a checkpoint written under another recipe is refused
-        before any tensor is used. ``replay_buffer``: require the buffer folder it was saved with, beside the file
-        (evaluation does not need it). The state gets ``checkpoint_file``, where the buffer is looked for."""
+        before any tensor is used. ``replay_buffer``: require the buffer it was saved with, beside the file, and read
+        it (a damaged buffer refuses the checkpoint; evaluation and policies do not need it). Only regular files are
+        read (a FIFO would block). The state gets ``checkpoint_file``, where the buffer is looked for."""
         path = Path(path)
 
         def refuse(reason: str) -> CheckpointError:
             return CheckpointError(f"checkpoint {str(path)!r} {reason}", path=path, reason=reason)
 
         try:
-            with warnings.catch_warnings():  # torch's pickle-protocol chatter about files it then refuses anyway
-                warnings.simplefilter("ignore")
-                payload = torch.load(path, map_location="cpu", weights_only=True)
+            payload = _safe_load(path)
         except FileNotFoundError:
             raise refuse("does not exist") from None
+        except _NotAFile as err:
+            raise refuse(str(err)) from None
         except Exception as err:  # truncated zip, pickle with code, garbage bytes
             raise refuse(f"cannot be loaded safely: {_why_unloadable(err)}") from None
         if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
@@ -642,6 +645,20 @@ class RunDir:
             rb = self._replay_buffer_dir(path, frames)
             if not rb.is_dir():
                 raise refuse(f"has lost its replay buffer: the folder {rb.name} is missing beside it")
+            if (rb / REPLAY_BUFFER_FILE).exists() or (rb / REPLAY_BUFFER_FILE).is_symlink():
+                # Read now, not when the trainer fills its buffer: a damaged buffer makes the whole checkpoint
+                # unusable, so resume falls back to the previous one as for a missing buffer (kept for
+                # load_replay_buffer, which then does not read the file again).
+                self._buffer_cache = None
+                try:
+                    self._buffer_cache = (rb.absolute(), _safe_load(rb / REPLAY_BUFFER_FILE))
+                except _NotAFile as err:
+                    raise refuse(f"has lost its replay buffer: {rb.name}/{REPLAY_BUFFER_FILE} {err}") from None
+                except Exception as err:  # noqa: BLE001 - any unreadable buffer file is refused the same way
+                    raise refuse(
+                        f"has lost its replay buffer: {rb.name}/{REPLAY_BUFFER_FILE} cannot be loaded safely: "
+                        f"{_why_unloadable(err)}"
+                    ) from None
         state["checkpoint_file"] = str(path)
         return state
 
@@ -702,9 +719,12 @@ class RunDir:
         rb_dir = base / f"rb-{int(frames):012d}"
         if not rb_dir.is_dir():
             return False
-        if (rb_dir / REPLAY_BUFFER_FILE).is_file():
+        cached, self._buffer_cache = self._buffer_cache, None
+        if cached is not None and cached[0] == rb_dir.absolute():  # read (and checked) by load_checkpoint
+            replay_buffer.load_state_dict(cached[1])
+        elif (rb_dir / REPLAY_BUFFER_FILE).exists() or (rb_dir / REPLAY_BUFFER_FILE).is_symlink():
             try:
-                sd = torch.load(rb_dir / REPLAY_BUFFER_FILE, map_location="cpu", weights_only=True)
+                sd = _safe_load(rb_dir / REPLAY_BUFFER_FILE)
             except Exception as err:  # noqa: BLE001 - any unreadable file is refused the same way
                 raise CheckpointError(
                     f"replay buffer {str(rb_dir / REPLAY_BUFFER_FILE)!r} cannot be loaded safely: "
@@ -801,10 +821,36 @@ def _frames_of(checkpoint: Path) -> int | None:
         return None
 
 
+class _NotAFile(Exception):
+    """A path to load that is not a regular file (a FIFO, a directory, a device): refused unread."""
+
+
+def _safe_load(path: Path):
+    """``torch.load(weights_only=True)`` of a regular file only. A FIFO would block the reader forever (until
+    something writes into it), a device could give endless bytes: such a path is refused before reading a byte
+    (opened non-blocking, checked with ``fstat``, so the check is about the file read, not an earlier one)."""
+    fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+    try:
+        mode = os.fstat(fd).st_mode
+        if not stat.S_ISREG(mode):
+            kinds = {stat.S_ISFIFO: "a FIFO", stat.S_ISDIR: "a directory", stat.S_ISSOCK: "a socket"}
+            kind = next((k for test, k in kinds.items() if test(mode)), "a device")
+            raise _NotAFile(f"is not a regular file ({kind}); refused unread")
+        fh = os.fdopen(fd, "rb")
+    except BaseException:
+        os.close(fd)
+        raise
+    with fh, warnings.catch_warnings():  # torch's pickle-protocol chatter about files it then refuses anyway
+        warnings.simplefilter("ignore")
+        return torch.load(fh, map_location="cpu", weights_only=True)
+
+
 def _why_unloadable(err: Exception) -> str:
     """Why ``torch.load(weights_only=True)`` refused a file, in our words: torch's own message advises retrying
     with ``weights_only=False``, which would run any code in the file, so it is never passed on."""
     text = str(err)
+    if isinstance(err, _NotAFile):
+        return text.removeprefix("is ")
     if isinstance(err, EOFError) or not text.strip():
         return "it is empty or cut short (truncated)"
     if isinstance(err, pickle.UnpicklingError):
