@@ -15,6 +15,7 @@ import json
 import os
 import re
 import shutil
+import signal
 import stat
 import subprocess
 import sys
@@ -296,6 +297,47 @@ def test_resume_refuses_a_folder_another_process_trains_in(finished, tmp_path):
     finally:
         holder.kill()
         holder.wait()
+
+
+# ------------------------------------------------------------------------------------------ killed, deleted, signalled
+
+
+def test_kill_9_before_the_recipe_is_written_leaves_a_folder_adarl_run_takes(tmp_path):
+    run = tmp_path / "run"
+    claim_and_die = (
+        "import os, sys; from adarl.runtime.run_dir import RunDir; RunDir.create(sys.argv[1]); "
+        "os.kill(os.getpid(), 9)"  # killed between claiming the folder and writing recipe.yaml
+    )
+    proc = subprocess.run([sys.executable, "-c", claim_and_die, str(run)], env={**os.environ, "PYTHONPATH": str(REPO)})
+    assert proc.returncode == -signal.SIGKILL and [p.name for p in run.iterdir()] == [".adarl.lock"]
+    proc = adarl("resume", str(run), "--quiet")
+    _one_error_line(proc, "holds no recipe.yaml", f"adarl run RECIPE -o {run}")  # points at run, and run goes on:
+    proc = adarl("run", "quickstart", *FAST, "collector.total_frames=100", "-o", str(run), "--quiet")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert json.loads((run / "summary.json").read_text())["frames"] >= 100
+
+
+# ------------------------------------------------------------------------------------------ someone else's folder
+
+
+def test_overwrite_refuses_a_folder_adarl_did_not_write(finished, tmp_path):
+    thesis = tmp_path / "thesis"
+    (thesis / "figures").mkdir(parents=True)
+    (thesis / "thesis.tex").write_text("\\documentclass{book}\n")
+    (thesis / "figures" / "plot.pdf").write_bytes(b"%PDF-1.5\n")
+    before = _tree(thesis)
+    proc = adarl("run", "quickstart", *FAST, "-o", str(thesis), "--overwrite", "--quiet")
+    _one_error_line(proc, "--overwrite refused", "figures/, thesis.tex", "nothing was deleted")
+    proc = adarl("run", "quickstart", *FAST, "-o", str(thesis), "--quiet")
+    line = _one_error_line(proc, "already exists", "figures/, thesis.tex")
+    assert "adarl resume" not in line  # not a run: nothing to resume
+    assert _tree(thesis) == before
+    run = _copy(finished, tmp_path / "run")  # a run folder with someone's notes in it: the notes are not adarl's
+    (run / "notes.md").write_text("seed 0 looked odd\n")
+    before = _tree(run)
+    proc = adarl("run", "quickstart", *FAST, "-o", str(run), "--overwrite", "--quiet")
+    _one_error_line(proc, "--overwrite refused", "notes.md")
+    assert _tree(run) == before
 
 
 # ------------------------------------------------------------------------------------------ disk full

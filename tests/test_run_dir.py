@@ -16,11 +16,22 @@ from adarl.runtime.run_dir import RunDir
 def test_create_refuses_existing_non_empty(tmp_path):
     (tmp_path / "run").mkdir()
     (tmp_path / "run" / "keep.txt").write_text("precious")
-    with pytest.raises(AdaRLError, match="already exists"):
+    with pytest.raises(AdaRLError, match="already exists") as info:
         RunDir.create(tmp_path / "run")
+    assert "keep.txt" in str(info.value) and "adarl resume" not in str(info.value)  # not a run: nothing to resume
+    # --overwrite replaces only an adarl run folder that holds nothing else: keep.txt is named, and stays
+    with pytest.raises(AdaRLError, match="--overwrite refused") as info:
+        RunDir.create(tmp_path / "run", overwrite=True)
+    assert "keep.txt" in str(info.value) and "nothing was deleted" in str(info.value)
     assert (tmp_path / "run" / "keep.txt").read_text() == "precious"
-    RunDir.create(tmp_path / "run", overwrite=True)
-    assert not (tmp_path / "run" / "keep.txt").exists()
+    run = RunDir.create(tmp_path / "other")
+    run.save_checkpoint({"counters": {"frames": 1}}, frames=1)
+    (run.path / "summary.json.tmp").write_text("{")  # a write a crash cut short is adarl's too
+    run.unlock()
+    with pytest.raises(AdaRLError, match="adarl resume"):
+        RunDir.create(run.path)
+    RunDir.create(run.path, overwrite=True).unlock()
+    assert sorted(p.name for p in run.path.iterdir()) == [".adarl.lock"]
 
 
 def test_checkpoint_round_trip_and_rotation(tmp_path):

@@ -76,6 +76,9 @@ TRAINING_RECORDS = (
     "wandb/",
     "replay_storage/",
 )
+# What the other commands write into a run folder; with TRAINING_RECORDS, every name adarl puts at its top level.
+# `--overwrite` replaces only a folder that holds nothing else (a thesis.tex in it is refused by name).
+OTHER_OUTPUTS = ("wandb_run_id", "report.md", "plots/", "eval_nominal.json", "sweeps/")
 _EVAL_FIELDS = ["frames", "updates", "mean", "std", "ci95", "episodes", "returns", "ranks"]
 _HELD_LOCKS: dict[str, int] = {}  # lock files this process holds (path -> fd): a lock excludes other processes only
 
@@ -165,11 +168,25 @@ class RunDir:
                 f"cannot create run folder {str(p)!r}: {_os_why(err, p)}; choose a writable place "
                 f"with -o/--output or output.root"
             ) from None
-        if any(p.iterdir()):
-            if not overwrite:
+        entries = list(p.iterdir())
+        if entries and fcntl is not None and all(_claim_leftover(e.name) for e in entries):
+            return cls._reclaim(p, entries)  # `adarl run` was stopped before it wrote its recipe: nothing ran
+        if entries:
+            foreign = _foreign_entries(entries)
+            is_run = not foreign and any(e.name in (LOCK_FILE, "recipe.yaml") for e in entries)
+            if not overwrite and is_run:
                 raise AdaRLError(
                     f"run folder {str(p)!r} already exists and is not empty; choose another output.dir, "
                     f"resume it with `adarl resume {p}`, or pass --overwrite to replace it"
+                )
+            if not is_run:
+                what = (
+                    f"holds {_names(foreign)}, which adarl did not write" if foreign else "is not an adarl run folder"
+                )
+                raise AdaRLError(
+                    f"{'--overwrite refused: ' if overwrite else ''}run folder {str(p)!r} already exists and {what}"
+                    f"{' (nothing was deleted)' if overwrite else ''}; choose another output folder with -o/--output "
+                    f"or output.dir (--overwrite replaces only an adarl run folder that holds nothing else)"
                 )
             cls(p).lock()  # refuses when another process trains in it
             _release_lock(p / LOCK_FILE)
@@ -191,13 +208,45 @@ class RunDir:
                 f"cannot create run folder {str(p)!r}: {_os_why(err, p)}; choose a writable place "
                 f"with -o/--output or output.root"
             ) from None
-        _hold_lock(p / LOCK_FILE, fd)
+        if not _hold_lock(p / LOCK_FILE, fd):  # a stale claim's reclaimer (below) took it between our open and lock
+            raise AdaRLError(
+                f"run folder {str(p)!r} was just claimed by another process ({_holder(p / LOCK_FILE)}); "
+                f"choose another output.dir"
+            )
         return run
+
+    @classmethod
+    def _reclaim(cls, p: Path, entries: list[Path]) -> RunDir:
+        """Take over a folder that holds only the claim of an ``adarl run`` stopped before it wrote its recipe
+        (``kill -9`` in its first moments): nothing ran there, so it is this run's folder now. Refused while the
+        process that claimed it is alive (it holds the lock: two runs started at once)."""
+        lock = p / LOCK_FILE
+        try:
+            fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as err:
+            raise AdaRLError(
+                f"cannot create run folder {str(p)!r}: {_os_why(err, p)}; choose a writable place "
+                f"with -o/--output or output.root"
+            ) from None
+        if not _hold_lock(lock, fd):
+            raise AdaRLError(
+                f"run folder {str(p)!r} was just claimed by another process ({_holder(lock)}); choose another "
+                f"output.dir"
+            )
+        for e in entries:  # a half-written recipe's temporary file
+            if e.name != LOCK_FILE:
+                e.unlink(missing_ok=True)
+        return cls(p)
 
     @classmethod
     def open(cls, path: str | os.PathLike) -> RunDir:
         p = Path(path)
         if not (p / "recipe.yaml").is_file():
+            if p.is_dir() and (p / LOCK_FILE).exists() and all(_claim_leftover(e.name) for e in p.iterdir()):
+                raise AdaRLError(
+                    f"{str(p)!r} holds no recipe.yaml: `adarl run` was stopped before it wrote one, so nothing ran "
+                    f"there; start the run again with `adarl run RECIPE -o {p}`"
+                )
             raise AdaRLError(f"{str(p)!r} is not an adarl run folder (no recipe.yaml in it)")
         return cls(p)
 
@@ -769,6 +818,29 @@ def _hold_lock(lock: Path, fd: int) -> bool:
         )
     _HELD_LOCKS[str(lock.absolute())] = fd
     return True
+
+
+def _adarl_name(name: str) -> bool:
+    """Whether a top-level entry of a run folder is one adarl writes (or a write's leftover ``*.tmp``)."""
+    known = {n.rstrip("/") for n in (*TRAINING_RECORDS, *OTHER_OUTPUTS)}
+    leftover = re.fullmatch(r"\.?(.+?)\.tmp\d*", name)  # `f.tmp` (atomic writes), `.recipe.yaml.tmp<pid>`
+    return name in known or (leftover is not None and leftover.group(1) in known)
+
+
+def _claim_leftover(name: str) -> bool:
+    """What ``adarl run`` leaves when stopped before its recipe is written: the claim, a recipe's temporary file."""
+    return name == LOCK_FILE or (_adarl_name(name) and name.startswith((".recipe.yaml.tmp", "recipe.yaml.tmp")))
+
+
+def _foreign_entries(entries: list[Path]) -> list[Path]:
+    return sorted((e for e in entries if not _adarl_name(e.name)), key=lambda e: e.name)
+
+
+def _names(entries: list[Path], most: int = 5) -> str:
+    """``thesis.tex, figures/ and 3 more``: what a folder holds, for a message."""
+    shown = [e.name + ("/" if e.is_dir() else "") for e in entries[:most]]
+    more = f" and {len(entries) - most} more" if len(entries) > most else ""
+    return ", ".join(shown) + more
 
 
 def _release_lock(lock: Path) -> None:
