@@ -19,12 +19,14 @@ import signal
 import stat
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
 import torch
 from faultfs import FaultFS, adarl_under_faults, readonly_fs, remount, small_fs
 from test_cli_e2e import REPO, adarl
+from test_kill_resume import _results
 
 from adarl.errors import AdaRLWarning, CheckpointError
 from adarl.runtime.run_dir import TRAINING_RECORDS, RunDir
@@ -70,6 +72,36 @@ def _one_error_line(proc: subprocess.CompletedProcess, *words: str) -> str:
     for word in words:
         assert word in errors[0], (word, errors[0])
     return errors[0]
+
+
+def _start(*args: str) -> subprocess.Popen:
+    """``adarl ARGS`` in the background, to be stopped, killed or signalled at a moment a test waits for."""
+    env = {
+        **os.environ,
+        "PYTHONPATH": str(REPO),
+        "OMP_NUM_THREADS": "1",
+        "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"),
+    }
+    return subprocess.Popen(
+        [sys.executable, "-m", "adarl.cli", *args],
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+def _wait_for(seen, proc: subprocess.Popen, timeout: float = 300) -> bool:
+    """Poll ``seen()`` (a file appearing) until it holds, the process ends or ``timeout`` (generous: CI is loaded)."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if seen():
+            return True
+        if proc.poll() is not None:
+            return seen()
+        time.sleep(0.002)
+    return False
 
 
 def _warnings(proc: subprocess.CompletedProcess) -> list[str]:
@@ -300,6 +332,25 @@ def test_resume_refuses_a_folder_another_process_trains_in(finished, tmp_path):
 
 
 # ------------------------------------------------------------------------------------------ killed, deleted, signalled
+
+
+def test_kill_9_before_the_first_checkpoint_resumes_from_frame_0(finished, tmp_path):
+    run = tmp_path / "run"
+    proc = _start("run", "quickstart", *FAST, "-o", str(run), "--quiet")
+    try:
+        assert _wait_for(lambda: (run / "recipe.yaml").is_file(), proc), proc.communicate()[1][-3000:]
+        proc.send_signal(signal.SIGSTOP)  # its first moments: the recipe written, the networks being built
+        assert not list(run.glob("checkpoints/ckpt-*")), "the frame-0 checkpoint came first: nothing to test"
+    finally:
+        proc.kill()
+        proc.wait()
+    proc = adarl("run", "quickstart", *FAST, "-o", str(run), "--quiet")
+    _one_error_line(proc, "already exists", f"adarl resume {run}")  # points at resume, and resume goes on:
+    proc = adarl("resume", str(run), "--quiet")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    [line] = _warnings(proc)
+    assert "has no checkpoint" in line and "starting it from frame 0" in line
+    assert _results(run) == _results(finished)  # the same run, bit for bit, as one never stopped
 
 
 def test_kill_9_before_the_recipe_is_written_leaves_a_folder_adarl_run_takes(tmp_path):

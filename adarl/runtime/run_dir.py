@@ -46,7 +46,14 @@ import torch
 from torchrl.record import loggers as torchrl_loggers
 
 from adarl import __version__, plugins
-from adarl.errors import AdaRLError, CheckpointError, CheckpointFallbackWarning, RecipeError, describe_os_error
+from adarl.errors import (
+    AdaRLError,
+    AdaRLWarning,
+    CheckpointError,
+    CheckpointFallbackWarning,
+    RecipeError,
+    describe_os_error,
+)
 from adarl.runtime.config import load_recipe, recipe_to_yaml, save_resolved
 
 try:  # POSIX: a lock the kernel drops when its process dies (kill -9 included)
@@ -249,6 +256,27 @@ class RunDir:
                 )
             raise AdaRLError(f"{str(p)!r} is not an adarl run folder (no recipe.yaml in it)")
         return cls(p)
+
+    def starts_over(self) -> bool:
+        """Whether resuming this run means starting it from frame 0, with a warning saying so: it was stopped
+        (``kill -9`` in its first moments) before its first checkpoint was complete, so nothing of its training is
+        in the folder, only its recipe (and perhaps a checkpoint's partial ``*.tmp``). Starting again is then the
+        same run, bit for bit, as one never stopped."""
+        ckpts = self.checkpoint_dir
+        if ckpts.is_dir() and any(not e.name.endswith(".tmp") for e in ckpts.iterdir()):
+            return False  # checkpoints (or damaged ones, or buffers): resume from them, or say why not
+        if any((self.path / name).exists() for name in ("eval.csv", "ranks.json", "summary.json")):
+            return False
+        scalars = self.path / "metrics" / "scalars"
+        if scalars.is_dir() and any(f.stat().st_size for f in scalars.rglob("*.csv") if f.is_file()):
+            return False
+        warnings.warn(
+            f"run folder {str(self.path)!r} has no checkpoint: it was stopped before its first one was complete, "
+            f"so none of its training was kept; starting it from frame 0",
+            AdaRLWarning,
+            stacklevel=3,
+        )
+        return True
 
     def lock(self) -> None:
         """Lock the folder for this process until :meth:`unlock` (a trainer's ``close()``) or the process ends: another
@@ -758,8 +786,15 @@ class RunDir:
                 )
             return state
         if errors:
-            raise CheckpointError("no loadable checkpoint in run folder: " + "; ".join(errors))
-        raise CheckpointError(f"no checkpoint in {str(self.checkpoint_dir)!r} to resume from")
+            raise CheckpointError(
+                "no loadable checkpoint in run folder: " + "; ".join(errors) + f"; `adarl run RECIPE -o {self.path} "
+                "--overwrite` trains it again from the start"
+            )
+        raise CheckpointError(
+            f"no checkpoint in {str(self.checkpoint_dir)!r} to resume from, though the run folder holds training "
+            f"records (were its checkpoints deleted?); `adarl run RECIPE -o {self.path} --overwrite` trains it "
+            f"again from the start"
+        )
 
     def load_replay_buffer(self, replay_buffer, *, frames: int, checkpoint: str | os.PathLike | None = None) -> bool:
         """Fill ``replay_buffer`` from ``rb-<frames>/`` beside ``checkpoint`` (default: in this run's checkpoints);

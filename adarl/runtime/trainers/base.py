@@ -203,6 +203,8 @@ class BaseTrainer:
         if not read_only:
             run_dir.lock()  # one process trains in a run folder at a time
         fingerprint = recipe_fingerprint(recipe)
+        if not read_only and checkpoint in (None, "latest") and run_dir.starts_over():
+            return cls(recipe, run_dir, quiet=quiet)  # stopped before its frame-0 checkpoint: start it again
         if checkpoint is None or checkpoint == "latest":
             state = run_dir.load_latest_checkpoint(
                 quarantine=not read_only,
