@@ -368,6 +368,23 @@ def test_kill_9_before_the_recipe_is_written_leaves_a_folder_adarl_run_takes(tmp
     assert json.loads((run / "summary.json").read_text())["frames"] >= 100
 
 
+def test_run_folder_deleted_mid_run_stops_and_recreates_nothing(tmp_path):
+    run = tmp_path / "run"
+    proc = _start("run", "quickstart", *FAST, "-o", str(run), "--quiet")
+    try:
+        assert _wait_for(lambda: bool(RunDir(run).checkpoints()), proc), proc.communicate()[1][-3000:]
+        proc.send_signal(signal.SIGSTOP)  # training: the frame-0 checkpoint is written
+        shutil.rmtree(run)  # `rm -rf RUN_DIR` in another terminal
+        proc.send_signal(signal.SIGCONT)
+        out, err = proc.communicate(timeout=300)
+    finally:
+        proc.kill()
+    done = subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
+    _one_error_line(done, "was deleted or moved while this process trained in it", "recreated nothing")
+    assert "run finished" not in out
+    assert not run.exists(), sorted(p.relative_to(run).as_posix() for p in run.rglob("*"))
+
+
 # ------------------------------------------------------------------------------------------ someone else's folder
 
 

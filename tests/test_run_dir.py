@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from adarl.errors import AdaRLError, CheckpointError
-from adarl.runtime.run_dir import RunDir
+from adarl.runtime.run_dir import LOCK_FILE, RunDir
 
 
 def test_create_refuses_existing_non_empty(tmp_path):
@@ -213,3 +213,27 @@ def test_malformed_checkpoint_is_refused_not_a_traceback(tmp_path, payload):
     torch.save(payload, path)  # loads with weights_only=True: only its layout is wrong
     with pytest.raises(CheckpointError, match="not an adarl checkpoint"):
         run.load_checkpoint(path)
+
+
+def test_a_deleted_run_folder_is_not_recreated(tmp_path):
+    import shutil
+
+    from adarl.runtime.run_dir import RunFolderGone
+
+    run = RunDir.create(tmp_path / "run")
+    run.save_checkpoint({"counters": {"frames": 1}}, frames=1)
+    run.ensure_present()
+    shutil.rmtree(run.path)
+    for write in (
+        lambda: run.save_checkpoint({"counters": {"frames": 2}}, frames=2),
+        lambda: run.write_json("summary.json", {}),
+    ):
+        with pytest.raises(RunFolderGone, match="deleted or moved"):
+            write()
+    assert not run.path.exists()
+    moved = RunDir.create(tmp_path / "moved")
+    os.rename(moved.path, tmp_path / "elsewhere")
+    (tmp_path / "moved").mkdir()
+    (tmp_path / "moved" / LOCK_FILE).write_text("")  # another folder took its name: not the one this process holds
+    with pytest.raises(RunFolderGone):
+        moved.ensure_present()

@@ -61,7 +61,16 @@ try:  # POSIX: a lock the kernel drops when its process dies (kill -9 included)
 except ImportError:  # pragma: no cover - Windows: folders are still created exclusively, but not locked while in use
     fcntl = None
 
-__all__ = ["RunDir", "CHECKPOINT_FORMAT", "CHECKPOINT_VERSION", "TRAINING_RECORDS", "recipe_fingerprint", "null_logger"]
+__all__ = [
+    "RunDir",
+    "CHECKPOINT_FORMAT",
+    "CHECKPOINT_VERSION",
+    "TRAINING_RECORDS",
+    "OTHER_OUTPUTS",
+    "RunFolderGone",
+    "recipe_fingerprint",
+    "null_logger",
+]
 
 CHECKPOINT_FORMAT = "adarl.checkpoint"
 CHECKPOINT_VERSION = 1
@@ -132,13 +141,24 @@ def _same_in_fingerprint(key: str, theirs: dict, ours: dict) -> bool:
     )
 
 
-class _Fanout:
-    """Send each scalar to every configured TorchRL logger (CSV always; tensorboard / wandb on request)."""
+class RunFolderGone(AdaRLError):
+    """The run folder was deleted or moved while a process trained in it: the run stops instead of writing on (it
+    would recreate a folder without its recipe or records, which neither resume nor eval can read)."""
 
-    def __init__(self, loggers):
+
+class _Fanout:
+    """Send each scalar to every configured TorchRL logger (CSV always; tensorboard / wandb on request).
+
+    ``check``: called before each scalar (the run folder is still there, :meth:`RunDir.ensure_present`), so a
+    logger never recreates a deleted run folder (TorchRL's CSV logger makes the folders of a new metric's file)."""
+
+    def __init__(self, loggers, check=None):
         self.loggers = loggers
+        self.check = check
 
     def log_scalar(self, name: str, value: float, step: int | None = None) -> None:
+        if self.check is not None:
+            self.check()
         for lg in self.loggers:
             lg.log_scalar(name, float(value), step=step)
 
@@ -277,6 +297,26 @@ class RunDir:
             stacklevel=3,
         )
         return True
+
+    def ensure_present(self) -> None:
+        """Raise :class:`RunFolderGone` when the folder this process trains in was deleted or moved (its lock file
+        is gone or is another file): writing on would recreate a folder without its recipe or records.
+        Does nothing where this process holds no lock on it (evaluation)."""
+        lock = self.path / LOCK_FILE
+        fd = _HELD_LOCKS.get(str(lock.absolute()))
+        if fd is None:
+            return
+        try:
+            here, held = os.stat(lock), os.fstat(fd)
+            if (here.st_ino, here.st_dev) == (held.st_ino, held.st_dev):
+                return
+        except OSError:
+            pass
+        raise RunFolderGone(
+            f"run folder {str(self.path)!r} was deleted or moved while this process trained in it; the run "
+            f"stopped and recreated nothing. If it was moved, `adarl resume NEW_PLACE` continues it from its last "
+            f"checkpoint"
+        )
 
     def lock(self) -> None:
         """Lock the folder for this process until :meth:`unlock` (a trainer's ``close()``) or the process ends: another
@@ -423,7 +463,7 @@ class RunDir:
                     config=config,
                 )
             )
-        return _Fanout(loggers)
+        return _Fanout(loggers, check=self.ensure_present)
 
     def close_logger(self, logger: _Fanout) -> None:
         for lg in logger.loggers:
@@ -478,6 +518,7 @@ class RunDir:
 
     # ------------------------------------------------------------------ evaluation and ranks
     def append_eval(self, frames: int, updates: int, result, ranks: dict) -> None:
+        self.ensure_present()
         path = self.path / "eval.csv"
         new = not path.exists()
         with path.open("a", newline="") as fh:
@@ -501,6 +542,7 @@ class RunDir:
 
     def sync_metrics(self, logger: _Fanout) -> None:
         """Flush and fsync the CSV metric files, so that what a checkpoint says was logged is on disk."""
+        self.ensure_present()
         for lg in logger.loggers:
             for fd in list(getattr(getattr(lg, "experiment", None), "files", {}).values()):
                 try:
@@ -583,6 +625,7 @@ class RunDir:
 
     def write_json(self, name: str, obj) -> None:
         """Write ``name`` atomically as strict JSON: NaN and infinities become ``null`` (JSON has no NaN)."""
+        self.ensure_present()
         _atomic_write_text(self.path / name, json.dumps(_plain(obj), indent=2, allow_nan=False) + "\n")
 
     # ------------------------------------------------------------------ checkpoints
@@ -619,6 +662,7 @@ class RunDir:
         ``dumps()`` memory-maps its files, and a full disk then kills the process with SIGBUS, with no message.
         ``fingerprint``: :func:`recipe_fingerprint` of the run, checked when the checkpoint is loaded.
         """
+        self.ensure_present()
         path = self.checkpoint_dir / f"ckpt-{int(frames):012d}.pt"
         rb_dir = self.checkpoint_dir / f"rb-{int(frames):012d}"
         rb_tmp = rb_dir.with_name(rb_dir.name + ".tmp")
@@ -658,6 +702,7 @@ class RunDir:
 
     def save_best(self, state: dict, *, frames: int, score: float, fingerprint: dict | None = None) -> Path | None:
         """Replace ``checkpoints/best.pt`` (atomically); a write error keeps the old one and only warns."""
+        self.ensure_present()
         try:
             self.checkpoint_dir.mkdir(parents=True, exist_ok=True)
             _atomic_torch_save(self._payload(state, frames, fingerprint, score=float(score)), self.best_checkpoint_path)
