@@ -433,6 +433,25 @@ def test_disk_full_tmpfs_stops_with_one_line_and_resumes(tmp_path):
         assert json.loads((run / "summary.json").read_text())["frames"] >= 300
 
 
+def test_disk_full_names_the_file_it_could_not_write(tmp_path):
+    with small_fs("8m", tmp=tmp_path) as fs:
+        run = fs / "run"
+        proc = _start("run", "quickstart", *FAST, "-o", str(run), "--quiet")
+        try:
+            assert _wait_for(lambda: bool(RunDir(run).checkpoints()), proc), proc.communicate()[1][-3000:]
+            proc.send_signal(signal.SIGSTOP)
+            with (fs / "filler").open("wb") as fh, pytest.raises(OSError):  # the disk fills up while it trains
+                while True:
+                    fh.write(b"\0" * (64 << 10))
+                    fh.flush()
+            proc.send_signal(signal.SIGCONT)
+            out, err = proc.communicate(timeout=300)
+        finally:
+            proc.kill()
+        line = _one_error_line(subprocess.CompletedProcess(proc.args, proc.returncode, out, err), "adarl resume")
+        assert re.search(rf"'{re.escape(str(run))}/[^']+': No space left on device", line), line
+
+
 def test_disk_full_injected_stops_with_one_line(tmp_path):
     run = tmp_path / "run"  # 1.2 MB of writes: the run folder, the frame-0 checkpoint, then the buffer at 100 frames
     proc = adarl_under_faults(

@@ -215,6 +215,31 @@ def test_malformed_checkpoint_is_refused_not_a_traceback(tmp_path, payload):
         run.load_checkpoint(path)
 
 
+def test_a_full_device_names_the_file_it_could_not_write(tmp_path):
+    """/dev/full fails every write with ENOSPC, as a full disk does, where a buffered file's flush names no file."""
+    if not os.path.exists("/dev/full"):
+        pytest.skip("no /dev/full here")
+    import errno
+    import types as _types
+
+    run = RunDir.create(tmp_path / "run")
+    (run.path / "metrics" / "scalars" / "train").mkdir(parents=True)
+    os.symlink("/dev/full", run.path / "metrics" / "scalars" / "train" / "episode_return.csv")
+    logger = run.make_logger(
+        _types.SimpleNamespace(logging=_types.SimpleNamespace(backends=["csv"], wandb_mode="disabled"))
+    )
+    with pytest.raises(OSError) as info:
+        logger.log_scalar("train/episode_return", 1.0, step=1)
+    assert info.value.errno == errno.ENOSPC
+    assert info.value.filename.endswith(os.path.join("metrics", "scalars", "train", "episode_return.csv"))
+    os.symlink("/dev/full", run.path / "eval.csv")
+    result = _types.SimpleNamespace(mean=1.0, std=0.0, ci95=0.0, returns=[1.0])
+    with pytest.raises(OSError) as info:
+        run.append_eval(1, 1, result, ranks={})
+    assert info.value.errno == errno.ENOSPC and info.value.filename == str(run.path / "eval.csv")
+    run.close_logger(logger)  # its unwritten row fails again on close, quietly
+
+
 def test_a_deleted_run_folder_is_not_recreated(tmp_path):
     import shutil
 

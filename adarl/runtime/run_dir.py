@@ -160,7 +160,18 @@ class _Fanout:
         if self.check is not None:
             self.check()
         for lg in self.loggers:
-            lg.log_scalar(name, float(value), step=step)
+            try:
+                lg.log_scalar(name, float(value), step=step)
+            except OSError as err:  # a full disk fails the CSV logger's flush, which names no file: name it
+                if err.filename is not None:
+                    raise
+                exp = getattr(lg, "experiment", None)
+                where = (
+                    os.path.join(exp.log_dir, "scalars", name + ".csv")
+                    if hasattr(exp, "files")  # CSV: the metric's own file
+                    else getattr(lg, "log_dir", None)
+                )
+                raise OSError(err.errno, err.strerror, where) from None
 
 
 def null_logger() -> _Fanout:
@@ -521,7 +532,7 @@ class RunDir:
         self.ensure_present()
         path = self.path / "eval.csv"
         new = not path.exists()
-        with path.open("a", newline="") as fh:
+        with _naming(path), path.open("a", newline="") as fh:
             w = csv.DictWriter(fh, fieldnames=_EVAL_FIELDS)
             if new:
                 w.writeheader()
@@ -544,10 +555,11 @@ class RunDir:
         """Flush and fsync the CSV metric files, so that what a checkpoint says was logged is on disk."""
         self.ensure_present()
         for lg in logger.loggers:
-            for fd in list(getattr(getattr(lg, "experiment", None), "files", {}).values()):
+            for name, fd in list(getattr(getattr(lg, "experiment", None), "files", {}).items()):
                 try:
-                    fd.flush()
-                    os.fsync(fd.fileno())
+                    with _naming(Path(name)):
+                        fd.flush()
+                        os.fsync(fd.fileno())
                 except ValueError:  # closed file; an OSError (a full disk) propagates: the checkpoint would lie
                     pass
 
@@ -666,10 +678,12 @@ class RunDir:
         path = self.checkpoint_dir / f"ckpt-{int(frames):012d}.pt"
         rb_dir = self.checkpoint_dir / f"rb-{int(frames):012d}"
         rb_tmp = rb_dir.with_name(rb_dir.name + ".tmp")
+        writing = self.checkpoint_dir  # what the message names when a write fails
         try:
             self.checkpoint_dir.mkdir(parents=True, exist_ok=True)
             if replay_buffer is not None:
                 shutil.rmtree(rb_tmp, ignore_errors=True)
+                writing = rb_dir / REPLAY_BUFFER_FILE
                 _check_free_space(
                     self.checkpoint_dir,
                     _buffer_nbytes(replay_buffer) + _nbytes(state),
@@ -679,6 +693,7 @@ class RunDir:
                 _atomic_torch_save(replay_buffer.state_dict(), rb_tmp / REPLAY_BUFFER_FILE)
                 shutil.rmtree(rb_dir, ignore_errors=True)
                 os.replace(rb_tmp, rb_dir)
+            writing = path
             _atomic_torch_save(self._payload(state, frames, fingerprint, replay_buffer=replay_buffer is not None), path)
             _fsync_dir(self.checkpoint_dir)
         except OSError as err:
@@ -689,9 +704,9 @@ class RunDir:
             full = err.errno in (errno.ENOSPC, errno.EDQUOT)
             remedy = "free space" if full else f"make {str(self.path)!r} writable"
             raise CheckpointError(
-                f"could not write checkpoint {path.name}{' (disk full)' if full else ''}: {err.strerror or err}; the "
-                f"run stopped. The previous checkpoint {prev[-1] if prev else '(none)'} is intact: {remedy} and "
-                f"`adarl resume {self.path}`",
+                f"could not write checkpoint {path.name}{' (disk full)' if full else ''}: {str(writing)!r}: "
+                f"{err.strerror or err}; the run stopped. The previous checkpoint {prev[-1] if prev else '(none)'} "
+                f"is intact: {remedy} and `adarl resume {self.path}`",
                 path=path,
                 reason=err.strerror or str(err),
             ) from None
@@ -1049,6 +1064,18 @@ def _check_free_space(folder: Path, nbytes: int, what: str) -> None:
             f"No space left on device ({what} needs {(nbytes + margin) / 1e6:.1f} MB, {free / 1e6:.1f} MB free)",
             str(folder),
         )
+
+
+@contextlib.contextmanager
+def _naming(path: Path):
+    """An ``OSError`` without a file name (a full disk met by a buffered write's flush) gets ``path``: every disk
+    error adarl reports names the file it could not write."""
+    try:
+        yield
+    except OSError as err:
+        if err.filename is not None:
+            raise
+        raise OSError(err.errno, err.strerror, str(path)) from None
 
 
 def _atomic_write_text(path: Path, text: str) -> None:
