@@ -385,6 +385,25 @@ def test_run_folder_deleted_mid_run_stops_and_recreates_nothing(tmp_path):
     assert not run.exists(), sorted(p.relative_to(run).as_posix() for p in run.rglob("*"))
 
 
+def test_resumed_run_times_every_process(tmp_path):
+    run = tmp_path / "run"
+    proc = _start("run", "quickstart", *FAST, "-o", str(run), "--quiet")
+    first = run / "checkpoints" / "ckpt-000000000100.pt"
+    assert _wait_for(first.is_file, proc), proc.communicate()[1][-3000:]
+    assert proc.poll() is None, "the run ended before it could be killed"
+    proc.kill()
+    proc.wait()
+    before = RunDir(run).load_checkpoint(RunDir(run).checkpoints()[-1], replay_buffer=False)["counters"]
+    assert before["wall_time_s"] > 0  # the checkpoint carries the wall time so far
+    proc = adarl("resume", str(run), "--quiet")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["wall_time_s"] > before["wall_time_s"]  # both processes, not the last one alone
+    assert summary["updates_per_s"] == pytest.approx(summary["updates"] / summary["wall_time_s"])
+    report = (run / "report.md").read_text()
+    assert f"wall time: {summary['wall_time_s']:.0f} s ({summary['updates_per_s']:.1f} updates/s)" in report
+
+
 # ------------------------------------------------------------------------------------------ someone else's folder
 
 

@@ -100,6 +100,7 @@ class BaseTrainer:
         self._last_log_frames = 0
         self._bar = None
         self._clock: tuple[float, int, int] | None = None
+        self._wall_before = 0.0  # training wall time of the earlier processes of this run (from the checkpoint)
         self._fps_frames: int | None = None
         if not _read_only:
             run_dir.lock()  # one process trains in a run folder at a time (released by close())
@@ -258,7 +259,7 @@ class BaseTrainer:
             self._sync_bar()
             bar.close()
             self._bar = None
-        summary = self._write_summary(time.perf_counter() - start)
+        summary = self._write_summary(self._wall_time())
         write_report(self.run_dir.path)
         self.close()
         return summary
@@ -431,6 +432,7 @@ class BaseTrainer:
             "best_eval": self.best_eval,
             "last_ckpt_frames": self.last_ckpt_frames,
             "rollbacks": self.rollbacks,
+            "wall_time_s": self._wall_time(),  # summed over the run's processes (not part of exact resume)
             **self._extra_counters(),
             "loss_sums": dict(self._loss_sums),
             "loss_count": self._loss_count,
@@ -489,6 +491,8 @@ class BaseTrainer:
         self.last_ckpt_frames = int(cnt.get("last_ckpt_frames", self.frames))
         self.best_eval = float(cnt["best_eval"])
         self.rollbacks = int(cnt.get("rollbacks", 0))
+        if self._clock is None:  # resuming (a rollback, in training, keeps counting this process's time)
+            self._wall_before = float(cnt.get("wall_time_s", 0.0))
         self._loss_sums = {k: float(v) for k, v in cnt.get("loss_sums", {}).items()}
         self._loss_count = int(cnt.get("loss_count", 0))
         self._last_log_frames = int(cnt.get("last_log_frames", self.frames))
@@ -501,6 +505,11 @@ class BaseTrainer:
         load_gym_rng_state_dict(c.eval_env, state.get("eval_rng"))
         c.sampling_generator.set_state(state["sampling_rng"])
         set_rng_state(state["rng"])  # last: nothing after it may draw random numbers
+
+    def _wall_time(self) -> float:
+        """Seconds of training in this run, every process of it (each resume adds its own to the checkpoint's)."""
+        now = time.perf_counter() - self._clock[0] if self._clock is not None else 0.0
+        return self._wall_before + now
 
     def _summary(self, elapsed: float) -> dict:
         adapter, warm_start_frames = self.adapter, self.warm_start_frames
