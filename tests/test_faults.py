@@ -385,6 +385,26 @@ def test_run_folder_deleted_mid_run_stops_and_recreates_nothing(tmp_path):
     assert not run.exists(), sorted(p.relative_to(run).as_posix() for p in run.rglob("*"))
 
 
+def test_sigterm_while_the_report_is_written_finishes_it_and_stops_cleanly(tmp_path):
+    run = tmp_path / "run"
+    proc = _start("run", "quickstart", *FAST, "-o", str(run), "--quiet")
+    try:
+        assert _wait_for(lambda: (run / "summary.json").is_file(), proc), proc.communicate()[1][-3000:]
+        proc.send_signal(signal.SIGSTOP)  # summary.json is written first, then the plots and report.md
+        assert not (run / "report.md").exists(), "the report was already written: nothing to test"
+        proc.send_signal(signal.SIGTERM)  # delivered as it goes on writing the report
+        proc.send_signal(signal.SIGCONT)
+        out, err = proc.communicate(timeout=300)
+    finally:
+        proc.kill()
+    assert proc.returncode == 128 + signal.SIGTERM, err[-3000:]
+    assert "Traceback" not in err and "leaked semaphore" not in err, err[-3000:]
+    [line] = [line for line in err.splitlines() if line.startswith("adarl: error:")]
+    assert "stopped on SIGTERM at the end of the run" in line and "report.md" in line
+    assert (run / "report.md").is_file() and (run / "plots" / "return.png").is_file()
+    assert json.loads((run / "summary.json").read_text())["frames"] >= 300
+
+
 def test_resumed_run_times_every_process(tmp_path):
     run = tmp_path / "run"
     proc = _start("run", "quickstart", *FAST, "-o", str(run), "--quiet")

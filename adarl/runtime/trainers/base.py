@@ -39,7 +39,7 @@ from adarl.runtime.evaluation import EvalResult, evaluate_policy
 from adarl.runtime.guards import NonFiniteError, NonFiniteGuard
 from adarl.runtime.report import write_report
 from adarl.runtime.run_dir import RunDir, null_logger, recipe_fingerprint
-from adarl.runtime.signals import GracefulInterrupt, RunInterrupted
+from adarl.runtime.signals import FINISHING, GracefulInterrupt, RunInterrupted, stopped_after_the_end
 from adarl.runtime.state import collector_state_dict, load_collector_state_dict, rng_state, set_rng_state
 
 __all__ = ["BaseTrainer", "trainer_class"]
@@ -237,8 +237,7 @@ class BaseTrainer:
             total=total, initial=self.frames, unit="frame", disable=self.quiet, dynamic_ncols=True, desc=rc.name
         )
         self._bar = bar
-        start = time.perf_counter()
-        self._clock = (start, self.frames, self.updates)  # time/fps counts this process's work only
+        self._clock = (time.perf_counter(), self.frames, self.updates)  # time/fps counts this process's work only
         try:
             with GracefulInterrupt(quiet=self.quiet) as interrupt:
                 if not self.run_dir.checkpoints():
@@ -254,14 +253,17 @@ class BaseTrainer:
                 self._log_losses([], flush=True)  # the last partial logging interval
                 if self.last_eval_frames != self.frames:
                     self._evaluate()
-                self.save_checkpoint()
+                last = self.save_checkpoint()
+                interrupt.notice = FINISHING  # a signal from here on stops once the summary and report are written
+                summary = self._write_summary(self._wall_time())
+                write_report(self.run_dir.path)
         finally:
             self._sync_bar()
             bar.close()
             self._bar = None
-        summary = self._write_summary(self._wall_time())
-        write_report(self.run_dir.path)
         self.close()
+        if interrupt.requested is not None:
+            raise stopped_after_the_end(interrupt.requested, self.frames, last, self.run_dir.path)
         return summary
 
     def _train_batches(self, bar, interrupt: GracefulInterrupt) -> None:
