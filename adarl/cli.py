@@ -98,8 +98,9 @@ def _train(trainer) -> dict:
         if not isinstance(err, OSError) or err.errno not in STORAGE_ERRNOS:
             raise
         path = trainer.run_dir.path
+        what = describe_os_error(err) if err.filename else f"writing in {str(path)!r}: {describe_os_error(err)}"
         raise AdaRLError(
-            f"{describe_os_error(err)}; the run stopped, its last checkpoint is intact: free space (or "
+            f"{what}; the run stopped, its last checkpoint is intact: free space (or "
             f"make {str(path)!r} writable) and `adarl resume {path}`"
         ) from None
 

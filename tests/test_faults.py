@@ -15,14 +15,18 @@ import json
 import os
 import re
 import shutil
+import signal
+import stat
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
 import torch
 from faultfs import FaultFS, adarl_under_faults, readonly_fs, remount, small_fs
 from test_cli_e2e import REPO, adarl
+from test_kill_resume import _results
 
 from adarl.errors import AdaRLWarning, CheckpointError
 from adarl.runtime.run_dir import TRAINING_RECORDS, RunDir
@@ -68,6 +72,36 @@ def _one_error_line(proc: subprocess.CompletedProcess, *words: str) -> str:
     for word in words:
         assert word in errors[0], (word, errors[0])
     return errors[0]
+
+
+def _start(*args: str) -> subprocess.Popen:
+    """``adarl ARGS`` in the background, to be stopped, killed or signalled at a moment a test waits for."""
+    env = {
+        **os.environ,
+        "PYTHONPATH": str(REPO),
+        "OMP_NUM_THREADS": "1",
+        "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"),
+    }
+    return subprocess.Popen(
+        [sys.executable, "-m", "adarl.cli", *args],
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+def _wait_for(seen, proc: subprocess.Popen, timeout: float = 300) -> bool:
+    """Poll ``seen()`` (a file appearing) until it holds, the process ends or ``timeout`` (generous: CI is loaded)."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if seen():
+            return True
+        if proc.poll() is not None:
+            return seen()
+        time.sleep(0.002)
+    return False
 
 
 def _warnings(proc: subprocess.CompletedProcess) -> list[str]:
@@ -127,6 +161,51 @@ def test_eval_names_a_refused_checkpoint_and_renames_nothing(finished, tmp_path,
     _one_error_line(proc, evil.name, "Python object")
     assert "weights_only" not in proc.stderr
     assert not marker.exists()
+
+
+@pytest.mark.parametrize("damage", ["missing", "truncated", "python object", "fifo"])
+def test_damaged_newest_replay_buffer_falls_back_like_a_missing_one(finished, tmp_path, damage):
+    run = _copy(finished, tmp_path / "run")
+    ckpts = RunDir(run).checkpoints()
+    newest = ckpts[-1]
+    rb = RunDir._replay_buffer_dir(newest)
+    buffer = rb / "buffer.pt"
+    if damage == "missing":
+        shutil.rmtree(rb)
+    elif damage == "truncated":
+        buffer.write_bytes(buffer.read_bytes()[: buffer.stat().st_size // 2])  # a copy or a disk cut it short
+    elif damage == "python object":
+        torch.save({"_storage": _Evil()}, buffer)
+    else:
+        buffer.unlink()
+        os.mkfifo(buffer)  # reading it would wait forever for a writer
+    proc = adarl("resume", str(run), "--checkpoint", "latest", "--quiet", timeout=300)
+    _one_error_line(proc, newest.name, "has lost its replay buffer", "--checkpoint latest")
+    proc = adarl("resume", str(run), "--quiet", timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    [line] = _warnings(proc)
+    assert line.startswith(
+        f"adarl: warning: skipped checkpoint {newest.name} (renamed {newest.name}.corrupt): has lost"
+    )
+    assert f"using {ckpts[-2].name} instead" in line
+    assert {"truncated": "truncated", "python object": "Python object", "fifo": "a FIFO"}.get(damage, "") in line
+    assert newest.with_name(newest.name + ".corrupt").exists()  # set aside (the resumed run writes its own again)
+    assert json.loads((run / "summary.json").read_text())["frames"] >= 300
+
+
+def test_fifo_in_place_of_the_newest_checkpoint_is_refused_unread(finished, tmp_path):
+    run = _copy(finished, tmp_path / "run")
+    ckpts = RunDir(run).checkpoints()
+    newest = ckpts[-1]
+    newest.unlink()
+    os.mkfifo(newest)  # torch.load of it waited forever for a writer: `adarl eval` hung
+    proc = adarl("eval", str(run), "--episodes", "1", timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    [line] = _warnings(proc)
+    assert newest.name in line and "not a regular file (a FIFO)" in line and f"using {ckpts[-2].name}" in line
+    assert stat.S_ISFIFO(newest.stat().st_mode)  # evaluation renames nothing
+    proc = adarl("eval", str(run), "--checkpoint", "latest", "--episodes", "1", timeout=300)
+    _one_error_line(proc, newest.name, "not a regular file (a FIFO)")
 
 
 # ------------------------------------------------------------------------------------------ foreign checkpoints
@@ -252,6 +331,122 @@ def test_resume_refuses_a_folder_another_process_trains_in(finished, tmp_path):
         holder.wait()
 
 
+# ------------------------------------------------------------------------------------------ killed, deleted, signalled
+
+
+def test_kill_9_before_the_first_checkpoint_resumes_from_frame_0(finished, tmp_path):
+    run = tmp_path / "run"
+    proc = _start("run", "quickstart", *FAST, "-o", str(run), "--quiet")
+    try:
+        assert _wait_for(lambda: (run / "recipe.yaml").is_file(), proc), proc.communicate()[1][-3000:]
+        proc.send_signal(signal.SIGSTOP)  # its first moments: the recipe written, the networks being built
+        assert not list(run.glob("checkpoints/ckpt-*")), "the frame-0 checkpoint came first: nothing to test"
+    finally:
+        proc.kill()
+        proc.wait()
+    proc = adarl("run", "quickstart", *FAST, "-o", str(run), "--quiet")
+    _one_error_line(proc, "already exists", f"adarl resume {run}")  # points at resume, and resume goes on:
+    proc = adarl("resume", str(run), "--quiet")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    [line] = _warnings(proc)
+    assert "has no checkpoint" in line and "starting it from frame 0" in line
+    assert _results(run) == _results(finished)  # the same run, bit for bit, as one never stopped
+
+
+def test_kill_9_before_the_recipe_is_written_leaves_a_folder_adarl_run_takes(tmp_path):
+    run = tmp_path / "run"
+    claim_and_die = (
+        "import os, sys; from adarl.runtime.run_dir import RunDir; RunDir.create(sys.argv[1]); "
+        "os.kill(os.getpid(), 9)"  # killed between claiming the folder and writing recipe.yaml
+    )
+    proc = subprocess.run([sys.executable, "-c", claim_and_die, str(run)], env={**os.environ, "PYTHONPATH": str(REPO)})
+    assert proc.returncode == -signal.SIGKILL and [p.name for p in run.iterdir()] == [".adarl.lock"]
+    proc = adarl("resume", str(run), "--quiet")
+    _one_error_line(proc, "holds no recipe.yaml", f"adarl run RECIPE -o {run}")  # points at run, and run goes on:
+    proc = adarl("run", "quickstart", *FAST, "collector.total_frames=100", "-o", str(run), "--quiet")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert json.loads((run / "summary.json").read_text())["frames"] >= 100
+
+
+def test_run_folder_deleted_mid_run_stops_and_recreates_nothing(tmp_path):
+    run = tmp_path / "run"
+    proc = _start("run", "quickstart", *FAST, "-o", str(run), "--quiet")
+    try:
+        assert _wait_for(lambda: bool(RunDir(run).checkpoints()), proc), proc.communicate()[1][-3000:]
+        proc.send_signal(signal.SIGSTOP)  # training: the frame-0 checkpoint is written
+        shutil.rmtree(run)  # `rm -rf RUN_DIR` in another terminal
+        proc.send_signal(signal.SIGCONT)
+        out, err = proc.communicate(timeout=300)
+    finally:
+        proc.kill()
+    done = subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
+    _one_error_line(done, "was deleted or moved while this process trained in it", "recreated nothing")
+    assert "run finished" not in out
+    assert not run.exists(), sorted(p.relative_to(run).as_posix() for p in run.rglob("*"))
+
+
+def test_sigterm_while_the_report_is_written_finishes_it_and_stops_cleanly(tmp_path):
+    run = tmp_path / "run"
+    proc = _start("run", "quickstart", *FAST, "-o", str(run), "--quiet")
+    try:
+        assert _wait_for(lambda: (run / "summary.json").is_file(), proc), proc.communicate()[1][-3000:]
+        proc.send_signal(signal.SIGSTOP)  # summary.json is written first, then the plots and report.md
+        assert not (run / "report.md").exists(), "the report was already written: nothing to test"
+        proc.send_signal(signal.SIGTERM)  # delivered as it goes on writing the report
+        proc.send_signal(signal.SIGCONT)
+        out, err = proc.communicate(timeout=300)
+    finally:
+        proc.kill()
+    assert proc.returncode == 128 + signal.SIGTERM, err[-3000:]
+    assert "Traceback" not in err and "leaked semaphore" not in err, err[-3000:]
+    [line] = [line for line in err.splitlines() if line.startswith("adarl: error:")]
+    assert "stopped on SIGTERM at the end of the run" in line and "report.md" in line
+    assert (run / "report.md").is_file() and (run / "plots" / "return.png").is_file()
+    assert json.loads((run / "summary.json").read_text())["frames"] >= 300
+
+
+def test_resumed_run_times_every_process(tmp_path):
+    run = tmp_path / "run"
+    proc = _start("run", "quickstart", *FAST, "-o", str(run), "--quiet")
+    first = run / "checkpoints" / "ckpt-000000000100.pt"
+    assert _wait_for(first.is_file, proc), proc.communicate()[1][-3000:]
+    assert proc.poll() is None, "the run ended before it could be killed"
+    proc.kill()
+    proc.wait()
+    before = RunDir(run).load_checkpoint(RunDir(run).checkpoints()[-1], replay_buffer=False)["counters"]
+    assert before["wall_time_s"] > 0  # the checkpoint carries the wall time so far
+    proc = adarl("resume", str(run), "--quiet")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["wall_time_s"] > before["wall_time_s"]  # both processes, not the last one alone
+    assert summary["updates_per_s"] == pytest.approx(summary["updates"] / summary["wall_time_s"])
+    report = (run / "report.md").read_text()
+    assert f"wall time: {summary['wall_time_s']:.0f} s ({summary['updates_per_s']:.1f} updates/s)" in report
+
+
+# ------------------------------------------------------------------------------------------ someone else's folder
+
+
+def test_overwrite_refuses_a_folder_adarl_did_not_write(finished, tmp_path):
+    thesis = tmp_path / "thesis"
+    (thesis / "figures").mkdir(parents=True)
+    (thesis / "thesis.tex").write_text("\\documentclass{book}\n")
+    (thesis / "figures" / "plot.pdf").write_bytes(b"%PDF-1.5\n")
+    before = _tree(thesis)
+    proc = adarl("run", "quickstart", *FAST, "-o", str(thesis), "--overwrite", "--quiet")
+    _one_error_line(proc, "--overwrite refused", "figures/, thesis.tex", "nothing was deleted")
+    proc = adarl("run", "quickstart", *FAST, "-o", str(thesis), "--quiet")
+    line = _one_error_line(proc, "already exists", "figures/, thesis.tex")
+    assert "adarl resume" not in line  # not a run: nothing to resume
+    assert _tree(thesis) == before
+    run = _copy(finished, tmp_path / "run")  # a run folder with someone's notes in it: the notes are not adarl's
+    (run / "notes.md").write_text("seed 0 looked odd\n")
+    before = _tree(run)
+    proc = adarl("run", "quickstart", *FAST, "-o", str(run), "--overwrite", "--quiet")
+    _one_error_line(proc, "--overwrite refused", "notes.md")
+    assert _tree(run) == before
+
+
 # ------------------------------------------------------------------------------------------ disk full
 
 
@@ -275,6 +470,25 @@ def test_disk_full_tmpfs_stops_with_one_line_and_resumes(tmp_path):
         proc = adarl("resume", str(run), "--quiet")
         assert proc.returncode == 0, proc.stderr[-3000:]
         assert json.loads((run / "summary.json").read_text())["frames"] >= 300
+
+
+def test_disk_full_names_the_file_it_could_not_write(tmp_path):
+    with small_fs("8m", tmp=tmp_path) as fs:
+        run = fs / "run"
+        proc = _start("run", "quickstart", *FAST, "-o", str(run), "--quiet")
+        try:
+            assert _wait_for(lambda: bool(RunDir(run).checkpoints()), proc), proc.communicate()[1][-3000:]
+            proc.send_signal(signal.SIGSTOP)
+            with (fs / "filler").open("wb") as fh, pytest.raises(OSError):  # the disk fills up while it trains
+                while True:
+                    fh.write(b"\0" * (64 << 10))
+                    fh.flush()
+            proc.send_signal(signal.SIGCONT)
+            out, err = proc.communicate(timeout=300)
+        finally:
+            proc.kill()
+        line = _one_error_line(subprocess.CompletedProcess(proc.args, proc.returncode, out, err), "adarl resume")
+        assert re.search(rf"'{re.escape(str(run))}/[^']+': No space left on device", line), line
 
 
 def test_disk_full_injected_stops_with_one_line(tmp_path):

@@ -10,17 +10,28 @@ import pytest
 import torch
 
 from adarl.errors import AdaRLError, CheckpointError
-from adarl.runtime.run_dir import RunDir
+from adarl.runtime.run_dir import LOCK_FILE, RunDir
 
 
 def test_create_refuses_existing_non_empty(tmp_path):
     (tmp_path / "run").mkdir()
     (tmp_path / "run" / "keep.txt").write_text("precious")
-    with pytest.raises(AdaRLError, match="already exists"):
+    with pytest.raises(AdaRLError, match="already exists") as info:
         RunDir.create(tmp_path / "run")
+    assert "keep.txt" in str(info.value) and "adarl resume" not in str(info.value)  # not a run: nothing to resume
+    # --overwrite replaces only an adarl run folder that holds nothing else: keep.txt is named, and stays
+    with pytest.raises(AdaRLError, match="--overwrite refused") as info:
+        RunDir.create(tmp_path / "run", overwrite=True)
+    assert "keep.txt" in str(info.value) and "nothing was deleted" in str(info.value)
     assert (tmp_path / "run" / "keep.txt").read_text() == "precious"
-    RunDir.create(tmp_path / "run", overwrite=True)
-    assert not (tmp_path / "run" / "keep.txt").exists()
+    run = RunDir.create(tmp_path / "other")
+    run.save_checkpoint({"counters": {"frames": 1}}, frames=1)
+    (run.path / "summary.json.tmp").write_text("{")  # a write a crash cut short is adarl's too
+    run.unlock()
+    with pytest.raises(AdaRLError, match="adarl resume"):
+        RunDir.create(run.path)
+    RunDir.create(run.path, overwrite=True).unlock()
+    assert sorted(p.name for p in run.path.iterdir()) == [".adarl.lock"]
 
 
 def test_checkpoint_round_trip_and_rotation(tmp_path):
@@ -202,3 +213,52 @@ def test_malformed_checkpoint_is_refused_not_a_traceback(tmp_path, payload):
     torch.save(payload, path)  # loads with weights_only=True: only its layout is wrong
     with pytest.raises(CheckpointError, match="not an adarl checkpoint"):
         run.load_checkpoint(path)
+
+
+def test_a_full_device_names_the_file_it_could_not_write(tmp_path):
+    """/dev/full fails every write with ENOSPC, as a full disk does, where a buffered file's flush names no file."""
+    if not os.path.exists("/dev/full"):
+        pytest.skip("no /dev/full here")
+    import errno
+    import types as _types
+
+    run = RunDir.create(tmp_path / "run")
+    (run.path / "metrics" / "scalars" / "train").mkdir(parents=True)
+    os.symlink("/dev/full", run.path / "metrics" / "scalars" / "train" / "episode_return.csv")
+    logger = run.make_logger(
+        _types.SimpleNamespace(logging=_types.SimpleNamespace(backends=["csv"], wandb_mode="disabled"))
+    )
+    with pytest.raises(OSError) as info:
+        logger.log_scalar("train/episode_return", 1.0, step=1)
+    assert info.value.errno == errno.ENOSPC
+    assert info.value.filename.endswith(os.path.join("metrics", "scalars", "train", "episode_return.csv"))
+    os.symlink("/dev/full", run.path / "eval.csv")
+    result = _types.SimpleNamespace(mean=1.0, std=0.0, ci95=0.0, returns=[1.0])
+    with pytest.raises(OSError) as info:
+        run.append_eval(1, 1, result, ranks={})
+    assert info.value.errno == errno.ENOSPC and info.value.filename == str(run.path / "eval.csv")
+    run.close_logger(logger)  # its unwritten row fails again on close, quietly
+
+
+def test_a_deleted_run_folder_is_not_recreated(tmp_path):
+    import shutil
+
+    from adarl.runtime.run_dir import RunFolderGone
+
+    run = RunDir.create(tmp_path / "run")
+    run.save_checkpoint({"counters": {"frames": 1}}, frames=1)
+    run.ensure_present()
+    shutil.rmtree(run.path)
+    for write in (
+        lambda: run.save_checkpoint({"counters": {"frames": 2}}, frames=2),
+        lambda: run.write_json("summary.json", {}),
+    ):
+        with pytest.raises(RunFolderGone, match="deleted or moved"):
+            write()
+    assert not run.path.exists()
+    moved = RunDir.create(tmp_path / "moved")
+    os.rename(moved.path, tmp_path / "elsewhere")
+    (tmp_path / "moved").mkdir()
+    (tmp_path / "moved" / LOCK_FILE).write_text("")  # another folder took its name: not the one this process holds
+    with pytest.raises(RunFolderGone):
+        moved.ensure_present()

@@ -78,11 +78,11 @@ def _checkpoint(path: str | os.PathLike, which: str):
                     f"{str(p)!r} has no best checkpoint ({ckpt.name}: written at evaluations "
                     f"when checkpoint.keep_best is true); load which='latest' instead"
                 )
-            return run, ckpt, run.load_checkpoint(ckpt)
+            return run, ckpt, run.load_checkpoint(ckpt, replay_buffer=False)
         ckpts = run.checkpoints()
         if not ckpts:
             raise CheckpointError(f"{str(p)!r} has no checkpoint to load the policy from (checkpoints/ckpt-*.pt)")
-        state = run.load_latest_checkpoint()
+        state = run.load_latest_checkpoint(replay_buffer=False)  # a policy needs no replay buffer (not read)
         frames = int(state["counters"]["frames"])
         ckpt = next((c for c in reversed(ckpts) if c.name == f"ckpt-{frames:012d}.pt"), ckpts[-1])
         return run, ckpt, state
@@ -95,7 +95,7 @@ def _checkpoint(path: str | os.PathLike, which: str):
                 f"its run folder (<run>/checkpoints/)"
             )
         run = RunDir.open(folder)
-        return run, p, run.load_checkpoint(p)
+        return run, p, run.load_checkpoint(p, replay_buffer=False)
     raise CheckpointError(f"{str(p)!r} is neither a run folder nor a checkpoint file")
 
 

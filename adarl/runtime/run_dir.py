@@ -39,6 +39,7 @@ import pickle
 import re
 import shutil
 import socket
+import stat
 import time
 import uuid
 import warnings
@@ -48,7 +49,14 @@ import torch
 from torchrl.record import loggers as torchrl_loggers
 
 from adarl import __version__, plugins
-from adarl.errors import AdaRLError, CheckpointError, CheckpointFallbackWarning, RecipeError, describe_os_error
+from adarl.errors import (
+    AdaRLError,
+    AdaRLWarning,
+    CheckpointError,
+    CheckpointFallbackWarning,
+    RecipeError,
+    describe_os_error,
+)
 from adarl.runtime.config import load_recipe, recipe_to_yaml, save_resolved
 
 try:  # POSIX: a lock the kernel drops when its process dies (kill -9 included)
@@ -56,7 +64,16 @@ try:  # POSIX: a lock the kernel drops when its process dies (kill -9 included)
 except ImportError:  # pragma: no cover - Windows: folders are still created exclusively, but not locked while in use
     fcntl = None
 
-__all__ = ["RunDir", "CHECKPOINT_FORMAT", "CHECKPOINT_VERSION", "TRAINING_RECORDS", "recipe_fingerprint", "null_logger"]
+__all__ = [
+    "RunDir",
+    "CHECKPOINT_FORMAT",
+    "CHECKPOINT_VERSION",
+    "TRAINING_RECORDS",
+    "OTHER_OUTPUTS",
+    "RunFolderGone",
+    "recipe_fingerprint",
+    "null_logger",
+]
 
 CHECKPOINT_FORMAT = "adarl.checkpoint"
 CHECKPOINT_VERSION = 1
@@ -78,6 +95,9 @@ TRAINING_RECORDS = (
     "wandb/",
     "replay_storage/",
 )
+# What the other commands write into a run folder; with TRAINING_RECORDS, every name adarl puts at its top level.
+# `--overwrite` replaces only a folder that holds nothing else (a thesis.tex in it is refused by name).
+OTHER_OUTPUTS = ("wandb_run_id", "report.md", "plots/", "eval_nominal.json", "sweeps/")
 _EVAL_FIELDS = ["frames", "updates", "mean", "std", "ci95", "episodes", "returns", "ranks"]
 _HELD_LOCKS: dict[str, int] = {}  # lock files this process holds (path -> fd): a lock excludes other processes only
 
@@ -124,15 +144,37 @@ def _same_in_fingerprint(key: str, theirs: dict, ours: dict) -> bool:
     )
 
 
-class _Fanout:
-    """Send each scalar to every configured TorchRL logger (CSV always; tensorboard / wandb on request)."""
+class RunFolderGone(AdaRLError):
+    """The run folder was deleted or moved while a process trained in it: the run stops instead of writing on (it
+    would recreate a folder without its recipe or records, which neither resume nor eval can read)."""
 
-    def __init__(self, loggers):
+
+class _Fanout:
+    """Send each scalar to every configured TorchRL logger (CSV always; tensorboard / wandb on request).
+
+    ``check``: called before each scalar (the run folder is still there, :meth:`RunDir.ensure_present`), so a
+    logger never recreates a deleted run folder (TorchRL's CSV logger makes the folders of a new metric's file)."""
+
+    def __init__(self, loggers, check=None):
         self.loggers = loggers
+        self.check = check
 
     def log_scalar(self, name: str, value: float, step: int | None = None) -> None:
+        if self.check is not None:
+            self.check()
         for lg in self.loggers:
-            lg.log_scalar(name, float(value), step=step)
+            try:
+                lg.log_scalar(name, float(value), step=step)
+            except OSError as err:  # a full disk fails the CSV logger's flush, which names no file: name it
+                if err.filename is not None:
+                    raise
+                exp = getattr(lg, "experiment", None)
+                where = (
+                    os.path.join(exp.log_dir, "scalars", name + ".csv")
+                    if hasattr(exp, "files")  # CSV: the metric's own file
+                    else getattr(lg, "log_dir", None)
+                )
+                raise OSError(err.errno, err.strerror, where) from None
 
 
 def null_logger() -> _Fanout:
@@ -145,6 +187,7 @@ class RunDir:
 
     def __init__(self, path: str | os.PathLike) -> None:
         self.path = Path(path)
+        self._buffer_cache: tuple[Path, dict] | None = None  # (rb folder, its buffer.pt) read by load_checkpoint
 
     # ------------------------------------------------------------------ creation and locking
     @classmethod
@@ -166,11 +209,25 @@ class RunDir:
                 f"cannot create run folder {str(p)!r}: {_os_why(err, p)}; choose a writable place "
                 f"with -o/--output or output.root"
             ) from None
-        if any(p.iterdir()):
-            if not overwrite:
+        entries = list(p.iterdir())
+        if entries and fcntl is not None and all(_claim_leftover(e.name) for e in entries):
+            return cls._reclaim(p, entries)  # `adarl run` was stopped before it wrote its recipe: nothing ran
+        if entries:
+            foreign = _foreign_entries(entries)
+            is_run = not foreign and any(e.name in (LOCK_FILE, "recipe.yaml") for e in entries)
+            if not overwrite and is_run:
                 raise AdaRLError(
                     f"run folder {str(p)!r} already exists and is not empty; choose another output.dir, "
                     f"resume it with `adarl resume {p}`, or pass --overwrite to replace it"
+                )
+            if not is_run:
+                what = (
+                    f"holds {_names(foreign)}, which adarl did not write" if foreign else "is not an adarl run folder"
+                )
+                raise AdaRLError(
+                    f"{'--overwrite refused: ' if overwrite else ''}run folder {str(p)!r} already exists and {what}"
+                    f"{' (nothing was deleted)' if overwrite else ''}; choose another output folder with -o/--output "
+                    f"or output.dir (--overwrite replaces only an adarl run folder that holds nothing else)"
                 )
             cls(p).lock()  # refuses when another process trains in it
             _release_lock(p / LOCK_FILE)
@@ -192,15 +249,88 @@ class RunDir:
                 f"cannot create run folder {str(p)!r}: {_os_why(err, p)}; choose a writable place "
                 f"with -o/--output or output.root"
             ) from None
-        _hold_lock(p / LOCK_FILE, fd)
+        if not _hold_lock(p / LOCK_FILE, fd):  # a stale claim's reclaimer (below) took it between our open and lock
+            raise AdaRLError(
+                f"run folder {str(p)!r} was just claimed by another process ({_holder(p / LOCK_FILE)}); "
+                f"choose another output.dir"
+            )
         return run
+
+    @classmethod
+    def _reclaim(cls, p: Path, entries: list[Path]) -> RunDir:
+        """Take over a folder that holds only the claim of an ``adarl run`` stopped before it wrote its recipe
+        (``kill -9`` in its first moments): nothing ran there, so it is this run's folder now. Refused while the
+        process that claimed it is alive (it holds the lock: two runs started at once)."""
+        lock = p / LOCK_FILE
+        try:
+            fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as err:
+            raise AdaRLError(
+                f"cannot create run folder {str(p)!r}: {_os_why(err, p)}; choose a writable place "
+                f"with -o/--output or output.root"
+            ) from None
+        if not _hold_lock(lock, fd):
+            raise AdaRLError(
+                f"run folder {str(p)!r} was just claimed by another process ({_holder(lock)}); choose another "
+                f"output.dir"
+            )
+        for e in entries:  # a half-written recipe's temporary file
+            if e.name != LOCK_FILE:
+                e.unlink(missing_ok=True)
+        return cls(p)
 
     @classmethod
     def open(cls, path: str | os.PathLike) -> RunDir:
         p = Path(path)
         if not (p / "recipe.yaml").is_file():
+            if p.is_dir() and (p / LOCK_FILE).exists() and all(_claim_leftover(e.name) for e in p.iterdir()):
+                raise AdaRLError(
+                    f"{str(p)!r} holds no recipe.yaml: `adarl run` was stopped before it wrote one, so nothing ran "
+                    f"there; start the run again with `adarl run RECIPE -o {p}`"
+                )
             raise AdaRLError(f"{str(p)!r} is not an adarl run folder (no recipe.yaml in it)")
         return cls(p)
+
+    def starts_over(self) -> bool:
+        """Whether resuming this run means starting it from frame 0, with a warning saying so: it was stopped
+        (``kill -9`` in its first moments) before its first checkpoint was complete, so nothing of its training is
+        in the folder, only its recipe (and perhaps a checkpoint's partial ``*.tmp``). Starting again is then the
+        same run, bit for bit, as one never stopped."""
+        ckpts = self.checkpoint_dir
+        if ckpts.is_dir() and any(not e.name.endswith(".tmp") for e in ckpts.iterdir()):
+            return False  # checkpoints (or damaged ones, or buffers): resume from them, or say why not
+        if any((self.path / name).exists() for name in ("eval.csv", "ranks.json", "summary.json")):
+            return False
+        scalars = self.path / "metrics" / "scalars"
+        if scalars.is_dir() and any(f.stat().st_size for f in scalars.rglob("*.csv") if f.is_file()):
+            return False
+        warnings.warn(
+            f"run folder {str(self.path)!r} has no checkpoint: it was stopped before its first one was complete, "
+            f"so none of its training was kept; starting it from frame 0",
+            AdaRLWarning,
+            stacklevel=3,
+        )
+        return True
+
+    def ensure_present(self) -> None:
+        """Raise :class:`RunFolderGone` when the folder this process trains in was deleted or moved (its lock file
+        is gone or is another file): writing on would recreate a folder without its recipe or records.
+        Does nothing where this process holds no lock on it (evaluation)."""
+        lock = self.path / LOCK_FILE
+        fd = _HELD_LOCKS.get(str(lock.absolute()))
+        if fd is None:
+            return
+        try:
+            here, held = os.stat(lock), os.fstat(fd)
+            if (here.st_ino, here.st_dev) == (held.st_ino, held.st_dev):
+                return
+        except OSError:
+            pass
+        raise RunFolderGone(
+            f"run folder {str(self.path)!r} was deleted or moved while this process trained in it; the run "
+            f"stopped and recreated nothing. If it was moved, `adarl resume NEW_PLACE` continues it from its last "
+            f"checkpoint"
+        )
 
     def lock(self) -> None:
         """Lock the folder for this process until :meth:`unlock` (a trainer's ``close()``) or the process ends: another
@@ -347,7 +477,7 @@ class RunDir:
                     config=config,
                 )
             )
-        return _Fanout(loggers)
+        return _Fanout(loggers, check=self.ensure_present)
 
     def close_logger(self, logger: _Fanout) -> None:
         for lg in logger.loggers:
@@ -402,9 +532,10 @@ class RunDir:
 
     # ------------------------------------------------------------------ evaluation and ranks
     def append_eval(self, frames: int, updates: int, result, ranks: dict) -> None:
+        self.ensure_present()
         path = self.path / "eval.csv"
         new = not path.exists()
-        with path.open("a", newline="") as fh:
+        with _naming(path), path.open("a", newline="") as fh:
             w = csv.DictWriter(fh, fieldnames=_EVAL_FIELDS)
             if new:
                 w.writeheader()
@@ -425,11 +556,13 @@ class RunDir:
 
     def sync_metrics(self, logger: _Fanout) -> None:
         """Flush and fsync the CSV metric files, so that what a checkpoint says was logged is on disk."""
+        self.ensure_present()
         for lg in logger.loggers:
-            for fd in list(getattr(getattr(lg, "experiment", None), "files", {}).values()):
+            for name, fd in list(getattr(getattr(lg, "experiment", None), "files", {}).items()):
                 try:
-                    fd.flush()
-                    os.fsync(fd.fileno())
+                    with _naming(Path(name)):
+                        fd.flush()
+                        os.fsync(fd.fileno())
                 except ValueError:  # closed file; an OSError (a full disk) propagates: the checkpoint would lie
                     pass
 
@@ -507,6 +640,7 @@ class RunDir:
 
     def write_json(self, name: str, obj) -> None:
         """Write ``name`` atomically as strict JSON: NaN and infinities become ``null`` (JSON has no NaN)."""
+        self.ensure_present()
         _atomic_write_text(self.path / name, json.dumps(_plain(obj), indent=2, allow_nan=False) + "\n")
 
     # ------------------------------------------------------------------ checkpoints
@@ -543,13 +677,16 @@ class RunDir:
         ``dumps()`` memory-maps its files, and a full disk then kills the process with SIGBUS, with no message.
         ``fingerprint``: :func:`recipe_fingerprint` of the run, checked when the checkpoint is loaded.
         """
+        self.ensure_present()
         path = self.checkpoint_dir / f"ckpt-{int(frames):012d}.pt"
         rb_dir = self.checkpoint_dir / f"rb-{int(frames):012d}"
         rb_tmp = rb_dir.with_name(rb_dir.name + ".tmp")
+        writing = self.checkpoint_dir  # what the message names when a write fails
         try:
             self.checkpoint_dir.mkdir(parents=True, exist_ok=True)
             if replay_buffer is not None:
                 shutil.rmtree(rb_tmp, ignore_errors=True)
+                writing = rb_dir / REPLAY_BUFFER_FILE
                 _check_free_space(
                     self.checkpoint_dir,
                     _buffer_nbytes(replay_buffer) + _nbytes(state),
@@ -559,6 +696,7 @@ class RunDir:
                 _atomic_torch_save(replay_buffer.state_dict(), rb_tmp / REPLAY_BUFFER_FILE)
                 shutil.rmtree(rb_dir, ignore_errors=True)
                 os.replace(rb_tmp, rb_dir)
+            writing = path
             _atomic_torch_save(self._payload(state, frames, fingerprint, replay_buffer=replay_buffer is not None), path)
             _fsync_dir(self.checkpoint_dir)
         except OSError as err:
@@ -569,9 +707,9 @@ class RunDir:
             full = err.errno in (errno.ENOSPC, errno.EDQUOT)
             remedy = "free space" if full else f"make {str(self.path)!r} writable"
             raise CheckpointError(
-                f"could not write checkpoint {path.name}{' (disk full)' if full else ''}: {err.strerror or err}; the "
-                f"run stopped. The previous checkpoint {prev[-1] if prev else '(none)'} is intact: {remedy} and "
-                f"`adarl resume {self.path}`",
+                f"could not write checkpoint {path.name}{' (disk full)' if full else ''}: {str(writing)!r}: "
+                f"{err.strerror or err}; the run stopped. The previous checkpoint {prev[-1] if prev else '(none)'} "
+                f"is intact: {remedy} and `adarl resume {self.path}`",
                 path=path,
                 reason=err.strerror or str(err),
             ) from None
@@ -582,6 +720,7 @@ class RunDir:
 
     def save_best(self, state: dict, *, frames: int, score: float, fingerprint: dict | None = None) -> Path | None:
         """Replace ``checkpoints/best.pt`` (atomically); a write error keeps the old one and only warns."""
+        self.ensure_present()
         try:
             self.checkpoint_dir.mkdir(parents=True, exist_ok=True)
             _atomic_torch_save(self._payload(state, frames, fingerprint, score=float(score)), self.best_checkpoint_path)
@@ -603,19 +742,20 @@ class RunDir:
         """Load one checkpoint safely (``weights_only=True``: no code runs from the file) and check it fits.
 
         ``fingerprint`` (:func:`recipe_fingerprint` of the run): a checkpoint written under another recipe is refused
-        before any tensor is used. ``replay_buffer``: require the buffer folder it was saved with, beside the file
-        (evaluation does not need it). The state gets ``checkpoint_file``, where the buffer is looked for."""
+        before any tensor is used. ``replay_buffer``: require the buffer it was saved with, beside the file, and read
+        it (a damaged buffer refuses the checkpoint; evaluation and policies do not need it). Only regular files are
+        read (a FIFO would block). The state gets ``checkpoint_file``, where the buffer is looked for."""
         path = Path(path)
 
         def refuse(reason: str) -> CheckpointError:
             return CheckpointError(f"checkpoint {str(path)!r} {reason}", path=path, reason=reason)
 
         try:
-            with warnings.catch_warnings():  # torch's pickle-protocol chatter about files it then refuses anyway
-                warnings.simplefilter("ignore")
-                payload = torch.load(path, map_location="cpu", weights_only=True)
+            payload = _safe_load(path)
         except FileNotFoundError:
             raise refuse("does not exist") from None
+        except _NotAFile as err:
+            raise refuse(str(err)) from None
         except Exception as err:  # truncated zip, pickle with code, garbage bytes
             raise refuse(f"cannot be loaded safely: {_why_unloadable(err)}") from None
         if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
@@ -645,6 +785,20 @@ class RunDir:
             rb = self._replay_buffer_dir(path, frames)
             if not rb.is_dir():
                 raise refuse(f"has lost its replay buffer: the folder {rb.name} is missing beside it")
+            if (rb / REPLAY_BUFFER_FILE).exists() or (rb / REPLAY_BUFFER_FILE).is_symlink():
+                # Read now, not when the trainer fills its buffer: a damaged buffer makes the whole checkpoint
+                # unusable, so resume falls back to the previous one as for a missing buffer (kept for
+                # load_replay_buffer, which then does not read the file again).
+                self._buffer_cache = None
+                try:
+                    self._buffer_cache = (rb.absolute(), _safe_load(rb / REPLAY_BUFFER_FILE))
+                except _NotAFile as err:
+                    raise refuse(f"has lost its replay buffer: {rb.name}/{REPLAY_BUFFER_FILE} {err}") from None
+                except Exception as err:  # noqa: BLE001 - any unreadable buffer file is refused the same way
+                    raise refuse(
+                        f"has lost its replay buffer: {rb.name}/{REPLAY_BUFFER_FILE} cannot be loaded safely: "
+                        f"{_why_unloadable(err)}"
+                    ) from None
         state["checkpoint_file"] = str(path)
         return state
 
@@ -695,8 +849,15 @@ class RunDir:
                 )
             return state
         if errors:
-            raise CheckpointError("no loadable checkpoint in run folder: " + "; ".join(errors))
-        raise CheckpointError(f"no checkpoint in {str(self.checkpoint_dir)!r} to resume from")
+            raise CheckpointError(
+                "no loadable checkpoint in run folder: " + "; ".join(errors) + f"; `adarl run RECIPE -o {self.path} "
+                "--overwrite` trains it again from the start"
+            )
+        raise CheckpointError(
+            f"no checkpoint in {str(self.checkpoint_dir)!r} to resume from, though the run folder holds training "
+            f"records (were its checkpoints deleted?); `adarl run RECIPE -o {self.path} --overwrite` trains it "
+            f"again from the start"
+        )
 
     def load_replay_buffer(self, replay_buffer, *, frames: int, checkpoint: str | os.PathLike | None = None) -> bool:
         """Fill ``replay_buffer`` from ``rb-<frames>/`` beside ``checkpoint`` (default: in this run's checkpoints);
@@ -705,9 +866,12 @@ class RunDir:
         rb_dir = base / f"rb-{int(frames):012d}"
         if not rb_dir.is_dir():
             return False
-        if (rb_dir / REPLAY_BUFFER_FILE).is_file():
+        cached, self._buffer_cache = self._buffer_cache, None
+        if cached is not None and cached[0] == rb_dir.absolute():  # read (and checked) by load_checkpoint
+            replay_buffer.load_state_dict(cached[1])
+        elif (rb_dir / REPLAY_BUFFER_FILE).exists() or (rb_dir / REPLAY_BUFFER_FILE).is_symlink():
             try:
-                sd = torch.load(rb_dir / REPLAY_BUFFER_FILE, map_location="cpu", weights_only=True)
+                sd = _safe_load(rb_dir / REPLAY_BUFFER_FILE)
             except Exception as err:  # noqa: BLE001 - any unreadable file is refused the same way
                 raise CheckpointError(
                     f"replay buffer {str(rb_dir / REPLAY_BUFFER_FILE)!r} cannot be loaded safely: "
@@ -752,6 +916,29 @@ def _hold_lock(lock: Path, fd: int) -> bool:
         )
     _HELD_LOCKS[str(lock.absolute())] = fd
     return True
+
+
+def _adarl_name(name: str) -> bool:
+    """Whether a top-level entry of a run folder is one adarl writes (or a write's leftover ``*.tmp``)."""
+    known = {n.rstrip("/") for n in (*TRAINING_RECORDS, *OTHER_OUTPUTS)}
+    leftover = re.fullmatch(r"\.?(.+?)\.tmp\d*", name)  # `f.tmp` (atomic writes), `.recipe.yaml.tmp<pid>`
+    return name in known or (leftover is not None and leftover.group(1) in known)
+
+
+def _claim_leftover(name: str) -> bool:
+    """What ``adarl run`` leaves when stopped before its recipe is written: the claim, a recipe's temporary file."""
+    return name == LOCK_FILE or (_adarl_name(name) and name.startswith((".recipe.yaml.tmp", "recipe.yaml.tmp")))
+
+
+def _foreign_entries(entries: list[Path]) -> list[Path]:
+    return sorted((e for e in entries if not _adarl_name(e.name)), key=lambda e: e.name)
+
+
+def _names(entries: list[Path], most: int = 5) -> str:
+    """``thesis.tex, figures/ and 3 more``: what a folder holds, for a message."""
+    shown = [e.name + ("/" if e.is_dir() else "") for e in entries[:most]]
+    more = f" and {len(entries) - most} more" if len(entries) > most else ""
+    return ", ".join(shown) + more
 
 
 def _release_lock(lock: Path) -> None:
@@ -804,10 +991,36 @@ def _frames_of(checkpoint: Path) -> int | None:
         return None
 
 
+class _NotAFile(Exception):
+    """A path to load that is not a regular file (a FIFO, a directory, a device): refused unread."""
+
+
+def _safe_load(path: Path):
+    """``torch.load(weights_only=True)`` of a regular file only. A FIFO would block the reader forever (until
+    something writes into it), a device could give endless bytes: such a path is refused before reading a byte
+    (opened non-blocking, checked with ``fstat``, so the check is about the file read, not an earlier one)."""
+    fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+    try:
+        mode = os.fstat(fd).st_mode
+        if not stat.S_ISREG(mode):
+            kinds = {stat.S_ISFIFO: "a FIFO", stat.S_ISDIR: "a directory", stat.S_ISSOCK: "a socket"}
+            kind = next((k for test, k in kinds.items() if test(mode)), "a device")
+            raise _NotAFile(f"is not a regular file ({kind}); refused unread")
+        fh = os.fdopen(fd, "rb")
+    except BaseException:
+        os.close(fd)
+        raise
+    with fh, warnings.catch_warnings():  # torch's pickle-protocol chatter about files it then refuses anyway
+        warnings.simplefilter("ignore")
+        return torch.load(fh, map_location="cpu", weights_only=True)
+
+
 def _why_unloadable(err: Exception) -> str:
     """Why ``torch.load(weights_only=True)`` refused a file, in our words: torch's own message advises retrying
     with ``weights_only=False``, which would run any code in the file, so it is never passed on."""
     text = str(err)
+    if isinstance(err, _NotAFile):
+        return text.removeprefix("is ")
     if isinstance(err, EOFError) or not text.strip():
         return "it is empty or cut short (truncated)"
     if isinstance(err, pickle.UnpicklingError):
@@ -854,6 +1067,18 @@ def _check_free_space(folder: Path, nbytes: int, what: str) -> None:
             f"No space left on device ({what} needs {(nbytes + margin) / 1e6:.1f} MB, {free / 1e6:.1f} MB free)",
             str(folder),
         )
+
+
+@contextlib.contextmanager
+def _naming(path: Path):
+    """An ``OSError`` without a file name (a full disk met by a buffered write's flush) gets ``path``: every disk
+    error adarl reports names the file it could not write."""
+    try:
+        yield
+    except OSError as err:
+        if err.filename is not None:
+            raise
+        raise OSError(err.errno, err.strerror, str(path)) from None
 
 
 def _atomic_write_text(path: Path, text: str) -> None:

@@ -40,7 +40,7 @@ from adarl.runtime.families import family
 from adarl.runtime.guards import NonFiniteError, NonFiniteGuard
 from adarl.runtime.report import write_report
 from adarl.runtime.run_dir import RunDir, null_logger, recipe_fingerprint
-from adarl.runtime.signals import GracefulInterrupt, RunInterrupted
+from adarl.runtime.signals import FINISHING, GracefulInterrupt, RunInterrupted, stopped_after_the_end
 from adarl.runtime.state import rng_state, set_rng_state
 
 __all__ = ["BaseTrainer", "trainer_class"]
@@ -102,6 +102,7 @@ class BaseTrainer:
         self._last_log_frames = 0
         self._bar = None
         self._clock: tuple[float, int, int] | None = None
+        self._wall_before = 0.0  # training wall time of the earlier processes of this run (from the checkpoint)
         self._fps_frames: int | None = None
         for name, (kind, _) in self.counters.items():
             setattr(self, name, kind(0))
@@ -188,6 +189,8 @@ class BaseTrainer:
         if not read_only:
             run_dir.lock()  # one process trains in a run folder at a time
         fingerprint = recipe_fingerprint(recipe)
+        if not read_only and checkpoint in (None, "latest") and run_dir.starts_over():
+            return cls(recipe, run_dir, quiet=quiet)  # stopped before its frame-0 checkpoint: start it again
         if checkpoint is None or checkpoint == "latest":
             state = run_dir.load_latest_checkpoint(
                 quarantine=not read_only,
@@ -219,8 +222,7 @@ class BaseTrainer:
             total=total, initial=self.frames, unit="frame", disable=self.quiet, dynamic_ncols=True, desc=rc.name
         )
         self._bar = bar
-        start = time.perf_counter()
-        self._clock = (start, self.frames, self.updates)  # time/fps counts this process's work only
+        self._clock = (time.perf_counter(), self.frames, self.updates)  # time/fps counts this process's work only
         try:
             with GracefulInterrupt(quiet=self.quiet) as interrupt:
                 if not self.run_dir.checkpoints():
@@ -236,14 +238,17 @@ class BaseTrainer:
                 self._log_losses([], flush=True)  # the last partial logging interval
                 if self.last_eval_frames != self.frames:
                     self._evaluate()
-                self.save_checkpoint()
+                last = self.save_checkpoint()
+                interrupt.notice = FINISHING  # a signal from here on stops once the summary and report are written
+                summary = self._write_summary(self._wall_time())
+                write_report(self.run_dir.path)
         finally:
             self._sync_bar()
             bar.close()
             self._bar = None
-        summary = self._write_summary(time.perf_counter() - start)
-        write_report(self.run_dir.path)
         self.close()
+        if interrupt.requested is not None:
+            raise stopped_after_the_end(interrupt.requested, self.frames, last, self.run_dir.path)
         return summary
 
     def _train_batches(self, bar, interrupt: GracefulInterrupt) -> None:
@@ -414,6 +419,7 @@ class BaseTrainer:
             "best_eval": self.best_eval,
             "last_ckpt_frames": self.last_ckpt_frames,
             "rollbacks": self.rollbacks,
+            "wall_time_s": self._wall_time(),  # summed over the run's processes (not part of exact resume)
             **{name: getattr(self, name) for name in self.counters},
             "loss_sums": dict(self._loss_sums),
             "loss_count": self._loss_count,
@@ -459,6 +465,8 @@ class BaseTrainer:
         self.last_ckpt_frames = int(cnt.get("last_ckpt_frames", self.frames))
         self.best_eval = float(cnt["best_eval"])
         self.rollbacks = int(cnt.get("rollbacks", 0))
+        if self._clock is None:  # resuming (a rollback, in training, keeps counting this process's time)
+            self._wall_before = float(cnt.get("wall_time_s", 0.0))
         self._loss_sums = {k: float(v) for k, v in cnt.get("loss_sums", {}).items()}
         self._loss_count = int(cnt.get("loss_count", 0))
         self._last_log_frames = int(cnt.get("last_log_frames", self.frames))
@@ -482,6 +490,11 @@ class BaseTrainer:
                 f"the replay buffer saved with the checkpoint at {self.frames} frames is missing "
                 f"from {Path(source).parent if source else self.run_dir.checkpoint_dir}"
             )
+
+    def _wall_time(self) -> float:
+        """Seconds of training in this run, every process of it (each resume adds its own to the checkpoint's)."""
+        now = time.perf_counter() - self._clock[0] if self._clock is not None else 0.0
+        return self._wall_before + now
 
     def _summary(self, elapsed: float) -> dict:
         adapter, warm_start_frames = self.adapter, self.warm_start_frames
