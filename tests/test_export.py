@@ -315,9 +315,14 @@ def test_baseline_networks_and_an_asymmetric_box_export(recipe, overrides, tmp_p
         assert result.metadata["action_low"] == pytest.approx([-0.4, -2.0, 0.0])
         obs = _observations(300, 11, seed=6)
         want = _actor_actions(actor, obs)
-        got = ExportedPolicy(result.path)(obs)
+        policy = ExportedPolicy(result.path)
+        got = policy(obs)
         assert float((got - want).abs().max()) <= ATOL, fmt
         assert bool((got >= box["action_low"]).all()) and bool((got <= box["action_high"]).all())
+        one, _ = policy.predict(obs[0].numpy())  # the .pt2 program takes batches only: predict adds the dimension
+        batch, _ = policy.predict(obs[:5].numpy())
+        assert one.shape == (3,) and batch.shape == (5, 3)
+        np.testing.assert_allclose(batch, want[:5].numpy(), atol=ATOL, rtol=0)
 
 
 def test_what_cannot_be_exported_is_refused_by_name(tmp_path):

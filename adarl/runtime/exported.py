@@ -95,6 +95,8 @@ class ExportedPolicy:
         else:
             # a buffer: torch.export.load wants one, or a file name ending in .pt2 (-o may name any file)
             self.program = torch.export.load(io.BytesIO(p.read_bytes())).module()
+        for t in self.program.parameters():  # torch.export's module gives them back requiring grad
+            t.requires_grad_(False)
         self.observation_shape = tuple(self.metadata["observation_shape"])
         self.action_shape = tuple(self.metadata["action_shape"])
         self.action_kind = self.metadata["action_kind"]
@@ -126,7 +128,6 @@ class ExportedPolicy:
         obs = np.asarray(observation, dtype=np.float32)
         if obs.shape == self.observation_shape:
             single = True
-            obs = obs[None]
         elif obs.ndim == len(self.observation_shape) + 1 and obs.shape[1:] == self.observation_shape:
             single = False
         else:
@@ -134,11 +135,16 @@ class ExportedPolicy:
                 f"observation of shape {obs.shape}: this policy takes {self.observation_shape} "
                 f"or a batch (n, {', '.join(map(str, self.observation_shape))})"
             )
-        with torch.no_grad():
-            action = self.program(torch.from_numpy(np.ascontiguousarray(obs))).numpy()
+        x = torch.from_numpy(np.ascontiguousarray(obs))
+        # no torch.no_grad() needed: nothing here requires grad (the program's parameters were saved without)
+        if single and self._batched_only:
+            action = self.program(x.unsqueeze(0))[0]
+        else:  # TorchScript takes one observation as it is
+            action = self.program(x)
+        action = action.numpy()
         if self.action_kind != "box":
             action = action.argmax(-1)
-        return (action[0] if single else action), None
+        return action, None
 
     def __repr__(self) -> str:
         m = self.metadata
