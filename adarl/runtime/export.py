@@ -434,7 +434,6 @@ def _check(run_program, program: Program, actor, what: str) -> float:
     # discrete: the arg-max may flip only where the actor's two best logits tie to rounding
     with torch.no_grad():
         logits = nn.Sequential(*list(program.module)[:-1])(obs)
-    with torch.no_grad():
         ref = actor.module[0](TensorDict(observation=obs, batch_size=[len(obs)]))["logits"]
     diff = float((logits - ref).abs().max())
     top2 = ref.topk(2, dim=-1).values
