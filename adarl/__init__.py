@@ -16,6 +16,8 @@ The public components, importable from here:
 - :func:`load_recipe`, :func:`build_sac_components`, :class:`SACTrainer`: recipes and the AdaRL-SAC loop
   (``build_components``, ``Components`` and ``Trainer`` are aliases: their names before the PPO loop had its own).
 - :func:`load_policy`: a trained run's policy as a TorchRL actor, without its env, buffer or collector.
+- :func:`export_policy` / :class:`ExportedPolicy`: a run's policy as one file torch alone loads (``adarl export``),
+  and SB3's ``predict(obs)`` on numpy for it.
 
 Every name is imported on first use (PEP 562): ``import adarl`` itself loads neither torch nor TorchRL (~4.5 s
 here), so ``adarl --help`` and ``from adarl import load_recipe`` stay quick.
@@ -81,6 +83,8 @@ _EXPORTS: dict[str, str] = {
     ),
     **dict.fromkeys(["SACTrainer", "Trainer"], "adarl.runtime.trainers.sac"),
     "load_policy": "adarl.runtime.policy",
+    "export_policy": "adarl.runtime.export",
+    **dict.fromkeys(["ExportedPolicy", "read_export_metadata"], "adarl.runtime.exported"),
 }
 
 __all__ = list(_EXPORTS)

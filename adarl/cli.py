@@ -202,6 +202,16 @@ def cmd_play(args) -> int:
     return 0
 
 
+def cmd_export(args) -> int:
+    from adarl.runtime.export import export_policy
+
+    result = export_policy(
+        args.run, args.output, which=args.which, format=args.format, layers=args.layers, overwrite=args.overwrite
+    )
+    print(result.describe())
+    return 0
+
+
 def _size(text: str) -> tuple[int, int]:
     try:
         w, h = (int(v) for v in text.lower().split("x"))
@@ -400,6 +410,36 @@ def build_parser() -> argparse.ArgumentParser:
     pl.add_argument("--seed", type=int, default=0, help="seed of the env's initial states (default: 0)")
     pl.add_argument("--size", default="480x480", metavar="WxH", help="video frame size (default: 480x480)")
     pl.set_defaults(func=cmd_play)
+
+    xp = sub.add_parser(
+        "export",
+        help="write a run's policy as a self-contained program (TorchScript, torch.export or ONNX)",
+        description="Write the deterministic policy of RUN (a run folder or a checkpoint file) as one file that "
+        "torch alone loads (no adarl, TorchRL or tensordict), with its metadata inside: observation in, "
+        "action (scaled to the env's bounds) out. Checked against the run's TorchRL actor before it is "
+        "written. Load it with adarl.ExportedPolicy(FILE).predict(obs) or torch.jit.load (docs/quickstart.md).",
+    )
+    xp.add_argument("run", metavar="RUN")
+    xp.add_argument(
+        "--output", "-o", default=None, metavar="FILE", help="file to write (default: RUN/policy.pt, .pt2, .onnx)"
+    )
+    xp.add_argument(
+        "--format",
+        choices=["torchscript", "export", "onnx"],
+        default="torchscript",
+        help="torchscript (default, .pt: torch.jit.load), export (.pt2: torch.export.load) or onnx (needs the onnx "
+        "and onnxscript packages)",
+    )
+    xp.add_argument(
+        "--layers",
+        choices=["auto", "merged", "factored"],
+        default="auto",
+        help="low-rank layers as one merged W1 @ W2 or as two factors; auto: whichever is cheaper at each "
+        "layer's rank (default)",
+    )
+    xp.add_argument("--which", choices=["latest", "best"], default="latest", help="with a run folder: which checkpoint")
+    xp.add_argument("--overwrite", action="store_true", help="replace an existing FILE")
+    xp.set_defaults(func=cmd_export)
 
     rp = sub.add_parser(
         "report",

@@ -48,8 +48,10 @@ LAZY_ADARL_IMPORTS = {
     "adarl.experiments.bench": "the benchmark driver never imports torch; each measurement's worker process does",
 }
 #: third-party packages a module may import inside a function: optional extras (ray, submitit, stable-baselines3,
-#: tensorboard), MuJoCo (the env registry validates recipes without it), matplotlib (its backend is chosen first)
+#: tensorboard), MuJoCo (the env registry validates recipes without it), matplotlib (its backend is chosen first),
+#: onnx (``adarl export --format onnx`` only, when it is installed)
 LAZY_THIRD_PARTY = {
+    "onnx",
     "mujoco",
     "gymnasium",
     "matplotlib",

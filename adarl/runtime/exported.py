@@ -1,0 +1,155 @@
+"""An exported policy (``adarl export``) in your own code: :class:`ExportedPolicy`, with SB3's ``predict``.
+
+This module imports torch, numpy and the standard library only (not TorchRL, tensordict, gymnasium or the rest of
+adarl), so a deployment that installs adarl just for it stays light; without adarl at all, load the file with
+torch alone (docs/quickstart.md, "Deploy a policy" shows both).
+
+What a file holds: the deterministic actor as one program (observation in, action out, the action scaled to the
+env's bounds) and ``adarl.json``, the metadata :func:`adarl.export_policy` wrote next to it inside the archive
+(shapes, bounds, ranks, which layers were merged, the run it came from). A TorchScript file (``.pt``) and a
+``torch.export`` archive (``.pt2``) are both zip files, so the metadata is read without loading the program.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import warnings
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import torch
+
+__all__ = ["ExportedPolicy", "read_export_metadata", "METADATA_FILE"]
+
+#: the metadata file inside an exported archive (``torch.jit.save``'s / ``torch.export.save``'s extra files)
+METADATA_FILE = "adarl.json"
+
+
+def _archive_kind(path: Path) -> str:
+    """``'torchscript'``, ``'export'`` or ``'onnx'`` from the file's contents (not its name)."""
+    if zipfile.is_zipfile(path):
+        with zipfile.ZipFile(path) as z:
+            names = z.namelist()
+        if any(n.endswith("/archive_format") for n in names):
+            return "export"
+        if any(n.endswith("/constants.pkl") for n in names) or any("/code/" in n for n in names):
+            return "torchscript"
+        raise ValueError(f"{str(path)!r} is a zip file but neither a TorchScript nor a torch.export archive")
+    with open(path, "rb") as f:
+        head = f.read(64)
+    if head[:1] == b"\x08":  # an ONNX ModelProto starts with field 1 (ir_version, a varint)
+        return "onnx"
+    raise ValueError(f"{str(path)!r} is not an exported policy (a TorchScript .pt, torch.export .pt2 or .onnx file)")
+
+
+def read_export_metadata(path: str | os.PathLike) -> dict:
+    """The ``adarl.json`` metadata of an exported TorchScript or ``torch.export`` file, without loading its program."""
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"{str(p)!r}: no such file")
+    kind = _archive_kind(p)
+    if kind == "onnx":
+        raise ValueError(f"{str(p)!r} is an ONNX file: its metadata is the model's metadata_props['adarl'] (onnx)")
+    with zipfile.ZipFile(p) as z:
+        name = next((n for n in z.namelist() if n.endswith(f"/extra/{METADATA_FILE}")), None)
+        if name is None:
+            raise ValueError(f"{str(p)!r} holds no {METADATA_FILE}: it was not written by adarl export")
+        return json.loads(z.read(name).decode("utf-8"))
+
+
+class ExportedPolicy:
+    """A policy file written by ``adarl export`` / :func:`adarl.export_policy`, ready to act on numpy observations.
+
+    >>> policy = ExportedPolicy("policy.pt")                        # doctest: +SKIP
+    >>> action, _ = policy.predict(obs)                             # doctest: +SKIP
+
+    ``predict`` follows Stable-Baselines3's ``model.predict``: one observation (shape ``observation_shape``) gives
+    one action, a batch (``(n, *observation_shape)``) gives ``n``; it returns ``(actions, None)`` (no recurrent
+    state). Box actions are float32 arrays already inside the env's bounds; a discrete policy's actions are the
+    indices ``env.step`` takes (the program itself outputs the one-hot vector TorchRL's actor returns).
+    Calling the object on a tensor runs the program itself (``policy(obs_tensor) -> action_tensor``).
+
+    Only TorchScript (``.pt``) and ``torch.export`` (``.pt2``) files load here; an ``.onnx`` file is for an ONNX
+    runtime (``onnxruntime.InferenceSession(path).run(None, {"observation": obs})``).
+    """
+
+    def __init__(self, path: str | os.PathLike) -> None:
+        p = Path(path)
+        if not p.is_file():
+            raise FileNotFoundError(f"{str(p)!r}: no such file")
+        self.path = p
+        self.format = _archive_kind(p)
+        if self.format == "onnx":
+            raise ValueError(
+                f"{str(p)!r} is an ONNX file: run it with an ONNX runtime, e.g. "
+                "onnxruntime.InferenceSession(path).run(None, {'observation': obs}); ExportedPolicy loads .pt and .pt2"
+            )
+        self.metadata = read_export_metadata(p)
+        if self.format == "torchscript":
+            with warnings.catch_warnings():  # torch.jit is deprecated in torch 2.x but works (docs/performance.md)
+                warnings.filterwarnings("ignore", category=DeprecationWarning, message=r".*torch\.jit.*")
+                self.program = torch.jit.load(str(p), map_location="cpu")
+        else:
+            # a buffer: torch.export.load wants one, or a file name ending in .pt2 (-o may name any file)
+            self.program = torch.export.load(io.BytesIO(p.read_bytes())).module()
+        for t in self.program.parameters():  # torch.export's module gives them back requiring grad
+            t.requires_grad_(False)
+        self.observation_shape = tuple(self.metadata["observation_shape"])
+        self.action_shape = tuple(self.metadata["action_shape"])
+        self.action_kind = self.metadata["action_kind"]
+        self._batched_only = self.format == "export"  # the .pt2 program's input is (batch, *observation_shape)
+
+    def __call__(self, observation: torch.Tensor) -> torch.Tensor:
+        """The program on a float32 tensor (TorchScript: any leading dimensions; ``.pt2``: ``(batch, obs)``)."""
+        with torch.no_grad():
+            return self.program(observation)
+
+    def predict(
+        self,
+        observation: np.ndarray,
+        state: object = None,
+        episode_start: np.ndarray | None = None,
+        deterministic: bool = True,
+    ) -> tuple[np.ndarray, None]:
+        """The deterministic action(s) for ``observation`` as a numpy array, and ``None`` (SB3's signature).
+
+        ``state`` and ``episode_start`` are accepted for SB3's signature and ignored (the policy has no recurrent
+        state). ``deterministic=False`` is refused: the file holds the deterministic actor only (the mean action,
+        as adarl's evaluations use); sample with ``adarl.load_policy`` under TorchRL's ``set_exploration_type``.
+        """
+        if not deterministic:
+            raise ValueError(
+                "the exported program is the deterministic actor (the action adarl's evaluations take); "
+                "for sampled actions use adarl.load_policy(run) under torchrl's set_exploration_type(RANDOM)"
+            )
+        obs = np.asarray(observation, dtype=np.float32)
+        if obs.shape == self.observation_shape:
+            single = True
+        elif obs.ndim == len(self.observation_shape) + 1 and obs.shape[1:] == self.observation_shape:
+            single = False
+        else:
+            raise ValueError(
+                f"observation of shape {obs.shape}: this policy takes {self.observation_shape} "
+                f"or a batch (n, {', '.join(map(str, self.observation_shape))})"
+            )
+        x = torch.from_numpy(np.ascontiguousarray(obs))
+        # no torch.no_grad() needed: nothing here requires grad (the program's parameters were saved without)
+        if single and self._batched_only:
+            action = self.program(x.unsqueeze(0))[0]
+        else:  # TorchScript takes one observation as it is
+            action = self.program(x)
+        action = action.numpy()
+        if self.action_kind != "box":
+            action = action.argmax(-1)
+        return action, None
+
+    def __repr__(self) -> str:
+        m = self.metadata
+        ranks = ", ".join(f"{x['name']}: rank {x['rank']} {x['form']}" for x in m.get("layers", []) if "rank" in x)
+        return (
+            f"ExportedPolicy({str(self.path)!r}, format={self.format!r}, observation_shape={self.observation_shape}, "
+            f"action_shape={self.action_shape}, env={m.get('env_id')!r}" + (f", {ranks}" if ranks else "") + ")"
+        )
