@@ -65,10 +65,7 @@ LAZY_THIRD_PARTY = {
 #: the longest a module may be without a ``Long because:`` line in its docstring
 MAX_LINES = 600
 #: modules over MAX_LINES whose split is pending, and why they are not split yet (keep this short: it is a to-do list)
-SPLIT_PENDING = {
-    # issue 33: its owner is changing it now; it will read the env data from adarl.envs.registry.intrinsic_rank
-    "adarl.experiments.aggregate": "split pending (the report's tables, figures and markdown in one module)",
-}
+SPLIT_PENDING: dict[str, str] = {}
 #: what recipe validation and ``import adarl`` reach, which must not load torch, TorchRL or MuJoCo at module top
 LIGHT_MODULES = ("adarl.plugins", "adarl.envs.registry", "adarl.envs.registration", "adarl.envs.presets")
 HEAVY_THIRD_PARTY = {"torch", "torchrl", "tensordict", "mujoco", "gymnasium"}

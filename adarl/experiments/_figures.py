@@ -10,8 +10,9 @@ import math
 import statistics
 from pathlib import Path
 
+from adarl.envs.registry import intrinsic_rank
 from adarl.experiments._blocks import csv_text
-from adarl.experiments._runs import Aggregate, Group, _num_key, _rank_series, intrinsic_rank
+from adarl.experiments._runs import Aggregate, Group, _num_key, _rank_series
 from adarl.experiments.stats import interval_estimate, poi_estimate
 from adarl.runtime.report import pyplot, rank_ticks
 

@@ -25,24 +25,6 @@ from adarl.runtime.report import layer_label
 from adarl.runtime.results import exists, is_url, join
 from adarl.runtime.run_dir import RunDir
 
-#: Action dimension of the paper's environments: the intrinsic rank of Tiwari et al. is 2 * d_a + 1.
-ACTION_DIMS = {
-    "Hopper-v5": 3,
-    "Walker2d-v5": 6,
-    "Ant-v5": 8,
-    "Humanoid-v5": 17,
-    "HalfCheetah-v5": 6,
-    "InvertedPendulum-v5": 1,
-    "CartPole-v1": 1,
-    "LinearCartPole-v0": 1,
-}
-
-
-def intrinsic_rank(env_id: str) -> int | None:
-    """``2 * d_a + 1`` (Tiwari et al. 2025; paper Fig. 4) for a known env, else None."""
-    d = ACTION_DIMS.get(env_id)
-    return None if d is None else 2 * d + 1
-
 
 def is_single_run(path: str | os.PathLike) -> bool:
     if is_url(path):

@@ -10,8 +10,9 @@ import math
 import statistics
 from pathlib import Path
 
+from adarl.envs.registry import intrinsic_rank
 from adarl.experiments._blocks import Block, Heading, Paragraph, Table, csv_text
-from adarl.experiments._runs import Aggregate, Group, _num_key, event_dips, intrinsic_rank, rank_settling
+from adarl.experiments._runs import Aggregate, Group, _num_key, event_dips, rank_settling
 from adarl.experiments.stats import interval_estimate, poi_estimate
 
 

@@ -26,6 +26,7 @@ import os
 import tempfile
 from pathlib import Path
 
+from adarl.envs.registry import ACTION_DIMS, intrinsic_rank
 from adarl.experiments._blocks import Code, Heading, Image, Paragraph, Table, csv_text, render_html, render_markdown
 from adarl.experiments._figures import (
     plot_learning_curves,
@@ -36,7 +37,6 @@ from adarl.experiments._figures import (
     plot_sweeps,
 )
 from adarl.experiments._runs import (
-    ACTION_DIMS,
     Aggregate,
     Group,
     RunRecord,
@@ -45,7 +45,6 @@ from adarl.experiments._runs import (
     aggregate_runs,
     collect_runs,
     event_dips,
-    intrinsic_rank,
     is_single_run,
     rank_settling,
 )
