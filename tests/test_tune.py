@@ -212,3 +212,67 @@ def test_a_study_killed_mid_trial_continues_with_its_trial_count_and_no_duplicat
     # a third start has nothing left to do
     again = run_tune(spec, output=out, log=said.append)
     assert again.states == {"COMPLETE": 2} and again.resumed == []
+
+
+def test_the_shipped_tune_specs_validate_and_are_not_recipes():
+    from adarl.experiments.tune_spec import check_space, load_tune_spec
+    from adarl.runtime.config import list_recipes
+
+    specs = sorted((REPO / "recipes" / "tune").glob("*.yaml"))
+    assert [p.stem for p in specs] == ["cartpole_beta"]
+    assert not any(name.startswith("tune/") for name, _ in list_recipes())
+    for p in specs:
+        assert check_space(load_tune_spec(p.stem)) > 0
+
+
+def test_grid_sampler_and_the_sweep_objective(tmp_path):
+    """The grid covers its points once each (the budget capped at its size, no study.stop() outside optimize);
+    the sweep objective reads the worst case of the trial's sweep."""
+    from adarl.experiments.tune import _grid_size, _Study
+    from adarl.experiments.tune_spec import load_tune_spec
+
+    space = {
+        "rank.beta": {"type": "float", "low": 0.8, "high": 0.9, "step": 0.1},
+        "replay.warm_start.mode": {"type": "categorical", "choices": ["refill", "keep"]},
+    }
+    sweep = {"params": ["pole_length=0.4,0.6"], "episodes": 1, "name": "pole"}
+    spec = load_tune_spec(
+        _spec(
+            tmp_path,
+            space=space,
+            sampler={"name": "grid"},
+            objective={"metric": "sweep_worst", "sweep": sweep, "worst": "worst_case"},
+        )
+    )
+    assert _grid_size(spec.space) == 4
+    out = tmp_path / "out"
+    out.mkdir()
+    driver = _Study(spec, out, 4, 1, log=lambda *_: None)
+    seen = []
+    for _ in range(4):
+        trial = driver.study.ask(driver.dists)
+        seen.append((round(trial.params["rank.beta"], 6), trial.params["replay.warm_start.mode"]))
+        driver.study.tell(trial, 1.0)
+    assert sorted(seen) == [(0.8, "keep"), (0.8, "refill"), (0.9, "keep"), (0.9, "refill")]
+    run = tmp_path / "run"
+    (run / "sweeps").mkdir(parents=True)
+    (run / "sweeps" / "pole.json").write_text(json.dumps({"worst_mean": 12.5, "worst_case": 3.0}))
+    assert driver._objective(run) == 3.0
+
+
+def test_a_study_folder_refuses_another_search_space(tmp_path):
+    from adarl.errors import RecipeError
+    from adarl.experiments.tune import _Study
+    from adarl.experiments.tune_spec import load_tune_spec
+
+    out = tmp_path / "out"
+    out.mkdir()
+    spec = load_tune_spec(_spec(tmp_path))
+    _Study(spec, out, spec.n_trials, 1, log=lambda *_: None)
+    _Study(spec, out, spec.n_trials, 1, log=lambda *_: None)  # the same spec continues it
+    other = load_tune_spec(_spec(tmp_path, space={"rank.beta": {"type": "float", "low": 0.5, "high": 0.9}}))
+    with pytest.raises(RecipeError, match="made with another space"):
+        _Study(other, out, other.n_trials, 1, log=lambda *_: None)
+    flipped = load_tune_spec(_spec(tmp_path, direction="minimize"))
+    with pytest.raises(RecipeError, match="direction"):
+        _Study(flipped, out, flipped.n_trials, 1, log=lambda *_: None)

@@ -167,33 +167,51 @@ class _Study:
             f"sqlite:///{(out / STUDY_FILE).resolve()}", engine_kwargs={"connect_args": {"timeout": 60}}
         )
         self.storage = storage
-        existing = optuna.study.get_all_study_names(storage)
-        n_before = len(optuna.load_study(study_name=spec.name, storage=storage).trials) if spec.name in existing else 0
-        # a restarted study draws from seed + trials so far: a random sampler does not repeat its first points
-        self.study = optuna.create_study(
-            study_name=spec.name,
-            storage=storage,
-            direction=spec.direction,
-            sampler=_sampler(spec, spec.sampler.seed + n_before),
-            pruner=_pruner(spec),
-            load_if_exists=True,
-        )
+        if spec.name in optuna.study.get_all_study_names(storage):
+            n_before = len(storage.get_all_trials(storage.get_study_id_from_name(spec.name), deepcopy=False))
+            # a restarted study draws from seed + trials so far: a random sampler does not repeat its first points
+            sampler = _sampler(spec, spec.sampler.seed + n_before)
+            self.study = optuna.load_study(study_name=spec.name, storage=storage, sampler=sampler, pruner=_pruner(spec))
+        else:
+            self.study = optuna.create_study(
+                study_name=spec.name,
+                storage=storage,
+                direction=spec.direction,
+                sampler=_sampler(spec, spec.sampler.seed),
+                pruner=_pruner(spec),
+            )
         self._check_same_space()
-        self.orphans = deque(t for t in self.study.get_trials(deepcopy=False) if t.state == TrialState.RUNNING)
+        self.orphans: deque = deque()
+        for t in self.study.get_trials(deepcopy=False):
+            if t.state != TrialState.RUNNING:
+                continue
+            if set(t.params) != set(self.dists):  # killed inside ask(), before all its parameters were drawn
+                self.study.set_user_attr(f"discarded_{t.number}", "interrupted before its parameters were drawn")
+                self.study.tell(t.number, state=TrialState.FAIL)
+            else:
+                self.orphans.append(t)
         self.resumed: list[int] = []
 
     def _check_same_space(self) -> None:
-        space = {k: p.model_dump() for k, p in self.spec.space.items()}
+        made = {
+            "space": {k: p.model_dump() for k, p in self.spec.space.items()},
+            "recipe": self.spec.recipe,
+            "overrides": list(self.spec.overrides),
+            "seed": self.spec.seed,
+            "objective": self.spec.objective.model_dump(),
+            "direction": self.spec.direction,
+        }
+        made = json.loads(json.dumps(made))
         attrs = self.study.user_attrs
         if "space" not in attrs:
-            self.study.set_user_attr("space", space)
-            self.study.set_user_attr("recipe", self.spec.recipe)
-            self.study.set_user_attr("overrides", list(self.spec.overrides))
+            for key, value in made.items():
+                self.study.set_user_attr(key, value)
             return
-        if attrs["space"] != json.loads(json.dumps(space)) or attrs.get("recipe") != self.spec.recipe:
+        changed = [key for key, value in made.items() if attrs.get(key) != value]
+        if changed:
             raise RecipeError(
-                f"the study in {self.out} was made with another recipe or search space; continue it with the "
-                "same spec, or give another output folder (-o)"
+                f"the study in {self.out} was made with another {', '.join(changed)}; continue it with the same "
+                "spec, or give another output folder (-o)"
             )
 
     # ------------------------------------------------------------------ scheduling
@@ -206,7 +224,12 @@ class _Study:
                 frozen = self.orphans.popleft()
                 self.resumed.append(frozen.number)
                 return optuna.trial.Trial(self.study, frozen._trial_id)
-            held = [t for t in self.study.get_trials(deepcopy=False) if t.state != TrialState.WAITING]
+            discarded = {k for k in self.study.user_attrs if k.startswith("discarded_")}
+            held = [
+                t
+                for t in self.study.get_trials(deepcopy=False)
+                if t.state != TrialState.WAITING and f"discarded_{t.number}" not in discarded
+            ]
             if len(held) >= self.n_trials:
                 return None
             return self.study.ask(self.dists)
@@ -243,7 +266,7 @@ class _Study:
             path=str(path),
         )
         with self.mutex:
-            trial.set_user_attr("run_dir", str(path))
+            trial.set_user_attr("run_dir", path.relative_to(self.out).as_posix())  # in the output folder
         shown = ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in params.items())
         again = " (resumed)" if number in self.resumed else ""
         self.log(f"[trial {number}]{again} {shown}")
@@ -263,8 +286,9 @@ class _Study:
             pruned["at"] = self._last_step(trial)  # its evaluations so far already prune it
         if pruned["at"] is None:
             run = execute_run(run, 1 if self.workers > 1 else None, watch=watch)
-            if run.status == "finished":
-                pruned["at"] = None  # it ended before the stop reached it: a complete trial
+            if run.status == "finished" or (run.status == "stopped" and run_is_finished(path)):
+                run.status = "finished"  # it trained to the end before the stop reached it: a complete trial
+                pruned["at"] = None
             elif run.status == "stopped" and pruned["at"] is None:
                 return  # interrupted (stopping): left RUNNING, resumed by the next `adarl tune`
         self._finish(trial, run, path, params, pruned["at"])
