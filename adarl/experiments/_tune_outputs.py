@@ -167,8 +167,7 @@ def write_outputs(study, spec: TuneSpec, out: Path, log=print) -> Path:
     lines = [
         f"# Hyperparameter search: {spec.name}",
         "",
-        spec.description or "",
-        "",
+        *([spec.description, ""] if spec.description else []),
         f"Base recipe `{spec.recipe}` with `{' '.join(spec.overrides)}`, seed {spec.seed}; objective: {what} "
         f"({spec.direction}); sampler {spec.sampler.name} (seed {spec.sampler.seed}), pruner {spec.pruner.name}.",
         f"Trials: {len(trials)} of {spec.n_trials} ({', '.join(f'{n} {k}' for k, n in sorted(counts.items()))}).",
@@ -195,7 +194,8 @@ def write_outputs(study, spec: TuneSpec, out: Path, log=print) -> Path:
     else:
         lines += [f"Not computed: {why}.", ""]
     keys = list(spec.space)
-    lines += ["## Trials", "", "| trial | state | value | " + " | ".join(f"`{k}`" for k in keys) + " | frames |"]
+    lines += ["## Trials", "", "A pruned trial's value is its last reported score.", ""]
+    lines += ["| trial | state | value | " + " | ".join(f"`{k}`" for k in keys) + " | frames |"]
     lines += ["|---" * (4 + len(keys)) + "|"]
     for t in trials:
         steps = t.intermediate_values
