@@ -30,7 +30,7 @@ import yaml
 from optuna.distributions import CategoricalDistribution, FloatDistribution, IntDistribution
 from optuna.trial import TrialState
 
-from adarl.errors import AdaRLError, RecipeError
+from adarl.errors import AdaRLError, AdaRLValueError, RecipeError
 from adarl.experiments._tune_outputs import write_outputs
 from adarl.experiments.execute import execute_run, run_is_finished
 from adarl.experiments.spec import PlannedRun
@@ -361,6 +361,8 @@ def run_tune(
     The spec and its search space are validated before anything is written (:class:`RecipeError`)."""
     spec = load_tune_spec(spec_path)
     check_space(spec)
+    if workers is not None and workers < 1:
+        raise AdaRLValueError(f"workers must be >= 1, got {workers}")
     out = Path(output if output is not None else spec.output or f"runs/tune/{spec.name}")
     n_trials = spec.n_trials
     if spec.sampler.name == "grid" and _grid_size(spec.space) < n_trials:
