@@ -20,6 +20,7 @@ from pathlib import Path
 
 from adarl import __version__
 from adarl.errors import STORAGE_ERRNOS, AdaRLError, AdaRLValueError, AdaRLWarning, RecipeError, describe_os_error
+from adarl.experiments import tune_cli
 from adarl.experiments.bench import add_arguments as bench_arguments
 from adarl.runtime.signals import RunInterrupted
 
@@ -542,6 +543,9 @@ def build_parser() -> argparse.ArgumentParser:
         "terminal and CI is not set)",
     )
     ex.set_defaults(func=cmd_experiment)
+    tu = sub.add_parser("tune", help=tune_cli.HELP, description=tune_cli.DESCRIPTION)
+    tune_cli.add_arguments(tu)
+    tu.set_defaults(func=tune_cli.cli)
     return p
 
 

@@ -46,6 +46,7 @@ CORE_THIRD_PARTY = {"torch", "torchrl", "tensordict"}
 LAZY_ADARL_IMPORTS = {
     "adarl.cli": "each command imports the wing it runs: `adarl --help` answers without torch",
     "adarl.experiments.bench": "the benchmark driver never imports torch; each measurement's worker process does",
+    "adarl.experiments.tune_cli": "`adarl tune`'s arguments, in the parser: Optuna and torch load when it runs",
 }
 #: third-party packages a module may import inside a function: optional extras (ray, submitit, stable-baselines3,
 #: tensorboard), MuJoCo (the env registry validates recipes without it), matplotlib (its backend is chosen first),

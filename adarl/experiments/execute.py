@@ -20,6 +20,7 @@ import subprocess
 import sys
 import time
 import uuid
+from collections.abc import Callable
 from pathlib import Path
 
 import yaml
@@ -113,12 +114,18 @@ def read_attempts(output: str | os.PathLike, run_id: str) -> list[dict]:
     return [json.loads(line) for line in f.read_text().splitlines() if line.strip()]
 
 
-def execute_run(run: PlannedRun, threads: int | None) -> PlannedRun:
+def execute_run(run: PlannedRun, threads: int | None, watch: Callable[[], bool] | None = None) -> PlannedRun:
     """Run (or resume, when its folder has a checkpoint) one run with the ``adarl`` command; sets its status.
 
     What every launcher executes, wherever it runs; a finished run is left alone (``skipped-finished``). A run at a
-    URL trains in a local scratch folder copied to the URL (:func:`_execute_at_url`)."""
+    URL trains in a local scratch folder copied to the URL (:func:`_execute_at_url`).
+
+    ``watch`` (a local run only): called every :data:`WATCH_POLL_S` seconds while the run trains; when it returns
+    True the run is sent SIGTERM (it checkpoints and stops, resumable) and its status is ``stopped`` (``adarl tune``
+    prunes a trial so, on the evaluations the run has written)."""
     if is_url(run.path):
+        if watch is not None:
+            raise ValueError("execute_run: watch is for runs in a local folder")
         return _execute_at_url(run, threads)
     path = Path(run.path)
     if run_is_finished(path):  # e.g. a retried task whose first try finished before its worker was lost
@@ -136,22 +143,48 @@ def execute_run(run: PlannedRun, threads: int | None) -> PlannedRun:
     _record_attempt(run, event="start", action=action)
     start = time.perf_counter()
     with log.open("w") as fh:
-        proc = subprocess.run(
+        proc = subprocess.Popen(
             cmd,
             stdout=fh,
             stderr=subprocess.STDOUT,
             env=env,
             preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None,
         )
+        stopped = _wait(proc, watch)
     run.wall_time_s = time.perf_counter() - start
     if proc.returncode == 0 and run_is_finished(path):
         run.status, run.message = "finished", action
         log.unlink(missing_ok=True)
+    elif stopped:
+        run.status, run.message = "stopped", f"stopped by its watcher (exit {proc.returncode}); resumable (log: {log})"
     else:
         tail = log.read_text().strip().splitlines()[-1:] if log.is_file() else []
         run.status, run.message = "failed", f"exit {proc.returncode}: {' '.join(tail)} (log: {log})"
     _record_attempt(run, event="end", action=action, status=run.status)
     return run
+
+
+WATCH_POLL_S = 1.0  # how often a watched run's watcher is asked whether to stop it
+
+
+def _wait(proc: subprocess.Popen, watch: Callable[[], bool] | None) -> bool:
+    """Wait for the training process (killed if this thread is interrupted, as ``subprocess.run`` does); with a
+    ``watch``, ask it now and then and send SIGTERM when it says stop. Returns whether it was stopped so."""
+    stopped = False
+    try:
+        while True:
+            try:
+                proc.wait(timeout=WATCH_POLL_S if watch is not None and not stopped else None)
+                return stopped
+            except subprocess.TimeoutExpired:
+                pass
+            if watch():
+                stopped = True
+                proc.send_signal(signal.SIGTERM)  # the trainer checkpoints after its batch and exits
+    except BaseException:
+        proc.kill()
+        proc.wait()
+        raise
 
 
 def _train_env(threads: int | None) -> dict:

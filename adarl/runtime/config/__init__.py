@@ -33,7 +33,7 @@ Public API: :func:`load_recipe`, :func:`validate_recipe`, :func:`list_recipes`, 
 (0.9, 'Hopper-v5')
 """
 
-from adarl.runtime.config.discovery import EXPERIMENTS_DIR, RECIPES_PATH_ENV, list_recipes, recipes_dir
+from adarl.runtime.config.discovery import EXPERIMENTS_DIR, RECIPES_PATH_ENV, TUNE_DIR, list_recipes, recipes_dir
 from adarl.runtime.config.dump import recipe_to_yaml, save_resolved
 from adarl.runtime.config.loader import load_recipe
 from adarl.runtime.config.schema import (
@@ -94,4 +94,5 @@ __all__ = [
     "save_resolved",
     "describe_schema",
     "EXPERIMENTS_DIR",
+    "TUNE_DIR",
 ]

@@ -12,7 +12,7 @@ from adarl.errors import RecipeError, did_you_mean
 from adarl.runtime.config.files import _read_file
 from adarl.runtime.config.schema import _show
 
-__all__ = ["RECIPES_PATH_ENV", "EXPERIMENTS_DIR", "recipes_dir", "list_recipes"]
+__all__ = ["RECIPES_PATH_ENV", "EXPERIMENTS_DIR", "TUNE_DIR", "recipes_dir", "list_recipes"]
 
 #: Extra recipe folders, searched before the shipped ``recipes/`` (``os.pathsep``-separated).
 RECIPES_PATH_ENV = "ADARL_RECIPES_PATH"
@@ -20,6 +20,8 @@ RECIPES_PATH_ENV = "ADARL_RECIPES_PATH"
 
 #: Subfolder of a recipes folder holding experiment specs (``adarl experiment``), not recipes.
 EXPERIMENTS_DIR = "experiments"
+#: Subfolder of a recipes folder holding hyperparameter-search specs (``adarl tune``), not recipes.
+TUNE_DIR = "tune"
 
 
 def _package_recipes_dir() -> Path:
@@ -101,8 +103,8 @@ def _scan_recipes(with_descriptions: bool = True) -> list[tuple[str, str]]:
             continue
         for p in files:
             rel = p.relative_to(d)
-            if any(part.startswith(".") for part in rel.parts) or rel.parts[0] == EXPERIMENTS_DIR:
-                continue  # hidden files; experiment specs (adarl.experiments.orchestrate) are not recipes
+            if any(part.startswith(".") for part in rel.parts) or rel.parts[0] in (EXPERIMENTS_DIR, TUNE_DIR):
+                continue  # hidden files; experiment and tune specs (adarl.experiments) are not recipes
             name = rel.with_suffix("").as_posix()
             if name in found:
                 continue  # shadowed by an earlier folder

@@ -1,0 +1,393 @@
+"""Hyperparameter search: ``adarl tune SPEC`` (:func:`run_tune`), Optuna underneath.
+
+The study lives in ``<output>/study.db`` (SQLite through Optuna's RDB storage); each trial is a normal run folder,
+``<output>/trials/trial-NNNN``, run by the experiment machinery (:func:`~adarl.experiments.execute.execute_run`:
+``adarl run`` in a child process, ``adarl resume`` when the folder has a checkpoint). While a trial trains, its
+nominal evaluations (``eval.csv``) are reported to Optuna (``trial.report(score, step=frames)``) and the pruner asked;
+a pruned trial is stopped with SIGTERM (it checkpoints: the folder stays resumable) and marked (``tune_trial.json``).
+
+Killed at any moment (``kill -9``) and started again, the study continues: finished trials are kept, and a trial
+still RUNNING in the database (no ``adarl tune`` holds the output folder: its lock says so) is re-attached (same
+number, same parameters) and its run resumed from its checkpoint; a trial is told its result once, so it is never
+counted twice. The budget counts every trial the study holds (complete, pruned, failed, interrupted-and-resumed).
+"""
+
+from __future__ import annotations
+
+import csv
+import fcntl
+import json
+import math
+import os
+import threading
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import optuna
+import yaml
+from optuna.distributions import CategoricalDistribution, FloatDistribution, IntDistribution
+from optuna.trial import TrialState
+
+from adarl.errors import AdaRLError, AdaRLValueError, RecipeError
+from adarl.experiments._tune_outputs import write_outputs
+from adarl.experiments.execute import execute_run, run_is_finished
+from adarl.experiments.spec import PlannedRun
+from adarl.experiments.sweep import parse_sweep, sweep_run
+from adarl.experiments.tune_spec import (
+    Param,
+    TuneSpec,
+    check_space,
+    grid_values,
+    load_tune_spec,
+    trial_overrides,
+)
+
+__all__ = ["run_tune", "TuneResult", "STUDY_FILE", "TRIAL_FILE", "trial_dir", "distributions"]
+
+STUDY_FILE = "study.db"
+TRIAL_FILE = "tune_trial.json"  # in each trial's run folder: its number, parameters, state and value
+_LOCK_FILE = ".tune.lock"
+_FINISHED = (TrialState.COMPLETE, TrialState.PRUNED, TrialState.FAIL)
+
+
+@dataclass
+class TuneResult:
+    """What :func:`run_tune` did: the output folder, the trials' states, the best trial (None: none complete)."""
+
+    output: Path
+    states: dict[str, int] = field(default_factory=dict)
+    best_number: int | None = None
+    best_value: float | None = None
+    best_params: dict = field(default_factory=dict)
+    resumed: list[int] = field(default_factory=list)
+
+
+def trial_dir(output: str | os.PathLike, number: int) -> Path:
+    return Path(output) / "trials" / f"trial-{number:04d}"
+
+
+def distributions(spec: TuneSpec) -> dict:
+    """The search space as Optuna distributions (one per recipe key)."""
+    out = {}
+    for key, p in spec.space.items():
+        if p.type == "categorical":
+            out[key] = CategoricalDistribution(list(p.choices))
+        elif p.type == "int":
+            out[key] = IntDistribution(int(p.low), int(p.high), log=p.log, step=int(p.step or 1))
+        else:
+            out[key] = FloatDistribution(p.low, p.high, log=p.log, step=p.step)
+    return out
+
+
+class _GridSampler(optuna.samplers.GridSampler):
+    """Optuna's grid sampler, without its ``study.stop()`` once the grid is covered (that works only inside
+    ``study.optimize``; ``adarl tune`` asks and tells itself and caps the budget at the grid's size)."""
+
+    def after_trial(self, study, trial, state, values) -> None:
+        return None
+
+
+def _grid_size(space: dict[str, Param]) -> int:
+    return math.prod(len(grid_values(p)) for p in space.values())
+
+
+def _sampler(spec: TuneSpec, seed: int):
+    s = spec.sampler
+    if s.name == "random":
+        return optuna.samplers.RandomSampler(seed=seed)
+    if s.name == "grid":
+        return _GridSampler({k: grid_values(p) for k, p in spec.space.items()}, seed=seed)
+    kwargs = {} if s.n_startup_trials is None else {"n_startup_trials": s.n_startup_trials}
+    return optuna.samplers.TPESampler(seed=seed, **kwargs)
+
+
+def _pruner(spec: TuneSpec):
+    p = spec.pruner
+    if p.name == "none":
+        return optuna.pruners.NopPruner()
+    return optuna.pruners.MedianPruner(n_startup_trials=p.n_startup_trials, n_warmup_steps=p.n_warmup_steps)
+
+
+def _lock(out: Path) -> int:
+    """One ``adarl tune`` per output folder (a RUNNING trial in the database is then an orphan to resume); the
+    lock is the kernel's, so a killed process holds it no more."""
+    fd = os.open(out / _LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(fd)
+        raise AdaRLError(f"another `adarl tune` is running on {out} (it holds {out / _LOCK_FILE})") from None
+    os.ftruncate(fd, 0)
+    os.write(fd, f"{os.getpid()}\n".encode())
+    return fd
+
+
+def _scores(run: Path, last: int) -> list[tuple[int, float]]:
+    """``(frames, score)`` after each complete line of the run's ``eval.csv``: the mean of the last ``last``
+    evaluations' means so far (the experiment reports' score of a run that stopped there)."""
+    path = run / "eval.csv"
+    try:
+        text = path.read_text()
+    except (FileNotFoundError, OSError):
+        return []
+    lines = text.splitlines(keepends=True)
+    complete = "".join(line for line in lines if line.endswith("\n"))
+    means, out = [], []
+    for row in csv.DictReader(complete.splitlines()):
+        try:
+            frames, mean = int(row["frames"]), float(row["mean"])
+        except (KeyError, TypeError, ValueError):
+            continue
+        means.append(mean)
+        out.append((frames, sum(means[-last:]) / len(means[-last:])))
+    return out
+
+
+def _write_trial_file(path: Path, number: int, params: dict, state: str, value=None, **extra) -> None:
+    if not path.is_dir():
+        return
+    payload = {"trial": number, "state": state, "value": value, "params": params, **extra}
+    tmp = path / f".{TRIAL_FILE}.tmp"
+    tmp.write_text(json.dumps(payload, indent=2) + "\n")
+    os.replace(tmp, path / TRIAL_FILE)
+
+
+class _Study:
+    """The driver: asks (or re-attaches) trials, runs each as a run folder, reports, prunes and tells."""
+
+    def __init__(self, spec: TuneSpec, out: Path, n_trials: int, workers: int, log) -> None:
+        self.spec, self.out, self.n_trials, self.workers, self.log = spec, out, n_trials, workers, log
+        self.dists = distributions(spec)
+        optuna.logging.set_verbosity(optuna.logging.WARNING)  # adarl prints one line per trial itself
+        self.mutex = threading.RLock()  # ask, tell and the budget count happen one thread at a time
+        self.stopping = threading.Event()
+        storage = optuna.storages.RDBStorage(
+            f"sqlite:///{(out / STUDY_FILE).resolve()}", engine_kwargs={"connect_args": {"timeout": 60}}
+        )
+        self.storage = storage
+        if spec.name in optuna.study.get_all_study_names(storage):
+            n_before = len(storage.get_all_trials(storage.get_study_id_from_name(spec.name), deepcopy=False))
+            # a restarted study draws from seed + trials so far: a random sampler does not repeat its first points
+            sampler = _sampler(spec, spec.sampler.seed + n_before)
+            self.study = optuna.load_study(study_name=spec.name, storage=storage, sampler=sampler, pruner=_pruner(spec))
+        else:
+            self.study = optuna.create_study(
+                study_name=spec.name,
+                storage=storage,
+                direction=spec.direction,
+                sampler=_sampler(spec, spec.sampler.seed),
+                pruner=_pruner(spec),
+            )
+        self._check_same_space()
+        self.orphans: deque = deque()
+        for t in self.study.get_trials(deepcopy=False):
+            if t.state != TrialState.RUNNING:
+                continue
+            if set(t.params) != set(self.dists):  # killed inside ask(), before all its parameters were drawn
+                self.study.set_user_attr(f"discarded_{t.number}", "interrupted before its parameters were drawn")
+                self.study.tell(t.number, state=TrialState.FAIL)
+            else:
+                self.orphans.append(t)
+        self.resumed: list[int] = []
+
+    def _check_same_space(self) -> None:
+        made = {
+            "space": {k: p.model_dump() for k, p in self.spec.space.items()},
+            "recipe": self.spec.recipe,
+            "overrides": list(self.spec.overrides),
+            "seed": self.spec.seed,
+            "objective": self.spec.objective.model_dump(),
+            "direction": self.spec.direction,
+        }
+        made = json.loads(json.dumps(made))
+        attrs = self.study.user_attrs
+        if "space" not in attrs:
+            for key, value in made.items():
+                self.study.set_user_attr(key, value)
+            return
+        changed = [key for key, value in made.items() if attrs.get(key) != value]
+        if changed:
+            raise RecipeError(
+                f"the study in {self.out} was made with another {', '.join(changed)}; continue it with the same "
+                "spec, or give another output folder (-o)"
+            )
+
+    # ------------------------------------------------------------------ scheduling
+    def _next(self):
+        """The next trial to run: an interrupted one first (re-attached), else a new one while the budget lasts."""
+        with self.mutex:
+            if self.stopping.is_set():
+                return None
+            if self.orphans:
+                frozen = self.orphans.popleft()
+                self.resumed.append(frozen.number)
+                return optuna.trial.Trial(self.study, frozen._trial_id)
+            discarded = {k for k in self.study.user_attrs if k.startswith("discarded_")}
+            held = [
+                t
+                for t in self.study.get_trials(deepcopy=False)
+                if t.state != TrialState.WAITING and f"discarded_{t.number}" not in discarded
+            ]
+            if len(held) >= self.n_trials:
+                return None
+            return self.study.ask(self.dists)
+
+    def run(self) -> None:
+        if self.workers == 1:
+            while (trial := self._next()) is not None:
+                self._run_trial(trial)
+            return
+
+        def worker():
+            while (trial := self._next()) is not None:
+                self._run_trial(trial)
+
+        with ThreadPoolExecutor(max_workers=self.workers) as pool:
+            futures = [pool.submit(worker) for _ in range(self.workers)]
+            try:
+                for f in futures:
+                    f.result()
+            except BaseException:
+                self.stopping.set()  # every watched trial is stopped (checkpointed) and left to resume
+                raise
+
+    # ------------------------------------------------------------------ one trial
+    def _run_trial(self, trial) -> None:
+        number, params = trial.number, dict(trial.params)
+        path = trial_dir(self.out, number)
+        run = PlannedRun(
+            run_id=path.name,
+            axes={"trial": str(number)},
+            seed=self.spec.seed,
+            recipe=self.spec.recipe,
+            overrides=trial_overrides(self.spec, params),
+            path=str(path),
+        )
+        with self.mutex:
+            trial.set_user_attr("run_dir", path.relative_to(self.out).as_posix())  # in the output folder
+        shown = ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in params.items())
+        again = " (resumed)" if number in self.resumed else ""
+        self.log(f"[trial {number}]{again} {shown}")
+        pruned = {"at": None}
+
+        def watch() -> bool:
+            if self.stopping.is_set():
+                return True
+            if self._report(trial, path) and pruned["at"] is None:
+                pruned["at"] = self._last_step(trial)
+            return pruned["at"] is not None
+
+        marker = path / TRIAL_FILE
+        if marker.is_file() and json.loads(marker.read_text()).get("state") == "PRUNED":
+            pruned["at"] = json.loads(marker.read_text()).get("pruned_at_frames")  # pruned, killed before the tell
+        elif not run_is_finished(path) and self._report(trial, path):
+            pruned["at"] = self._last_step(trial)  # its evaluations so far already prune it
+        if pruned["at"] is None:
+            run = execute_run(run, 1 if self.workers > 1 else None, watch=watch)
+            if run.status == "finished" or (run.status == "stopped" and run_is_finished(path)):
+                run.status = "finished"  # it trained to the end before the stop reached it: a complete trial
+                pruned["at"] = None
+            elif run.status == "stopped" and pruned["at"] is None:
+                return  # interrupted (stopping): left RUNNING, resumed by the next `adarl tune`
+        self._finish(trial, run, path, params, pruned["at"])
+
+    def _last_step(self, trial) -> int | None:
+        with self.mutex:
+            steps = self.storage.get_trial(trial._trial_id).intermediate_values
+        return max(steps) if steps else None
+
+    def _report(self, trial, path: Path) -> bool:
+        """Report the evaluations not reported yet; whether the pruner stops the trial."""
+        scores = _scores(path, self.spec.objective.score_last)
+        with self.mutex:
+            known = self.storage.get_trial(trial._trial_id).intermediate_values
+            new = [(f, s) for f, s in scores if f not in known]
+            for frames, score in new:
+                trial.report(score, step=frames)
+            return bool(known or new) and bool(trial.should_prune())
+
+    def _finish(self, trial, run: PlannedRun, path: Path, params: dict, pruned_at) -> None:
+        number = trial.number
+        if pruned_at is not None:
+            _write_trial_file(path, number, params, "PRUNED", pruned_at_frames=pruned_at)
+            with self.mutex:
+                self.study.tell(number, state=TrialState.PRUNED)
+            self.log(f"[trial {number}] pruned at {pruned_at} frames")
+            return
+        if run.status in ("finished", "skipped-finished"):
+            try:
+                value = self._objective(path)
+            except (AdaRLError, ValueError, OSError) as err:
+                run.status, run.message = "failed", f"objective: {err}"
+            else:
+                _write_trial_file(path, number, params, "COMPLETE", value)
+                with self.mutex:
+                    self.study.tell(number, value)
+                self.log(f"[trial {number}] value {value:.4g}")
+                return
+        _write_trial_file(path, number, params, "FAIL", message=run.message)
+        with self.mutex:
+            trial.set_user_attr("message", run.message[:500])
+            self.study.tell(number, state=TrialState.FAIL)
+        self.log(f"[trial {number}] failed: {run.message}")
+
+    def _objective(self, path: Path) -> float:
+        o = self.spec.objective
+        if o.metric == "score":
+            scores = _scores(path, o.score_last)
+            if not scores:
+                raise AdaRLError(f"{path} has no nominal evaluation (eval.csv)")
+            return scores[-1][1]
+        s = o.sweep
+        name = s.name or "__".join(p.split("=")[0] for p in s.params)
+        result = path / "sweeps" / f"{name}.json"
+        if not result.is_file():
+            sweep_run(path, [parse_sweep(p) for p in s.params], episodes=s.episodes, name=name)
+        return float(json.loads(result.read_text())[o.worst])
+
+
+def run_tune(
+    spec_path: str | os.PathLike,
+    *,
+    output: str | os.PathLike | None = None,
+    workers: int | None = None,
+    log=print,
+) -> TuneResult:
+    """Run (or continue) the study of the tune spec ``spec_path``; write ``best_recipe.yaml``, ``trials.csv`` and
+    ``report.md`` in the output folder (default: the spec's ``output``, else ``runs/tune/<name>``).
+
+    The spec and its search space are validated before anything is written (:class:`RecipeError`)."""
+    spec = load_tune_spec(spec_path)
+    check_space(spec)
+    if workers is not None and workers < 1:
+        raise AdaRLValueError(f"workers must be >= 1, got {workers}")
+    out = Path(output if output is not None else spec.output or f"runs/tune/{spec.name}")
+    n_trials = spec.n_trials
+    if spec.sampler.name == "grid" and _grid_size(spec.space) < n_trials:
+        n_trials = _grid_size(spec.space)
+        log(f"note: the grid has {n_trials} points; the study stops there (n_trials {spec.n_trials})")
+    out.mkdir(parents=True, exist_ok=True)
+    fd = _lock(out)
+    try:
+        (out / "tune_spec.yaml").write_text(yaml.safe_dump(spec.model_dump(mode="json"), sort_keys=False))
+        driver = _Study(spec, out, n_trials, workers or spec.workers, log)
+        finished = sum(t.state in _FINISHED for t in driver.study.trials)
+        log(
+            f"tune {spec.name}: {finished} of {n_trials} trials done, {len(driver.orphans)} interrupted to resume "
+            f"-> {out}"
+        )
+        driver.run()
+        study = driver.study
+        write_outputs(study, spec, out, log=log)
+        result = TuneResult(output=out, resumed=driver.resumed)
+        for t in study.trials:
+            result.states[t.state.name] = result.states.get(t.state.name, 0) + 1
+        complete = [t for t in study.trials if t.state == TrialState.COMPLETE]
+        if complete:
+            best = study.best_trial
+            result.best_number, result.best_value, result.best_params = best.number, best.value, dict(best.params)
+        return result
+    finally:
+        os.close(fd)
