@@ -163,6 +163,7 @@ def test_the_actor_and_targets_move_every_delay_th_update_the_critic_every_updat
 PLUGIN = '''
 """TD3 with an L2 penalty on the actor's parameters, for adarl's td3 loop."""
 import torch
+from pydantic import BaseModel, ConfigDict, Field
 from torchrl.objectives import TD3Loss
 
 from adarl import register_algorithm
@@ -292,8 +293,8 @@ def test_a_td3_plugin_runs_from_a_recipe_through_rank_events_kill_9_resume_and_a
     ref, killed = tmp_path / "reference", tmp_path / "killed"
     reference = _start(plugin, elsewhere, "run", str(recipe), *TINY, "-o", str(ref), "--quiet")
     proc = _start(plugin, elsewhere, "run", str(recipe), *TINY, "-o", str(killed), "--quiet")
-    # kill -9 right after the checkpoint at 250 frames (the first rank event came at 150 updates = 250 frames) and
-    # again right after the one at 450 (after the second event), resuming each time
+    # kill -9 right after the first checkpoint past 200 frames (past the first rank event, at 150 updates = 250
+    # frames) and again right after the first one past 400 (past the second), resuming each time
     kills = []
     for after in (200, 400):
         assert _wait_for_new_checkpoint(killed, proc, _checkpoints(killed), after), proc.communicate()[1][-3000:]
@@ -307,7 +308,7 @@ def test_a_td3_plugin_runs_from_a_recipe_through_rank_events_kill_9_resume_and_a
     assert reference.returncode == 0, err[-3000:]
 
     summary = json.loads((ref / "summary.json").read_text())
-    assert summary["rank_events"] == 3 and summary["updates"] == 500, summary
+    assert summary["rank_events"] == 3 and summary["warm_start_frames"] == 150, summary
     assert json.loads((ref / "plugins.json").read_text())["algorithm"]["package"] == "adarl-l2-td3"
     assert all(v > 0 for v in _metric(ref, "actor_sq_norm")) and _metric(ref, "loss_actor_l2")
     want, got = _results(ref), _results(killed)
