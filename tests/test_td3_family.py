@@ -188,6 +188,16 @@ class L2TD3Loss(TD3Loss):
         return out
 '''
 
+LOAD_POLICY = """
+import sys, torch
+from tensordict import TensorDict
+from adarl import load_policy
+actor = load_policy(sys.argv[1])
+action = actor(TensorDict(observation=torch.randn(11)))["action"]
+assert type(actor).__name__ == "TensorDictSequential" and action.shape == (3,) and action.abs().max() <= 1, action
+print("ok")
+"""
+
 PYPROJECT = """
 [build-system]
 requires = ["setuptools>=61"]
@@ -311,6 +321,11 @@ def test_a_td3_plugin_runs_from_a_recipe_through_rank_events_kill_9_resume_and_a
     assert summary["rank_events"] == 3 and summary["warm_start_frames"] == 150, summary
     assert json.loads((ref / "plugins.json").read_text())["algorithm"]["package"] == "adarl-l2-td3"
     assert all(v > 0 for v in _metric(ref, "actor_sq_norm")) and _metric(ref, "loss_actor_l2")
+    # the trained deterministic actor loads without the training stack, and acts in the action box
+    with subprocess.Popen(
+        [sys.executable, "-c", LOAD_POLICY, str(ref)], env=_env(plugin), stdout=subprocess.PIPE, text=True
+    ) as loaded:
+        assert loaded.communicate(timeout=300)[0].split()[-1] == "ok"
     want, got = _results(ref), _results(killed)
     assert set(want) == set(got), set(want) ^ set(got)
     for name in want:  # bit-identical, not approximately equal
