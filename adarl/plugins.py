@@ -8,7 +8,7 @@ installed plugins loaded first, a name taken twice refused unless ``replace=True
 that registered an entry: a run folder's plugins.json). adarl's own entries register through the same calls.
 
 A recipe's ``algorithm.name`` is looked up here. Each name is *declared* with :func:`register_algorithm`: the
-training loop it runs on (``base``: ``"sac"`` or ``"ppo"``), its TorchRL loss class (a class, or a lazy
+training loop it runs on (``base``: ``"sac"``, ``"ppo"`` or ``"td3"``), its TorchRL loss class (a class, or a lazy
 ``"module:Class"`` path), and a pydantic model of its own options (the recipe's ``algorithm.options``,
 validated like every other key, written into the run's recipe.yaml). adarl's own algorithms (``sac``, ``ppo`` and
 the RNAC baselines ``rnac_ipm`` and ``rnac_ds``, PPO with a hook each) are declared with the same call at the end of
@@ -24,8 +24,12 @@ Entry points are loaded lazily, only when a recipe names an algorithm that is no
 registered names are listed): a recipe never imports code that is not installed, and a run whose algorithm is
 no longer installed is refused by name (``adarl resume`` included) instead of being rebuilt as another one.
 
+Long because: the generic registry, the two registries recipes validate against (their models, the bases and the
+loss classes each base trains) and adarl's own declarations are one import that loads no torch; split, each part
+would re-import the others.
+
 >>> sorted(algorithm_names(load=False))
-['ppo', 'rnac_ds', 'rnac_ipm', 'sac']
+['ddpg', 'ppo', 'rnac_ds', 'rnac_ipm', 'sac', 'td3']
 >>> algorithm("sac").base, algorithm("sac").loss_path
 ('sac', 'torchrl.objectives:SACLoss')
 >>> algorithm("sca")
@@ -54,6 +58,8 @@ __all__ = [
     "current_provider",
     "provenance",
     "BASES",
+    "BASE_LOSSES",
+    "bases_of",
     "Algorithm",
     "NoOptions",
     "RNACIPMOptions",
@@ -235,7 +241,54 @@ class Registry(Generic[T]):
 # =====================================================================================================================
 
 #: the training loops an algorithm can run on (each is a family of :mod:`adarl.runtime.families`)
-BASES = ("sac", "ppo")
+BASES = ("sac", "ppo", "td3")
+#: the TorchRL losses each base builds and trains: ``{base: class names}``; a registered loss class must subclass one
+#: of its base's (checked by name along its MRO, so that this module imports no torch)
+BASE_LOSSES: dict[str, tuple[str, ...]] = {
+    "sac": ("SACLoss",),
+    "ppo": ("PPOLoss",),
+    "td3": ("TD3Loss", "DDPGLoss"),
+}
+
+
+def bases_of(loss_class: type) -> list[str]:
+    """The bases whose loop can build and train ``loss_class``: those one of whose TorchRL losses
+    (:data:`BASE_LOSSES`) it is or subclasses.
+
+    >>> from torchrl.objectives import ClipPPOLoss, DDPGLoss, IQLLoss
+    >>> bases_of(ClipPPOLoss), bases_of(DDPGLoss), bases_of(IQLLoss)
+    (['ppo'], ['td3'], [])
+    """
+    names = {k.__name__ for k in getattr(loss_class, "__mro__", ()) if k.__module__.startswith("torchrl.")}
+    return [base for base in BASES if names & set(BASE_LOSSES[base])]
+
+
+def _bases_listing() -> str:
+    return "; ".join(f"{b!r} ({' or '.join(BASE_LOSSES[b])} and subclasses)" for b in BASES)
+
+
+def check_fits_base(name: str, loss_class: Any, base: str) -> None:
+    """Refuse a loss class whose loop is not ``base``, naming the base it fits, or every base when it fits none
+    (a ``"module:Class"`` path is checked when a run imports it: :meth:`Algorithm.loss_class`)."""
+    if not isinstance(loss_class, type):
+        raise AdaRLValueError(
+            f"register_algorithm({name!r}): the loss must be a class or a 'module:Class' path, got {loss_class!r}"
+        )
+    fits = bases_of(loss_class)
+    if base in fits:
+        return
+    what = f"register_algorithm({name!r}, {loss_class.__name__}, base={base!r})"
+    if fits:
+        raise AdaRLValueError(
+            f"{what}: {loss_class.__name__} runs on the {fits[0]!r} loop, not on {base!r}; register it with "
+            f"base={fits[0]!r} (bases: {_bases_listing()})"
+        )
+    raise AdaRLValueError(
+        f"{what}: {loss_class.__name__} fits no base, so no recipe loop can train it; bases: {_bases_listing()}. "
+        "Another TorchRL loss family runs in Python, composed with adarl's components (docs/custom-loss.md)"
+    )
+
+
 HOW_TO_REGISTER = (
     f"register one with adarl.register_algorithm(...) in a package that declares an {ENTRY_POINT_GROUP!r} entry "
     "point, then pip install it (docs/custom-loss.md)"
@@ -269,9 +322,11 @@ class RNACDSOptions(BaseModel):
 class Algorithm:
     """A registered ``algorithm.name``.
 
-    ``base``: the training loop (``"sac"``: the SAC trainer, replay buffer and rank adapter; ``"ppo"``: the PPO
-    loop). ``loss``: the TorchRL loss class (for ``base="sac"`` built with ``SACLoss``'s keyword arguments plus
-    the options), or a ``"module:Class"`` path imported when a run is built. ``options``: a pydantic model of
+    ``base``: the training loop (``"sac"``: the SAC trainer, replay buffer and rank adapter; ``"td3"``: the same
+    off-policy loop with TD3's delayed actor updates and Gaussian exploration, for ``TD3Loss`` and ``DDPGLoss``;
+    ``"ppo"``: the PPO loop). ``loss``: the TorchRL loss class (built with the keyword arguments of its base's
+    loss, ``SACLoss``, ``TD3Loss``/``DDPGLoss`` or ``ClipPPOLoss``, plus the options), or a ``"module:Class"`` path
+    imported when a run is built (and refused there if it fits no base). ``options``: a pydantic model of
     ``algorithm.options`` (unknown keys, types and ranges are its job; give it ``extra="forbid"``).
     ``provider``: the distribution whose entry point registered it (None for adarl's own)."""
 
@@ -292,8 +347,11 @@ class Algorithm:
         return _path_of(self.loss)
 
     def loss_class(self) -> type:
-        """The loss class (a ``"module:Class"`` path is imported now)."""
-        return _resolve(self.loss)
+        """The loss class (a ``"module:Class"`` path is imported now, and refused if it does not fit the base)."""
+        cls = _resolve(self.loss)
+        if isinstance(self.loss, str):
+            check_fits_base(self.name, cls, self.base)
+        return cls
 
     def hook(self, name: str) -> Callable | None:
         """The ``advantage`` or ``env_transform`` hook (a ``"module:function"`` path is imported now), or None."""
@@ -375,6 +433,8 @@ def register_algorithm(
     def _register(cls):
         if cls is None:
             raise AdaRLValueError(f"register_algorithm({name!r}) needs a loss class or a 'module:Class' path")
+        if not isinstance(cls, str):
+            check_fits_base(name, cls, base)
         entry = Algorithm(
             name=name,
             base=base,
@@ -417,6 +477,18 @@ register_algorithm(
     "torchrl.objectives:ClipPPOLoss",
     base="ppo",
     description="TorchRL's ClipPPOLoss + GAE, with RNAC's original trainer settings (the RNAC baselines' base)",
+)
+register_algorithm(
+    "td3",
+    "torchrl.objectives:TD3Loss",
+    base="td3",
+    description="TorchRL's TD3Loss: deterministic actor, Gaussian exploration, delayed actor and target updates",
+)
+register_algorithm(
+    "ddpg",
+    "torchrl.objectives:DDPGLoss",
+    base="td3",
+    description="TorchRL's DDPGLoss on the td3 loop (one critic; algorithm.td3.policy_update_delay=1 is DDPG's own)",
 )
 # The RNAC baselines (Zhou et al., 2023) are registered like any plugin: PPO's loss, and a hook each.
 register_algorithm(

@@ -12,9 +12,10 @@ from adarl.errors import AdaRLValueError
 from adarl.runtime import builders
 from adarl.runtime.builders.ppo import PPOComponents, build_ppo_components
 from adarl.runtime.builders.sac import SACComponents, build_sac_components
+from adarl.runtime.builders.td3 import build_td3_components
 from adarl.runtime.config import load_recipe
 from adarl.runtime.families import FAMILIES, family
-from adarl.runtime.trainers import BaseTrainer, PPOTrainer, SACTrainer, Trainer, trainer_class
+from adarl.runtime.trainers import BaseTrainer, PPOTrainer, SACTrainer, TD3Trainer, Trainer, trainer_class
 
 
 def test_every_base_an_algorithm_may_name_has_a_builder_and_a_trainer():
@@ -23,12 +24,17 @@ def test_every_base_an_algorithm_may_name_has_a_builder_and_a_trainer():
         fam = family(base)
         assert issubclass(fam.trainer_class(), BaseTrainer) and fam.trainer_class().algorithm == base
     assert family("sac").builder_name == "build_sac_components" and family("ppo").builder_name == "build_ppo_components"
-    with pytest.raises(AdaRLValueError, match="unknown algorithm base 'td4'; allowed: 'ppo', 'sac'"):
+    assert family("td3").builder_name == "build_td3_components"
+    with pytest.raises(
+        AdaRLValueError, match="unknown algorithm base 'td4'; allowed: 'ppo', 'sac', 'td3'; did you mean 'td3'"
+    ):
         family("td4")
 
 
 @pytest.mark.parametrize(
-    "name, trainer", [("quickstart", SACTrainer), ("baselines/hopper_rnac_ipm", PPOTrainer)], ids=["sac", "ppo"]
+    "name, trainer",
+    [("quickstart", SACTrainer), ("baselines/hopper_rnac_ipm", PPOTrainer), ("baselines/hopper_td3", TD3Trainer)],
+    ids=["sac", "ppo", "td3"],
 )
 def test_the_recipes_base_picks_the_trainer(name, trainer):
     assert trainer_class(load_recipe(name)) is trainer
@@ -39,6 +45,10 @@ def test_a_builder_refuses_a_recipe_of_another_loop_naming_the_one_to_use():
         build_ppo_components(load_recipe("quickstart"))
     with pytest.raises(AdaRLValueError, match=r"build_sac_components builds the 'sac' loop.*build_ppo_components"):
         build_sac_components(load_recipe("baselines/hopper_rnac_ipm"))
+    with pytest.raises(AdaRLValueError, match=r"build_td3_components builds the 'td3' loop.*build_sac_components"):
+        build_td3_components(load_recipe("quickstart"))
+    with pytest.raises(AdaRLValueError, match=r"build_sac_components builds the 'sac' loop.*build_td3_components"):
+        build_sac_components(load_recipe("baselines/hopper_td3"))
 
 
 def test_the_old_names_are_aliases_of_the_per_family_ones():

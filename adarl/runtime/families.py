@@ -1,4 +1,4 @@
-"""The training loops by name: for a registered algorithm's ``base`` (``algorithm.base``: ``"sac"``, ``"ppo"``, later
+"""The training loops by name: for a registered algorithm's ``base`` (``algorithm.base``: ``"sac"``, ``"ppo"``,
 ``"td3"``), which builder makes a recipe's components and which trainer runs them. The one dispatcher.
 
 Why one table: an algorithm is registered by name with the loop it runs on (:mod:`adarl.plugins`); everything that
@@ -93,4 +93,7 @@ register_family(
 )
 register_family(
     "ppo", builder="adarl.runtime.builders.ppo:build_ppo_components", trainer="adarl.runtime.trainers.ppo:PPOTrainer"
+)
+register_family(
+    "td3", builder="adarl.runtime.builders.td3:build_td3_components", trainer="adarl.runtime.trainers.td3:TD3Trainer"
 )

@@ -22,6 +22,7 @@ from adarl.errors import AdaRLValueError, CheckpointError
 from adarl.runtime.builders.common import check_device, policy_specs, spec_env
 from adarl.runtime.builders.ppo import make_ppo_modules
 from adarl.runtime.builders.sac import make_recipe_actor
+from adarl.runtime.builders.td3 import make_recipe_td3_actor
 from adarl.runtime.run_dir import RunDir
 
 __all__ = ["load_policy", "LoadedPolicy", "load_policy_with_info", "WHICH"]
@@ -128,8 +129,8 @@ def load_policy_with_info(
     if recipe.algorithm.base == "ppo":
         actor = make_ppo_modules(recipe, env).actor
         params = state["actor"]
-    else:
-        actor = make_recipe_actor(recipe, env)
+    else:  # the off-policy loops: the actor's tensors are the loss's
+        actor = (make_recipe_td3_actor if recipe.algorithm.base == "td3" else make_recipe_actor)(recipe, env)
         params = {k[len(_ACTOR_PREFIX) :]: v for k, v in state["loss"].items() if k.startswith(_ACTOR_PREFIX)}
         _resize_low_rank(actor, params)
     try:

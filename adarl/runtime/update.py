@@ -1,4 +1,5 @@
-"""One SAC optimisation step, behind one interface: TorchRL's ``SACLoss`` step or the fused one.
+"""One optimisation step, behind one interface: TorchRL's ``SACLoss`` step or the fused one (SAC), TD3's step with
+delayed actor updates (:class:`DelayedActorStep`, the ``td3`` loop).
 
 :func:`~adarl.runtime.builders.sac.build_sac_components` picks the step (``algorithm.fused``) and the trainer calls it,
 whichever it is: ``losses = components.update(guard, update=n)``. Both sample a batch from the replay buffer
@@ -10,6 +11,7 @@ at the points each step can reach.
 
 from __future__ import annotations
 
+import warnings
 from abc import ABC, abstractmethod
 from collections.abc import Mapping, Sequence
 
@@ -23,7 +25,7 @@ from adarl.fast.replay import UniformTensorSampler
 from adarl.fast.sac import FusedSACUpdate
 from adarl.runtime.guards import NonFiniteGuard
 
-__all__ = ["UpdateStep", "LossStep", "FusedStep", "SAC_LOSSES"]
+__all__ = ["UpdateStep", "LossStep", "FusedStep", "DelayedActorStep", "SAC_LOSSES"]
 
 #: the losses every SAC step checks and returns (with ``alpha``, and ``loss_<term>`` per loss term)
 SAC_LOSSES = ("loss_actor", "loss_qvalue", "loss_alpha")
@@ -124,3 +126,84 @@ class FusedStep(UpdateStep):
 
     def on_rank_event(self, event=None) -> None:
         self.fused.on_rank_event(event)
+
+
+class DelayedActorStep(UpdateStep):
+    """TD3's step with TorchRL's pieces (TorchRL's TD3 example, one loss call): ``loss(rb.sample())``, backward of
+    the sum of its ``loss_*`` entries, per-optimiser gradient clipping, the critic's optimiser every step, the actor's
+    and ``SoftUpdate.step()`` (target actor and critics) every ``policy_update_delay``-th step (``update + 1`` a
+    multiple of it, as TorchRL's example counts), the LR schedules every step.
+
+    The loss's actor loss reads the critics through detached parameters and its value loss the target actor, so
+    one backward of the sum gives each network its own gradient (TD3Loss's, DDPGLoss's ``separate_losses``
+    convention); the actor's gradient of an off step is dropped. Its output must hold ``loss_actor`` and a critic
+    loss (``loss_qvalue``, TD3; ``loss_value``, DDPG); every scalar entry is returned. ``terms``: as
+    :class:`LossStep`'s."""
+
+    CRITIC_LOSSES = ("loss_qvalue", "loss_value")
+
+    def __init__(
+        self,
+        loss: nn.Module,
+        optimizers: Mapping[str, torch.optim.Optimizer],
+        *,
+        replay_buffer: TensorDictReplayBuffer,
+        target_updater: SoftUpdate,
+        policy_update_delay: int = 2,
+        schedulers: Sequence = (),
+        max_grad_norm: float | None = None,
+        terms: Mapping[str, nn.Module] | None = None,
+    ) -> None:
+        if set(optimizers) != {"actor", "critic"}:
+            raise AdaRLValueError(
+                f"DelayedActorStep needs the optimisers 'actor' and 'critic', got {sorted(optimizers)}"
+            )
+        self.loss, self.optimizers, self.schedulers = loss, dict(optimizers), list(schedulers)
+        self.replay_buffer, self.target_updater = replay_buffer, target_updater
+        self.delay, self.max_grad_norm, self.terms = int(policy_update_delay), max_grad_norm, dict(terms or {})
+
+    def updates_actor(self, update: int) -> bool:
+        """Whether step ``update`` (0-based) steps the actor and the targets."""
+        return (update + 1) % self.delay == 0
+
+    def __call__(self, guard: NonFiniteGuard | None = None, *, update: int = 0) -> dict[str, torch.Tensor]:
+        td = self.loss(self.replay_buffer.sample())
+        for term in self.terms.values():
+            td = term.wrap_output(td)
+        losses = {k: td[k] for k in td.keys() if isinstance(k, str) and k.startswith("loss_")}
+        if "loss_actor" not in losses or not any(k in losses for k in self.CRITIC_LOSSES):
+            raise AdaRLValueError(
+                f"{type(self.loss).__name__}'s output has {sorted(losses)}; a loss on the td3 loop returns "
+                f"'loss_actor' and 'loss_qvalue' (TD3Loss) or 'loss_value' (DDPGLoss), and may add more loss_* "
+                "entries and metrics"
+            )
+        if guard is not None:
+            guard.check_losses(losses, update)
+        sum(losses.values()).backward()
+        if guard is not None:
+            guard.check_grads(update)
+        actor_too = self.updates_actor(update)
+        stepped = [self.optimizers["critic"]] + ([self.optimizers["actor"]] if actor_too else [])
+        if self.max_grad_norm is not None:
+            for opt in stepped:
+                for group in opt.param_groups:
+                    torch.nn.utils.clip_grad_norm_(group["params"], self.max_grad_norm)
+        for opt in stepped:
+            opt.step()
+        for opt in self.optimizers.values():
+            opt.zero_grad(set_to_none=True)
+        with warnings.catch_warnings():
+            # the actor's schedule moves with every update, its optimiser only every delay-th: torch's warning
+            # about a schedule stepped before its optimiser (the first update) says nothing here
+            warnings.filterwarnings("ignore", message=r"Detected call of `lr_scheduler.step\(\)` before")
+            for sched in self.schedulers:
+                sched.step()
+        if actor_too:
+            self.target_updater.step()
+        if guard is not None:
+            guard.check_params(update)
+        return {
+            k: v.detach()
+            for k, v in td.items()
+            if isinstance(k, str) and isinstance(v, torch.Tensor) and v.numel() == 1 and v.is_floating_point()
+        }

@@ -4,6 +4,10 @@
   low-rank, or a registered baseline's variant), the training and evaluation envs, an actor's specs;
 * :mod:`~adarl.runtime.builders.sac` - SAC's actor, critic and ``SACLoss``; :func:`build_sac_components` (alias
   ``build_components``) for AdaRL-SAC and the SAC baselines;
+* :mod:`~adarl.runtime.builders.off_policy` - what the off-policy families share: replay buffer, collector, rank
+  adapter, warm start, rank events, :class:`OffPolicyComponents` (their checkpoint state);
+* :mod:`~adarl.runtime.builders.td3` - TD3's (and DDPG's) deterministic actor, exploration and loss;
+  :func:`build_td3_components`;
 * :mod:`~adarl.runtime.builders.ppo` - the RNAC baselines' PPO modules; :func:`build_ppo_components`.
 
 The baselines plug in through :mod:`adarl.baselines.registry`; nothing here names one. Which builder a recipe needs is
@@ -19,6 +23,7 @@ from adarl.runtime.builders.common import (
     spec_env,
     train_env_factory,
 )
+from adarl.runtime.builders.off_policy import OffPolicyComponents
 from adarl.runtime.builders.ppo import PPOComponents, PPOModules, build_ppo_components, make_ppo_modules
 from adarl.runtime.builders.sac import (
     Components,
@@ -35,6 +40,7 @@ from adarl.runtime.builders.sac import (
     reinit_low_rank_ensemble,
     update_after,
 )
+from adarl.runtime.builders.td3 import TD3Components, TD3Modules, build_td3_components, make_td3_modules
 
 __all__ = [
     "ACTIVATIONS",
@@ -61,4 +67,9 @@ __all__ = [
     "PPOComponents",
     "make_ppo_modules",
     "build_ppo_components",
+    "OffPolicyComponents",
+    "TD3Modules",
+    "TD3Components",
+    "make_td3_modules",
+    "build_td3_components",
 ]

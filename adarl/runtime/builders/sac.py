@@ -1,7 +1,8 @@
 """Where a SAC recipe becomes objects: actor, critic and ``SACLoss`` (stock TorchRL pieces with
 :class:`~adarl.core.lowrank.LowRankLinear` layers), then every component of a run wired together
 (:func:`build_sac_components`, :class:`SACComponents`): envs, optimisers, LR schedules, replay buffer, collector, the
-update step, the rank adapter with its acceptance step, the warm start, and what a rank event sets off.
+update step, the rank adapter with its acceptance step, the warm start, and what a rank event sets off (the pieces every
+off-policy family shares are :mod:`~adarl.runtime.builders.off_policy`'s).
 ``build_components`` and ``Components`` are aliases of the two, the names they had before the PPO loop had its own.
 
 Each network builder takes plain arguments (not the recipe) so that users composing in Python can call them
@@ -29,38 +30,37 @@ from dataclasses import dataclass
 import torch
 from tensordict.nn import NormalParamExtractor, TensorDictModule
 from torch import nn
-from torchrl.collectors import Collector
-from torchrl.data import LazyMemmapStorage, LazyTensorStorage, TensorDictReplayBuffer
-from torchrl.data.replay_buffers.samplers import RandomSampler
 from torchrl.envs import EnvBase
 from torchrl.modules import OneHotCategorical, ProbabilisticActor, TanhNormal, ValueOperator
 from torchrl.objectives import DiscreteSACLoss, SACLoss, SoftUpdate, ValueEstimators
 
 from adarl import plugins
 from adarl.baselines import registry
-from adarl.core.acceptance import ProjectionAcceptance, RecentTransitions
-from adarl.core.adapter import RankAdapter, resize_to_ranks
 from adarl.core.ensemble import reinit_low_rank_ensemble
-from adarl.core.lr_schedule import make_lr_scheduler
-from adarl.core.rank import RankRule
-from adarl.core.restarts import ScheduledRestarts
-from adarl.core.warmstart import ReplayWarmStart
 from adarl.errors import AdaRLValueError, AdaRLWarning
 from adarl.fast.adam import make_adam
-from adarl.fast.collector import LeanCollector, wants_lean
 from adarl.fast.sac import FusedSACUpdate, fused_fallback_reason, wants_fused
 from adarl.runtime.builders.common import (
-    RunComponents,
     action_spec,
     apply_num_threads,
     check_device,
     is_discrete,
     make_envs,
     make_mlp,
-    train_env_factory,
+)
+from adarl.runtime.builders.off_policy import (
+    OffPolicyComponents,
+    event_threads,
+    make_collector,
+    make_lr_schedulers,
+    make_rank_control,
+    make_rank_rule,
+    make_replay_buffer,
+    planned_updates,
+    update_after,
+    wire_rank_events,
 )
 from adarl.runtime.families import check_family
-from adarl.runtime.rank_events import RankEventEffects
 from adarl.runtime.state import seed_everything
 from adarl.runtime.update import FusedStep, LossStep, UpdateStep
 
@@ -81,6 +81,7 @@ __all__ = [
     "update_after",
     "planned_updates",
     "make_rank_rule",
+    "event_threads",
 ]
 
 
@@ -239,50 +240,15 @@ def make_sac_modules(recipe, env: EnvBase) -> SACModules:
 
 
 @dataclass
-class SACComponents(RunComponents):
-    """Everything a SAC recipe builds, wired together (no training has happened yet), and its checkpoint state.
+class SACComponents(OffPolicyComponents):
+    """Everything a SAC recipe builds, wired together (no training has happened yet), and its checkpoint state
+    (:class:`~adarl.runtime.builders.off_policy.OffPolicyComponents`: the loss, adapter, warm start, optimisers, ...).
 
     ``update`` is the optimisation step (:class:`~adarl.runtime.update.UpdateStep`: TorchRL's ``SACLoss`` step or
-    the fused one); ``sampling_generator`` draws the replay indices (checkpointed for exact resume);
-    ``rank_events`` the side effects of rank events, registered on ``adapter``
-    (:class:`~adarl.runtime.rank_events.RankEventEffects`). In a checkpoint (:meth:`state_dict`): the loss (its
-    networks and targets), the adapter and the warm start; the replay buffer is saved beside it."""
-
-    recipe: object
-    env: object
-    eval_env: object
-    modules: SACModules
-    optimizers: dict[str, torch.optim.Optimizer]
-    schedulers: dict[str, torch.optim.lr_scheduler.LRScheduler]
-    replay_buffer: TensorDictReplayBuffer
-    collector: Collector | LeanCollector
-    update: UpdateStep
-    adapter: RankAdapter | ScheduledRestarts | None
-    warm_start: ReplayWarmStart | None
-    total_updates: int
-    sampling_generator: torch.Generator
-    rank_events: RankEventEffects | None = None
+    the fused one); ``modules`` a :class:`SACModules`."""
 
     def guarded_parameters(self) -> dict[str, torch.Tensor]:
         return sac_parameters(self.modules.loss, self.recipe.algorithm.fixed_alpha)
-
-    def _own_state(self) -> dict:
-        return {
-            "loss": self.modules.loss.state_dict(),
-            "adapter": self.adapter.state_dict() if self.adapter is not None else None,
-            "warm_start": self.warm_start.state_dict() if self.warm_start is not None else None,
-        }
-
-    def _load_networks(self, state: dict) -> None:
-        if state.get("adapter") is not None and isinstance(self.adapter, RankAdapter):  # its ranks, then its tensors
-            resize_to_ranks(self.modules.loss, state["adapter"], optimizers=list(self.optimizers.values()))
-        self.modules.loss.load_state_dict(state["loss"])
-
-    def _load_own_state(self, state: dict) -> None:
-        if self.adapter is not None and state.get("adapter") is not None:
-            self.adapter.load_state_dict(state["adapter"])
-        if self.warm_start is not None and state.get("warm_start") is not None:
-            self.warm_start.load_state_dict(state["warm_start"])
 
 
 #: the name :class:`SACComponents` had before the PPO loop had its own (kept: an alias)
@@ -301,84 +267,6 @@ def sac_parameters(loss, fixed_alpha: bool = False) -> dict[str, torch.Tensor]:
     if not fixed_alpha:
         named["log_alpha"] = loss.log_alpha
     return named
-
-
-def update_after(recipe) -> int:
-    """Frames collected before the first optimisation step (``algorithm.update_after``, else the random phase)."""
-    a = recipe.algorithm.update_after
-    return recipe.collector.init_random_frames if a is None else a
-
-
-def planned_updates(recipe) -> int:
-    """Optimisation steps the recipe's budget allows (frames after the first update times the UTD ratio)."""
-    c = recipe.collector
-    return max(1, int((c.total_frames - min(update_after(recipe), c.total_frames)) * recipe.algorithm.utd_ratio))
-
-
-def event_threads(setting, environ=None) -> int | None:
-    """``rank.num_threads`` as a thread count: ``'auto'`` = ``OMP_NUM_THREADS`` when set (a launcher's share of the
-    machine: 1 for ``adarl experiment -j N > 1``), else every core this process may use; None keeps the run's own.
-
-    >>> event_threads(3), event_threads(None), event_threads("auto", {"OMP_NUM_THREADS": "1"})
-    (3, None, 1)
-    """
-    if setting != "auto":
-        return setting
-    environ = os.environ if environ is None else environ
-    share = environ.get("OMP_NUM_THREADS", "")
-    if share.strip().isdigit() and int(share) > 0:
-        return int(share)
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # not on Linux
-        return max(1, os.cpu_count() or 1)
-
-
-def make_rank_rule(rank) -> RankRule:
-    """The rule of a recipe's ``rank`` section, built one way for every registered rule (adarl's own and a plugin's):
-    ``rule_class()(**arguments)``, the arguments being adarl's own rules' keys (``rank.beta``, ``rank.target_rank``,
-    ``rank.lam``) or a plugin rule's ``rank.rule_options`` (:meth:`adarl.plugins.RankRuleSpec.arguments`). A rule
-    whose class sets ``needs_fit = True`` gets ``fit(rank)`` from the adapter (on replay states), as ``policy_fit``
-    does."""
-    spec = plugins.rank_rule(rank.rule)
-    cls = spec.rule_class()
-    provider = spec.provider or ("adarl" if spec.builtin else "a register_rank_rule call")
-    where = f"rank rule {spec.name!r} ({spec.rule_path}, from {provider})"
-    if not (isinstance(cls, type) and issubclass(cls, RankRule)):
-        raise AdaRLValueError(f"{where} is not an adarl.core.rank.RankRule subclass (got {cls!r})")
-    kwargs = spec.arguments(rank)
-    try:
-        return cls(**kwargs)
-    except TypeError as err:
-        source = f"its rank keys {kwargs}" if spec.builtin else f"rank.rule_options {rank.rule_options}"
-        raise AdaRLValueError(f"{where} cannot be built from {source}: {err}") from None
-
-
-def _rank_adapter(recipe, loss, optimizers, schedulers, replay_buffer) -> RankAdapter:
-    """The rank adapter of ``recipe.rank``: the rule proposes, the acceptance step decides (Algorithm 1)."""
-    r = recipe.rank
-    rule = make_rank_rule(r)
-    a = r.accept
-    # 'fixed' is an instruction (the fixed-rank projection), not a candidate: nothing to accept or refuse
-    acceptance = (
-        ProjectionAcceptance(a.actor_tol, a.critic_tol, search=a.search)
-        if a.mode == "projection" and r.rule != "fixed"
-        else None
-    )
-    return RankAdapter(
-        loss,
-        list(optimizers.values()),
-        rule,
-        interval=r.interval,
-        scope=r.scope,
-        min_rank=r.min_rank,
-        target_mode=r.target_mode,
-        lr_schedulers=list(schedulers.values()),
-        # the acceptance step (and, with 'always', the recorded error) compares outputs on recent transitions
-        fit_data=RecentTransitions(replay_buffer, a.samples),
-        num_threads=event_threads(r.num_threads),
-        acceptance=acceptance,
-    )
 
 
 def _update_step(
@@ -456,72 +344,13 @@ def build_sac_components(
     if not alg.fixed_alpha:
         optimizers["alpha"] = make_adam([loss.log_alpha], alg.alpha_lr, fused=fused)
     total_updates = planned_updates(recipe)
-    s = recipe.lr_schedule
-    schedulers = {
-        name: make_lr_scheduler(
-            optimizers[name],
-            warmup_steps=s.warmup_steps,
-            total_steps=total_updates if s.cosine else None,
-            min_factor=s.min_factor,
-        )
-        for name in ("actor", "critic")
-    }
-
+    schedulers = make_lr_schedulers(recipe, optimizers, total_updates)
     generator = torch.Generator().manual_seed(recipe.seed + 1)
-    replay_buffer = TensorDictReplayBuffer(
-        storage=(
-            LazyMemmapStorage(recipe.replay.size, scratch_dir=scratch_dir, device=recipe.device)
-            if recipe.replay.storage == "memmap"
-            else LazyTensorStorage(recipe.replay.size, device=recipe.device)
-        ),
-        sampler=RandomSampler(),
-        batch_size=alg.batch_size,
-        generator=generator,
-    )
-    c = recipe.collector
-    init_random = c.init_random_frames if init_random_frames is None else init_random_frames
-    lean = wants_lean(c.lean, env, modules.actor)
-    if c.overlap and not lean:
-        raise AdaRLValueError(
-            f"collector.overlap: {c.overlap!r} needs the lean collector (one env, a TanhNormal "
-            "actor, collector.lean: 'auto' or true); allowed otherwise: collector.overlap: false"
-        )
-    if lean:
-        collector = LeanCollector(
-            env,
-            modules.actor,
-            frames_per_batch=c.frames_per_batch,
-            init_random_frames=init_random,
-            overlap=c.overlap,
-            noise_seed=recipe.seed + 2,
-            env_factory=train_env_factory(recipe) if c.overlap == "process" else None,
-        )
-    else:
-        collector = Collector(
-            env,
-            modules.actor,
-            frames_per_batch=c.frames_per_batch,
-            total_frames=-1,
-            init_random_frames=init_random,
-            device=recipe.device,
-        )
-
-    adapter = warm_start = None
-    if recipe.rank.enabled:
-        w = recipe.replay.warm_start
-        if w.mode == "reset" or (w.mode != "keep" and w.frames > 0):
-            # LeanCollector.rollout() collects with the loss's own actor, as TorchRL's Collector.rollout() does
-            warm_start = ReplayWarmStart(replay_buffer, collector, frames=w.frames, mode=w.mode)
-        if recipe.rank.truncate:
-            adapter = _rank_adapter(recipe, loss, optimizers, schedulers, replay_buffer)
-        else:  # the events' restarts without their truncations (the sac_restarts control)
-            adapter = ScheduledRestarts(recipe.rank.interval, list(schedulers.values()))
+    replay_buffer = make_replay_buffer(recipe, generator, scratch_dir)
+    collector = make_collector(recipe, env, modules.actor, init_random_frames)
+    adapter, warm_start = make_rank_control(recipe, loss, optimizers, schedulers, replay_buffer, collector)
     update = _update_step(recipe, modules, optimizers, schedulers, replay_buffer, generator, fused=fused, terms=terms)
-    effects = None
-    if adapter is not None:
-        factors = {k: v for k, v in sac_parameters(loss, alg.fixed_alpha).items() if k.endswith((".w1", ".w2"))}
-        effects = RankEventEffects(update, collector, warm_start, factors)
-        effects.register(adapter)
+    effects = wire_rank_events(adapter, update, collector, warm_start, sac_parameters(loss, alg.fixed_alpha))
     return SACComponents(
         recipe,
         env,

@@ -444,14 +444,38 @@ class PPOConfig(_Section):
     )
 
 
+class TD3Config(_Section):
+    policy_noise: Annotated[Float, Field(ge=0)] = Field(
+        0.2, description="Std of the Gaussian noise on the target action (TD3's target policy smoothing; TD3Loss)."
+    )
+    noise_clip: Annotated[Float, Field(ge=0)] = Field(
+        0.5, description="Clip of the target-action noise, |noise| <= noise_clip (TD3Loss)."
+    )
+    exploration_noise: Annotated[Float, Field(ge=0)] = Field(
+        0.1,
+        description="Std of the Gaussian noise added to the actor's action while collecting (TorchRL's "
+        "AdditiveGaussianModule; the action is projected back into the box), in the action's units.",
+    )
+    policy_update_delay: PosInt = Field(
+        2,
+        description="Critic updates per actor and target update (TD3's delayed policy updates; 1 = every update, "
+        "as DDPG does).",
+    )
+
+
 class AlgorithmConfig(_Section):
     name: str = Field(
         "sac",
         description="RL algorithm, a registered name (adarl.register_algorithm; installed packages add names through "
         "the 'adarl.plugins' entry-point group): 'sac' as in the paper (DiscreteSAC for discrete-action envs); "
         "'ppo' = TorchRL's ClipPPOLoss + GAE, the RNAC baselines' base (continuous actions; SAC-only keys are "
-        "ignored); a plugin's name runs its loss on the loop of its base (docs/custom-loss.md).",
-        json_schema_extra={"allowed": "a registered algorithm name ('sac', 'ppo', or one an installed plugin adds)"},
+        "ignored); 'td3' / 'ddpg' = TorchRL's TD3Loss / DDPGLoss on the off-policy loop with rank control "
+        "(algorithm.td3; continuous actions; SAC's alpha keys are ignored); a plugin's name runs its loss on the "
+        "loop of its base (docs/custom-loss.md).",
+        json_schema_extra={
+            "allowed": "a registered algorithm name ('sac', 'ppo', 'td3', 'ddpg', 'rnac_ipm', 'rnac_ds', or one an "
+            "installed plugin adds)"
+        },
     )
     options: dict[str, Any] = Field(
         default_factory=dict,
@@ -500,6 +524,10 @@ class AlgorithmConfig(_Section):
     )
     parseval: ParsevalConfig = Field(default_factory=ParsevalConfig, description="Parseval regularisation baseline.")
     ppo: PPOConfig = Field(default_factory=PPOConfig, description="PPO hyperparameters (algorithm.name=ppo).")
+    td3: TD3Config = Field(
+        default_factory=TD3Config,
+        description="TD3/DDPG hyperparameters (algorithms on the 'td3' loop: td3, ddpg, a plugin's TD3Loss/DDPGLoss).",
+    )
 
     @model_validator(mode="before")
     @classmethod
@@ -549,7 +577,7 @@ class AlgorithmConfig(_Section):
 
     @property
     def base(self) -> str:
-        """The training loop of :attr:`name` ('sac' or 'ppo'; :func:`adarl.plugins.algorithm`)."""
+        """The training loop of :attr:`name` ('sac', 'ppo' or 'td3'; :func:`adarl.plugins.algorithm`)."""
         return plugins.algorithm(self.name).base
 
 
@@ -930,6 +958,25 @@ class Recipe(_Section):
                         f"must be <= collector.frames_per_batch ({self.collector.frames_per_batch})",
                     )
                 )
+        if alg.base == "td3":
+            if env.id in ("CartPole-v1", "LinearCartPole-v0"):
+                p.append(
+                    ("algorithm.name", alg.name, f"needs a continuous-action env; {env.id} is discrete (use 'sac')")
+                )
+            for key, value, allowed in (
+                ("algorithm.fused", alg.fused, "'auto' or false"),
+                ("algorithm.compile", alg.compile, "false"),
+                ("collector.lean", self.collector.lean, "'auto' or false"),
+            ):
+                if value is True:
+                    p.append(
+                        (
+                            key,
+                            True,
+                            f"is SAC's fast path (a fused SACLoss update, a TanhNormal actor); algorithm.name "
+                            f"{alg.name!r} runs on the 'td3' loop, TorchRL's plain path; allowed: {allowed}",
+                        )
+                    )
         if alg.name == "rnac_ds":
             if env.num_envs != 1:
                 p.append(
