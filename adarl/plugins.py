@@ -453,7 +453,7 @@ BUILTIN_RANK_RULE_KEYS: dict[str, dict[str, str]] = {
     "energy": {"beta": "beta"},
     "energy_inclusive": {"beta": "beta"},
     "ratio": {"beta": "beta"},
-    "fixed": {"rank": "target_rank"},
+    "fixed": {"target_rank": "target_rank"},
     "policy_fit": {"lam": "lam"},
 }
 HOW_TO_REGISTER_RANK_RULE = (
