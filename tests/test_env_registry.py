@@ -323,3 +323,21 @@ def test_bad_registrations_are_refused_and_leave_nothing_behind(tmp_path):
     )
     assert "X-v0" not in supported_envs(load=False) and "X-v0" not in P._MUJOCO_XML and "X-v0" not in P._PRESET_TABLE
     assert "thigh_length" not in env_parameters("Hopper-v5")
+
+
+def test_every_builtin_parameter_has_physical_bounds_and_a_plugin_may_declare_its_own():
+    """Issue 30.7: no built-in parameter accepts 1e308 or 1e-300 (a length within 10x of nominal, a scale within
+    100x of 1); a plugin parameter states its bounds with ParameterInfo (within_factor), refused in a recipe by name."""
+    for env_id in ("Hopper-v5", "Walker2d-v5", "Ant-v5", "CartPole-v1", "InvertedPendulum-v5"):
+        for name, info in env_parameters(env_id).items():
+            assert info.contains(info.default), (env_id, name)
+            assert not info.contains(1e308) and not info.contains(-1e308), (env_id, name, info.allowed())
+            if info.low > 0 or info.low_open:  # a mass, a length (gravity 0 is physical)
+                assert not info.contains(1e-300), (env_id, name, info.allowed())
+    shin = ParameterInfo.within_factor("shin_length", 0.25, 4, unit="m", description="shin half-length")
+    assert (shin.low, shin.high) == (0.0625, 1.0)
+    register_parameter("Hopper-v5", shin, lambda editor, value, defaults: None)
+    _raises(["shin_length", "1.5", ">= 0.0625 and <= 1"], validate_values, "Hopper-v5", {"shin_length": 1.5})
+    with pytest.raises(RecipeError, match=r"shin_length.*1e\+308.*>= 0.0625 and <= 1"):
+        load_recipe("quickstart", ["env.perturbation.schedule={kind: fixed, values: {shin_length: 1e308}}"])
+    _raises(["factor"], ParameterInfo.within_factor, "x", 1.0, 0.5)
