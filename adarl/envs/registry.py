@@ -182,8 +182,8 @@ class ParameterInfo:
         value = float(value)
         if not self.contains(value):
             raise AdaRLValueError(
-                f"{what or self.name!s}{where}: value {value!r} is outside its allowed range; allowed: {self.allowed()} "
-                f"(default {self.default:g})"
+                f"{what or self.name!s}{where}: value {value!r} is outside its allowed range; allowed: "
+                f"{self.allowed()} (default {self.default:g})"
             )
         return value
 
