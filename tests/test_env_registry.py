@@ -356,7 +356,9 @@ def test_a_run_whose_env_or_rank_rule_package_is_gone_is_refused_by_package(tmp_
         gymnasium.register(PLUGIN_HOPPER, entry_point="gymnasium.envs.mujoco.hopper_v5:HopperEnv")
         register_env(PLUGIN_HOPPER, xml="hopper.xml")
         plugins.register_rank_rule("gone_rule", EnergyRule)
-    recipe = load_recipe("quickstart", [f"env.id={PLUGIN_HOPPER}", "env.perturbation.preset=nominal", "rank.rule=gone_rule"])
+    recipe = load_recipe(
+        "quickstart", [f"env.id={PLUGIN_HOPPER}", "env.perturbation.preset=nominal", "rank.rule=gone_rule"]
+    )
     run = RunDir.create(tmp_path / "run")
     run.save_recipe(recipe)
     record = run.recorded_plugins()
