@@ -387,7 +387,8 @@ class RankAdapter(TrainerHookBase):
                     check = getattr(cb, "check_event", None)
                     if callable(check):
                         check(event)  # e.g. ReplayWarmStart: its policy must run the loss's own factors
-            peers = [(a._all_sites(), a.loss_module, a.optimizers) for a in list(_LIVE) if a is not self]
+            others = [a for a in list(_LIVE) if a is not self] if any(r.changed for _, r, _ in plans) else []
+            peers = [(a._all_sites(), a.loss_module, a.optimizers) for a in others]
             for site, record, svd in plans:
                 if record.changed:
                     record.target = apply_rank(site, record.new_rank, *svd, self.target_mode, self.optimizers)
