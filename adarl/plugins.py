@@ -36,12 +36,16 @@ would re-import the others.
 Traceback (most recent call last):
     ...
 adarl.errors.AdaRLValueError: unknown algorithm.name 'sca'; allowed: ...; did you mean 'sac'? (no installed plugin ...
+
+Long because: the generic registry, how plugins load and are recorded, and the two registries recipes validate
+against, each with adarl's own entries declared through it, are one extension API a plugin author reads in one place.
 """
 
 from __future__ import annotations
 
 import importlib
 from collections.abc import Callable, Iterable
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from importlib import metadata
 from importlib.metadata import entry_points
@@ -56,6 +60,7 @@ __all__ = [
     "Registry",
     "load_entry_points",
     "current_provider",
+    "providing",
     "provenance",
     "BASES",
     "BASE_LOSSES",
@@ -100,18 +105,26 @@ def load_entry_points() -> None:
             continue
         _loaded.add(key)
         dist = getattr(getattr(ep, "dist", None), "name", None)
-        _current_provider[0] = dist
         try:
-            obj = ep.load()
-            if callable(obj) and not isinstance(obj, type):
-                obj()
+            with providing(dist):
+                obj = ep.load()
+                if callable(obj) and not isinstance(obj, type):
+                    obj()
         except Exception as err:  # noqa: BLE001 - any failure of third-party code, named with its plugin
             raise AdaRLValueError(
                 f"the adarl plugin {ep.name!r} ({ep.value}, package {dist or '?'}) failed to load: "
                 f"{type(err).__name__}: {err}"
             ) from err
-        finally:
-            _current_provider[0] = None
+
+
+@contextmanager
+def providing(provider: str | None):
+    """Registrations made inside record ``provider`` (an entry point's distribution, a recipe's local module)."""
+    previous, _current_provider[0] = _current_provider[0], provider
+    try:
+        yield
+    finally:
+        _current_provider[0] = previous
 
 
 def current_provider() -> str | None:
@@ -525,7 +538,7 @@ BUILTIN_RANK_RULE_KEYS: dict[str, dict[str, str]] = {
     "energy": {"beta": "beta"},
     "energy_inclusive": {"beta": "beta"},
     "ratio": {"beta": "beta"},
-    "fixed": {"rank": "target_rank"},
+    "fixed": {"target_rank": "target_rank"},
     "policy_fit": {"lam": "lam"},
 }
 HOW_TO_REGISTER_RANK_RULE = (

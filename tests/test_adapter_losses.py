@@ -675,3 +675,58 @@ def test_registered_on_a_trainer_the_ranks_share_its_x_axis():
         assert [e.step for e in adapter.history] == [4, 8, 12]  # events at optimisation steps...
         assert ranks == [32, 32, 48, 48, 64, 64]  # ...logged at the collected frames, as the losses are
         assert set(ranks) <= losses
+
+
+def _shared_actor_td3_losses():
+    """Two TD3 losses on one actor (TorchRL's own tests build losses this way), each with its own critic, target
+    networks, optimiser, SoftUpdate and RankAdapter."""
+    torch.manual_seed(0)
+    actor = Actor(low_rank_mlp(OBS, ACT, (16, 16)), in_keys=["observation"])
+    out = []
+    for _ in range(2):
+        loss = TD3Loss(actor, ValueOperator(QNet(), in_keys=["observation", "action"]), bounds=(-1.0, 1.0))
+        loss.make_value_estimator(ValueEstimators.TD0, gamma=0.99)
+        out.append((loss, torch.optim.Adam(loss.parameters(), lr=1e-3), SoftUpdate(loss, eps=0.9)))
+    return actor, out
+
+
+def _train(pairs, steps=2):
+    for i in range(steps):
+        for loss, opt, updater in pairs:
+            out = loss(transition_batch(i))
+            opt.zero_grad()
+            sum(v for k, v in out.items() if k.startswith("loss_")).backward()
+            opt.step()
+            updater.step()
+
+
+def test_two_losses_sharing_an_actor_both_follow_either_adapter():
+    """Issue 29.2: after one adapter truncates the shared actor, the other loss's target actor, cached views and
+    optimiser state follow (before: it kept the old shape and weights, and the other adapter skipped the layer)."""
+    actor, pairs = _shared_actor_td3_losses()
+    adapters = [
+        RankAdapter(loss, opt, FixedRank(r), interval=1, scope="actor") for (loss, opt, _), r in zip(pairs, (4, 2))
+    ]
+    critic_only = RankAdapter(pairs[1][0], pairs[1][1], FixedRank(8), interval=1, scope="critic")  # noqa: F841
+    _train(pairs)
+    for adapter, rank in zip(adapters, (4, 2)):
+        assert adapter.adapt().changed
+        for loss, opt, _ in pairs:
+            online, target = loss.actor_network_params, loss._modules["target_actor_network_params"]
+            for key in online.keys(True, True):
+                assert online.get(key).shape == target.get(key).shape, key
+                if key[-1] in ("w1", "w2"):
+                    assert torch.equal(online.get(key), target.get(key)), key  # synced to the new factors
+                    assert online.get(key).shape[-1 if key[-1] == "w1" else -2] == rank
+                    assert online.get(key) not in opt.state  # no Adam moments of the old basis
+        _train(pairs)  # both losses, optimisers and SoftUpdates run on the new shapes
+    assert actor.module[0].rank == 2 and adapters[0].ranks == adapters[1].ranks
+
+
+def test_resize_to_ranks_resizes_the_targets_of_a_second_loss_on_a_resized_actor():
+    _, pairs = _shared_actor_td3_losses()
+    ranks = {"actor_network.module.0": 3, "actor_network.module.2": 3}
+    assert resize_to_ranks(pairs[0][0], ranks, pairs[0][1])
+    resize_to_ranks(pairs[1][0], ranks, pairs[1][1])  # the shared actor already has them: its targets not yet
+    target = pairs[1][0]._modules["target_actor_network_params"]
+    assert target.get(("module", "0", "w1")).shape[-1] == 3 and target.get(("module", "2", "w2")).shape[-2] == 3

@@ -323,3 +323,54 @@ def test_bad_registrations_are_refused_and_leave_nothing_behind(tmp_path):
     )
     assert "X-v0" not in supported_envs(load=False) and "X-v0" not in P._MUJOCO_XML and "X-v0" not in P._PRESET_TABLE
     assert "thigh_length" not in env_parameters("Hopper-v5")
+
+
+def test_every_builtin_parameter_has_physical_bounds_and_a_plugin_may_declare_its_own():
+    """Issue 30.7: no built-in parameter accepts 1e308 or 1e-300 (a length within 10x of nominal, a scale within
+    100x of 1); a plugin parameter states its bounds with ParameterInfo (within_factor), refused in a recipe by name."""
+    for env_id in ("Hopper-v5", "Walker2d-v5", "Ant-v5", "CartPole-v1", "InvertedPendulum-v5"):
+        for name, info in env_parameters(env_id).items():
+            assert info.contains(info.default), (env_id, name)
+            assert not info.contains(1e308) and not info.contains(-1e308), (env_id, name, info.allowed())
+            if info.low > 0 or info.low_open:  # a mass, a length (gravity 0 is physical)
+                assert not info.contains(1e-300), (env_id, name, info.allowed())
+    shin = ParameterInfo.within_factor("shin_length", 0.25, 4, unit="m", description="shin half-length")
+    assert (shin.low, shin.high) == (0.0625, 1.0)
+    register_parameter("Hopper-v5", shin, lambda editor, value, defaults: None)
+    _raises(["shin_length", "1.5", ">= 0.0625 and <= 1"], validate_values, "Hopper-v5", {"shin_length": 1.5})
+    with pytest.raises(RecipeError, match=r"shin_length.*1e\+308.*>= 0.0625 and <= 1"):
+        load_recipe("quickstart", ["env.perturbation.schedule={kind: fixed, values: {shin_length: 1e308}}"])
+    _raises(["factor"], ParameterInfo.within_factor, "x", 1.0, 0.5)
+
+
+@pytest.mark.parametrize("kind", ["env", "rank_rule"])
+def test_a_run_whose_env_or_rank_rule_package_is_gone_is_refused_by_package(tmp_path, monkeypatch, kind):
+    """Issue 29.6: plugins.json records the env's and the rank rule's package (as the algorithm's); resume/eval of a
+    run whose plugin package is gone names that package, not an unknown env or rule with a did-you-mean."""
+    from adarl.core.rank import EnergyRule
+    from adarl.runtime.run_dir import RunDir
+
+    monkeypatch.setattr(plugins, "_rank_rules", dict(plugins._rank_rules))
+    state = P._registry_state()
+    with plugins.providing("adarl-gone-plugin"):
+        gymnasium.register(PLUGIN_HOPPER, entry_point="gymnasium.envs.mujoco.hopper_v5:HopperEnv")
+        register_env(PLUGIN_HOPPER, xml="hopper.xml")
+        plugins.register_rank_rule("gone_rule", EnergyRule)
+    recipe = load_recipe(
+        "quickstart", [f"env.id={PLUGIN_HOPPER}", "env.perturbation.preset=nominal", "rank.rule=gone_rule"]
+    )
+    run = RunDir.create(tmp_path / "run")
+    run.save_recipe(recipe)
+    record = run.recorded_plugins()
+    assert record["env"] == {"name": PLUGIN_HOPPER, "package": "adarl-gone-plugin", "version": None}
+    assert record["rank_rule"] == {"name": "gone_rule", "package": "adarl-gone-plugin", "version": None}
+    assert record["algorithm"]["package"] == "adarl" and record["modules"] == []
+    if kind == "env":
+        P._restore_registry(state)  # the package is uninstalled: its env is gone
+    else:
+        del plugins._rank_rules["gone_rule"]
+    with pytest.raises(RecipeError) as err:
+        RunDir(tmp_path / "run").load_recipe()
+    what = {"env": f"env {PLUGIN_HOPPER!r}", "rank_rule": "rank rule 'gone_rule'"}[kind]
+    assert f"trained with {what} from the package 'adarl-gone-plugin'" in str(err.value)
+    assert "pip install adarl-gone-plugin" in str(err.value)

@@ -619,6 +619,27 @@ def test_experiment_axis_that_changes_nothing_is_warned_about(tmp_path):
     assert [line for line in _warnings(proc) if "'replicate' changes nothing" in line]
 
 
+@pytest.mark.parametrize(
+    "values, name, value, allowed",
+    [
+        ("{torso_length: 1e308}", "torso_length", "1e+308", ">= 0.02 and <= 2"),
+        ("{mass_scale: 1e-300}", "mass_scale", "1e-300", ">= 0.01 and <= 100"),
+    ],
+)
+def test_physically_impossible_value_is_refused_before_a_run_folder(tmp_path, values, name, value, allowed):
+    """Issue 30.7: refused by `adarl show` and `adarl run` naming the parameter, the value and the allowed range; no
+    MuJoCo traceback, no run folder."""
+    override = f"env.perturbation.schedule={{kind: fixed, values: {values}}}"
+    for proc in (
+        adarl("show", "quickstart", override),
+        adarl("run", "quickstart", override, "-o", str(tmp_path / "r")),
+    ):
+        assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr[-3000:]  # 2: an invalid recipe
+        (line,) = [line for line in proc.stderr.splitlines() if line.startswith("adarl: error:")]
+        assert all(word in line for word in (name, value, allowed, "env.perturbation.schedule")), line
+    assert not (tmp_path / "r").exists()
+
+
 # ------------------------------------------------------------------------------------------ the documented table
 
 

@@ -372,12 +372,12 @@ def test_error_paths_name_the_allowed_values():
         FixedSchedule({"mass_scale:wing": 2.0}),
     )
     for bad in (-0.1, 0.0):
-        _raises([repr(bad), "> 0"], make_env, "Hopper-v5", schedule=FixedSchedule({"torso_length": bad}))
+        _raises([repr(bad), ">= 0.02 and <= 2"], make_env, "Hopper-v5", schedule=FixedSchedule({"torso_length": bad}))
     for bad in (float("nan"), float("inf")):
         _raises(["finite"], FixedSchedule, {"torso_length": bad})
     # a schedule whose range leaves the valid set is refused up front
     _raises(
-        ["torso_length", "-0.1", "> 0"],
+        ["torso_length", "-0.1", ">= 0.02 and <= 2"],
         make_env,
         "Hopper-v5",
         schedule={

@@ -116,7 +116,7 @@ def test_adarl_own_rules_take_no_rule_options():
         load_recipe("quickstart", ["rank.rule=fixed", "rank.target_rank=8", "rank.rule_options={rank: 8}"])
     # and they are built from rank.beta / target_rank / lam, as before
     assert make_rank_rule(load_recipe("quickstart", ["rank.rule=ratio", "rank.beta=0.5"]).rank).beta == 0.5
-    assert make_rank_rule(load_recipe("quickstart", ["rank.rule=fixed", "rank.target_rank=8"]).rank).rank == 8
+    assert make_rank_rule(load_recipe("quickstart", ["rank.rule=fixed", "rank.target_rank=8"]).rank).target_rank == 8
     assert make_rank_rule(load_recipe("quickstart", ["rank.rule=policy_fit", "rank.lam=0.1"]).rank).lam == 0.1
 
 

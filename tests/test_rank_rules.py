@@ -333,7 +333,7 @@ def test_make_rule():
     assert type(r) is EnergyRule and r.beta == 0.9
     assert type(make_rule("energy_inclusive")) is InclusiveEnergyRule
     assert type(make_rule("ratio", beta=0.5)) is RatioRule
-    assert make_rule("fixed", rank=3).rank == 3
+    assert make_rule("fixed", target_rank=3).target_rank == 3
     assert make_rule("policy_fit", lam=0.5).lam == 0.5
     assert "beta=0.9" in repr(r)
     with pytest.raises(AdaRLValueError) as err:
@@ -343,7 +343,7 @@ def test_make_rule():
     with pytest.raises(AdaRLValueError, match="energy"):
         make_rule("energy", gamma=0.5)
     with pytest.raises(AdaRLValueError, match="fixed"):
-        make_rule("fixed")  # missing rank
+        make_rule("fixed")  # missing target_rank
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -402,3 +402,15 @@ def test_property_scale_invariance(values, beta, scale):
             ratios = [Fraction(x) / Fraction(max(values)) for x in values]
             near = [abs(x - Fraction(beta)) for x in (sh + ratios)]
             assert min(near) < Fraction(TOL), (rule, a, b)
+
+
+def test_fixed_rule_takes_the_recipe_key_name_and_warns_on_the_old_one():
+    """Issue 29.7: one name for one thing, ``target_rank`` in Python as in recipes (``rank.target_rank``)."""
+    s = torch.tensor([5.0, 3.0, 1.0, 0.5, 0.5])
+    assert make_rule("fixed", target_rank=2)(s).rank == 2
+    assert FixedRank(target_rank=3).target_rank == 3 and FixedRank(4)(s).rank == 4
+    with pytest.warns(DeprecationWarning, match="target_rank"):
+        old = FixedRank(rank=2)
+    assert old.target_rank == 2 and old(s).rank == 2
+    with pytest.raises(AdaRLValueError, match="'fixed'.*target_rank"):
+        make_rule("fixed")

@@ -21,7 +21,7 @@ from adarl.core.lowrank import factor_svd, refactorize
 from adarl.core.lowrank import replace_data as _set_data
 from adarl.errors import CheckpointError
 
-__all__ = ["TARGET_MODES", "PROJECT_COND_LIMIT", "apply_rank", "resize_to_ranks"]
+__all__ = ["TARGET_MODES", "PROJECT_COND_LIMIT", "apply_rank", "follow_shared", "resize_to_ranks"]
 
 TARGET_MODES = ("sync", "project")
 #: ``target_mode="project"`` falls back to "sync" when cond(R1) or cond(R2) exceeds this (float64).
@@ -124,6 +124,37 @@ def apply_rank(site: LowRankSite, rank: int, u, s, vh, target_mode: str, optimiz
     return mode
 
 
+def follow_shared(site: LowRankSite, peers: Iterable[tuple[Sequence[LowRankSite], nn.Module, Sequence]]) -> list[str]:
+    """After ``site`` was resized, bring every other loss that trains the same factors along (issue 29.2).
+
+    Two losses may share one network (TorchRL's own tests build several losses on one actor): the factor
+    ``Parameter`` objects are then the same, but each loss has its own target factors, cached views and optimisers.
+    ``peers``: ``(sites, loss, optimizers)`` of the other adapters. Each site of theirs holding ``site``'s factors
+    gets its targets synced to the new online factors (their own lag is in another basis), its template's own
+    factors resized, its optimisers' state of those factors dropped and its loss's caches erased. Returns the paths
+    of the peers' layers that followed, as ``"<loss class>.<path>"``."""
+    followed = []
+    for sites, loss, optimizers in peers:
+        touched = False
+        for other in sites:
+            if other is site or other.w1 is not site.w1:
+                continue
+            _forget_optimizer_state(optimizers, (site.w1, site.w2))
+            if other.extra is not None and other.extra[0].shape != site.w1.shape[len(site.batch_shape) :]:
+                lead = (0,) * len(site.batch_shape)
+                _set_data(other.extra[0], site.w1.detach()[lead].clone())
+                _set_data(other.extra[1], site.w2.detach()[lead].clone())
+                _forget_optimizer_state(optimizers, other.extra)
+            if other.target_w1 is not None and other.target_w1 is not site.target_w1:
+                _set_data(other.target_w1, site.w1.detach().clone())
+                _set_data(other.target_w2, site.w2.detach().clone())
+            touched = True
+            followed.append(f"{type(loss).__name__}.{other.path}")
+        if touched:
+            _erase_loss_caches(loss)
+    return followed
+
+
 def resize_to_ranks(
     loss_module: nn.Module,
     ranks: Mapping,
@@ -163,10 +194,11 @@ def resize_to_ranks(
             if isinstance(rank, bool) or not isinstance(rank, int) or not 1 <= rank <= site.max_rank:
                 raise CheckpointError(f"rank for {path!r} must be an integer in [1, {site.max_rank}], got {rank!r}")
             old = site.rank
-            if rank == old:
-                continue
-            w1, w2 = _resized(site.w1, site.w2, rank)
-            _resize_site(site, w1, w2, optimizers)
+            if rank == old and (site.target_w1 is None or int(site.target_w2.shape[-2]) == rank):
+                continue  # (a loss sharing its actor with one resized before: the targets still need the shape)
+            if rank != old:
+                w1, w2 = _resized(site.w1, site.w2, rank)
+                _resize_site(site, w1, w2, optimizers)
             if site.target_w1 is not None:
                 t1, t2 = _resized(site.target_w1, site.target_w2, rank)
                 _set_data(site.target_w1, t1)

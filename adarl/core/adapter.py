@@ -30,6 +30,7 @@ constructor's checks). Import from here.
 from __future__ import annotations
 
 import itertools
+import weakref
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -60,6 +61,7 @@ from adarl.core._surgery import (
     _erase_loss_caches,
     _padded_factors,
     apply_rank,
+    follow_shared,
     resize_to_ranks,
 )
 from adarl.core.acceptance import ProjectionAcceptance
@@ -86,6 +88,9 @@ __all__ = [
 
 #: reached here before the split (the Parseval term, tests, the calibration benchmark): kept importable from here
 _ALSO_HERE = (network_candidates, PROJECT_COND_LIMIT, _name_sites, _NetworkProbe, _padded_factors)
+#: every live adapter: an event on factors another adapter's loss shares (one actor, two losses) brings that loss's
+#: targets, caches and optimiser state along (:func:`~adarl.core._surgery.follow_shared`)
+_LIVE: weakref.WeakSet = weakref.WeakSet()
 
 
 @dataclass
@@ -254,6 +259,7 @@ class RankAdapter(TrainerHookBase):
         self._check_optimizers(self.sites)
         self.step_count = 0
         self.history: list[RankEvent] = []
+        _LIVE.add(self)
 
     # -- properties ---------------------------------------------------------------------------------------------
 
@@ -301,6 +307,16 @@ class RankAdapter(TrainerHookBase):
             self.logger = getattr(trainer, "logger", None)
         if self.log_step is None:
             self.log_step = lambda: int(trainer.collected_frames)
+
+    def _all_sites(self) -> list[LowRankSite]:
+        """Every low-rank layer of the loss, in scope or not: another adapter's event on factors this loss shares
+        must reach this loss's targets whatever this adapter's scope."""
+        if self.scope == "both":
+            return self.sites
+        try:
+            return find_low_rank_layers(self.loss_module, "both")[0]
+        except AdaRLValueError:
+            return self.sites
 
     # -- checks -------------------------------------------------------------------------------------------------
 
@@ -371,9 +387,12 @@ class RankAdapter(TrainerHookBase):
                     check = getattr(cb, "check_event", None)
                     if callable(check):
                         check(event)  # e.g. ReplayWarmStart: its policy must run the loss's own factors
+            others = [a for a in list(_LIVE) if a is not self] if any(r.changed for _, r, _ in plans) else []
+            peers = [(a._all_sites(), a.loss_module, a.optimizers) for a in others]
             for site, record, svd in plans:
                 if record.changed:
                     record.target = apply_rank(site, record.new_rank, *svd, self.target_mode, self.optimizers)
+                    follow_shared(site, peers)  # another loss training these factors: its targets follow
         finally:
             torch.set_num_threads(threads)
         self.history.append(event)

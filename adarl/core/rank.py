@@ -12,7 +12,7 @@ A share or ratio within 1e-12 of ``beta`` counts as equal to it (``beta=0.7`` me
 ``InclusiveEnergyRule`` the usual convention (peft, TRP): the smallest ``l`` whose share is ``>= beta``; it keeps
                        the rank when the spectrum is flat enough, so ranks can settle above ``min_rank``.
 ``RatioRule``          paper Eq. 33 (ablation D.4): the smallest ``l`` with ``s_l / s_1 <= beta``.
-``FixedRank``          a given rank (the fixed-rank baseline, or a one-off projection).
+``FixedRank``          a given ``target_rank`` (the fixed-rank baseline, or a one-off projection).
 ``PolicyFitRule``      beyond the paper: solves the upper level of Eq. 8 directly, the smallest ``r`` minimising
                        ``fit(r) + lam * r`` where ``fit(r)`` is the mean distance between the network's output with
                        this layer projected to rank ``r`` and its output now, measured on replay states.
@@ -22,9 +22,11 @@ A share or ratio within 1e-12 of ``beta`` counts as equal to it (``beta=0.7`` me
 from __future__ import annotations
 
 import math
+import warnings
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
+from typing import Any
 
 import torch
 
@@ -49,6 +51,7 @@ FitFn = Callable[[int], float]
 # Shares and ratios within this of beta count as ties (equal to beta): a beta written as a decimal (0.7) means
 # the decimal, and float64 rounding of a cumsum must not make the answer depend on the spectrum's scale.
 _TIE_TOL = 1e-12
+_MISSING: Any = object()  # a keyword not given (None is a value, refused like any non-integer)
 
 
 @dataclass(frozen=True)
@@ -180,18 +183,38 @@ class RatioRule(RankRule):
 
 
 class FixedRank(RankRule):
-    """Always ``rank`` (clamped to the current rank: rules never grow a layer)."""
+    """Always ``target_rank`` (clamped to the current rank: rules never grow a layer).
+
+    ``target_rank`` is the recipe's ``rank.target_rank``: one name in Python and in recipes
+    (``make_rule("fixed", target_rank=8)``). The old keyword ``rank=`` still works, with a DeprecationWarning.
+    """
 
     name = "fixed"
 
-    def __init__(self, rank: int, zero_tol: float = 1e-10) -> None:
+    def __init__(self, target_rank: int = _MISSING, zero_tol: float = 1e-10, *, rank: int = _MISSING) -> None:
         super().__init__(zero_tol)
-        if isinstance(rank, bool) or not isinstance(rank, int) or rank < 1:
-            raise AdaRLValueError(f"FixedRank: rank must be an integer >= 1, got {rank!r}")
-        self.rank = rank
+        if rank is not _MISSING:
+            if target_rank is not _MISSING:
+                raise AdaRLValueError("FixedRank: give target_rank only (rank= is its deprecated old name)")
+            warnings.warn(
+                "FixedRank(rank=...) is deprecated: the keyword is target_rank, as the recipe key rank.target_rank",
+                DeprecationWarning,
+                stacklevel=2,
+            )
+            target_rank = rank
+        if target_rank is _MISSING:
+            raise TypeError("FixedRank() missing 1 required argument: 'target_rank' (the rank to truncate to)")
+        if isinstance(target_rank, bool) or not isinstance(target_rank, int) or target_rank < 1:
+            raise AdaRLValueError(f"FixedRank: target_rank must be an integer >= 1, got {target_rank!r}")
+        self.target_rank = target_rank
+
+    @property
+    def rank(self) -> int:
+        """Deprecated alias of :attr:`target_rank`."""
+        return self.target_rank
 
     def select(self, s, current_rank, min_rank, fit):
-        return self.rank
+        return self.target_rank
 
 
 class PolicyFitRule(RankRule):

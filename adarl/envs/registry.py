@@ -125,6 +125,9 @@ class ParameterInfo:
     ``low_open`` / ``high_open`` say whether the bound itself is excluded (lengths and scales must be ``> 0``).
     Only ``name`` and ``default`` are required (the range then is every finite number), e.g. a length:
     ``ParameterInfo("thigh_length", 0.225, low=0.0, low_open=True, unit="m", description="thigh half-length")``.
+    A physical quantity should state physical bounds, so that an impossible value (``1e308`` m) is refused when a
+    recipe is validated rather than deep in MuJoCo: :meth:`within_factor` gives ``[default / f, default * f]``,
+    the range adarl's own lengths (``f = 10``) and scales (``f = 100``) have.
     """
 
     name: str
@@ -135,6 +138,23 @@ class ParameterInfo:
     high_open: bool = False
     unit: str = ""
     description: str = ""
+
+    @classmethod
+    def within_factor(
+        cls, name: str, default: float, factor: float, *, unit: str = "", description: str = ""
+    ) -> ParameterInfo:
+        """A positive quantity allowed within ``factor`` of its nominal ``default``: ``[default / factor,
+        default * factor]``, e.g. ``ParameterInfo.within_factor("thigh_length", 0.225, 10, unit="m")``.
+
+        >>> ParameterInfo.within_factor("torso_length", 0.2, 10, unit="m").allowed()
+        'finite numbers >= 0.02 and <= 2'
+        """
+        if not (math.isfinite(default) and default > 0 and math.isfinite(factor) and factor > 1):
+            raise AdaRLValueError(
+                f"ParameterInfo.within_factor({name!r}): needs a finite default > 0 and a finite factor > 1, got "
+                f"default={default!r}, factor={factor!r}"
+            )
+        return cls(name, default, default / factor, default * factor, False, False, unit, description)
 
     def allowed(self) -> str:
         """The valid range in words, e.g. ``'finite numbers > 0'``."""
@@ -162,8 +182,8 @@ class ParameterInfo:
         value = float(value)
         if not self.contains(value):
             raise AdaRLValueError(
-                f"{what or self.name!s}{where}: value {value!r} breaks the model; allowed: {self.allowed()} "
-                f"(default {self.default:g})"
+                f"{what or self.name!s}{where}: value {value!r} is outside its allowed range; allowed: "
+                f"{self.allowed()} (default {self.default:g})"
             )
         return value
 
@@ -171,22 +191,43 @@ class ParameterInfo:
         return asdict(self)
 
 
+# Physical bounds (issue 30.7): a value MuJoCo would choke on (a 1e308 m torso, a 1e-300 mass) is refused when a
+# recipe is validated, naming the parameter, the value and the range, instead of ending in a MuJoCo traceback. A
+# length stays within LENGTH_FACTOR of its nominal value, a mass or friction scale within SCALE_FACTOR of 1 (the
+# paper's widest ranges are within 3x: Hopper's foot 0.195 -> 0.59, Ant's gravity 9.81 -> 19.6).
+#: a length parameter's allowed range: ``[nominal / LENGTH_FACTOR, nominal * LENGTH_FACTOR]``
+LENGTH_FACTOR = 10.0
+#: a scale parameter's allowed range (mass, friction): ``[1 / SCALE_FACTOR, SCALE_FACTOR]``
+SCALE_FACTOR = 100.0
+#: gravity in ``[0, GRAVITY_FACTOR * 9.81]`` m/s^2 (zero gravity is physical)
+GRAVITY_FACTOR = 10.0
+#: wind speed within ``[-MAX_WIND, MAX_WIND]`` m/s (a category-5 hurricane is ~70 m/s)
+MAX_WIND = 100.0
+
+
 def _length(name: str, default: float, description: str) -> ParameterInfo:
-    return ParameterInfo(name, default, 0.0, _INF, True, False, "m", description)
+    return ParameterInfo.within_factor(name, default, LENGTH_FACTOR, unit="m", description=description)
 
 
 def _scale(name: str, description: str) -> ParameterInfo:
-    return ParameterInfo(name, 1.0, 0.0, _INF, True, False, "", description)
+    return ParameterInfo.within_factor(name, 1.0, SCALE_FACTOR, description=description)
 
 
 _GRAVITY = ParameterInfo(
-    "gravity", 9.81, 0.0, _INF, False, False, "m/s^2", "gravitational acceleration g: opt.gravity = [0, 0, -g]"
+    "gravity",
+    9.81,
+    0.0,
+    GRAVITY_FACTOR * 9.81,
+    False,
+    False,
+    "m/s^2",
+    "gravitational acceleration g: opt.gravity = [0, 0, -g]",
 )
 _WIND = ParameterInfo(
     "wind",
     0.0,
-    -_INF,
-    _INF,
+    -MAX_WIND,
+    MAX_WIND,
     False,
     False,
     "m/s",

@@ -49,6 +49,7 @@ import torch
 from torchrl.record import loggers as torchrl_loggers
 
 from adarl import __version__, plugins
+from adarl.envs.registry import ENV_IDS, supported_envs
 from adarl.errors import (
     AdaRLError,
     AdaRLWarning,
@@ -57,7 +58,7 @@ from adarl.errors import (
     RecipeError,
     describe_os_error,
 )
-from adarl.runtime.config import load_recipe, recipe_to_yaml, save_resolved
+from adarl.runtime.config import load_recipe, local_plugins, recipe_to_yaml, save_resolved
 
 try:  # POSIX: a lock the kernel drops when its process dies (kill -9 included)
     import fcntl
@@ -385,31 +386,42 @@ class RunDir:
         """Write the resolved recipe.yaml and plugins.json (what :meth:`load_recipe` needs to rebuild the run, or
         to name the package it is missing)."""
         save_resolved(recipe, self.recipe_path)
-        record = {"algorithm": plugins.algorithm(recipe.algorithm.name).provenance()}
+        record = {
+            "algorithm": plugins.algorithm(recipe.algorithm.name).provenance(),
+            "env": {"name": recipe.env.id, **ENV_IDS.provenance(recipe.env.id)},
+            "rank_rule": {"name": recipe.rank.rule, **plugins.RANK_RULES.provenance(recipe.rank.rule)},
+            "modules": local_plugins.record(recipe.plugins),
+        }
         try:
             _atomic_write_text(self.plugins_path, json.dumps(record, indent=2) + "\n")
         except OSError as err:
             raise AdaRLError(f"cannot write {str(self.plugins_path)!r}: {describe_os_error(err)}") from None
 
     def load_recipe(self):
-        """The run's recipe.yaml, validated. A run whose algorithm is no longer registered (its plugin package is not
-        installed here) is refused, naming the package and version plugins.json recorded."""
+        """The run's recipe.yaml, validated. A run whose algorithm, env or rank rule is no longer registered (its
+        plugin package is not installed here) is refused, naming the package and version plugins.json recorded; a
+        run whose local plugin module (the recipe's ``plugins``) is missing or changed, naming the module."""
+        recorded = self.recorded_plugins()
+        local_plugins.check_recorded(recorded.get("modules") or [], str(self.path))
         try:
             return load_recipe(str(self.recipe_path))
         except RecipeError as err:
-            used = self.recorded_plugins().get("algorithm") or {}
-            if (
-                not used.get("package")
-                or "algorithm.name" not in str(err)
-                or used.get("name") in plugins.algorithm_names()
+            for kind, what, names in (
+                ("algorithm", "algorithm", plugins.algorithm_names),
+                ("env", "env", supported_envs),
+                ("rank_rule", "rank rule", plugins.rank_rule_names),
             ):
-                raise
-            version = f" {used['version']}" if used.get("version") else ""
-            raise RecipeError(
-                f"run folder {str(self.path)!r} was trained with algorithm {used['name']!r} (loss {used.get('loss')}) "
-                f"from the package {used['package']!r}{version}, which is not installed here: pip install "
-                f"{used['package']} to resume, evaluate or report it. ({err})"
-            ) from None
+                used = recorded.get(kind) or {}
+                if used.get("package") in (None, "adarl") or used.get("name") in names():
+                    continue
+                version = f" {used['version']}" if used.get("version") else ""
+                loss = f" (loss {used['loss']})" if used.get("loss") else ""
+                raise RecipeError(
+                    f"run folder {str(self.path)!r} was trained with {what} {used.get('name')!r}{loss} from the "
+                    f"package {used['package']!r}{version}, which is not installed here: pip install "
+                    f"{used['package']} to resume, evaluate or report it. ({err})"
+                ) from None
+            raise
 
     def recorded_plugins(self) -> dict:
         """plugins.json as a dict ({} for runs made before it existed, or when it is unreadable)."""

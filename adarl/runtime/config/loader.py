@@ -20,6 +20,7 @@ from pydantic import BaseModel
 from adarl.errors import NO_VALUE, RecipeError, did_you_mean
 from adarl.runtime.config.discovery import _available_names, _find_by_name, _is_path_like, _locate, recipes_dir
 from adarl.runtime.config.files import _check_version, _one_line, _parse_yaml, _read_file
+from adarl.runtime.config.local_plugins import import_plugins, resolve_entry
 from adarl.runtime.config.schema import Recipe, _show
 from adarl.runtime.config.validation import _is_free_mapping, _join_path, _list_item, _model_of, validate_recipe
 
@@ -127,6 +128,8 @@ def _load_chain(path: Path, stack: tuple[Path, ...] = ()):
     data = _read_file(path)
     _check_version(data, where)
     _check_strings(data, "", where)
+    if isinstance(data.get("plugins"), list):  # local modules, found where this file is (plugins beside it)
+        data["plugins"] = [resolve_entry(entry, path.parent, where) for entry in data["plugins"]]
     ext = data.pop("extends", None)
     # name and description describe this file; they are never inherited from the base
     data.setdefault("name", _default_name(path))
@@ -274,7 +277,12 @@ def load_recipe(name_or_path: str | os.PathLike, overrides: Sequence[str] = ()) 
         cfg = _load_chain(path)
         _apply_overrides(cfg, overrides or ())
         data = _resolve(cfg, label)
-    except RecipeError:
+        if isinstance(data.get("plugins"), list):  # an override's entries are relative to the working folder
+            data["plugins"] = [resolve_entry(entry, Path.cwd(), f"invalid recipe {label}") for entry in data["plugins"]]
+            import_plugins(data["plugins"])  # before validation: their registrations are what the recipe names
+    except RecipeError as err:
+        if str(err).startswith("plugins:"):
+            raise RecipeError(f"invalid recipe {label}: {err}") from None
         raise
     except RecursionError:
         raise RecipeError(f"invalid recipe {label}: nested too deeply") from None

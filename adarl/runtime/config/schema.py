@@ -838,6 +838,14 @@ class Recipe(_Section):
             else "1 (the only schema version so far)"
         },
     )
+    plugins: list[Annotated[str, Field(min_length=1)]] = Field(
+        default_factory=list,
+        description="Local Python modules imported before the recipe is validated, whose import registers what it "
+        "names (register_algorithm, register_env, register_rank_rule): a module name (beside the recipe file, else "
+        "on PYTHONPATH) or a path to a .py file relative to the recipe. Recorded with each file's sha256 in the run "
+        "folder's plugins.json: resume refuses a changed or missing module (docs/custom-loss.md).",
+        json_schema_extra={"allowed": "a list of module names or .py paths"},
+    )
     seed: Annotated[Int, Field(ge=0, le=2**32 - 1)] = Field(0, description="Seed of Python, NumPy, torch and the envs.")
     device: str = Field(
         "cpu",
