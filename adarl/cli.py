@@ -19,7 +19,15 @@ import warnings
 from pathlib import Path
 
 from adarl import __version__
-from adarl.errors import STORAGE_ERRNOS, AdaRLError, AdaRLValueError, AdaRLWarning, RecipeError, describe_os_error
+from adarl.errors import (
+    STORAGE_ERRNOS,
+    AdaRLError,
+    AdaRLValueError,
+    AdaRLWarning,
+    RecipeError,
+    describe_os_error,
+    did_you_mean,
+)
 from adarl.experiments.bench import add_arguments as bench_arguments
 from adarl.runtime.signals import RunInterrupted
 
@@ -65,21 +73,38 @@ def _run_folder(recipe, output: str | None) -> Path:
     return Path(recipe.output.root) / f"{recipe.name}-{time.strftime('%Y%m%d-%H%M%S')}"
 
 
+def _missing_parents(path: Path) -> list[Path]:
+    """The folders above ``path`` that do not exist yet, deepest first (``runs/`` for ``runs/name-time``)."""
+    out, p = [], path.absolute().parent
+    while not p.exists():
+        out.append(p)
+        p = p.parent
+    return out
+
+
 def cmd_run(args) -> int:
     from adarl.runtime.config import load_recipe
-    from adarl.runtime.run_dir import RunDir
+    from adarl.runtime.run_dir import RunDir, logging_backends
     from adarl.runtime.trainers import trainer_class
 
     recipe = load_recipe(args.recipe, args.overrides)  # validates everything before anything is written
+    logging_backends(recipe)  # a logging extra that is not installed: refused before any folder is made
     path = _run_folder(recipe, args.output)
     existed = path.exists()
+    parents = _missing_parents(path)
     run_dir = RunDir.create(path, overwrite=args.overwrite)
     try:
         run_dir.save_recipe(recipe)
         trainer = trainer_class(recipe)(recipe, run_dir, quiet=args.quiet)
     except BaseException:
-        # Nothing ran: leave no half-made run folder behind (and never remove one the user had).
+        # Nothing ran: leave no half-made run folder behind (and never remove one the user had), nor the empty
+        # folders above it that were made for it (runs/).
         run_dir.discard(keep_folder=existed)
+        for folder in parents:
+            try:
+                folder.rmdir()
+            except OSError:
+                break
         raise
     summary = _train(trainer)
     _print_summary(summary, run_dir.path)
@@ -297,9 +322,20 @@ class _IntermixedParser(argparse.ArgumentParser):
             return super().parse_known_args(args, namespace)
         self._parsing = True
         try:
-            return self.parse_known_intermixed_args(args, namespace)
+            namespace, extras = self.parse_known_intermixed_args(args, namespace)
         finally:
             self._parsing = False
+        for arg in extras:
+            if arg.startswith("-") and arg != "-":
+                self._unknown_option(arg)
+        return namespace, extras
+
+    def _unknown_option(self, arg: str) -> None:
+        """A mistyped option: this subcommand's usage and the closest of its options (``--ouput``: ``--output``),
+        exit status 2, instead of the top-level usage and "unrecognized arguments"."""
+        name = arg.split("=", 1)[0]
+        options = [o for o in self._option_string_actions if o.startswith("--")] or list(self._option_string_actions)
+        self.error(f"unrecognized option {name!r}{did_you_mean(name, options)} (options: {', '.join(sorted(options))})")
 
 
 def _version() -> str:

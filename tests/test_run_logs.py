@@ -320,6 +320,24 @@ def test_progress_bar_counts_every_frame_of_the_budget(logged_run):
     assert "actor.layer0=" in ranks and "critic.layer1=" in ranks and "module" not in ranks
 
 
+def test_progress_bar_shows_updates_as_an_integer():
+    """tqdm writes an int postfix value as a float (``upd=1e+4``); the trainers give it the digits (issue 31)."""
+    import io
+
+    from tqdm import tqdm
+
+    from adarl.runtime.trainers.base import BaseTrainer
+    from adarl.runtime.trainers.ppo import PPOTrainer
+    from adarl.runtime.trainers.sac import SACTrainer
+
+    state = types.SimpleNamespace(last_return=1.0, updates=10000, c=types.SimpleNamespace(adapter=None))
+    for cls in (BaseTrainer, SACTrainer, PPOTrainer):
+        bar = tqdm(total=1, file=io.StringIO())
+        bar.set_postfix(refresh=False, **cls._postfix(state))
+        assert "upd=10000" in str(bar), (cls.__name__, str(bar))
+        bar.close()
+
+
 def test_metrics_have_conventional_names(logged_run):
     root = logged_run["path"] / "metrics" / "scalars"
     names = {p.relative_to(root).with_suffix("").as_posix() for p in root.rglob("*.csv")}

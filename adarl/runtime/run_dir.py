@@ -54,6 +54,7 @@ from adarl.errors import (
     AdaRLWarning,
     CheckpointError,
     CheckpointFallbackWarning,
+    MissingExtraError,
     RecipeError,
     describe_os_error,
 )
@@ -73,6 +74,7 @@ __all__ = [
     "RunFolderGone",
     "recipe_fingerprint",
     "null_logger",
+    "logging_backends",
 ]
 
 CHECKPOINT_FORMAT = "adarl.checkpoint"
@@ -142,6 +144,23 @@ def _same_in_fingerprint(key: str, theirs: dict, ours: dict) -> bool:
         and str(ours[key]).startswith("rnac_")
         and "algorithm.options" not in theirs
     )
+
+
+def logging_backends(recipe) -> set[str]:
+    """The recipe's logging backends that will log (wandb not when ``wandb_mode`` is disabled), each one's package
+    checked first: a missing one is a :class:`~adarl.errors.MissingExtraError` naming the ``pip install``, raised
+    before anything is written (``adarl run`` checks it before it makes the run folder)."""
+    backends = set(recipe.logging.backends)
+    if recipe.logging.wandb_mode == "disabled":
+        backends.discard("wandb")
+    for backend, package in (("tensorboard", "tensorboard"), ("wandb", "wandb")):
+        if backend in backends and importlib.util.find_spec(package) is None:
+            raise MissingExtraError(
+                f"logging.backends includes {backend!r} but the {package!r} package is not installed; "
+                f"install it (pip install 'adarl[{backend}]') or remove {backend!r} from logging.backends "
+                f"(allowed without extras: ['csv'])"
+            )
+    return backends
 
 
 class RunFolderGone(AdaRLError):
@@ -448,17 +467,7 @@ class RunDir:
         ``resume="allow"``) on the same step axis (frames; wandb cannot hide rows, so the lost work's rows stay).
         wandb gets the resolved recipe as the run's config, TensorBoard as text."""
         loggers = [torchrl_loggers.CSVLogger(exp_name="metrics", log_dir=str(self.path))]
-        backends = set(recipe.logging.backends)
-        if recipe.logging.wandb_mode == "disabled":
-            backends.discard("wandb")
-        for backend, package in (("tensorboard", "tensorboard"), ("wandb", "wandb")):
-            if backend in backends:
-                if importlib.util.find_spec(package) is None:
-                    raise AdaRLError(
-                        f"logging.backends includes {backend!r} but the {package!r} package is not installed; "
-                        f"install it (pip install 'adarl[{backend}]') or remove {backend!r} from logging.backends "
-                        f"(allowed without extras: ['csv'])"
-                    )
+        backends = logging_backends(recipe)
         config = recipe.model_dump(mode="json") if hasattr(recipe, "model_dump") else None
         if "tensorboard" in backends:
             new = not (self.path / "tensorboard").exists()

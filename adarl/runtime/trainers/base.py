@@ -126,7 +126,7 @@ class BaseTrainer:
 
     def _postfix(self) -> dict:
         """The progress bar's postfix."""
-        return {"ret": f"{self.last_return:.1f}", "upd": self.updates}
+        return {"ret": f"{self.last_return:.1f}", "upd": str(self.updates)}  # tqdm shows an int as 1e+4
 
     @property
     def adapter(self):
