@@ -6,6 +6,9 @@ and exit with status 2 (bad input) or 1; nothing is written for a recipe that do
 Each command imports the wing it runs (the recipe runtime, the experiment tooling) when it runs, not at the top:
 ``adarl --help`` and a typo answer at once, without torch, TorchRL or MuJoCo, and ``--quiet`` takes effect before
 any of them is imported (:func:`_quiet_env`). What is imported at the top here is light.
+
+Long because: every subcommand's parser, with the help text users read, is here beside the command it calls, so
+that ``adarl --help`` stays one light import; what each command does lives in its wing.
 """
 
 from __future__ import annotations
@@ -145,9 +148,14 @@ def _print_summary(summary: dict, path: Path) -> None:
 
 
 def cmd_resume(args) -> int:
+    from adarl.runtime.continuing import already_complete
     from adarl.runtime.trainers import BaseTrainer
 
-    trainer = BaseTrainer.resume(args.run_dir, quiet=args.quiet, checkpoint=args.checkpoint)
+    done = already_complete(args.run_dir, args.overrides)
+    if done is not None:  # nothing to train: say so (exit 0) instead of finishing it again
+        print(done)
+        return 0
+    trainer = BaseTrainer.resume(args.run_dir, quiet=args.quiet, checkpoint=args.checkpoint, overrides=args.overrides)
     summary = _train(trainer)
     _print_summary(summary, Path(args.run_dir))
     return 0
@@ -364,10 +372,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     rs = sub.add_parser(
         "resume",
-        help="continue a run from its latest checkpoint",
-        description="Continue the run in RUN_DIR from its latest loadable checkpoint.",
+        help="continue a run from its latest checkpoint, or a finished one to more frames",
+        description="Continue the run in RUN_DIR from its latest loadable checkpoint. A finished run is "
+        "continued to more frames with collector.total_frames=M (the one key a resume may change: the budget, "
+        "raised; recipe.yaml records it); without it, a finished run is reported as already complete.",
     )
     rs.add_argument("run_dir")
+    rs.add_argument("overrides", nargs="*", metavar="collector.total_frames=M")
     rs.add_argument(
         "--checkpoint",
         choices=["latest"],
