@@ -151,11 +151,12 @@ def cmd_resume(args) -> int:
     from adarl.runtime.continuing import already_complete
     from adarl.runtime.trainers import BaseTrainer
 
-    done = already_complete(args.run_dir, args.overrides)
-    if done is not None:  # nothing to train: say so (exit 0) instead of finishing it again
+    trainer = BaseTrainer.resume(args.run_dir, quiet=args.quiet, checkpoint=args.checkpoint, overrides=args.overrides)
+    done = already_complete(args.run_dir, trainer.frames, trainer.recipe.collector.total_frames)
+    if done is not None:  # its latest checkpoint is at the end: say so (exit 0) instead of finishing it again
+        trainer.close()
         print(done)
         return 0
-    trainer = BaseTrainer.resume(args.run_dir, quiet=args.quiet, checkpoint=args.checkpoint, overrides=args.overrides)
     summary = _train(trainer)
     _print_summary(summary, Path(args.run_dir))
     return 0

@@ -18,9 +18,9 @@ learning rate followed the N-frame schedule until N and follows the M-frame one 
 
 from __future__ import annotations
 
-import json
 import os
 from collections.abc import Sequence
+from pathlib import Path
 
 from adarl.errors import RecipeError, did_you_mean, one_of
 from adarl.runtime.config import load_recipe
@@ -66,22 +66,15 @@ def continued_recipe(run_dir: RunDir, recipe, overrides: Sequence[str]):
     return new
 
 
-def already_complete(path: str | os.PathLike, overrides: Sequence[str] = ()) -> str | None:
-    """The line ``adarl resume`` prints for a run that has spent its frame budget (the one ``overrides`` set, when
-    given), or None when there is training left to do. Checks ``overrides`` as :func:`continued_recipe` does."""
-    run_dir = RunDir.open(path)
-    recipe = continued_recipe(run_dir, run_dir.load_recipe(), overrides)
-    try:
-        frames = int(json.loads((run_dir.path / "summary.json").read_text())["frames"])
-    except (OSError, ValueError, KeyError, TypeError):
-        return None  # no summary: the run never finished (or its end was cut short): resume it
-    total = recipe.collector.total_frames
+def already_complete(path: str | os.PathLike, frames: int, total: int) -> str | None:
+    """The line ``adarl resume`` prints for a run whose latest loadable checkpoint is at ``frames`` >= its budget
+    ``total`` (the one the overrides set, when given), or None when there is training left to do."""
     if frames < total:
         return None
     return (
-        f"run {str(run_dir.path)!r} is already complete: {frames} frames of collector.total_frames={total} "
-        f"(its report: {run_dir.path / 'report.md'}); to train it further, raise the budget: "
-        f"`adarl resume {run_dir.path} collector.total_frames=N` with N > {frames}"
+        f"run {str(path)!r} is already complete: {frames} frames of collector.total_frames={total} "
+        f"(its report: {Path(path) / 'report.md'}); to train it further, raise the budget: "
+        f"`adarl resume {path} collector.total_frames=N` with N > {frames}"
     )
 
 
