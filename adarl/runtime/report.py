@@ -135,7 +135,7 @@ def plot_ranks(run: RunDir, out: Path) -> Path | None:
 
 def _speed_series(run: RunDir) -> list[tuple[int, float]]:
     """``(optimisation steps, updates/s)`` at each logging point: ``time/updates_per_s`` joined with
-    ``train/updates`` on the frame count both are logged at."""
+    ``train/n_updates`` on the frame count both are logged at."""
     scalars = run.scalars()
     updates = dict(metrics.series(scalars, metrics.TRAIN_UPDATES))
     return [(int(updates[f]), v) for f, v in metrics.series(scalars, metrics.UPDATES_PER_S) if f in updates and v > 0]

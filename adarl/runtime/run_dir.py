@@ -4,9 +4,9 @@
 
     <run>/recipe.yaml            resolved recipe (what ran; `adarl resume` rebuilds from it)
     <run>/.adarl.lock            claimed when the folder is created; locked while a process trains in it
-    <run>/metrics/scalars/       TorchRL CSVLogger scalars, one file per metric ("step,value", step = frames):
-                                 train/episode_return.csv, eval/return.csv, rank/actor.layer0.csv
-                                 (adarl.runtime.metrics)
+    <run>/metrics/scalars/       TorchRL CSVLogger scalars, one file per metric (header "step,value", step =
+                                 frames), SB3's names: rollout/ep_rew_mean.csv, eval/mean_reward.csv,
+                                 train/actor_loss.csv, rank/actor.layer0.csv (adarl.runtime.metrics)
     <run>/wandb_run_id           the wandb run this folder logs to (with logging.backends: [wandb]), for resume
     <run>/eval.csv               nominal-dynamics evaluations (frames, updates, mean, std, ci95, episodes, ranks)
     <run>/ranks.json, ranks.csv  rank history: per event and layer, old/new rank, spectrum, energy, error
@@ -58,6 +58,7 @@ from adarl.errors import (
     RecipeError,
     describe_os_error,
 )
+from adarl.runtime import metrics
 from adarl.runtime.config import load_recipe, recipe_to_yaml, save_resolved
 
 try:  # POSIX: a lock the kernel drops when its process dies (kill -9 included)
@@ -183,6 +184,7 @@ class _Fanout:
             self.check()
         for lg in self.loggers:
             try:
+                _csv_header(getattr(lg, "experiment", None), name)
                 lg.log_scalar(name, float(value), step=step)
             except OSError as err:  # a full disk fails the CSV logger's flush, which names no file: name it
                 if err.filename is not None:
@@ -194,6 +196,21 @@ class _Fanout:
                     else getattr(lg, "log_dir", None)
                 )
                 raise OSError(err.errno, err.strerror, where) from None
+
+
+def _csv_header(exp, name: str) -> None:
+    """Start a new metric file of TorchRL's CSV logger (``exp``: its experiment; anything else is left alone) with
+    the header row ``step,value``, as pandas and spreadsheet users expect; a file that has rows is left as it is
+    (run folders of earlier versions have none: readers skip a header row and take files without one)."""
+    files = getattr(exp, "files", None)
+    if files is None:
+        return
+    path = os.path.join(exp.log_dir, "scalars", name + ".csv")
+    if path in files or (os.path.isfile(path) and os.path.getsize(path) > 0):
+        return
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    with open(path, "a") as fh:
+        fh.write(metrics.CSV_HEADER + "\n")
 
 
 def null_logger() -> _Fanout:
@@ -503,9 +520,10 @@ class RunDir:
                     pass
 
     def scalars(self) -> dict[str, list[tuple[int, float]]]:
-        """All CSV scalars as ``{name: [(step, value), ...]}``: ``train/episode_return`` from
-        ``metrics/scalars/train/episode_return.csv``, and a folder's older flat files by their own names
-        (``train.episode_return``; :func:`adarl.runtime.metrics.series` reads either)."""
+        """All CSV scalars as ``{name: [(step, value), ...]}``: ``rollout/ep_rew_mean`` from
+        ``metrics/scalars/rollout/ep_rew_mean.csv`` (its header row skipped), and a folder's files of earlier
+        versions by their own names (``train/episode_return``, ``train.episode_return``, without a header;
+        :func:`adarl.runtime.metrics.series` reads any)."""
         out = {}
         root = self.path / "metrics" / "scalars"
         for f in sorted(root.rglob("*.csv")) if root.is_dir() else []:
@@ -526,6 +544,9 @@ class RunDir:
         for f in root.rglob("*.csv") if root.is_dir() else []:
             keep = []
             for line in f.read_text().splitlines():
+                if line == metrics.CSV_HEADER:
+                    keep.append(line)
+                    continue
                 parts = line.split(",")
                 try:  # a line cut short by a crash (no value, or no number) is dropped too
                     float(parts[1])
