@@ -338,7 +338,8 @@ class RunDir:
         if any((self.path / name).exists() for name in ("eval.csv", "ranks.json", "summary.json")):
             return False
         scalars = self.path / "metrics" / "scalars"
-        if scalars.is_dir() and any(f.stat().st_size for f in scalars.rglob("*.csv") if f.is_file()):
+        header = len(metrics.CSV_HEADER) + 1  # a file with only its header row holds no training
+        if scalars.is_dir() and any(f.stat().st_size > header for f in scalars.rglob("*.csv") if f.is_file()):
             return False
         warnings.warn(
             f"run folder {str(self.path)!r} has no checkpoint: it was stopped before its first one was complete, "
