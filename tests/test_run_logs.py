@@ -459,6 +459,43 @@ def test_human_layer_names_in_csv_report_and_plots_with_paths_in_json(logged_run
     assert labels == ["actor.layer0", "actor.layer1", "critic.layer0", "critic.layer1"]
 
 
+def test_rank_events_record_their_frames_and_ranks_png_is_on_frames(logged_run):
+    """Issue 31, point 3: the rank plot's x axis is return.png's (frames), from each event's recorded frames."""
+    from adarl.runtime.report import rank_axis
+    from adarl.runtime.run_dir import RunDir
+
+    path = logged_run["path"]
+    history = json.loads((path / "ranks.json").read_text())
+    frames = [ev["frames"] for ev in history]
+    assert frames == sorted(frames) and frames[0] > 0
+    warm_starts = {f for f, _ in metrics.series(RunDir(path).scalars(), metrics.WARM_START_FRAMES)}
+    assert warm_starts and warm_starts <= set(frames)  # the same frames return.png marks events at
+    with (path / "ranks.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert {int(r["frames"]) for r in rows} == set(frames)
+    label, xs, end = rank_axis(RunDir(path), history)
+    assert (label, xs, end) == ("environment frames", frames, logged_run["summary"]["frames"])
+    assert (path / "plots" / "ranks.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_rank_plot_of_an_older_history_converts_or_says_steps(tmp_path):
+    from adarl.runtime.report import plot_ranks, rank_axis
+    from adarl.runtime.run_dir import RunDir
+
+    layer = {"layer": ACTOR_PATH, "name": "actor.layer0", "old_rank": 64, "new_rank": 11}
+    history = [{"step": 150, "index": 0, "layers": [layer]}]  # written before events recorded their frames
+    (tmp_path / "ranks.json").write_text(json.dumps(history))
+    (tmp_path / "summary.json").write_text(json.dumps({"frames": 500, "updates": 300}))
+    run = RunDir(tmp_path)
+    assert rank_axis(run, history) == ("optimisation steps", [150], 300)  # nothing to convert with: said so
+    updates = tmp_path / "metrics" / "scalars" / "train" / "updates.csv"  # the former name, no header
+    updates.parent.mkdir(parents=True)
+    updates.write_text("200,0\n300,100\n400,200\n")
+    label, xs, end = rank_axis(run, history)
+    assert label.startswith("environment frames (") and xs == [350] and end == 500
+    assert plot_ranks(run, tmp_path / "ranks.png") is not None
+
+
 def test_wandb_gets_the_recipe_and_a_resume_continues_its_run(logged_run):
     first, second, path = logged_run["first"], logged_run["second"], logged_run["path"]
     run_id = (path / "wandb_run_id").read_text().strip()

@@ -637,6 +637,8 @@ class RunDir:
         for rec in records:
             for layer in rec.get("layers", [rec]):
                 row = {"step": rec.get("step")}
+                if rec.get("frames") is not None:  # recorded since issue 31: the frames at the event
+                    row["frames"] = rec["frames"]
                 for k, v in layer.items():
                     if k == "singular_values":
                         continue
