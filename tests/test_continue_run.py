@@ -126,3 +126,14 @@ def test_continuing_re_plans_the_lr_cosine_from_where_the_run_is(tmp_path):
     finally:
         trainer.close()
     assert yaml.safe_load((run / "recipe.yaml").read_text())["collector"]["total_frames"] == 2400
+
+
+def test_a_run_stopped_after_its_last_checkpoint_is_finished_not_complete(runs, capsys):
+    """Its end (summary, report) was not written: resuming writes it, as before, instead of "already complete"."""
+    long_ = runs["long"]
+    (long_ / "summary.json").unlink()
+    capsys.readouterr()
+    assert main(["resume", str(long_), "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "run finished: 1800 frames" in out and "already complete" not in out
+    assert json.loads((long_ / "summary.json").read_text())["frames"] == 1800

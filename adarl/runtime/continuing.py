@@ -18,6 +18,7 @@ learning rate followed the N-frame schedule until N and follows the M-frame one 
 
 from __future__ import annotations
 
+import json
 import os
 from collections.abc import Sequence
 from pathlib import Path
@@ -68,8 +69,15 @@ def continued_recipe(run_dir: RunDir, recipe, overrides: Sequence[str]):
 
 def already_complete(path: str | os.PathLike, frames: int, total: int) -> str | None:
     """The line ``adarl resume`` prints for a run whose latest loadable checkpoint is at ``frames`` >= its budget
-    ``total`` (the one the overrides set, when given), or None when there is training left to do."""
+    ``total`` (the one the overrides set, when given) and whose end was written (``summary.json`` at that budget),
+    or None when there is something left to do: training, or the end of a run stopped after its last checkpoint
+    (its final evaluation, summary and report, which resuming it writes)."""
     if frames < total:
+        return None
+    try:
+        if int(json.loads((Path(path) / "summary.json").read_text())["frames"]) < total:
+            return None
+    except (OSError, ValueError, KeyError, TypeError):
         return None
     return (
         f"run {str(path)!r} is already complete: {frames} frames of collector.total_frames={total} "
