@@ -20,12 +20,13 @@ The public components, importable from here:
   and SB3's ``predict(obs)`` on numpy for it.
 
 Every name is imported on first use (PEP 562): ``import adarl`` itself loads neither torch nor TorchRL (~4.5 s
-here), so ``adarl --help`` and ``from adarl import load_recipe`` stay quick.
+here), so ``adarl --help`` and ``from adarl import load_recipe`` stay quick. The public namespace
+(``dir(adarl)``) is ``__all__`` and the subpackages already imported, nothing else (no ``annotations`` or
+``importlib`` of this module's own making).
 """
 
-from __future__ import annotations
-
-import importlib
+import importlib as _importlib
+from types import ModuleType as _ModuleType
 
 __version__ = "0.1.0"
 
@@ -94,10 +95,13 @@ def __getattr__(name: str):
     module = _EXPORTS.get(name)
     if module is None:
         raise AttributeError(f"module 'adarl' has no attribute {name!r}")
-    value = getattr(importlib.import_module(module), name)
+    value = getattr(_importlib.import_module(module), name)
     globals()[name] = value  # later reads skip this function
     return value
 
 
 def __dir__() -> list[str]:
-    return sorted({*globals(), *__all__})
+    """``__all__``, the subpackages imported so far (``adarl.core``, ...) and the module's dunders."""
+    here = globals()
+    submodules = {n for n, v in here.items() if isinstance(v, _ModuleType) and v.__name__ == f"{__name__}.{n}"}
+    return sorted({*(n for n in here if n.startswith("__")), *__all__, *submodules})

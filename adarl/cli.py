@@ -6,6 +6,9 @@ and exit with status 2 (bad input) or 1; nothing is written for a recipe that do
 Each command imports the wing it runs (the recipe runtime, the experiment tooling) when it runs, not at the top:
 ``adarl --help`` and a typo answer at once, without torch, TorchRL or MuJoCo, and ``--quiet`` takes effect before
 any of them is imported (:func:`_quiet_env`). What is imported at the top here is light.
+
+Long because: every subcommand's parser, with the help text users read, is here beside the command it calls, so
+that ``adarl --help`` stays one light import; what each command does lives in its wing.
 """
 
 from __future__ import annotations
@@ -19,7 +22,15 @@ import warnings
 from pathlib import Path
 
 from adarl import __version__
-from adarl.errors import STORAGE_ERRNOS, AdaRLError, AdaRLValueError, AdaRLWarning, RecipeError, describe_os_error
+from adarl.errors import (
+    STORAGE_ERRNOS,
+    AdaRLError,
+    AdaRLValueError,
+    AdaRLWarning,
+    RecipeError,
+    describe_os_error,
+    did_you_mean,
+)
 from adarl.experiments import tune_cli
 from adarl.experiments.bench import add_arguments as bench_arguments
 from adarl.runtime.signals import RunInterrupted
@@ -66,21 +77,38 @@ def _run_folder(recipe, output: str | None) -> Path:
     return Path(recipe.output.root) / f"{recipe.name}-{time.strftime('%Y%m%d-%H%M%S')}"
 
 
+def _missing_parents(path: Path) -> list[Path]:
+    """The folders above ``path`` that do not exist yet, deepest first (``runs/`` for ``runs/name-time``)."""
+    out, p = [], path.absolute().parent
+    while not p.exists():
+        out.append(p)
+        p = p.parent
+    return out
+
+
 def cmd_run(args) -> int:
     from adarl.runtime.config import load_recipe
-    from adarl.runtime.run_dir import RunDir
+    from adarl.runtime.run_dir import RunDir, logging_backends
     from adarl.runtime.trainers import trainer_class
 
     recipe = load_recipe(args.recipe, args.overrides)  # validates everything before anything is written
+    logging_backends(recipe)  # a logging extra that is not installed: refused before any folder is made
     path = _run_folder(recipe, args.output)
     existed = path.exists()
+    parents = _missing_parents(path)
     run_dir = RunDir.create(path, overwrite=args.overwrite)
     try:
         run_dir.save_recipe(recipe)
         trainer = trainer_class(recipe)(recipe, run_dir, quiet=args.quiet)
     except BaseException:
-        # Nothing ran: leave no half-made run folder behind (and never remove one the user had).
+        # Nothing ran: leave no half-made run folder behind (and never remove one the user had), nor the empty
+        # folders above it that were made for it (runs/).
         run_dir.discard(keep_folder=existed)
+        for folder in parents:
+            try:
+                folder.rmdir()
+            except OSError:
+                break
         raise
     summary = _train(trainer)
     _print_summary(summary, run_dir.path)
@@ -121,9 +149,15 @@ def _print_summary(summary: dict, path: Path) -> None:
 
 
 def cmd_resume(args) -> int:
+    from adarl.runtime.continuing import already_complete
     from adarl.runtime.trainers import BaseTrainer
 
-    trainer = BaseTrainer.resume(args.run_dir, quiet=args.quiet, checkpoint=args.checkpoint)
+    trainer = BaseTrainer.resume(args.run_dir, quiet=args.quiet, checkpoint=args.checkpoint, overrides=args.overrides)
+    done = already_complete(args.run_dir, trainer.frames, trainer.recipe.collector.total_frames)
+    if done is not None:  # its latest checkpoint is at the end: say so (exit 0) instead of finishing it again
+        trainer.close()
+        print(done)
+        return 0
     summary = _train(trainer)
     _print_summary(summary, Path(args.run_dir))
     return 0
@@ -298,9 +332,20 @@ class _IntermixedParser(argparse.ArgumentParser):
             return super().parse_known_args(args, namespace)
         self._parsing = True
         try:
-            return self.parse_known_intermixed_args(args, namespace)
+            namespace, extras = self.parse_known_intermixed_args(args, namespace)
         finally:
             self._parsing = False
+        for arg in extras:
+            if arg.startswith("-") and arg != "-":
+                self._unknown_option(arg)
+        return namespace, extras
+
+    def _unknown_option(self, arg: str) -> None:
+        """A mistyped option: this subcommand's usage and the closest of its options (``--ouput``: ``--output``),
+        exit status 2, instead of the top-level usage and "unrecognized arguments"."""
+        name = arg.split("=", 1)[0]
+        options = [o for o in self._option_string_actions if o.startswith("--")] or list(self._option_string_actions)
+        self.error(f"unrecognized option {name!r}{did_you_mean(name, options)} (options: {', '.join(sorted(options))})")
 
 
 def _version() -> str:
@@ -329,10 +374,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     rs = sub.add_parser(
         "resume",
-        help="continue a run from its latest checkpoint",
-        description="Continue the run in RUN_DIR from its latest loadable checkpoint.",
+        help="continue a run from its latest checkpoint, or a finished one to more frames",
+        description="Continue the run in RUN_DIR from its latest loadable checkpoint. A finished run is "
+        "continued to more frames with collector.total_frames=M (the one key a resume may change: the budget, "
+        "raised; recipe.yaml records it); without it, a finished run is reported as already complete.",
     )
     rs.add_argument("run_dir")
+    rs.add_argument("overrides", nargs="*", metavar="collector.total_frames=M")
     rs.add_argument(
         "--checkpoint",
         choices=["latest"],

@@ -11,6 +11,7 @@ __all__ = [
     "AdaRLError",
     "AdaRLValueError",
     "RecipeError",
+    "MissingExtraError",
     "CheckpointError",
     "AdaRLWarning",
     "CheckpointFallbackWarning",
@@ -32,6 +33,11 @@ class AdaRLValueError(AdaRLError, ValueError):
 
 class RecipeError(AdaRLValueError):
     """A recipe (file or overrides) that does not validate; the message names the key, value and allowed values."""
+
+
+class MissingExtraError(AdaRLValueError):
+    """What was asked for needs an optional extra that is not installed (wandb, tensorboard, ray, submitit,
+    moviepy): bad input, like any other (the ``adarl`` command exits 2); the message names the ``pip install``."""
 
 
 class CheckpointError(AdaRLError):

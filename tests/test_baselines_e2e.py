@@ -135,7 +135,7 @@ def test_rnac_resume_from_a_mid_episode_checkpoint_is_exact(mode, tmp_path):
     assert (full.path / "eval.csv").read_text() == (resumed.path / "eval.csv").read_text()
     root = full.path / "metrics" / "scalars"
     metrics = sorted(p.relative_to(root).as_posix() for p in root.rglob("*.csv"))
-    assert "train/loss_objective.csv" in metrics
+    assert "train/policy_gradient_loss.csv" in metrics and "train/value_loss.csv" in metrics  # SB3 PPO names
     for name in metrics:  # losses averaged over log_interval: a line at 256 frames and the final one at 384
         if name.startswith("time/"):
             continue  # wall-clock throughput

@@ -48,7 +48,7 @@ def adarl(*args: str, cwd: Path | None = None, timeout: int = 600) -> subprocess
 
 
 def _steps(csv_path: Path) -> list[int]:
-    return [int(line.split(",")[0]) for line in csv_path.read_text().splitlines() if line]
+    return [int(line.split(",")[0]) for line in csv_path.read_text().splitlines() if line and line != "step,value"]
 
 
 @pytest.fixture(scope="module")
@@ -82,11 +82,12 @@ def test_run_folder_has_every_output(tiny_run: Path):
     assert json.loads((tiny_run / "plugins.json").read_text())["algorithm"]["package"] == "adarl"
     scalars = tiny_run / "metrics" / "scalars"
     for metric in (
-        "train/episode_return",
-        "train/episode_length",
-        "train/loss_qvalue",
-        "train/loss_actor",
-        "eval/return",
+        "rollout/ep_rew_mean",
+        "rollout/ep_len_mean",
+        "train/critic_loss",
+        "train/actor_loss",
+        "train/ent_coef",
+        "eval/mean_reward",
         "dynamics/torso_length",
         "warm_start/frames",
         "rank/actor.layer0",
@@ -95,7 +96,9 @@ def test_run_folder_has_every_output(tiny_run: Path):
     ):
         assert (scalars / f"{metric}.csv").is_file(), metric
     # The perturbation really varied the dynamics seen in training.
-    torso = [float(line.split(",")[1]) for line in (scalars / "dynamics/torso_length.csv").read_text().splitlines()]
+    header, *rows = (scalars / "dynamics/torso_length.csv").read_text().splitlines()
+    assert header == "step,value"
+    torso = [float(line.split(",")[1]) for line in rows]
     assert max(torso) - min(torso) > 0.01
     # The resolved recipe loads back to the same recipe (overrides applied).
     from adarl.runtime.config import load_recipe
@@ -176,7 +179,7 @@ def test_resume_continues_without_duplicated_metrics(tmp_path: Path):
     assert summary["frames"] >= 1000
     scalars = out / "metrics" / "scalars"
     files = sorted(scalars.rglob("*.csv"))
-    assert scalars / "train" / "episode_return.csv" in files
+    assert scalars / "rollout" / "ep_rew_mean.csv" in files
     for csv in files:
         steps = _steps(csv)
         group = csv.relative_to(scalars).parts[0]  # rank events: two in one batch share its frame

@@ -75,6 +75,58 @@ def test_unknown_option_still_refused(capsys):
     assert "--bogus" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize(
+    "argv, typo, meant, usage",
+    [
+        (["run", "quickstart", "--ouput", "x"], "--ouput", "--output", "usage: adarl run "),
+        (["resume", "runs/x", "--chekpoint", "latest"], "--chekpoint", "--checkpoint", "usage: adarl resume "),
+        (["eval", "runs/x", "--episdoes=3"], "--episdoes", "--episodes", "usage: adarl eval "),
+    ],
+)
+def test_a_mistyped_option_gets_the_subcommands_usage_and_a_suggestion(capsys, argv, typo, meant, usage):
+    """Issue 31, point 5: not the top-level usage and "unrecognized arguments"."""
+    from adarl.cli import build_parser
+
+    with pytest.raises(SystemExit) as exc:
+        build_parser().parse_args(argv)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert err.startswith(usage), err
+    assert f"unrecognized option {typo!r}; did you mean {meant!r}?" in err, err
+
+
+def _without_package(monkeypatch, *names):
+    import importlib.util
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name in names else real(name, *a))
+    for name in names:  # `import ray` fails too, as where it is not installed
+        monkeypatch.setitem(sys.modules, name, None)
+
+
+def test_a_missing_logging_extra_is_bad_input_and_leaves_no_runs_folder(tmp_path, monkeypatch, capsys):
+    from adarl.cli import main
+
+    _without_package(monkeypatch, "wandb")
+    monkeypatch.chdir(tmp_path)
+    assert main(["run", "quickstart", "logging.backends=[csv,wandb]", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "pip install 'adarl[wandb]'" in err and err.count("\n") == 1, err
+    assert list(tmp_path.iterdir()) == []  # no runs/ folder, empty or not
+
+
+def test_a_missing_launcher_extra_is_bad_input_and_writes_nothing(tmp_path, monkeypatch, capsys):
+    from adarl.cli import main
+
+    _without_package(monkeypatch, "ray", "submitit")
+    for launcher, extra in (("ray", "ray"), ("submitit", "slurm")):
+        out = tmp_path / launcher
+        argv = ["experiment", str(REPO / "recipes/experiments/cartpole_rank_sweep.yaml"), "-o", str(out)]
+        assert main([*argv, "--launcher", launcher, "--no-live"]) == 2
+        assert f"pip install 'adarl[{extra}]'" in capsys.readouterr().err
+        assert not out.exists()
+
+
 def test_show_takes_overrides_after_the_recipe():
     proc = _adarl("show", "quickstart", "seed=7", "rank.beta=0.9")
     assert proc.returncode == 0, proc.stderr
@@ -123,6 +175,21 @@ def test_import_adarl_is_light_and_names_load_on_use():
     assert modules == "adarl.core.lowrank adarl.runtime.policy"
     proc = _python("import adarl; adarl.nope")
     assert "has no attribute 'nope'" in proc.stderr
+
+
+def test_public_namespace_is_all_plus_submodules():
+    """``dir(adarl)`` names ``__all__`` and the subpackages imported, nothing of the module's own making
+    (``annotations``, ``importlib``; issue 31, point 6)."""
+    proc = _python(
+        "import types, adarl, adarl.cli\n"
+        "from adarl import LowRankLinear\n"
+        "public = {n for n in dir(adarl) if not n.startswith('_')}\n"
+        "subs = {n for n, v in vars(adarl).items() if isinstance(v, types.ModuleType) and n[0] != '_'}\n"
+        "assert subs and all(getattr(adarl, n).__name__ == 'adarl.' + n for n in subs), subs\n"
+        "assert public == set(adarl.__all__) | subs, sorted(public ^ (set(adarl.__all__) | subs))\n"
+        "assert not {'annotations', 'importlib'} & {n for n in vars(adarl)}\n"
+    )
+    assert proc.returncode == 0, proc.stderr
 
 
 def test_unavailable_device_is_one_clear_line(tmp_path):

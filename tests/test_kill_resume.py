@@ -93,7 +93,7 @@ def _results(run: Path) -> dict[str, str]:
         for p in sorted(root.rglob("*.csv"))
         if p.relative_to(root).parts[0] != "time"
     }  # time/fps: wall clock
-    assert "metrics/train/episode_return.csv" in out
+    assert "metrics/rollout/ep_rew_mean.csv" in out
     out["eval.csv"] = (run / "eval.csv").read_text()
     if (run / "ranks.json").is_file():  # rank records (AdaRL); the PPO loop has none
         out["ranks.json"] = (run / "ranks.json").read_text()

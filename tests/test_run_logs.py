@@ -1,5 +1,5 @@
-"""What a run logs, as TorchRL and SB3 users read it (issue 20): `train/episode_return`-style names, human layer
-names with the module path kept in the JSON, the resolved recipe as the wandb config, a resume continuing the same
+"""What a run logs, as TorchRL and SB3 users read it (issues 20, 31): SB3's names (`rollout/ep_rew_mean`), human
+layer names with the module path kept in the JSON, the resolved recipe as the wandb config, a resume continuing the same
 wandb run and TensorBoard step axis, a progress bar that counts every frame the budget counts; and run folders
 written with the older dot names still read by every reader (report, aggregate, progress board)."""
 
@@ -51,7 +51,74 @@ def test_metric_names_and_their_legacy_names():
     assert metrics.series(old, metrics.TRAIN_RETURN) == [(100, 1.0)]
     both = {**old, "train/episode_return": [(200, 2.0)]}
     assert metrics.series(both, metrics.TRAIN_RETURN) == [(200, 2.0)]
+    now = {**both, "rollout/ep_rew_mean": [(300, 3.0)]}
+    assert metrics.series(now, metrics.TRAIN_RETURN) == [(300, 3.0)]
     assert metrics.series({}, metrics.TRAIN_RETURN) == []
+
+
+def test_metric_names_are_sb3s_where_sb3_has_the_quantity():
+    """Issue 31, point 2: SB3's groups and names; each name's former names are still read."""
+    assert (metrics.TRAIN_RETURN, metrics.TRAIN_LENGTH, metrics.TRAIN_EPISODES) == (
+        "rollout/ep_rew_mean",
+        "rollout/ep_len_mean",
+        "time/episodes",
+    )
+    assert (metrics.EVAL_RETURN, metrics.TRAIN_UPDATES, metrics.TRAIN_LR, metrics.FPS) == (
+        "eval/mean_reward",
+        "train/n_updates",
+        "train/learning_rate",
+        "time/fps",
+    )
+    sac = {k: metrics.train(k) for k in ("loss_actor", "loss_qvalue", "alpha", "loss_alpha", "entropy")}
+    assert sac == {
+        "loss_actor": "train/actor_loss",
+        "loss_qvalue": "train/critic_loss",
+        "alpha": "train/ent_coef",
+        "loss_alpha": "train/ent_coef_loss",
+        "entropy": "train/entropy",  # SB3's SAC logs no entropy: TorchRL's name
+    }
+    assert metrics.train("loss_critic") == "train/value_loss" and metrics.train("kl_approx") == "train/approx_kl"
+    assert metrics.former_names(metrics.TRAIN_RETURN) == ["train/episode_return", "train.episode_return"]
+    assert metrics.former_names(metrics.EVAL_RETURN) == ["eval/return", "eval.return_mean"]
+    assert metrics.former_names("train/actor_loss") == ["train/loss_actor", "train.loss_actor"]
+    assert metrics.csv_paths(metrics.TRAIN_UPDATES) == (
+        "metrics/scalars/train/n_updates.csv",
+        "metrics/scalars/train/updates.csv",
+        "metrics/scalars/train.updates.csv",
+    )
+
+
+def test_metric_files_have_a_header_and_files_without_one_still_read(tmp_path):
+    from adarl.experiments.progress import read_progress
+    from adarl.runtime.run_dir import RunDir, _Fanout
+
+    run = RunDir(tmp_path)
+    import torchrl.record.loggers as loggers
+
+    csv_logger = loggers.CSVLogger(exp_name="metrics", log_dir=str(tmp_path))
+    log = _Fanout([csv_logger])
+    for step in (100, 200, 300):
+        log.log_scalar(metrics.TRAIN_RETURN, step / 10, step=step)
+    log.log_scalar(metrics.TRAIN_UPDATES, 50, step=300)
+    run.close_logger(log)
+    path = tmp_path / "metrics" / "scalars" / "rollout" / "ep_rew_mean.csv"
+    assert path.read_text() == "step,value\n100,10.0\n200,20.0\n300,30.0\n"
+    assert metrics.series(run.scalars(), metrics.TRAIN_RETURN) == [(100, 10.0), (200, 20.0), (300, 30.0)]
+    run.truncate_metrics(200)  # a resume keeps the header
+    assert path.read_text() == "step,value\n100,10.0\n200,20.0\n"
+    log = _Fanout([loggers.CSVLogger(exp_name="metrics", log_dir=str(tmp_path))])
+    log.log_scalar(metrics.TRAIN_RETURN, 25.0, step=250)  # and appends below it, no second header
+    run.close_logger(log)
+    assert path.read_text() == "step,value\n100,10.0\n200,20.0\n250,25.0\n"
+    prog = read_progress("r", tmp_path, "running")
+    assert (prog.frames, prog.last_return) == (250, 25.0)
+    old = tmp_path / "old"  # a run folder of an earlier version: header-less files with the former names
+    (old / "metrics" / "scalars" / "train").mkdir(parents=True)
+    (old / "metrics" / "scalars" / "train" / "episode_return.csv").write_text("100,1.0\n200,2.0\n")
+    (old / "metrics" / "scalars" / "train" / "updates.csv").write_text("200,10\n")
+    assert metrics.series(RunDir(old).scalars(), metrics.TRAIN_RETURN) == [(100, 1.0), (200, 2.0)]
+    prog = read_progress("old", old, "running")
+    assert (prog.frames, prog.last_return) == (200, 2.0)
 
 
 def _sac_loss(num_cells=(16, 16)):
@@ -320,18 +387,39 @@ def test_progress_bar_counts_every_frame_of_the_budget(logged_run):
     assert "actor.layer0=" in ranks and "critic.layer1=" in ranks and "module" not in ranks
 
 
+def test_progress_bar_shows_updates_as_an_integer():
+    """tqdm writes an int postfix value as a float (``upd=1e+4``); the trainers give it the digits (issue 31)."""
+    import io
+
+    from tqdm import tqdm
+
+    from adarl.runtime.trainers.base import BaseTrainer
+    from adarl.runtime.trainers.ppo import PPOTrainer
+    from adarl.runtime.trainers.sac import SACTrainer
+
+    state = types.SimpleNamespace(last_return=1.0, updates=10000, c=types.SimpleNamespace(adapter=None))
+    for cls in (BaseTrainer, SACTrainer, PPOTrainer):
+        bar = tqdm(total=1, file=io.StringIO())
+        bar.set_postfix(refresh=False, **cls._postfix(state))
+        assert "upd=10000" in str(bar), (cls.__name__, str(bar))
+        bar.close()
+
+
 def test_metrics_have_conventional_names(logged_run):
     root = logged_run["path"] / "metrics" / "scalars"
     names = {p.relative_to(root).with_suffix("").as_posix() for p in root.rglob("*.csv")}
     for name in (
-        "train/episode_return",
-        "train/episode_length",
-        "train/episodes",
-        "train/loss_actor",
-        "train/updates",
-        "train/lr",
-        "eval/return",
-        "eval/return_std",
+        "rollout/ep_rew_mean",
+        "rollout/ep_len_mean",
+        "time/episodes",
+        "train/actor_loss",
+        "train/critic_loss",
+        "train/ent_coef",
+        "train/ent_coef_loss",
+        "train/n_updates",
+        "train/learning_rate",
+        "eval/mean_reward",
+        "eval/std_reward",
         "warm_start/frames",
         "rank/actor.layer0",
         "rank/actor.layer1",
@@ -344,9 +432,9 @@ def test_metrics_have_conventional_names(logged_run):
     ):
         assert name in names, name
     assert not [n for n in names if "." in n.split("/")[0] or "module" in n], names
-    lengths = [float(line.split(",")[1]) for line in (root / "train" / "episode_length.csv").read_text().split()]
+    lengths = [float(line.split(",")[1]) for line in (root / "rollout" / "ep_len_mean.csv").read_text().split()[1:]]
     assert lengths and all(1 <= v <= 1000 for v in lengths)
-    fps = [float(line.split(",")[1]) for line in (root / "time" / "fps.csv").read_text().split()]
+    fps = [float(line.split(",")[1]) for line in (root / "time" / "fps.csv").read_text().split()[1:]]
     assert fps and all(v > 0 for v in fps)
 
 
@@ -371,13 +459,50 @@ def test_human_layer_names_in_csv_report_and_plots_with_paths_in_json(logged_run
     assert labels == ["actor.layer0", "actor.layer1", "critic.layer0", "critic.layer1"]
 
 
+def test_rank_events_record_their_frames_and_ranks_png_is_on_frames(logged_run):
+    """Issue 31, point 3: the rank plot's x axis is return.png's (frames), from each event's recorded frames."""
+    from adarl.runtime.report import rank_axis
+    from adarl.runtime.run_dir import RunDir
+
+    path = logged_run["path"]
+    history = json.loads((path / "ranks.json").read_text())
+    frames = [ev["frames"] for ev in history]
+    assert frames == sorted(frames) and frames[0] > 0
+    warm_starts = {f for f, _ in metrics.series(RunDir(path).scalars(), metrics.WARM_START_FRAMES)}
+    assert warm_starts and warm_starts <= set(frames)  # the same frames return.png marks events at
+    with (path / "ranks.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert {int(r["frames"]) for r in rows} == set(frames)
+    label, xs, end = rank_axis(RunDir(path), history)
+    assert (label, xs, end) == ("environment frames", frames, logged_run["summary"]["frames"])
+    assert (path / "plots" / "ranks.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_rank_plot_of_an_older_history_converts_or_says_steps(tmp_path):
+    from adarl.runtime.report import plot_ranks, rank_axis
+    from adarl.runtime.run_dir import RunDir
+
+    layer = {"layer": ACTOR_PATH, "name": "actor.layer0", "old_rank": 64, "new_rank": 11}
+    history = [{"step": 150, "index": 0, "layers": [layer]}]  # written before events recorded their frames
+    (tmp_path / "ranks.json").write_text(json.dumps(history))
+    (tmp_path / "summary.json").write_text(json.dumps({"frames": 500, "updates": 300}))
+    run = RunDir(tmp_path)
+    assert rank_axis(run, history) == ("optimisation steps", [150], 300)  # nothing to convert with: said so
+    updates = tmp_path / "metrics" / "scalars" / "train" / "updates.csv"  # the former name, no header
+    updates.parent.mkdir(parents=True)
+    updates.write_text("200,0\n300,100\n400,200\n")
+    label, xs, end = rank_axis(run, history)
+    assert label.startswith("environment frames (") and xs == [350] and end == 500
+    assert plot_ranks(run, tmp_path / "ranks.png") is not None
+
+
 def test_wandb_gets_the_recipe_and_a_resume_continues_its_run(logged_run):
     first, second, path = logged_run["first"], logged_run["second"], logged_run["path"]
     run_id = (path / "wandb_run_id").read_text().strip()
     assert first["wandb"].kwargs["id"] == second["wandb"].kwargs["id"] == run_id
     assert first["wandb"].kwargs["config"] == logged_run["recipe"].model_dump(mode="json")
     assert first["wandb"].kwargs["config"]["collector"]["total_frames"] == 1200
-    assert any(x[0] == "train/episode_return" for x in first["wandb"].logged if isinstance(x, tuple))
+    assert any(x[0] == "rollout/ep_rew_mean" for x in first["wandb"].logged if isinstance(x, tuple))
     assert first["wandb"].logged[-1] == "finish"
     resumed_steps = [x[1] for x in second["wandb"].logged if isinstance(x, tuple)]
     assert min(resumed_steps) > second["from"]  # the same step axis (frames), continued

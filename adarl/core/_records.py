@@ -66,6 +66,9 @@ class RankEvent:
     step: int
     index: int
     layers: list[LayerRecord] = field(default_factory=list)
+    #: the environment frames the run had collected at the event, when a trainer records them (None: not recorded,
+    #: as in histories written before it was); the run's plots put events on this axis
+    frames: int | None = None
     #: the adapter that ran the event (``None`` for an event read back from a checkpoint): callbacks such as
     #: :class:`~adarl.core.warmstart.ReplayWarmStart` use it to check that their policy holds the loss's tensors.
     adapter: Any = field(default=None, repr=False, compare=False)
@@ -80,7 +83,10 @@ class RankEvent:
         return {r.layer: r.new_rank for r in self.layers}
 
     def as_dict(self) -> dict:
-        return {"step": self.step, "index": self.index, "layers": [r.as_dict() for r in self.layers]}
+        out = {"step": self.step, "index": self.index}
+        if self.frames is not None:
+            out["frames"] = self.frames
+        return {**out, "layers": [r.as_dict() for r in self.layers]}
 
     @classmethod
     def from_dict(cls, d: Mapping, names: Mapping[str, str] | None = None) -> RankEvent:
@@ -92,4 +98,5 @@ class RankEvent:
             if rec.name is None and names:
                 rec.name = names.get(rec.layer)
             layers.append(rec)
-        return cls(int(d["step"]), int(d["index"]), layers)
+        frames = d.get("frames")
+        return cls(int(d["step"]), int(d["index"]), layers, None if frames is None else int(frames))

@@ -326,8 +326,9 @@ def rank_settling(run: RunRecord) -> dict[str, dict]:
 
 def event_dips(run: RunRecord, window: int) -> list[tuple[int, float, float]]:
     """``(event frame, mean training return in the window before, mean in the window after)`` per rank event
-    that changed a rank, from the run's ``train/episode_return`` log (``train.episode_return`` in run folders of
-    an older adarl; events without episodes on both sides are left out)."""
+    that changed a rank, from the run's ``rollout/ep_rew_mean`` log (``train/episode_return`` or
+    ``train.episode_return`` in run folders of older adarl versions; events without episodes on both sides are left
+    out)."""
     returns = metrics.series(RunDir(run.path).scalars(), metrics.TRAIN_RETURN)
     out = []
     for e in run.events:

@@ -14,6 +14,7 @@ stage code or install packages on workers: each worker needs ``adarl`` installed
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import time
 from abc import ABC, abstractmethod
@@ -21,7 +22,7 @@ from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from adarl.errors import AdaRLError, AdaRLValueError
+from adarl.errors import AdaRLValueError, MissingExtraError
 from adarl.experiments.execute import execute_run
 from adarl.runtime.results import is_url
 
@@ -122,7 +123,7 @@ class RayLauncher(Launcher):
         try:
             import ray
         except ImportError:
-            raise AdaRLError("the ray launcher needs Ray: pip install 'adarl[ray]'") from None
+            raise MissingExtraError("the ray launcher needs Ray: pip install 'adarl[ray]'") from None
         started = False
         if not ray.is_initialized():
             if self.address is None:
@@ -190,7 +191,7 @@ class SubmititLauncher(Launcher):
         try:
             import submitit
         except ImportError:
-            raise AdaRLError("the submitit launcher needs submitit: pip install 'adarl[slurm]'") from None
+            raise MissingExtraError("the submitit launcher needs submitit: pip install 'adarl[slurm]'") from None
         ex = submitit.AutoExecutor(folder=self.folder, cluster=self.cluster)
         params = dict(timeout_min=self.timeout_min, cpus_per_task=self.cpus_per_run, nodes=1, tasks_per_node=1)
         if self.gpus_per_run:
@@ -262,6 +263,9 @@ def make_launcher(
     gpus = gpus_per_run if gpus_per_run is not None else (resources.gpus_per_run if resources else 0)
     if name == "local":
         return LocalLauncher(workers)
+    package, extra = {"ray": ("ray", "ray"), "submitit": ("submitit", "slurm")}[name]
+    if importlib.util.find_spec(package) is None:  # before the experiment writes anything
+        raise MissingExtraError(f"the {name} launcher needs {package}: pip install 'adarl[{extra}]'")
     if name == "ray":
         return RayLauncher(address, cpus_per_run=cpus, gpus_per_run=gpus, max_retries=max_retries)
     if submitit_folder is None and is_url(output):

@@ -181,13 +181,7 @@ def run_experiment(
         for r in runs:
             log(f"  {r.status:<16} {r.run_id}: {r.recipe} {' '.join(r.overrides)}")
         return runs
-    if is_url(out):
-        makedirs(out)
-    else:
-        out.mkdir(parents=True, exist_ok=True)
-    command = f"adarl experiment {spec_path}" + (f" --budget {budget}" if budget else "") + f" -o {out}"
-    _write_state(out, spec, budget, runs, command)
-    if not isinstance(launcher, Launcher):
+    if not isinstance(launcher, Launcher):  # first: a launcher whose extra is missing leaves no folder behind
         launcher = make_launcher(
             launcher, workers=workers or spec.workers, output=out, resources=spec.resources, **(launcher_options or {})
         )
@@ -196,6 +190,12 @@ def run_experiment(
             f"output {out!r}: memory:// lives in one process, which the {launcher.name} launcher's "
             "workers cannot see; use a shared URL (s3://, gs://, file:///shared/...)"
         )
+    if is_url(out):
+        makedirs(out)
+    else:
+        out.mkdir(parents=True, exist_ok=True)
+    command = f"adarl experiment {spec_path}" + (f" --budget {budget}" if budget else "") + f" -o {out}"
+    _write_state(out, spec, budget, runs, command)
     board, last_tick = ProgressBoard(runs), [time.monotonic()]
     screen = LiveBoard(board, console=console) if live and progress_interval > 0 else None
     say = screen.log if screen is not None else log

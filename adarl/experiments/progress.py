@@ -89,9 +89,12 @@ def read_progress(run_id: str, path: str | Path, state: str) -> RunProgress:
         pass
     frames, ret = 0, None
     for name in (metrics.TRAIN_UPDATES, metrics.TRAIN_RETURN):
-        new, legacy = metrics.csv_paths(name)  # a run of an older adarl wrote train.updates.csv
-        text = _read(p, new)
-        last = _last_step(text if text is not None else _read(p, legacy))
+        last = None
+        for candidate in metrics.csv_paths(name):  # a run of an older adarl wrote train/updates.csv, train.updates.csv
+            text = _read(p, candidate)
+            if text is not None:
+                last = _last_step(text)
+                break
         if last is not None:
             frames = max(frames, last[0])
             if name == metrics.TRAIN_RETURN:

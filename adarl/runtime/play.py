@@ -28,7 +28,7 @@ from adarl.envs.linear_cartpole import LINEAR_CARTPOLE_ID
 from adarl.envs.perturbation import PerturbedDynamicsEnvTransform
 from adarl.envs.registry import quiet_mujoco, validate_values
 from adarl.envs.schedules import FixedSchedule
-from adarl.errors import AdaRLError, AdaRLValueError
+from adarl.errors import AdaRLError, AdaRLValueError, MissingExtraError
 from adarl.runtime.evaluation import evaluate_policy
 from adarl.runtime.policy import load_policy_with_info
 
@@ -116,7 +116,7 @@ def _recording_env(recipe, values: dict[str, float], folder: Path, size: tuple[i
         )
     except DependencyNotInstalled:
         base.close()
-        raise AdaRLError(
+        raise MissingExtraError(
             "--video needs moviepy (gymnasium's RecordVideo writes with it): pip install 'adarl[video]'"
         ) from None
     transforms = []

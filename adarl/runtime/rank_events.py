@@ -115,6 +115,7 @@ class RunRecords:
         """After every rank event, changed or not (a refused candidate is a result too): ranks and history."""
         t = self.trainer
         adapter = t.c.adapter
+        event.frames = t.frames  # the frames axis of the run's plots (ranks.json, ranks.csv)
         for name, rank in adapter.named_ranks.items():
             t.logger.log_scalar(metrics.rank(name), rank, step=t.frames)
         for record in event.layers:

@@ -1,13 +1,15 @@
 """A run's report: a markdown summary and PNG plots, made only from the files in its run folder.
 
 ``plots/return.png``: training episode return and nominal-dynamics evaluation against frames, rank events as red
-dashed lines (paper Fig. 3). ``plots/ranks.png``: each low-rank layer's rank over optimisation steps (Fig. 4).
+dashed lines (paper Fig. 3). ``plots/ranks.png``: each low-rank layer's rank over environment frames, as return.png
+(Fig. 4).
 ``plots/speed.png``: optimisation steps per second against optimisation steps, rank events marked (the cost of an
 update falls as the factorised layers lose rank). matplotlib (Agg backend, no display) draws them.
 """
 
 from __future__ import annotations
 
+import bisect
 import json
 import os
 import statistics
@@ -99,29 +101,63 @@ def plot_returns(run: RunDir, out: Path) -> Path | None:
     return out
 
 
+def _updates_to_frames(run: RunDir):
+    """``updates -> frames`` from the run's ``train/n_updates`` log (frames at each logging point), linear between
+    the points; None when the run logged none (a run folder of an older adarl without it)."""
+    pts = sorted((int(v), int(f)) for f, v in metrics.series(run.scalars(), metrics.TRAIN_UPDATES))
+    if len(pts) < 2:
+        return None
+
+    def convert(u: int) -> int:
+        i = bisect.bisect_left([p[0] for p in pts], u)
+        (u0, f0), (u1, f1) = pts[max(0, min(i - 1, len(pts) - 2))], pts[max(1, min(i, len(pts) - 1))]
+        return int(round(f0 + (f1 - f0) * (u - u0) / (u1 - u0))) if u1 != u0 else f0
+
+    return convert
+
+
+def rank_axis(run: RunDir, history: list[dict]) -> tuple[str, list[int], int]:
+    """Where a run's rank events lie on its plots' x axis: ``(label, x of each event, x of the run's end)``.
+
+    Environment frames, like ``return.png``: from each event's ``frames`` (recorded since issue 31); for older rank
+    histories, converted from its optimisation step through the run's ``train/n_updates`` log (labelled so, the
+    conversion interpolates between logging points); else the optimisation steps themselves (labelled so)."""
+    try:
+        summary = json.loads((run.path / "summary.json").read_text())
+    except (OSError, ValueError):
+        summary = {}
+    steps = [int(ev.get("step", 0)) for ev in history]
+    if history and all(ev.get("frames") is not None for ev in history):
+        return "environment frames", [int(ev["frames"]) for ev in history], int(summary.get("frames") or 0)
+    convert = _updates_to_frames(run)
+    if convert is not None:
+        label = "environment frames (events placed from their optimisation step)"
+        return label, [convert(s) for s in steps], int(summary.get("frames") or 0)
+    return "optimisation steps", steps, int(summary.get("updates") or 0)
+
+
 def plot_ranks(run: RunDir, out: Path) -> Path | None:
-    """Rank of each low-rank layer against optimisation steps (a step plot through every event)."""
+    """Rank of each low-rank layer against environment frames, as ``return.png`` (a step plot through every
+    event; older histories: :func:`rank_axis`)."""
     history = run.read_rank_history()
     if not history:
         return None
+    label, xs, end = rank_axis(run, history)
     series: dict[str, list[tuple[int, int]]] = {}
-    for event in history:
-        step = int(event.get("step", 0))
+    for event, x in zip(history, xs):
         for layer in event.get("layers", []):
             name = layer_label(layer)
             pts = series.setdefault(name, [(0, int(layer["old_rank"]))])
-            pts.append((step, int(layer["new_rank"])))
+            pts.append((x, int(layer["new_rank"])))
     if not series:  # events that truncate nothing (rank.truncate: false): no rank to draw
         return None
-    summary = run.path / "summary.json"
-    end = int(json.loads(summary.read_text()).get("updates", 0)) if summary.is_file() else 0
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(7, 4))
     for name, pts in series.items():
         if end > pts[-1][0]:
             pts = [*pts, (end, pts[-1][1])]
         ax.step([p[0] for p in pts], [p[1] for p in pts], where="post", marker="o", ms=3, label=name)
-    ax.set_xlabel("optimisation steps")
+    ax.set_xlabel(label)
     ax.set_ylabel("rank")
     rank_ticks(ax, [p[1] for pts in series.values() for p in pts])
     ax.set_title(_title(run, "ranks"), fontsize=9)
@@ -135,7 +171,7 @@ def plot_ranks(run: RunDir, out: Path) -> Path | None:
 
 def _speed_series(run: RunDir) -> list[tuple[int, float]]:
     """``(optimisation steps, updates/s)`` at each logging point: ``time/updates_per_s`` joined with
-    ``train/updates`` on the frame count both are logged at."""
+    ``train/n_updates`` on the frame count both are logged at."""
     scalars = run.scalars()
     updates = dict(metrics.series(scalars, metrics.TRAIN_UPDATES))
     return [(int(updates[f]), v) for f, v in metrics.series(scalars, metrics.UPDATES_PER_S) if f in updates and v > 0]

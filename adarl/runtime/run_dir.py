@@ -4,9 +4,9 @@
 
     <run>/recipe.yaml            resolved recipe (what ran; `adarl resume` rebuilds from it)
     <run>/.adarl.lock            claimed when the folder is created; locked while a process trains in it
-    <run>/metrics/scalars/       TorchRL CSVLogger scalars, one file per metric ("step,value", step = frames):
-                                 train/episode_return.csv, eval/return.csv, rank/actor.layer0.csv
-                                 (adarl.runtime.metrics)
+    <run>/metrics/scalars/       TorchRL CSVLogger scalars, one file per metric (header "step,value", step =
+                                 frames), SB3's names: rollout/ep_rew_mean.csv, eval/mean_reward.csv,
+                                 train/actor_loss.csv, rank/actor.layer0.csv (adarl.runtime.metrics)
     <run>/wandb_run_id           the wandb run this folder logs to (with logging.backends: [wandb]), for resume
     <run>/eval.csv               nominal-dynamics evaluations (frames, updates, mean, std, ci95, episodes, ranks)
     <run>/ranks.json, ranks.csv  rank history: per event and layer, old/new rank, spectrum, energy, error
@@ -55,9 +55,11 @@ from adarl.errors import (
     AdaRLWarning,
     CheckpointError,
     CheckpointFallbackWarning,
+    MissingExtraError,
     RecipeError,
     describe_os_error,
 )
+from adarl.runtime import metrics
 from adarl.runtime.config import load_recipe, local_plugins, recipe_to_yaml, save_resolved
 
 try:  # POSIX: a lock the kernel drops when its process dies (kill -9 included)
@@ -74,6 +76,7 @@ __all__ = [
     "RunFolderGone",
     "recipe_fingerprint",
     "null_logger",
+    "logging_backends",
 ]
 
 CHECKPOINT_FORMAT = "adarl.checkpoint"
@@ -145,6 +148,23 @@ def _same_in_fingerprint(key: str, theirs: dict, ours: dict) -> bool:
     )
 
 
+def logging_backends(recipe) -> set[str]:
+    """The recipe's logging backends that will log (wandb not when ``wandb_mode`` is disabled), each one's package
+    checked first: a missing one is a :class:`~adarl.errors.MissingExtraError` naming the ``pip install``, raised
+    before anything is written (``adarl run`` checks it before it makes the run folder)."""
+    backends = set(recipe.logging.backends)
+    if recipe.logging.wandb_mode == "disabled":
+        backends.discard("wandb")
+    for backend, package in (("tensorboard", "tensorboard"), ("wandb", "wandb")):
+        if backend in backends and importlib.util.find_spec(package) is None:
+            raise MissingExtraError(
+                f"logging.backends includes {backend!r} but the {package!r} package is not installed; "
+                f"install it (pip install 'adarl[{backend}]') or remove {backend!r} from logging.backends "
+                f"(allowed without extras: ['csv'])"
+            )
+    return backends
+
+
 class RunFolderGone(AdaRLError):
     """The run folder was deleted or moved while a process trained in it: the run stops instead of writing on (it
     would recreate a folder without its recipe or records, which neither resume nor eval can read)."""
@@ -165,6 +185,7 @@ class _Fanout:
             self.check()
         for lg in self.loggers:
             try:
+                _csv_header(getattr(lg, "experiment", None), name)
                 lg.log_scalar(name, float(value), step=step)
             except OSError as err:  # a full disk fails the CSV logger's flush, which names no file: name it
                 if err.filename is not None:
@@ -176,6 +197,21 @@ class _Fanout:
                     else getattr(lg, "log_dir", None)
                 )
                 raise OSError(err.errno, err.strerror, where) from None
+
+
+def _csv_header(exp, name: str) -> None:
+    """Start a new metric file of TorchRL's CSV logger (``exp``: its experiment; anything else is left alone) with
+    the header row ``step,value``, as pandas and spreadsheet users expect; a file that has rows is left as it is
+    (run folders of earlier versions have none: readers skip a header row and take files without one)."""
+    files = getattr(exp, "files", None)
+    if files is None:
+        return
+    path = os.path.join(exp.log_dir, "scalars", name + ".csv")
+    if path in files or (os.path.isfile(path) and os.path.getsize(path) > 0):
+        return
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    with open(path, "a") as fh:
+        fh.write(metrics.CSV_HEADER + "\n")
 
 
 def null_logger() -> _Fanout:
@@ -303,7 +339,8 @@ class RunDir:
         if any((self.path / name).exists() for name in ("eval.csv", "ranks.json", "summary.json")):
             return False
         scalars = self.path / "metrics" / "scalars"
-        if scalars.is_dir() and any(f.stat().st_size for f in scalars.rglob("*.csv") if f.is_file()):
+        header = len(metrics.CSV_HEADER) + 1  # a file with only its header row holds no training
+        if scalars.is_dir() and any(f.stat().st_size > header for f in scalars.rglob("*.csv") if f.is_file()):
             return False
         warnings.warn(
             f"run folder {str(self.path)!r} has no checkpoint: it was stopped before its first one was complete, "
@@ -460,17 +497,7 @@ class RunDir:
         ``resume="allow"``) on the same step axis (frames; wandb cannot hide rows, so the lost work's rows stay).
         wandb gets the resolved recipe as the run's config, TensorBoard as text."""
         loggers = [torchrl_loggers.CSVLogger(exp_name="metrics", log_dir=str(self.path))]
-        backends = set(recipe.logging.backends)
-        if recipe.logging.wandb_mode == "disabled":
-            backends.discard("wandb")
-        for backend, package in (("tensorboard", "tensorboard"), ("wandb", "wandb")):
-            if backend in backends:
-                if importlib.util.find_spec(package) is None:
-                    raise AdaRLError(
-                        f"logging.backends includes {backend!r} but the {package!r} package is not installed; "
-                        f"install it (pip install 'adarl[{backend}]') or remove {backend!r} from logging.backends "
-                        f"(allowed without extras: ['csv'])"
-                    )
+        backends = logging_backends(recipe)
         config = recipe.model_dump(mode="json") if hasattr(recipe, "model_dump") else None
         if "tensorboard" in backends:
             new = not (self.path / "tensorboard").exists()
@@ -506,9 +533,10 @@ class RunDir:
                     pass
 
     def scalars(self) -> dict[str, list[tuple[int, float]]]:
-        """All CSV scalars as ``{name: [(step, value), ...]}``: ``train/episode_return`` from
-        ``metrics/scalars/train/episode_return.csv``, and a folder's older flat files by their own names
-        (``train.episode_return``; :func:`adarl.runtime.metrics.series` reads either)."""
+        """All CSV scalars as ``{name: [(step, value), ...]}``: ``rollout/ep_rew_mean`` from
+        ``metrics/scalars/rollout/ep_rew_mean.csv`` (its header row skipped), and a folder's files of earlier
+        versions by their own names (``train/episode_return``, ``train.episode_return``, without a header;
+        :func:`adarl.runtime.metrics.series` reads any)."""
         out = {}
         root = self.path / "metrics" / "scalars"
         for f in sorted(root.rglob("*.csv")) if root.is_dir() else []:
@@ -529,6 +557,9 @@ class RunDir:
         for f in root.rglob("*.csv") if root.is_dir() else []:
             keep = []
             for line in f.read_text().splitlines():
+                if line == metrics.CSV_HEADER:
+                    keep.append(line)
+                    continue
                 parts = line.split(",")
                 try:  # a line cut short by a crash (no value, or no number) is dropped too
                     float(parts[1])
@@ -618,6 +649,8 @@ class RunDir:
         for rec in records:
             for layer in rec.get("layers", [rec]):
                 row = {"step": rec.get("step")}
+                if rec.get("frames") is not None:  # recorded since issue 31: the frames at the event
+                    row["frames"] = rec["frames"]
                 for k, v in layer.items():
                     if k == "singular_values":
                         continue

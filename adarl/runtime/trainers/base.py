@@ -25,6 +25,7 @@ import os
 import signal
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import ClassVar
 
@@ -35,6 +36,7 @@ from tqdm import auto as tqdm_auto
 from adarl.errors import AdaRLError, AdaRLValueError, CheckpointError
 from adarl.runtime import metrics
 from adarl.runtime.builders.common import RunComponents
+from adarl.runtime.continuing import continued_recipe, retarget_schedules, schedule_totals
 from adarl.runtime.evaluation import EvalResult, evaluate_policy
 from adarl.runtime.families import family
 from adarl.runtime.guards import NonFiniteError, NonFiniteGuard
@@ -126,7 +128,7 @@ class BaseTrainer:
 
     def _postfix(self) -> dict:
         """The progress bar's postfix."""
-        return {"ret": f"{self.last_return:.1f}", "upd": self.updates}
+        return {"ret": f"{self.last_return:.1f}", "upd": str(self.updates)}  # tqdm shows an int as 1e+4
 
     @property
     def adapter(self):
@@ -142,7 +144,9 @@ class BaseTrainer:
             self.c.rank_events.record_run(self)
         self.guard = NonFiniteGuard(self.c.guarded_parameters())
         if state is not None:
+            totals = schedule_totals(self.c.schedulers)  # as this recipe's total plans them
             self._load_checked(state)
+            retarget_schedules(self.c.schedulers, totals)  # a run continued to more frames: re-planned from here
 
     def _load_checked(self, state: dict) -> None:
         """:meth:`_load_state`, with a checkpoint that does not fit (one written before checkpoints named their
@@ -168,6 +172,7 @@ class BaseTrainer:
         truncate_metrics: bool = True,
         checkpoint: str | os.PathLike | None = None,
         read_only: bool | None = None,
+        overrides: Sequence[str] = (),
     ) -> BaseTrainer:
         """Continue the run in ``path`` from its latest loadable checkpoint (metrics after it are dropped first).
 
@@ -180,16 +185,22 @@ class BaseTrainer:
         recipe (:func:`~adarl.runtime.run_dir.recipe_fingerprint`) before any tensor is used.
         ``read_only`` (default: ``not truncate_metrics``, i.e. loading to evaluate): nothing in the run folder is
         written, renamed or locked, and the replay buffer is not read; such a trainer evaluates, it does not train.
+        ``overrides``: ``collector.total_frames=M`` continues the run (a finished one too) to ``M`` frames, and
+        recipe.yaml records it; any other key is refused by name (:mod:`adarl.runtime.continuing`).
         """
         run_dir = RunDir.open(path)
-        recipe = run_dir.load_recipe()  # refuses, naming the package, a run whose algorithm is not installed
+        recorded = run_dir.load_recipe()  # refuses, naming the package, a run whose algorithm is not installed
+        recipe = continued_recipe(run_dir, recorded, overrides)
         target = trainer_class(recipe)
         cls = cls if issubclass(cls, target) else target
         read_only = not truncate_metrics if read_only is None else read_only
         if not read_only:
             run_dir.lock()  # one process trains in a run folder at a time
         fingerprint = recipe_fingerprint(recipe)
+        continuing = recipe is not recorded and not read_only
         if not read_only and checkpoint in (None, "latest") and run_dir.starts_over():
+            if continuing:
+                run_dir.save_recipe(recipe)
             return cls(recipe, run_dir, quiet=quiet)  # stopped before its frame-0 checkpoint: start it again
         if checkpoint is None or checkpoint == "latest":
             state = run_dir.load_latest_checkpoint(
@@ -207,7 +218,10 @@ class BaseTrainer:
         if truncate_metrics and not read_only:
             run_dir.truncate_metrics(int(state["counters"]["frames"]))
         log_from = int(state["counters"]["frames"]) if truncate_metrics and not read_only else None
-        return cls(recipe, run_dir, quiet=quiet, _resume_state=state, _log_from=log_from, _read_only=read_only)
+        trainer = cls(recipe, run_dir, quiet=quiet, _resume_state=state, _log_from=log_from, _read_only=read_only)
+        if continuing:
+            run_dir.save_recipe(recipe)  # the new total, once the checkpoint has loaded into it
+        return trainer
 
     # ------------------------------------------------------------------ the loop
     def train(self) -> dict:

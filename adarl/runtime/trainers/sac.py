@@ -95,7 +95,7 @@ class SACTrainer(BaseTrainer, algorithm="sac"):
         return out
 
     def _postfix(self) -> dict:
-        return {"ret": f"{self.last_return:.1f}", "ranks": _rank_summary(self.c.adapter), "upd": self.updates}
+        return {"ret": f"{self.last_return:.1f}", "ranks": _rank_summary(self.c.adapter), "upd": str(self.updates)}
 
 
 #: the name :class:`SACTrainer` had before the PPO loop had its own (kept: an alias)
