@@ -1,5 +1,6 @@
 """A recipe's ``plugins``: a local module (beside the recipe, not packaged) registers an algorithm the recipe runs;
-the run is killed (-9) and resumed; resume and eval refuse once the module changed or went missing (issue 29.5)."""
+the run is killed (-9) and resumed, a two-seed experiment runs it; resume and eval refuse once the module changed
+or went missing (issue 29.5)."""
 
 from __future__ import annotations
 
@@ -76,6 +77,23 @@ def test_a_local_module_algorithm_runs_resumes_after_kill_9_and_is_refused_once_
     proc = adarl("resume", str(run), "--quiet")
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert (run / "summary.json").is_file()
+
+    # a two-seed experiment of the same recipe: each run imports the module (a worker process each) and records it
+    spec = tmp_path / "seeds.yaml"
+    spec.write_text(
+        f"kind: experiment\nname: local_seeds\nrecipe: {recipe}\noverrides: [{', '.join(FAST)}]\nseeds: [0, 1]\n"
+    )
+    proc = adarl("experiment", str(spec), "-o", str(tmp_path / "experiment"), "--workers", "2", "--no-live")
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
+    runs = sorted(p.parent for p in (tmp_path / "experiment").rglob("summary.json"))
+    assert len(runs) == 2, runs
+    for r in runs:
+        assert (
+            json.loads((r / "summary.json").read_text())["frames"]
+            == json.loads((run / "summary.json").read_text())["frames"]
+        )
+        [recorded] = json.loads((r / "plugins.json").read_text())["modules"]
+        assert recorded["sha256"] == module["sha256"] and recorded["path"] == module["path"]
 
     (tmp_path / "my_algo.py").write_text(MODULE + "\n# changed\n")
     for command in (("resume", str(run)), ("eval", str(run))):

@@ -251,8 +251,8 @@ def test_rollback_lowers_the_lr_and_finishes(tmp_path):
     assert calls["injected"] == 1 and trainer.rollbacks == 1
     assert summary["frames"] >= 300
     assert trainer.c.schedulers["actor"].base_lrs == [b * 0.25 for b in base]
-    rows = (tmp_path / "run" / "metrics" / "scalars" / "guards" / "rollbacks.csv").read_text().split()
-    assert len(rows) == 1
+    header, *rows = (tmp_path / "run" / "metrics" / "scalars" / "guards" / "rollbacks.csv").read_text().split()
+    assert header == "step,value" and len(rows) == 1
     state = RunDir.open(tmp_path / "run").load_latest_checkpoint()
     assert state["counters"]["rollbacks"] == 1
 

@@ -286,7 +286,7 @@ def _metric(run: Path, name: str) -> list[float]:
     path = run / "metrics" / "scalars" / "train" / f"{name}.csv"
     assert path.is_file(), f"train/{name} was not logged: {sorted(p.name for p in path.parent.glob('*'))}"
     with path.open() as f:
-        return [float(row[-1]) for row in csv.reader(f) if row]
+        return [float(row[-1]) for row in csv.reader(f) if row and row != ["step", "value"]]  # after the header
 
 
 @pytest.mark.slow
@@ -353,5 +353,5 @@ def test_a_td3_plugin_runs_from_a_recipe_through_rank_events_kill_9_resume_and_a
     for r in runs:
         assert "name: l2_td3" in (r / "recipe.yaml").read_text()
         assert json.loads((r / "summary.json").read_text())["rank_events"] >= 1
-        returns.append((r / "metrics" / "scalars" / "train" / "episode_return.csv").read_text())
+        returns.append((r / "metrics" / "scalars" / "rollout" / "ep_rew_mean.csv").read_text())
     assert returns[0] != returns[1]  # two seeds, two runs
