@@ -11,27 +11,8 @@ public names of four modules, one job each, importable from here as before the s
   live gymnasium environment in place, each from a copy of the environment's own compiled defaults, so nothing
   compounds across episodes.
 
-Parameters (lengths are half-lengths, as MuJoCo capsule sizes and the paper's schedules are):
-
-==========================  ============================  =======================================================
-env                         parameter                     what changes
-==========================  ============================  =======================================================
-Hopper-v5, Walker2d-v5      ``torso_length``              torso capsule half-length; the torso's bottom stays put
-                                                          (torso body z = 1.05 + T), the thigh(s) hang at -T
-Hopper-v5, Walker2d-v5      ``foot_length``               foot capsule half-length (both feet on Walker2d)
-Ant-v5, Humanoid-v5         ``gravity``                   ``opt.gravity = [0, 0, -g]``
-Ant-v5, Humanoid-v5         ``wind``                      ``opt.wind = [-w, 0, 0]``; turns the air on
-                                                          (density 1.2, viscosity 2e-5), without which wind is inert
-CartPole-v1                 ``pole_length``               ``length`` (half pole length) and ``polemass_length``
-InvertedPendulum-v5         ``pole_length``               pole capsule half-length (the pole scales about the hinge)
-every MuJoCo env            ``mass_scale``                every body's mass and inertia times s
-every MuJoCo env            ``mass_scale:<body>``         that body's mass and inertia times s
-every MuJoCo env            ``friction_scale``            every geom's friction coefficients times s
-==========================  ============================  =======================================================
-
-Installed packages add env ids (:func:`register_env`) and parameters (:func:`register_parameter`, e.g. a body's
-length on Hopper-v5) through the ``adarl.plugins`` entry-point group, loaded when an id or a parameter name is
-not known yet (docs/adding-a-component.md).
+The parameters each env takes, and what each changes, are tabled in :mod:`adarl.envs.registry` (their one home);
+plugins add env ids and parameters through :func:`register_env` / :func:`register_parameter`.
 """
 
 from __future__ import annotations
