@@ -1,5 +1,6 @@
 # The README's two commands: `make run` (train + evaluate + report the default recipe) and `make test` (ruff's
-# format check and lint, then the test suite; .ci/run runs it). Both create .venv on first use and install the
+# format check and lint, then the test suite, one pytest-xdist worker per core up to 4, each test file on one
+# worker so that its module fixtures are built once; .ci/run runs it). Both create .venv on first use and install the
 # project with the exact versions in constraints.txt. `make format` applies ruff's formatting and safe fixes.
 PYTHON ?= python3
 VENV   := .venv
@@ -26,7 +27,7 @@ run: $(STAMP)
 test: $(STAMP)
 	$(BIN)/ruff format --check .
 	$(BIN)/ruff check .
-	$(BIN)/python -m pytest -q tests
+	$(BIN)/python -m pytest -q -n auto --maxprocesses 4 --dist loadfile tests
 
 format: $(STAMP)
 	$(BIN)/ruff format .

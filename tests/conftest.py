@@ -1,4 +1,5 @@
-"""Test-wide settings: one torch/OpenMP thread, in this process and every subprocess the tests start.
+"""Test-wide settings: one torch/OpenMP thread, in this process and every subprocess the tests start (``make test``
+runs the files on pytest-xdist workers, one per core).
 
 On a 2-core machine two threads per process collapse as soon as anything else runs (see docs/performance.md);
 one thread is also what the exact-resume guarantee is stated for. The ``fake_s3`` fixture gives ``fakes3://`` URLs:
@@ -10,6 +11,9 @@ import os
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("MKL_NUM_THREADS", "1")
 os.environ.setdefault("MUJOCO_GL", "egl")
+# Ray runs its workers at nice 15 by default; beside a second pytest-xdist worker at nice 0 they would get a few
+# percent of a core, and a Ray test would take ten times as long.
+os.environ.setdefault("RAY_worker_niceness", "0")
 
 import pytest  # noqa: E402
 import torch  # noqa: E402

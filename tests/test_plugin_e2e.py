@@ -1,4 +1,5 @@
-"""A user's own TorchRL loss, in a package outside adarl, runs from a recipe (docs/custom-loss.md).
+"""A user's own TorchRL loss, in a package outside adarl, and a rank rule in a local module beside the recipe, run
+from a recipe (docs/custom-loss.md, issue 29.5).
 
 The test writes a small plugin package (an RNAC-IPM-style robust SAC: ``SACLoss`` with its TD target lowered by
 ``kappa * ||theta_critic||``, registered as ``robust_sac`` through the ``adarl.plugins`` entry-point group),
@@ -7,13 +8,17 @@ puts that folder on ``PYTHONPATH`` of the ``adarl`` commands it runs from anothe
 ``adarl run`` killed with SIGKILL and ``adarl resume``d, and a two-seed ``adarl experiment`` (on Ray workers when
 Ray is installed). At each step the
 loss's own metric (``train/target_shift``, ``kappa * ||theta||``) must be logged; without the package, resuming
-the run is refused with a message naming the algorithm, and nothing in the run folder changes.
+the run is refused with a message naming the algorithm, and nothing in the run folder changes. The same recipe lists a
+local module (``plugins: [my_rule]``, not packaged) whose rank rule the run uses: every run folder records its path
+and sha256, and once the module changed or went missing, resume and eval refuse the run by name. One run covers
+both kinds of plugin: each end-to-end run here costs tens of seconds.
 """
 
 from __future__ import annotations
 
 import csv
 import importlib.util
+import json
 import os
 import signal
 import subprocess
@@ -86,6 +91,17 @@ robust_sac = "adarl_robust_sac"
 packages = ["adarl_robust_sac"]
 """
 
+LOCAL_RULE = '''
+"""Eq. 10 under a name of its own, from a module beside the recipe (not packaged), registered at import."""
+from adarl import register_rank_rule
+from adarl.core.rank import EnergyRule
+
+
+@register_rank_rule("local_energy", description="Eq. 10 from a module beside the recipe")
+class LocalEnergyRule(EnergyRule):
+    name = "local_energy"
+'''
+
 # Hopper, tiny: 600 frames, a checkpoint every 50, one rank event
 TINY = [
     "collector.total_frames=600",
@@ -149,6 +165,12 @@ def _target_shift(run: Path) -> list[float]:
         return [float(row[-1]) for row in csv.reader(f) if row and row != ["step", "value"]]
 
 
+def _error_line(proc: subprocess.CompletedProcess) -> str:
+    assert proc.returncode != 0 and "Traceback" not in proc.stderr, proc.stderr[-3000:]
+    (line,) = [line for line in proc.stderr.splitlines() if line.startswith("adarl: error:")]
+    return line
+
+
 def _snapshot(run: Path) -> dict[str, bytes]:
     return {p.relative_to(run).as_posix(): p.read_bytes() for p in sorted(run.rglob("*")) if p.is_file()}
 
@@ -158,8 +180,10 @@ def test_a_plugin_loss_runs_resumes_and_goes_into_an_experiment(plugin: Path, tm
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
     recipe = elsewhere / "robust_hopper.yaml"
+    (elsewhere / "my_rule.py").write_text(textwrap.dedent(LOCAL_RULE))
     recipe.write_text(
-        "extends: quickstart\nname: robust_hopper\nalgorithm:\n  name: robust_sac\n  options: {kappa: 0.002}\n"
+        "extends: quickstart\nname: robust_hopper\nplugins: [my_rule]\nrank: {rule: local_energy}\n"
+        "algorithm:\n  name: robust_sac\n  options: {kappa: 0.002}\n"
     )
 
     # show: the plugin's options are recipe keys, validated, with their defaults spelled out
@@ -200,6 +224,10 @@ def test_a_plugin_loss_runs_resumes_and_goes_into_an_experiment(plugin: Path, tm
     assert killed, f"the run ended before it could be killed: {err[-2000:]}"
     text = (run / "recipe.yaml").read_text()
     assert "name: robust_sac" in text and "kappa: 0.002" in text  # what the run used, recorded
+    assert "rule: local_energy" in text
+    provenance = json.loads((run / "plugins.json").read_text())
+    [module] = provenance["modules"]
+    assert module["module"] == "my_rule" and module["path"] == str(elsewhere / "my_rule.py") and module["sha256"]
 
     # resume without the plugin: refused, naming the algorithm; nothing in the run folder changes
     before = _snapshot(run)
@@ -236,6 +264,20 @@ def test_a_plugin_loss_runs_resumes_and_goes_into_an_experiment(plugin: Path, tm
     for r in runs:
         assert "name: robust_sac" in (r / "recipe.yaml").read_text()
         assert _target_shift(r)
+        assert json.loads((r / "summary.json").read_text())["rank_events"] >= 1  # the local rule ran there too
+        [recorded] = json.loads((r / "plugins.json").read_text())["modules"]
+        assert recorded["sha256"] == module["sha256"] and recorded["path"] == module["path"]
+
+    # the local module changed, then went missing: resume and eval refuse the run by name, nothing written
+    before = _snapshot(run)
+    (elsewhere / "my_rule.py").write_text(textwrap.dedent(LOCAL_RULE) + "\n# changed\n")
+    for command in (("resume", str(run)), ("eval", str(run))):
+        line = _error_line(_adarl(plugin, elsewhere, *command))
+        assert "local plugin module 'my_rule'" in line and "has changed" in line, line
+    (elsewhere / "my_rule.py").unlink()
+    line = _error_line(_adarl(plugin, elsewhere, "resume", str(run), "--quiet"))
+    assert "local plugin module 'my_rule'" in line and "missing" in line, line
+    assert _snapshot(run) == before
 
 
 @pytest.mark.slow

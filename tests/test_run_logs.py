@@ -478,6 +478,32 @@ def test_rank_events_record_their_frames_and_ranks_png_is_on_frames(logged_run):
     assert (path / "plots" / "ranks.png").read_bytes()[:4] == b"\x89PNG"
 
 
+def test_speed_png_and_the_aggregate_rank_figure_are_on_frames_too(logged_run, tmp_path, monkeypatch):
+    """Issue 31, point 3: one x axis (frames) across a run's plots and the experiment report's rank figure."""
+    import matplotlib.axes
+
+    from adarl.experiments.aggregate import write_aggregate_report
+    from adarl.runtime.report import plot_speed
+    from adarl.runtime.run_dir import RunDir
+
+    path = logged_run["path"]
+    frames = [ev["frames"] for ev in json.loads((path / "ranks.json").read_text())]
+    drawn: dict[str, list] = {"xlabel": [], "vlines": []}
+    monkeypatch.setattr(matplotlib.axes.Axes, "set_xlabel", lambda ax, label, **kw: drawn["xlabel"].append(label))
+    real_axvline = matplotlib.axes.Axes.axvline
+    monkeypatch.setattr(
+        matplotlib.axes.Axes, "axvline", lambda ax, x=0, *a, **kw: drawn["vlines"].append(x) or real_axvline(ax, x)
+    )
+    assert plot_speed(RunDir(path), tmp_path / "speed.png") is not None
+    assert drawn["xlabel"] == ["environment frames"] and drawn["vlines"] == sorted(set(frames))
+
+    report = write_aggregate_report([path], tmp_path / "report")
+    with (Path(report).parent / "ranks.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert {int(r["frames"]) for r in rows} == {0, *frames, logged_run["summary"]["frames"]}
+    assert "over environment frames" in Path(report).read_text()
+
+
 def test_rank_plot_of_an_older_history_converts_or_says_steps(tmp_path):
     from adarl.runtime.report import plot_ranks, rank_axis
     from adarl.runtime.run_dir import RunDir

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from adarl.envs.registry import intrinsic_rank
 from adarl.experiments._blocks import csv_text
-from adarl.experiments._runs import Aggregate, Group, _num_key, _rank_series
+from adarl.experiments._runs import Aggregate, Group, _num_key, _rank_series, rank_on_frames
 from adarl.experiments.stats import interval_estimate, poi_estimate
 from adarl.runtime.report import pyplot, rank_ticks
 
@@ -129,12 +129,22 @@ def plot_setting_curves(agg: Aggregate, out: Path, plateau: float | None = None)
     return out / "learning_curves_by_seed.png"
 
 
+def rank_x_label(agg: Aggregate) -> str:
+    """The rank figure's x axis: environment frames when every run's events can be placed there, else (an older
+    run folder among them) optimisation steps for all, so that the panels share one axis."""
+    runs = [r for g in agg.groups for r in g.runs if r.rank_history]
+    return "environment frames" if all(rank_on_frames(r) for r in runs) else "optimisation steps"
+
+
 def plot_rank_trajectories(agg: Aggregate, out: Path) -> Path | None:
-    """Rank of each low-rank layer over optimisation steps, every seed, with the 2*d_a+1 line (Fig. 4)."""
+    """Rank of each low-rank layer against environment frames (the learning curves' axis), every seed, with the
+    2*d_a+1 line (Fig. 4); on optimisation steps, said so on the axis and in ranks.csv, when some run's events
+    cannot be placed in frames (an older run folder without the record)."""
     groups = [g for g in agg.groups if any(r.rank_history for r in g.runs)]
     if not groups:
         return None
     groups = groups[:12]
+    frames = rank_x_label(agg) == "environment frames"
     plt = pyplot()
     fig, axs = _subplots(plt, len(groups))
     rows = []
@@ -142,7 +152,7 @@ def plot_rank_trajectories(agg: Aggregate, out: Path) -> Path | None:
         colors: dict[str, object] = {}
         cmap = plt.get_cmap("tab10")
         for r in g.runs:
-            for name, pts in _rank_series(r).items():
+            for name, pts in _rank_series(r, frames=frames).items():
                 c = colors.setdefault(name, cmap(len(colors) % 10))
                 ax.step(
                     [p[0] for p in pts],
@@ -159,14 +169,14 @@ def plot_rank_trajectories(agg: Aggregate, out: Path) -> Path | None:
             ax.axhline(ref, color="red", ls="--", lw=1, label=f"intrinsic rank {ref}")
         rank_ticks(ax, [k for row in rows if row[0] == g.label for k in row[4:5]] + ([ref] if ref else []))
         ax.set_title(f"{g.label} ({len(g.runs)} seeds)", fontsize=9)
-        ax.set_xlabel("optimisation steps")
+        ax.set_xlabel("environment frames" if frames else "optimisation steps")
         ax.set_ylabel("rank")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=6)
     fig.tight_layout()
     fig.savefig(out / "ranks.png", dpi=110)
     plt.close(fig)
-    (out / "ranks.csv").write_text(csv_text(rows, ["group", "seed", "layer", "step", "rank"]))
+    (out / "ranks.csv").write_text(csv_text(rows, ["group", "seed", "layer", "frames" if frames else "step", "rank"]))
     return out / "ranks.png"
 
 

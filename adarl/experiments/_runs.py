@@ -21,7 +21,7 @@ from adarl.errors import AdaRLError
 from adarl.experiments.execute import run_is_finished
 from adarl.experiments.sweep import read_sweep
 from adarl.runtime import metrics
-from adarl.runtime.report import layer_label
+from adarl.runtime.report import layer_label, rank_axis
 from adarl.runtime.results import exists, is_url, join
 from adarl.runtime.run_dir import RunDir
 
@@ -47,6 +47,9 @@ class RunRecord:
     updates: int
     sweeps: dict = field(default_factory=dict)  # name -> adarl.experiments.sweep.SweepResult
     eval_updates: list[int] = field(default_factory=list)  # optimisation steps at each evaluation
+    # where the rank events lie in environment frames: (label, x of each event, x of the run's end), or the
+    # optimisation steps when the run has nothing to convert them with (adarl.runtime.report.rank_axis)
+    rank_x: tuple[str, list[int], int] | None = None
 
     def score(self, last: int = 1) -> float | None:
         """The mean of the last ``last`` nominal evaluations (all of them when it has fewer), None without one."""
@@ -170,6 +173,7 @@ def _load_run(path: Path, axes: dict[str, str] | None) -> RunRecord | None:
         int(summary.get("updates", 0)),
         sweeps,
         eval_updates,
+        rank_axis(run, run.read_rank_history()),
     )
 
 
@@ -279,17 +283,27 @@ def _num_key(v: str):
         return (1, 0.0, v)
 
 
-def _rank_series(run: RunRecord) -> dict[str, list[tuple[int, int]]]:
+def rank_on_frames(run: RunRecord) -> bool:
+    """Whether a run's rank events can be placed in environment frames (recorded, or converted from its log)."""
+    return run.rank_x is not None and run.rank_x[0].startswith("environment frames")
+
+
+def _rank_series(run: RunRecord, frames: bool = False) -> dict[str, list[tuple[int, int]]]:
+    """Per layer, ``(x, rank)`` from the start through every event to the run's end; x is the optimisation step,
+    or with ``frames`` the environment frames (as the learning curves; :func:`rank_on_frames` must hold)."""
+    if frames and not rank_on_frames(run):
+        raise ValueError(f"{run.path}: its rank events cannot be placed in environment frames")
+    xs = run.rank_x[1] if frames else [int(ev.get("step", 0)) for ev in run.rank_history]
+    end = run.rank_x[2] if frames else run.updates
     series: dict[str, list[tuple[int, int]]] = {}
-    for ev in run.rank_history:
-        step = int(ev.get("step", 0))
+    for ev, x in zip(run.rank_history, xs):
         for layer in ev.get("layers", []):
             name = layer_label(layer)
             pts = series.setdefault(name, [(0, int(layer["old_rank"]))])
-            pts.append((step, int(layer["new_rank"])))
+            pts.append((x, int(layer["new_rank"])))
     for pts in series.values():
-        if run.updates > pts[-1][0]:
-            pts.append((run.updates, pts[-1][1]))
+        if end > pts[-1][0]:
+            pts.append((end, pts[-1][1]))
     return series
 
 

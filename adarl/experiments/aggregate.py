@@ -35,6 +35,7 @@ from adarl.experiments._figures import (
     plot_rliable,
     plot_setting_curves,
     plot_sweeps,
+    rank_x_label,
 )
 from adarl.experiments._runs import (
     Aggregate,
@@ -215,7 +216,7 @@ def write_aggregate_report(
         blocks += [
             Heading(2, "Rank trajectories"),
             Paragraph(
-                "Rank of each factorised layer over optimisation steps, every seed; the red dashed line is "
+                f"Rank of each factorised layer over {rank_x_label(agg)}, every seed; the red dashed line is "
                 "the intrinsic rank (2*d_a+1, Tiwari et al. 2025; or the spec's report.intrinsic_rank). "
                 "Data in ranks.csv."
             ),

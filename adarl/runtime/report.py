@@ -3,7 +3,7 @@
 ``plots/return.png``: training episode return and nominal-dynamics evaluation against frames, rank events as red
 dashed lines (paper Fig. 3). ``plots/ranks.png``: each low-rank layer's rank over environment frames, as return.png
 (Fig. 4).
-``plots/speed.png``: optimisation steps per second against optimisation steps, rank events marked (the cost of an
+``plots/speed.png``: optimisation steps per second against environment frames, rank events marked (the cost of an
 update falls as the factorised layers lose rank). matplotlib (Agg backend, no display) draws them.
 """
 
@@ -194,17 +194,21 @@ def speed_by_phase(run: RunDir) -> list[dict]:
 
 
 def plot_speed(run: RunDir, out: Path) -> Path | None:
-    """Optimisation steps per second against optimisation steps, rank events as red dashed lines."""
-    series = _speed_series(run)
+    """Optimisation steps per second against environment frames (``return.png``'s and ``ranks.png``'s axis), rank
+    events as red dashed lines."""
+    series = [(int(f), v) for f, v in metrics.series(run.scalars(), metrics.UPDATES_PER_S) if v > 0]
     if not series:
         return None
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(7, 3.5))
     ax.plot([s for s, _ in series], [v for _, v in series], lw=1, marker=".", ms=3, label="updates/s")
-    steps = sorted({int(ev.get("step", 0)) for ev in run.read_rank_history()})
-    for i, step in enumerate(steps):
-        ax.axvline(step, color="red", ls="--", lw=1, label="rank event" if i == 0 else None)
-    ax.set_xlabel("optimisation steps")
+    history = run.read_rank_history()
+    label, xs, _ = rank_axis(run, history)
+    if not label.startswith("environment frames"):  # nothing to place the events in frames with: left out
+        xs = []
+    for i, x in enumerate(sorted(set(xs))):
+        ax.axvline(x, color="red", ls="--", lw=1, label="rank event" if i == 0 else None)
+    ax.set_xlabel("environment frames")
     ax.set_ylabel("updates per second")
     ax.set_title(_title(run, "speed"), fontsize=9)
     ax.set_ylim(bottom=0)
