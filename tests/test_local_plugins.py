@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from adarl.errors import RecipeError
-from adarl.runtime.config import load_recipe
+from adarl.runtime.config import load_recipe, validate_recipe
 
 MODULE = '''
 """A SAC whose loss is a subclass of TorchRL's, registered at import."""
@@ -47,3 +47,13 @@ def test_entries_resolve_where_the_recipe_is_and_bad_ones_are_named(recipe, tmp_
     (tmp_path / "broken.py").write_text("raise ValueError('half written')\n")
     with pytest.raises(RecipeError, match=r"plugins: .*broken.py.*failed: ValueError: half written"):
         load_recipe(recipe, [f"plugins=[{tmp_path / 'broken.py'}]"])
+
+
+@pytest.mark.parametrize("entry", [0, "", "my module", "0"])
+def test_a_recipe_validated_from_a_mapping_refuses_an_entry_its_file_could_not_load(entry):
+    """Found by tests/test_recipes_fuzz.py: ``plugins: [0]`` validated from a mapping (the number made a string),
+    and the recipe.yaml it wrote was refused on loading. The schema checks an entry's form as the loader does."""
+    data = load_recipe("quickstart").model_dump()
+    data["plugins"] = [entry]
+    with pytest.raises(RecipeError, match=r"plugins = .*(module name|\.py)"):
+        validate_recipe(data)

@@ -35,7 +35,7 @@ def test_make_test_checks_format_and_lint_then_runs_the_suite():
     assert _make_recipe("test") == [
         "$(BIN)/ruff format --check .",
         "$(BIN)/ruff check .",
-        "$(BIN)/python -m pytest -q tests",
+        "$(BIN)/python -m pytest -q -n auto --maxprocesses 4 --dist worksteal tests",
     ]
 
 

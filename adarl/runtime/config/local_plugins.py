@@ -29,7 +29,7 @@ from typing import Any
 from adarl import plugins
 from adarl.errors import RecipeError
 
-__all__ = ["resolve_entry", "import_plugins", "record", "check_recorded"]
+__all__ = ["resolve_entry", "entry_form_error", "import_plugins", "record", "check_recorded"]
 
 _MODULE_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*$")
 # entry (as resolved) -> what plugins.json records of it, for the modules this process imported
@@ -40,10 +40,20 @@ def _is_path(entry: str) -> bool:
     return entry.endswith(".py") or "/" in entry or "\\" in entry or entry.startswith(("~", "."))
 
 
+def entry_form_error(entry: Any) -> str | None:
+    """What is wrong with the form of a ``plugins`` entry (None: a module name or a path), before any file is
+    looked for: the recipe schema checks it, so that a recipe validated from a mapping writes a file that loads."""
+    if not isinstance(entry, str) or not entry.strip():
+        return "expected a module name or a path to a .py file"
+    if not _is_path(entry) and not _MODULE_NAME.match(entry):
+        return "not a module name (my_module, pkg.module) nor a .py path"
+    return None
+
+
 def resolve_entry(entry: Any, base: Path, where: str) -> str:
     """``entry`` of the ``plugins`` list of the recipe file in folder ``base``, as the resolved recipe keeps it."""
-    if not isinstance(entry, str) or not entry.strip():
-        raise RecipeError(f"{where}: plugins: {entry!r}: expected a module name or a path to a .py file")
+    if (problem := entry_form_error(entry)) is not None:
+        raise RecipeError(f"{where}: plugins: {entry!r}: {problem}")
     if Path(entry).is_absolute() and Path(entry).exists():
         return entry
     if _is_path(entry):
@@ -54,8 +64,6 @@ def resolve_entry(entry: Any, base: Path, where: str) -> str:
                 f"{where}: plugins: {entry!r}: no Python file {str(path)!r} (a path is relative to the recipe file)"
             )
         return str(path.resolve())
-    if not _MODULE_NAME.match(entry):
-        raise RecipeError(f"{where}: plugins: {entry!r}: not a module name (my_module, pkg.module) nor a .py path")
     for beside in (base / f"{entry}.py", base / entry / "__init__.py"):
         if "." not in entry and beside.is_file():
             return str((beside if beside.name != "__init__.py" else beside.parent).resolve())

@@ -866,6 +866,16 @@ class Recipe(_Section):
     guards: GuardsConfig = Field(default_factory=GuardsConfig, description="What to do when training diverges.")
     output: OutputConfig = Field(default_factory=OutputConfig, description="Where the run folder goes.")
 
+    @field_validator("plugins", mode="before")
+    @classmethod
+    def _plugin_entries_have_a_form(cls, v: Any) -> Any:
+        from adarl.runtime.config.local_plugins import entry_form_error  # the loader's own check, one rule
+
+        for entry in v if isinstance(v, list) else []:
+            if (problem := entry_form_error(entry)) is not None:
+                raise AdaRLValueError(f"{entry!r}: {problem}")
+        return v
+
     @field_validator("version")
     @classmethod
     def _check_version(cls, v: int) -> int:

@@ -21,6 +21,8 @@ SMALL = [
     "metrics/scalars/train/episode_return.csv",
     "metrics/scalars/eval/return.csv",
     "metrics/scalars/warm_start/frames.csv",
+    "metrics/scalars/train/updates.csv",  # optimisation steps at each log: places rank events in frames (figures)
+    "metrics/scalars/train/n_updates.csv",  # its name since issue 31
 ]
 
 
