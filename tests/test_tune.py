@@ -388,3 +388,124 @@ def test_a_study_with_two_seeds_per_trial(tmp_path, monkeypatch, capsys):
     assert main(["tune", str(other), "-o", str(out)]) == 2
     err = capsys.readouterr().err
     assert "another seeds ([0, 1] in the study, [0, 2] in the spec)" in err and err.count("\n") == 1, err
+
+
+def test_a_missing_launcher_extra_is_bad_input_and_writes_nothing(tmp_path, monkeypatch, capsys):
+    import importlib.util
+
+    from adarl.cli import main
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(
+        importlib.util, "find_spec", lambda name, *a: None if name in ("ray", "submitit") else real(name, *a)
+    )
+    for name in ("ray", "submitit"):  # `import ray` fails too, as where it is not installed
+        monkeypatch.setitem(sys.modules, name, None)
+    for launcher, extra in (("ray", "ray"), ("submitit", "slurm")):
+        out = tmp_path / launcher
+        assert main(["tune", str(_spec(tmp_path)), "-o", str(out), "--launcher", launcher]) == 2
+        err = capsys.readouterr().err
+        assert f"pip install 'adarl[{extra}]'" in err and err.count("\n") == 1, err
+        assert not out.exists()
+
+
+def _add_unbeatable_trial(spec_path: Path, out: Path) -> None:
+    """Trial 0: a complete trial that no run of a few hundred frames can match at any frame count, so that the
+    median pruner (n_startup_trials 1) prunes the next trial at its first evaluation past the warm-up."""
+    from adarl.experiments.tune import _Study
+    from adarl.experiments.tune_spec import load_tune_spec
+
+    spec = load_tune_spec(spec_path)
+    out.mkdir()
+    driver = _Study(spec, out, spec.n_trials, 1, log=lambda *_: None)
+    params = {k: p.choices[0] if p.type == "categorical" else p.low for k, p in spec.space.items()}
+    best = {frames: 1.0e6 for frames in range(0, 5001, 50)}
+    driver.study.add_trial(
+        optuna.trial.create_trial(params=params, distributions=driver.dists, value=1.0e6, intermediate_values=best)
+    )
+
+
+def _assert_pruned_and_checkpointed(out: Path, number: int, warmup: int) -> None:
+    """The trial was stopped by its watcher, checkpointed past the frame count it was pruned at, and is resumable."""
+    from adarl.experiments.execute import STOP_FILE, read_attempts, run_is_finished
+
+    run = out / "trials" / f"trial-{number:04d}"
+    marker = json.loads((run / "tune_trial.json").read_text())
+    assert marker["state"] == "PRUNED" and marker["pruned_at_frames"] >= warmup, marker
+    ends = [a for a in read_attempts(out / "trials", run.name) if a["event"] == "end"]
+    assert ends[-1]["status"] == "stopped", ends
+    assert max(_checkpoint_frames(run)) >= marker["pruned_at_frames"]
+    assert not run_is_finished(run) and not (run / STOP_FILE).exists()
+
+
+@pytest.mark.slow
+def test_a_study_on_ray_prunes_and_continues_after_kill_9(tmp_path):
+    """Trials as Ray tasks: `adarl tune --launcher ray` killed with kill -9 mid-trial, started again: the trial is
+    re-attached and resumed from its checkpoint on Ray, then pruned (stopped through its folder: it checkpoints)."""
+    pytest.importorskip("ray")
+    from adarl.experiments.execute import read_attempts
+    from adarl.experiments.tune import run_tune
+
+    pruner = {"name": "median", "n_startup_trials": 1, "n_warmup_steps": 500}
+    spec = _spec(tmp_path, overrides=[*TINY, "collector.total_frames=900"], pruner=pruner)
+    out = tmp_path / "out"
+    _add_unbeatable_trial(spec, out)
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "adarl.cli", "tune", str(spec), "-o", str(out), "--launcher", "ray"],
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+    )
+    trial = out / "trials" / "trial-0001"
+    deadline = time.monotonic() + 600  # a guard against a hang, not a timing window: we wait for the file
+    while not (trial.is_dir() and any(f > 0 for f in _checkpoint_frames(trial))):
+        assert proc.poll() is None, proc.stderr.read().decode()[-2000:]
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+    os.kill(proc.pid, signal.SIGKILL)  # the Ray it started goes with it, and the trial's training with its worker
+    proc.wait()
+    holder = json.loads((trial / ".adarl.lock").read_text())["pid"]
+    while True:
+        try:
+            os.kill(holder, 0)
+        except ProcessLookupError:
+            break
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+    storage = f"sqlite:///{out / 'study.db'}"
+    before = optuna.load_study(study_name="tiny", storage=storage).trials
+    assert [(t.number, t.state.name) for t in before] == [(0, "COMPLETE"), (1, "RUNNING")]
+
+    said: list[str] = []
+    result = run_tune(spec, output=out, launcher="ray", log=said.append)
+    assert "1 of 2 trials done, 1 interrupted to resume" in said[0] and "(runs on ray)" in said[0]
+    assert result.states == {"COMPLETE": 1, "PRUNED": 1} and result.resumed == [1], said
+    after = optuna.load_study(study_name="tiny", storage=storage).trials
+    assert [t.number for t in after] == [0, 1] and after[1].params == before[1].params
+    assert [a["action"] for a in read_attempts(out / "trials", trial.name) if a["event"] == "start"] == [
+        "ran",
+        "resumed",
+    ]
+    _assert_pruned_and_checkpointed(out, 1, 500)
+
+
+@pytest.mark.slow
+def test_a_study_on_submitit_prunes_a_trial_so_that_it_checkpoints(tmp_path, monkeypatch):
+    """Trials as submitit jobs (its local executor): a pruned trial's job stops its run, which checkpoints."""
+    pytest.importorskip("submitit")
+    from adarl.experiments.tune import run_tune
+
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    monkeypatch.setenv("PYTHONPATH", str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    spec = _spec(
+        tmp_path, overrides=[*TINY, "collector.total_frames=900"], pruner={"name": "median", "n_startup_trials": 1}
+    )
+    out = tmp_path / "out"
+    _add_unbeatable_trial(spec, out)
+    said: list[str] = []
+    result = run_tune(spec, output=out, launcher="submitit", launcher_options={"cluster": "local"}, log=said.append)
+    assert result.states == {"COMPLETE": 1, "PRUNED": 1}, said
+    _assert_pruned_and_checkpointed(out, 1, 0)
+    assert (out / "submitit").is_dir()

@@ -1,10 +1,14 @@
 """Hyperparameter search: ``adarl tune SPEC`` (:func:`run_tune`), Optuna underneath.
 
 The study lives in ``<output>/study.db`` (SQLite through Optuna's RDB storage); each trial is a normal run folder,
-``<output>/trials/trial-NNNN``, run by the experiment machinery (:func:`~adarl.experiments.execute.execute_run`:
-``adarl run`` in a child process, ``adarl resume`` when the folder has a checkpoint). While a trial trains, its
-nominal evaluations (``eval.csv``) are reported to Optuna (``trial.report(score, step=frames)``) and the pruner asked;
-a pruned trial is stopped with SIGTERM (it checkpoints: the folder stays resumable) and marked (``tune_trial.json``).
+``<output>/trials/trial-NNNN`` (with several ``seeds``, one per seed: ``trial-NNNN/seed=S``, trained at the same
+time), run by the experiment machinery (:func:`~adarl.experiments.execute.execute_run`: ``adarl run`` in a child
+process, ``adarl resume`` when the folder has a checkpoint) on this machine or through a launcher (Ray, submitit:
+:meth:`~adarl.experiments.launchers.Launcher.run_watched`). While a trial trains, its nominal evaluations
+(``eval.csv``, the mean over seeds) are reported to Optuna (``trial.report(score, step=frames)``) and the pruner
+asked; a pruned trial is stopped with SIGTERM (it checkpoints: the folder stays resumable; on a worker, asked
+through a stop file in its folder) and marked (``tune_trial.json``). Its value is the mean over seeds of each
+seed's objective.
 
 Killed at any moment (``kill -9``) and started again, the study continues: finished trials are kept, and a trial
 still RUNNING in the database (no ``adarl tune`` holds the output folder: its lock says so) is re-attached (same
