@@ -31,6 +31,7 @@ plugins: [my_algo]
 algorithm: {name: local_sac}
 """
 
+
 def _error_line(proc) -> str:
     assert proc.returncode != 0 and "Traceback" not in proc.stderr, proc.stderr[-3000:]
     (line,) = [line for line in proc.stderr.splitlines() if line.startswith("adarl: error:")]
