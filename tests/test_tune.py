@@ -427,7 +427,7 @@ def _add_unbeatable_trial(spec_path: Path, out: Path) -> None:
 
 def _assert_pruned_and_checkpointed(out: Path, number: int, warmup: int) -> None:
     """The trial was stopped by its watcher, checkpointed past the frame count it was pruned at, and is resumable."""
-    from adarl.experiments.execute import STOP_FILE, read_attempts, run_is_finished
+    from adarl.experiments.execute import read_attempts, run_is_finished, stop_file
 
     run = out / "trials" / f"trial-{number:04d}"
     marker = json.loads((run / "tune_trial.json").read_text())
@@ -435,7 +435,7 @@ def _assert_pruned_and_checkpointed(out: Path, number: int, warmup: int) -> None
     ends = [a for a in read_attempts(out / "trials", run.name) if a["event"] == "end"]
     assert ends[-1]["status"] == "stopped", ends
     assert max(_checkpoint_frames(run)) >= marker["pruned_at_frames"]
-    assert not run_is_finished(run) and not (run / STOP_FILE).exists()
+    assert not run_is_finished(run) and not stop_file(run).exists()
 
 
 @pytest.mark.slow

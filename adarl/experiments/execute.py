@@ -42,28 +42,34 @@ __all__ = [
     "run_is_finished",
     "read_attempts",
     "ATTEMPTS_DIR",
-    "STOP_FILE",
+    "stop_file",
     "StopAsked",
     "request_stop",
     "clear_stop",
 ]
 
 ATTEMPTS_DIR = "attempts"  # <output>/attempts/<run id>.jsonl: one line per start and end of a run, by any launcher
-STOP_FILE = ".adarl.stop"  # in a run folder: asks the execute_run watching it (wherever it runs) to stop the run
+
+
+def stop_file(path: str | os.PathLike) -> Path:
+    """The file that asks the run in the folder ``path`` to stop: ``.<name>.stop`` beside the folder (not in it: a
+    run's first start clears its folder, and ``adarl run`` refuses a folder holding files it did not write)."""
+    p = Path(path)
+    return p.parent / f".{p.name}.stop"
 
 
 def request_stop(path: str | os.PathLike) -> None:
     """Ask the run in the folder ``path`` to stop (it checkpoints first) from any machine that sees the folder:
     the :class:`StopAsked` watcher of the :func:`execute_run` running it (on a Ray worker, in a SLURM job) sends the
     training SIGTERM within :data:`WATCH_POLL_S` seconds. ``adarl tune`` stops a pruned trial on a launcher so."""
-    p = Path(path)
-    p.mkdir(parents=True, exist_ok=True)
-    (p / STOP_FILE).write_text(f"{os.getpid()}\n")
+    f = stop_file(path)
+    f.parent.mkdir(parents=True, exist_ok=True)
+    f.write_text(f"{os.getpid()}\n")
 
 
 def clear_stop(path: str | os.PathLike) -> None:
     """Withdraw a :func:`request_stop` (before the run is started again)."""
-    (Path(path) / STOP_FILE).unlink(missing_ok=True)
+    stop_file(path).unlink(missing_ok=True)
 
 
 class StopAsked:
@@ -73,7 +79,7 @@ class StopAsked:
         self.path = str(path)
 
     def __call__(self) -> bool:
-        return (Path(self.path) / STOP_FILE).exists()
+        return stop_file(self.path).exists()
 
 
 def run_is_finished(path: str | os.PathLike) -> bool:

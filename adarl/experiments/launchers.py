@@ -24,7 +24,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from adarl.errors import AdaRLValueError, MissingExtraError
-from adarl.experiments.execute import STOP_FILE, WATCH_POLL_S, StopAsked, clear_stop, execute_run, request_stop
+from adarl.experiments.execute import WATCH_POLL_S, StopAsked, clear_stop, execute_run, request_stop
 from adarl.runtime.results import is_url
 
 __all__ = ["Launcher", "LocalLauncher", "RayLauncher", "SubmititLauncher", "make_launcher", "LAUNCHERS"]
@@ -62,11 +62,9 @@ class Launcher(ABC):
 
 
 def _watch_remote(run, watch: Callable[[], bool], asked: list[bool]) -> None:
-    """Driver side of a watched run on a worker: once ``watch()`` says stop, the stop file is there until the run
-    ends (written again if the run's first start cleared its folder)."""
+    """Driver side of a watched run on a worker: once ``watch()`` says stop, ask the run to stop (its stop file)."""
     if not asked[0] and watch():
         asked[0] = True
-    if asked[0] and not (Path(run.path) / STOP_FILE).exists():
         request_stop(run.path)
 
 
