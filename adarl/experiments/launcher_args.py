@@ -8,8 +8,11 @@ import argparse
 __all__ = ["add_launcher_arguments", "launcher_options"]
 
 
-def add_launcher_arguments(p: argparse.ArgumentParser, what: str = "runs", sizes: str = "the spec's resources") -> None:
-    """``--launcher`` and its options; ``what`` names what a launcher executes, ``sizes`` the default run size."""
+def add_launcher_arguments(
+    p: argparse.ArgumentParser, what: str = "runs", sizes: str = "the spec's resources", urls: bool = True
+) -> None:
+    """``--launcher`` and its options; ``what`` names what a launcher executes, ``sizes`` the default run size,
+    ``urls`` whether the output may be an fsspec URL."""
     p.add_argument(
         "--launcher",
         choices=["local", "ray", "submitit"],
@@ -32,7 +35,7 @@ def add_launcher_arguments(p: argparse.ArgumentParser, what: str = "runs", sizes
         "--submitit-folder",
         default=None,
         metavar="DIR",
-        help="submitit's job files (default: <output>/submitit; needed with a URL output)",
+        help="submitit's job files (default: <output>/submitit" + ("; needed with a URL output)" if urls else ")"),
     )
     p.add_argument("--cpus-per-run", type=float, default=None, help=f"CPUs per run (default: {sizes})")
     p.add_argument("--gpus-per-run", type=float, default=None, help=f"GPUs per run (default: {sizes})")

@@ -29,7 +29,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         help="trials at a time, each with its seeds' runs at once (default: the spec's workers)",
     )
-    add_launcher_arguments(p, what="the trials' runs", sizes="1 CPU, no GPU")
+    add_launcher_arguments(p, what="the trials' runs", sizes="1 CPU, no GPU", urls=False)
 
 
 def cli(args) -> int:
