@@ -33,6 +33,7 @@ from adarl.errors import (
 )
 from adarl.experiments import tune_cli
 from adarl.experiments.bench import add_arguments as bench_arguments
+from adarl.experiments.launcher_args import add_launcher_arguments, launcher_options
 from adarl.runtime.signals import RunInterrupted
 
 __all__ = ["main"]
@@ -285,16 +286,7 @@ def cmd_experiment(args) -> int:
     from adarl.experiments.spec import load_experiment
     from adarl.runtime.results import is_url
 
-    options = {"max_retries": args.max_retries}
-    if args.launcher == "ray":
-        options["address"] = args.ray_address
-    if args.launcher == "submitit":
-        options["cluster"] = args.submitit_cluster
-        if args.submitit_folder is not None:
-            options["submitit_folder"] = args.submitit_folder
-    for key in ("cpus_per_run", "gpus_per_run"):
-        if getattr(args, key) is not None:
-            options[key] = getattr(args, key)
+    options = launcher_options(args)
     live = not args.no_live and use_live()
     progress = args.progress
     if progress is None:  # a live board redraws often; plain lines every 30 s; a URL costs requests per refresh
@@ -544,38 +536,7 @@ def build_parser() -> argparse.ArgumentParser:
     ex.add_argument("--workers", "-j", type=int, default=None, help="runs at a time (default: the spec's workers)")
     ex.add_argument("--dry-run", action="store_true", help="list the runs and their status; run nothing")
     ex.add_argument("--no-report", action="store_true", help="do not write the aggregate report")
-    ex.add_argument(
-        "--launcher",
-        choices=["local", "ray", "submitit"],
-        default="local",
-        help="where runs execute: local processes (default), Ray tasks (pip install 'adarl[ray]'), or "
-        "SLURM jobs through submitit (pip install 'adarl[slurm]'); see docs/launchers.md",
-    )
-    ex.add_argument(
-        "--ray-address",
-        default=None,
-        help="Ray cluster to join (e.g. auto, ray://head:10001; default: start a local Ray)",
-    )
-    ex.add_argument(
-        "--submitit-cluster",
-        default=None,
-        choices=["slurm", "local", "debug"],
-        help="submitit executor (default: slurm when sbatch is found, else local)",
-    )
-    ex.add_argument(
-        "--submitit-folder",
-        default=None,
-        metavar="DIR",
-        help="submitit's job files (default: <output>/submitit; needed with a URL output)",
-    )
-    ex.add_argument("--cpus-per-run", type=float, default=None, help="CPUs per run (default: the spec's resources)")
-    ex.add_argument("--gpus-per-run", type=float, default=None, help="GPUs per run (default: the spec's resources)")
-    ex.add_argument(
-        "--max-retries",
-        type=int,
-        default=3,
-        help="times a run whose worker is lost is retried from its checkpoint (ray, submitit)",
-    )
+    add_launcher_arguments(ex)
     ex.add_argument(
         "--progress",
         type=float,

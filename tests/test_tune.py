@@ -81,6 +81,9 @@ BAD = {
     ),
     "bad sampler name": ({"sampler": {"name": "tpee"}}, ["sampler.name", "'tpe', 'random' or 'grid'"]),
     "misspelt spec key": ({"n_trails": 3}, ["n_trails", "did you mean 'n_trials'"]),
+    "seed and seeds": ({"seed": 1, "seeds": [0, 1]}, ["give `seed`", "or `seeds`", "not both"]),
+    "repeated seeds": ({"seeds": [0, 1, 0]}, ["seeds must be distinct, got [0, 1, 0]"]),
+    "no seeds": ({"seeds": []}, ["`seeds` needs at least one seed"]),
     "grid without a float step": (
         {"sampler": {"name": "grid"}},
         ["grid sampler needs a finite grid", "rank.beta"],
@@ -137,8 +140,8 @@ def test_the_pruner_reads_the_trials_evaluations(tmp_path):
     rows = 'frames,updates,mean,std,ci95,episodes,returns,ranks\n300,10,5.0,0,0,2,"[5, 5]",{}\n600,20,4.'
     (run / "eval.csv").write_text(rows)  # the second line is being written: not read yet
     bad = driver.study.ask(driver.dists)
-    assert driver._report(bad, run) is True
-    assert driver._report(bad, run) is True  # reported once
+    assert driver._report(bad, [run]) is True
+    assert driver._report(bad, [run]) is True  # reported once
     assert driver.storage.get_trial(bad._trial_id).intermediate_values == {300: 5.0}
 
 
@@ -276,3 +279,233 @@ def test_a_study_folder_refuses_another_search_space(tmp_path):
     flipped = load_tune_spec(_spec(tmp_path, direction="minimize"))
     with pytest.raises(RecipeError, match="direction"):
         _Study(flipped, out, flipped.n_trials, 1, log=lambda *_: None)
+    _Study(load_tune_spec(_spec(tmp_path, seeds=[0])), out, 2, 1, log=lambda *_: None)  # seeds [0] is seed 0
+    seeds = load_tune_spec(_spec(tmp_path, seeds=[0, 1]))
+    with pytest.raises(RecipeError, match=r"another seeds \(\[0\] in the study, \[0, 1\] in the spec\)"):
+        _Study(seeds, out, seeds.n_trials, 1, log=lambda *_: None)
+
+
+def test_a_study_made_before_seeds_existed_continues_with_its_seed(tmp_path):
+    """Studies recorded `seed` (an int) before `seeds` existed: the same seed continues them, another is refused."""
+    from adarl.errors import RecipeError
+    from adarl.experiments.tune import STUDY_FILE, _Study
+    from adarl.experiments.tune_spec import load_tune_spec
+
+    out = tmp_path / "out"
+    out.mkdir()
+    spec = load_tune_spec(_spec(tmp_path))
+    old = optuna.create_study(study_name="tiny", storage=f"sqlite:///{out / STUDY_FILE}", direction="maximize")
+    made = {
+        "space": {k: p.model_dump() for k, p in spec.space.items()},
+        "recipe": spec.recipe,
+        "overrides": list(spec.overrides),
+        "seed": 0,
+        "objective": spec.objective.model_dump(),
+        "direction": spec.direction,
+    }
+    for key, value in json.loads(json.dumps(made)).items():
+        old.set_user_attr(key, value)
+    _Study(spec, out, spec.n_trials, 1, log=lambda *_: None)
+    other = load_tune_spec(_spec(tmp_path, seed=3))
+    with pytest.raises(RecipeError, match=r"another seeds \(\[0\] in the study, \[3\] in the spec\)"):
+        _Study(other, out, other.n_trials, 1, log=lambda *_: None)
+
+
+def test_what_the_pruner_sees_of_several_seeds(tmp_path):
+    """The mean over seeds at each frame count that every seed reached, each seed at its last evaluation by then;
+    a frame count some seed has not reached yet waits."""
+    from adarl.experiments.tune import _Study, mean_scores
+    from adarl.experiments.tune_spec import load_tune_spec
+
+    a, b = [(300, 10.0), (600, 20.0), (900, 40.0)], [(400, 30.0), (700, 50.0)]
+    assert mean_scores([a, b]) == [(400, 20.0), (600, 25.0), (700, 35.0)]  # 300: b not evaluated; 900: b not there
+    assert mean_scores([a, []]) == []
+    assert mean_scores([a]) == a
+
+    spec = load_tune_spec(_spec(tmp_path, seeds=[0, 1], pruner={"name": "none"}))
+    out = tmp_path / "out"
+    out.mkdir()
+    driver = _Study(spec, out, spec.n_trials, 1, log=lambda *_: None)
+    trial = driver.study.ask(driver.dists)
+    paths = [Path(r.path) for r in driver._planned(trial.number, trial.params)]
+    assert [p.relative_to(out).as_posix() for p in paths] == ["trials/trial-0000/seed=0", "trials/trial-0000/seed=1"]
+    assert [r.overrides[-1] for r in driver._planned(trial.number, trial.params)] == ["seed=0", "seed=1"]
+    head = "frames,updates,mean,std,ci95,episodes,returns,ranks\n"
+    for path, rows in zip(paths, (["300,1,10.0", "600,2,20.0"], ["300,1,30.0"])):
+        path.mkdir(parents=True)
+        (path / "eval.csv").write_text(head + "".join(f'{r},0,0,2,"[1, 1]",{{}}\n' for r in rows))
+    assert driver._report(trial, paths) is False
+    assert driver.storage.get_trial(trial._trial_id).intermediate_values == {300: 20.0}
+
+
+def _eval_means(run: Path) -> dict[int, float]:
+    with (run / "eval.csv").open() as fh:
+        return {int(r["frames"]): float(r["mean"]) for r in csv.DictReader(fh)}
+
+
+@pytest.mark.slow
+def test_a_study_with_two_seeds_per_trial(tmp_path, monkeypatch, capsys):
+    """A trial of two seeds: a run folder per seed under the trial's folder, each seed's value recorded,
+    the trial's value their mean, and what the pruner saw the mean over seeds at each frame count."""
+    from adarl.cli import main
+    from adarl.experiments.tune import run_tune
+
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    space = {  # keep mode: both seeds evaluate at the same frame counts
+        "rank.beta": {"type": "float", "low": 0.8, "high": 0.99},
+        "algorithm.lr": {"type": "float", "low": 1.0e-4, "high": 3.0e-3, "log": True},
+    }
+    overrides = [*TINY, "collector.total_frames=400", "eval.interval=200", "checkpoint.interval=400"]
+    spec = _spec(tmp_path, seeds=[0, 1], space=space, overrides=overrides, n_trials=1)  # one trial: four runs' cost
+    out = tmp_path / "out"
+    said: list[str] = []
+    result = run_tune(spec, output=out, log=said.append)
+    assert result.states == {"COMPLETE": 1}, said
+    trials = optuna.load_study(study_name="tiny", storage=f"sqlite:///{out / 'study.db'}").trials
+    with (out / "trials.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    for t, row in zip(trials, rows):
+        folder = out / "trials" / f"trial-{t.number:04d}"
+        assert sorted(p.name for p in folder.iterdir() if p.name.startswith("seed=") and p.is_dir()) == [
+            "seed=0",
+            "seed=1",
+        ]
+        evals = [_eval_means(folder / f"seed={s}") for s in (0, 1)]
+        assert list(evals[0]) == list(evals[1]) == [200, 400]
+        seed_values = {str(s): evals[s][400] for s in (0, 1)}  # score_last 1: the last evaluation
+        assert t.user_attrs["seed_values"] == pytest.approx(seed_values)
+        assert t.value == pytest.approx((seed_values["0"] + seed_values["1"]) / 2)
+        assert t.intermediate_values == pytest.approx({f: (evals[0][f] + evals[1][f]) / 2 for f in (200, 400)})
+        assert float(row["value"]) == pytest.approx(t.value)
+        assert [float(row["value_seed_0"]), float(row["value_seed_1"])] == pytest.approx(list(seed_values.values()))
+        assert row["run_dir"] == f"trials/trial-{t.number:04d}"
+        marker = json.loads((folder / "tune_trial.json").read_text())
+        assert marker["state"] == "COMPLETE" and marker["seed_values"] == pytest.approx(seed_values)
+    assert "seeds 0, 1 (a run each)" in (out / "report.md").read_text()
+    assert yaml.safe_load((out / "tune_spec.yaml").read_text())["seeds"] == [0, 1]
+    # the same folder with other seeds is refused by name, before anything runs
+    other = _spec(tmp_path, seeds=[0, 2], space=space, overrides=overrides, n_trials=1)
+    assert main(["tune", str(other), "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "another seeds ([0, 1] in the study, [0, 2] in the spec)" in err and err.count("\n") == 1, err
+
+
+def test_a_missing_launcher_extra_is_bad_input_and_writes_nothing(tmp_path, monkeypatch, capsys):
+    import importlib.util
+
+    from adarl.cli import main
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(
+        importlib.util, "find_spec", lambda name, *a: None if name in ("ray", "submitit") else real(name, *a)
+    )
+    for name in ("ray", "submitit"):  # `import ray` fails too, as where it is not installed
+        monkeypatch.setitem(sys.modules, name, None)
+    for launcher, extra in (("ray", "ray"), ("submitit", "slurm")):
+        out = tmp_path / launcher
+        assert main(["tune", str(_spec(tmp_path)), "-o", str(out), "--launcher", launcher]) == 2
+        err = capsys.readouterr().err
+        assert f"pip install 'adarl[{extra}]'" in err and err.count("\n") == 1, err
+        assert not out.exists()
+
+
+def _add_unbeatable_trial(spec_path: Path, out: Path) -> None:
+    """Trial 0: a complete trial that no run of a few hundred frames can match at any frame count, so that the
+    median pruner (n_startup_trials 1) prunes the next trial at its first evaluation past the warm-up."""
+    from adarl.experiments.tune import _Study
+    from adarl.experiments.tune_spec import load_tune_spec
+
+    spec = load_tune_spec(spec_path)
+    out.mkdir()
+    driver = _Study(spec, out, spec.n_trials, 1, log=lambda *_: None)
+    params = {k: p.choices[0] if p.type == "categorical" else p.low for k, p in spec.space.items()}
+    best = {frames: 1.0e6 for frames in range(0, 5001, 50)}
+    driver.study.add_trial(
+        optuna.trial.create_trial(params=params, distributions=driver.dists, value=1.0e6, intermediate_values=best)
+    )
+
+
+def _assert_pruned_and_checkpointed(out: Path, number: int, warmup: int) -> None:
+    """The trial was stopped by its watcher, checkpointed past the frame count it was pruned at, and is resumable."""
+    from adarl.experiments.execute import read_attempts, run_is_finished, stop_file
+
+    run = out / "trials" / f"trial-{number:04d}"
+    marker = json.loads((run / "tune_trial.json").read_text())
+    assert marker["state"] == "PRUNED" and marker["pruned_at_frames"] >= warmup, marker
+    ends = [a for a in read_attempts(out / "trials", run.name) if a["event"] == "end"]
+    assert ends[-1]["status"] == "stopped", ends
+    assert max(_checkpoint_frames(run)) >= marker["pruned_at_frames"]
+    assert not run_is_finished(run) and not stop_file(run).exists()
+
+
+@pytest.mark.slow
+def test_a_study_on_ray_prunes_and_continues_after_kill_9(tmp_path):
+    """Trials as Ray tasks: `adarl tune --launcher ray` killed with kill -9 mid-trial, started again: the trial is
+    re-attached and resumed from its checkpoint on Ray, then pruned (stopped through its folder: it checkpoints)."""
+    pytest.importorskip("ray")
+    from adarl.experiments.execute import read_attempts
+    from adarl.experiments.tune import run_tune
+
+    pruner = {"name": "median", "n_startup_trials": 1, "n_warmup_steps": 500}
+    spec = _spec(tmp_path, overrides=[*TINY, "collector.total_frames=900"], pruner=pruner)
+    out = tmp_path / "out"
+    _add_unbeatable_trial(spec, out)
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "adarl.cli", "tune", str(spec), "-o", str(out), "--launcher", "ray"],
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+    )
+    trial = out / "trials" / "trial-0001"
+    deadline = time.monotonic() + 600  # a guard against a hang, not a timing window: we wait for the file
+    while not (trial.is_dir() and any(f > 0 for f in _checkpoint_frames(trial))):
+        assert proc.poll() is None, proc.stderr.read().decode()[-2000:]
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+    os.kill(proc.pid, signal.SIGKILL)  # the Ray it started goes with it, and the trial's training with its worker
+    proc.wait()
+    holder = json.loads((trial / ".adarl.lock").read_text())["pid"]
+    while True:
+        try:
+            os.kill(holder, 0)
+        except ProcessLookupError:
+            break
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+    storage = f"sqlite:///{out / 'study.db'}"
+    before = optuna.load_study(study_name="tiny", storage=storage).trials
+    assert [(t.number, t.state.name) for t in before] == [(0, "COMPLETE"), (1, "RUNNING")]
+
+    said: list[str] = []
+    result = run_tune(spec, output=out, launcher="ray", log=said.append)
+    assert "1 of 2 trials done, 1 interrupted to resume" in said[0] and "(runs on ray)" in said[0]
+    assert result.states == {"COMPLETE": 1, "PRUNED": 1} and result.resumed == [1], said
+    after = optuna.load_study(study_name="tiny", storage=storage).trials
+    assert [t.number for t in after] == [0, 1] and after[1].params == before[1].params
+    assert [a["action"] for a in read_attempts(out / "trials", trial.name) if a["event"] == "start"] == [
+        "ran",
+        "resumed",
+    ]
+    _assert_pruned_and_checkpointed(out, 1, 500)
+
+
+@pytest.mark.slow
+def test_a_study_on_submitit_prunes_a_trial_so_that_it_checkpoints(tmp_path, monkeypatch):
+    """Trials as submitit jobs (its local executor): a pruned trial's job stops its run, which checkpoints."""
+    pytest.importorskip("submitit")
+    from adarl.experiments.tune import run_tune
+
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    monkeypatch.setenv("PYTHONPATH", str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    spec = _spec(
+        tmp_path, overrides=[*TINY, "collector.total_frames=900"], pruner={"name": "median", "n_startup_trials": 1}
+    )
+    out = tmp_path / "out"
+    _add_unbeatable_trial(spec, out)
+    said: list[str] = []
+    result = run_tune(spec, output=out, launcher="submitit", launcher_options={"cluster": "local"}, log=said.append)
+    assert result.states == {"COMPLETE": 1, "PRUNED": 1}, said
+    _assert_pruned_and_checkpointed(out, 1, 0)
+    assert (out / "submitit").is_dir()

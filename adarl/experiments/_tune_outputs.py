@@ -28,18 +28,34 @@ def _fmt(v) -> str:
 
 
 def _write_trials_csv(trials, spec: TuneSpec, path: Path) -> None:
+    """One row per trial; with several seeds ``value`` is the mean over seeds and ``value_seed_S`` each seed's."""
     keys = list(spec.space)
+    seeds = spec.trial_seeds if len(spec.trial_seeds) > 1 else []
     with path.open("w", newline="") as fh:
         w = csv.writer(fh)
-        w.writerow(["number", "state", "value", *keys, "last_step", "evaluations", "seconds", "run_dir"])
+        w.writerow(
+            [
+                "number",
+                "state",
+                "value",
+                *(f"value_seed_{s}" for s in seeds),
+                *keys,
+                "last_step",
+                "evaluations",
+                "seconds",
+                "run_dir",
+            ]
+        )
         for t in trials:
             steps = t.intermediate_values
             seconds = t.duration.total_seconds() if t.duration is not None else ""
+            per_seed = t.user_attrs.get("seed_values", {})
             w.writerow(
                 [
                     t.number,
                     t.state.name,
                     "" if t.value is None else t.value,
+                    *(per_seed.get(str(s), "") for s in seeds),
                     *(t.params.get(k, "") for k in keys),
                     max(steps) if steps else "",
                     len(steps),
@@ -59,7 +75,13 @@ def _write_best_recipe(study, spec: TuneSpec, path: Path) -> optuna.trial.Frozen
         f"# adarl tune {spec.name}: the best of {len(complete)} complete trials: trial {best.number}, "
         f"{spec.objective.metric} {best.value:.6g} ({spec.direction})\n"
         f"# base recipe {spec.recipe} with: {' '.join(trial_overrides(spec, best.params))}\n"
-        f"# run it: adarl run {path} (more frames: collector.total_frames=N)\n"
+        + (
+            f"# the value is the mean over seeds {', '.join(map(str, spec.trial_seeds))} (this file: seed "
+            f"{spec.trial_seeds[0]}; seed=N for another)\n"
+            if len(spec.trial_seeds) > 1
+            else ""
+        )
+        + f"# run it: adarl run {path} (more frames: collector.total_frames=N)\n"
     )
     path.write_text(head + recipe_to_yaml(recipe))
     return best
@@ -164,11 +186,16 @@ def write_outputs(study, spec: TuneSpec, out: Path, log=print) -> Path:
         if o.metric == "score"
         else f"the {o.worst} of the sweep {', '.join(o.sweep.params)}"
     )
+    if len(spec.trial_seeds) > 1:
+        seeds = f"seeds {', '.join(map(str, spec.trial_seeds))} (a run each)"
+        what += " of each seed, the mean over seeds (what the pruner sees too: the mean over seeds at each frame count)"
+    else:
+        seeds = f"seed {spec.trial_seeds[0]}"
     lines = [
         f"# Hyperparameter search: {spec.name}",
         "",
         *([spec.description, ""] if spec.description else []),
-        f"Base recipe `{spec.recipe}` with `{' '.join(spec.overrides)}`, seed {spec.seed}; objective: {what} "
+        f"Base recipe `{spec.recipe}` with `{' '.join(spec.overrides)}`, {seeds}; objective: {what} "
         f"({spec.direction}); sampler {spec.sampler.name} (seed {spec.sampler.seed}), pruner {spec.pruner.name}.",
         f"Trials: {len(trials)} of {spec.n_trials} ({', '.join(f'{n} {k}' for k, n in sorted(counts.items()))}).",
         "",
@@ -194,17 +221,22 @@ def write_outputs(study, spec: TuneSpec, out: Path, log=print) -> Path:
     else:
         lines += [f"Not computed: {why}.", ""]
     keys = list(spec.space)
-    lines += ["## Trials", "", "A pruned trial's value is its last reported score.", ""]
-    lines += ["| trial | state | value | " + " | ".join(f"`{k}`" for k in keys) + " | frames |"]
-    lines += ["|---" * (4 + len(keys)) + "|"]
+    several = spec.trial_seeds if len(spec.trial_seeds) > 1 else []
+    note = " A trial's value is the mean of its seeds' values." if several else ""
+    lines += ["## Trials", "", f"A pruned trial's value is its last reported score.{note}", ""]
+    head = ["trial", "state", "value", *(f"seed {s}" for s in several), *(f"`{k}`" for k in keys), "frames"]
+    lines += ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
     for t in trials:
         steps = t.intermediate_values
         value = "" if t.value is None or math.isnan(t.value) else f"{t.value:.4g}"
-        cells = [str(t.number), t.state.name.lower(), value, *(_fmt(t.params.get(k)) for k in keys)]
+        per_seed = t.user_attrs.get("seed_values", {})
+        cells = [str(t.number), t.state.name.lower(), value, *(_fmt(per_seed.get(str(s))) for s in several)]
+        cells += [_fmt(t.params.get(k)) for k in keys]
         lines.append("| " + " | ".join([*cells, str(max(steps)) if steps else ""]) + " |")
+    folders = "a run folder" if not several else "a folder of run folders, one per seed (`seed=S`),"
     lines += [
         "",
-        "Every trial is a run folder under `trials/` (`adarl resume`, `adarl eval`, `adarl report` work on it).",
+        f"Every trial is {folders} under `trials/` (`adarl resume`, `adarl eval`, `adarl report` work on each run).",
     ]
     path = out / "report.md"
     path.write_text("\n".join(lines) + "\n")

@@ -37,9 +37,49 @@ from adarl.runtime.results import (
     write_atomic,
 )
 
-__all__ = ["execute_run", "run_is_finished", "read_attempts", "ATTEMPTS_DIR"]
+__all__ = [
+    "execute_run",
+    "run_is_finished",
+    "read_attempts",
+    "ATTEMPTS_DIR",
+    "stop_file",
+    "StopAsked",
+    "request_stop",
+    "clear_stop",
+]
 
 ATTEMPTS_DIR = "attempts"  # <output>/attempts/<run id>.jsonl: one line per start and end of a run, by any launcher
+
+
+def stop_file(path: str | os.PathLike) -> Path:
+    """The file that asks the run in the folder ``path`` to stop: ``.<name>.stop`` beside the folder (not in it: a
+    run's first start clears its folder, and ``adarl run`` refuses a folder holding files it did not write)."""
+    p = Path(path)
+    return p.parent / f".{p.name}.stop"
+
+
+def request_stop(path: str | os.PathLike) -> None:
+    """Ask the run in the folder ``path`` to stop (it checkpoints first) from any machine that sees the folder:
+    the :class:`StopAsked` watcher of the :func:`execute_run` running it (on a Ray worker, in a SLURM job) sends the
+    training SIGTERM within :data:`WATCH_POLL_S` seconds. ``adarl tune`` stops a pruned trial on a launcher so."""
+    f = stop_file(path)
+    f.parent.mkdir(parents=True, exist_ok=True)
+    f.write_text(f"{os.getpid()}\n")
+
+
+def clear_stop(path: str | os.PathLike) -> None:
+    """Withdraw a :func:`request_stop` (before the run is started again)."""
+    stop_file(path).unlink(missing_ok=True)
+
+
+class StopAsked:
+    """A picklable ``watch`` for :func:`execute_run`: true once :func:`request_stop` was called on the run folder."""
+
+    def __init__(self, path: str | os.PathLike) -> None:
+        self.path = str(path)
+
+    def __call__(self) -> bool:
+        return stop_file(self.path).exists()
 
 
 def run_is_finished(path: str | os.PathLike) -> bool:

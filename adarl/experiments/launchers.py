@@ -14,16 +14,17 @@ stage code or install packages on workers: each worker needs ``adarl`` installed
 
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import os
 import time
 from abc import ABC, abstractmethod
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from adarl.errors import AdaRLValueError, MissingExtraError
-from adarl.experiments.execute import execute_run
+from adarl.experiments.execute import WATCH_POLL_S, StopAsked, clear_stop, execute_run, request_stop
 from adarl.runtime.results import is_url
 
 __all__ = ["Launcher", "LocalLauncher", "RayLauncher", "SubmititLauncher", "make_launcher", "LAUNCHERS"]
@@ -44,6 +45,27 @@ class Launcher(ABC):
     def threads(self) -> int | None:
         """Torch threads per run (``OMP_NUM_THREADS``); ``None`` leaves the default."""
         return None
+
+    @contextlib.contextmanager
+    def session(self) -> Iterator[Launcher]:
+        """What :meth:`run_watched` needs held between runs (Ray started, submitit's executor), released after."""
+        yield self
+
+    def run_watched(self, run, watch: Callable[[], bool]):
+        """Execute one run to its end (call it from any thread, inside :meth:`session`) and return it, status set.
+
+        ``watch()`` is called here every :data:`~adarl.experiments.execute.WATCH_POLL_S` seconds while the run
+        trains; once it returns True the run is asked to stop (:func:`~adarl.experiments.execute.request_stop`, a
+        file in its folder, seen by the worker: the training gets SIGTERM and checkpoints first) and its status is
+        ``stopped`` (resumable). ``adarl tune`` prunes trials so."""
+        raise NotImplementedError(f"the {self.name} launcher does not run watched runs (adarl tune)")
+
+
+def _watch_remote(run, watch: Callable[[], bool], asked: list[bool]) -> None:
+    """Driver side of a watched run on a worker: once ``watch()`` says stop, ask the run to stop (its stop file)."""
+    if not asked[0] and watch():
+        asked[0] = True
+        request_stop(run.path)
 
 
 class LocalLauncher(Launcher):
@@ -82,9 +104,12 @@ class LocalLauncher(Launcher):
                     tick(set(running))
                     time.sleep(min(self.poll_s, 0.2) if not done else 0)
 
+    def run_watched(self, run, watch):
+        return execute_run(run, self.threads, watch=watch)
 
-def _ray_execute(run, threads):
-    return execute_run(run, threads)
+
+def _ray_execute(run, threads, watch=None):
+    return execute_run(run, threads, watch=watch)
 
 
 class RayLauncher(Launcher):
@@ -119,7 +144,9 @@ class RayLauncher(Launcher):
     def threads(self) -> int | None:
         return max(1, int(self.cpus_per_run))
 
-    def launch(self, runs, on_done, *, tick=lambda running: None) -> None:
+    @contextlib.contextmanager
+    def session(self):
+        """Ray joined (``address``) or started on demand (stopped afterwards), and the run task declared."""
         try:
             import ray
         except ImportError:
@@ -132,12 +159,44 @@ class RayLauncher(Launcher):
                 ray.init(address=self.address, log_to_driver=False, configure_logging=False)
             started = True
         try:
-            task = ray.remote(_ray_execute).options(
+            self._task = ray.remote(_ray_execute).options(
                 num_cpus=self.cpus_per_run,
                 num_gpus=self.gpus_per_run,
                 max_retries=self.max_retries,
                 retry_exceptions=False,
             )
+            yield self
+        finally:
+            self._task = None
+            if started:
+                ray.shutdown()
+
+    def run_watched(self, run, watch):
+        import ray
+
+        ref, asked = self._task.remote(run, self.threads, StopAsked(run.path)), [False]
+        try:
+            while not ray.wait([ref], timeout=WATCH_POLL_S)[0]:
+                _watch_remote(run, watch, asked)
+        except BaseException:  # interrupted here: the run checkpoints and stops, if Ray lets it (a while)
+            request_stop(run.path)
+            with contextlib.suppress(BaseException):
+                ray.wait([ref], timeout=60)
+            raise
+        try:
+            result = ray.get(ref)
+            run.status, run.message, run.wall_time_s = result.status, result.message, result.wall_time_s
+        except Exception as err:  # noqa: BLE001 - worker lost more than max_retries times, etc.
+            run.status, run.message = "failed", f"ray: {type(err).__name__}: {str(err).splitlines()[0]}"
+        if asked[0]:
+            clear_stop(run.path)
+        return run
+
+    def launch(self, runs, on_done, *, tick=lambda running: None) -> None:
+        with self.session():
+            import ray
+
+            task = self._task
             refs = {task.remote(r, self.threads): r for r in runs}
             pending = list(refs)
             while pending:
@@ -151,9 +210,6 @@ class RayLauncher(Launcher):
                         run.status, run.message = "failed", f"ray: {type(err).__name__}: {str(err).splitlines()[0]}"
                     on_done(run)
                 tick({refs[ref].run_id for ref in pending})
-        finally:
-            if started:
-                ray.shutdown()
 
 
 class SubmititLauncher(Launcher):
@@ -204,6 +260,39 @@ class SubmititLauncher(Launcher):
         ex.update_parameters(**params)
         return ex
 
+    @contextlib.contextmanager
+    def session(self):
+        """submitit's executor, made once for the runs sent one by one."""
+        self._ex = self._executor()
+        try:
+            yield self
+        finally:
+            self._ex = None
+
+    def run_watched(self, run, watch):
+        job_fn, asked = _CheckpointableRun(), [False]
+        job, tries = self._ex.submit(job_fn, run, self.threads, StopAsked(run.path)), 0
+        while True:
+            if job.done():
+                try:
+                    result = job.result()
+                    run.status, run.message, run.wall_time_s = result.status, result.message, result.wall_time_s
+                except Exception as err:  # noqa: BLE001 - job lost (node failure, cancelled): retry from checkpoint
+                    if tries < self.max_retries:
+                        job, tries = self._ex.submit(job_fn, run, self.threads, StopAsked(run.path)), tries + 1
+                        continue
+                    run.status, run.message = "failed", f"submitit job {job.job_id}: {str(err).splitlines()[0]}"
+                break
+            try:
+                _watch_remote(run, watch, asked)
+                time.sleep(WATCH_POLL_S)
+            except BaseException:  # interrupted here: the job's run checkpoints and stops (asked by its folder)
+                request_stop(run.path)
+                raise
+        if asked[0]:
+            clear_stop(run.path)
+        return run
+
     def launch(self, runs, on_done, *, tick=lambda running: None) -> None:
         ex = self._executor()
         job_fn = _CheckpointableRun()
@@ -236,8 +325,8 @@ except ImportError:  # pragma: no cover - the launcher raises a clear error befo
 class _CheckpointableRun(_Checkpointable):
     """The job submitit runs; on preemption/timeout it is resubmitted as is (the run resumes from its checkpoint)."""
 
-    def __call__(self, run, threads):
-        return execute_run(run, threads)
+    def __call__(self, run, threads, watch=None):
+        return execute_run(run, threads, watch=watch)
 
 
 def make_launcher(

@@ -1,10 +1,14 @@
 """Hyperparameter search: ``adarl tune SPEC`` (:func:`run_tune`), Optuna underneath.
 
 The study lives in ``<output>/study.db`` (SQLite through Optuna's RDB storage); each trial is a normal run folder,
-``<output>/trials/trial-NNNN``, run by the experiment machinery (:func:`~adarl.experiments.execute.execute_run`:
-``adarl run`` in a child process, ``adarl resume`` when the folder has a checkpoint). While a trial trains, its
-nominal evaluations (``eval.csv``) are reported to Optuna (``trial.report(score, step=frames)``) and the pruner asked;
-a pruned trial is stopped with SIGTERM (it checkpoints: the folder stays resumable) and marked (``tune_trial.json``).
+``<output>/trials/trial-NNNN`` (with several ``seeds``, one per seed: ``trial-NNNN/seed=S``, trained at the same
+time), run by the experiment machinery (:func:`~adarl.experiments.execute.execute_run`: ``adarl run`` in a child
+process, ``adarl resume`` when the folder has a checkpoint) on this machine or through a launcher (Ray, submitit:
+:meth:`~adarl.experiments.launchers.Launcher.run_watched`). While a trial trains, its nominal evaluations
+(``eval.csv``, the mean over seeds) are reported to Optuna (``trial.report(score, step=frames)``) and the pruner
+asked; a pruned trial is stopped with SIGTERM (it checkpoints: the folder stays resumable; on a worker, asked
+through a stop file in its folder) and marked (``tune_trial.json``). Its value is the mean over seeds of each
+seed's objective.
 
 Killed at any moment (``kill -9``) and started again, the study continues: finished trials are kept, and a trial
 still RUNNING in the database (no ``adarl tune`` holds the output folder: its lock says so) is re-attached (same
@@ -32,7 +36,8 @@ from optuna.trial import TrialState
 
 from adarl.errors import AdaRLError, AdaRLValueError, RecipeError
 from adarl.experiments._tune_outputs import write_outputs
-from adarl.experiments.execute import execute_run, run_is_finished
+from adarl.experiments.execute import clear_stop, run_is_finished
+from adarl.experiments.launchers import Launcher, LocalLauncher, make_launcher
 from adarl.experiments.spec import PlannedRun
 from adarl.experiments.sweep import parse_sweep, sweep_run
 from adarl.experiments.tune_spec import (
@@ -65,7 +70,15 @@ class TuneResult:
 
 
 def trial_dir(output: str | os.PathLike, number: int) -> Path:
+    """Trial ``number``'s folder: its run folder with one seed, the folder of its runs (``seed=S``) with more."""
     return Path(output) / "trials" / f"trial-{number:04d}"
+
+
+def trial_run_dir(output: str | os.PathLike, number: int, seed: int, seeds: list[int]) -> Path:
+    """The run folder of one seed of a trial: ``trial-NNNN`` with one seed (as studies made before ``seeds``
+    existed), ``trial-NNNN/seed=S`` with more."""
+    folder = trial_dir(output, number)
+    return folder if len(seeds) == 1 else folder / f"seed={seed}"
 
 
 def distributions(spec: TuneSpec) -> dict:
@@ -145,6 +158,23 @@ def _scores(run: Path, last: int) -> list[tuple[int, float]]:
     return out
 
 
+def mean_scores(per_seed: list[list[tuple[int, float]]]) -> list[tuple[int, float]]:
+    """What the pruner sees of a trial with several seeds: ``(frames, score)`` at each frame count F that some seed
+    evaluated at and every seed reached (evaluated at F or later), the mean over seeds of each one's score at its
+    last evaluation at or before F (a seed not evaluated by F yet leaves F out). With one seed: its own scores."""
+    if len(per_seed) == 1:
+        return list(per_seed[0])
+    if not per_seed or not all(per_seed):
+        return []
+    reached = min(s[-1][0] for s in per_seed)
+    out = []
+    for frames in sorted({f for s in per_seed for f, _ in s if f <= reached}):
+        at = [[v for f, v in s if f <= frames] for s in per_seed]
+        if all(at):
+            out.append((frames, sum(v[-1] for v in at) / len(at)))
+    return out
+
+
 def _write_trial_file(path: Path, number: int, params: dict, state: str, value=None, **extra) -> None:
     if not path.is_dir():
         return
@@ -157,8 +187,10 @@ def _write_trial_file(path: Path, number: int, params: dict, state: str, value=N
 class _Study:
     """The driver: asks (or re-attaches) trials, runs each as a run folder, reports, prunes and tells."""
 
-    def __init__(self, spec: TuneSpec, out: Path, n_trials: int, workers: int, log) -> None:
+    def __init__(self, spec: TuneSpec, out: Path, n_trials: int, workers: int, log, launcher=None) -> None:
         self.spec, self.out, self.n_trials, self.workers, self.log = spec, out, n_trials, workers, log
+        # the runs of `workers` trials at a time, each trial's seeds at once (local: one torch thread each when > 1)
+        self.launcher = launcher or LocalLauncher(workers * len(spec.trial_seeds))
         self.dists = distributions(spec)
         optuna.logging.set_verbosity(optuna.logging.WARNING)  # adarl prints one line per trial itself
         self.mutex = threading.RLock()  # ask, tell and the budget count happen one thread at a time
@@ -197,20 +229,26 @@ class _Study:
             "space": {k: p.model_dump() for k, p in self.spec.space.items()},
             "recipe": self.spec.recipe,
             "overrides": list(self.spec.overrides),
-            "seed": self.spec.seed,
+            "seeds": self.spec.trial_seeds,
             "objective": self.spec.objective.model_dump(),
             "direction": self.spec.direction,
         }
         made = json.loads(json.dumps(made))
-        attrs = self.study.user_attrs
+        attrs = dict(self.study.user_attrs)
         if "space" not in attrs:
             for key, value in made.items():
                 self.study.set_user_attr(key, value)
             return
+        if "seeds" not in attrs and "seed" in attrs:  # a study made before `seeds` existed: one seed per trial
+            attrs["seeds"] = [attrs["seed"]]
         changed = [key for key, value in made.items() if attrs.get(key) != value]
         if changed:
+            named = [
+                f"seeds ({attrs.get('seeds')} in the study, {made['seeds']} in the spec)" if key == "seeds" else key
+                for key in changed
+            ]
             raise RecipeError(
-                f"the study in {self.out} was made with another {', '.join(changed)}; continue it with the same "
+                f"the study in {self.out} was made with another {', '.join(named)}; continue it with the same "
                 "spec, or give another output folder (-o)"
             )
 
@@ -254,53 +292,88 @@ class _Study:
                 raise
 
     # ------------------------------------------------------------------ one trial
+    def _planned(self, number: int, params: dict) -> list[PlannedRun]:
+        """The trial's runs: one per seed (``trial-NNNN`` itself with one seed, ``trial-NNNN/seed=S`` with more)."""
+        seeds = self.spec.trial_seeds
+        runs = []
+        for seed in seeds:
+            path = trial_run_dir(self.out, number, seed, seeds)
+            runs.append(
+                PlannedRun(
+                    run_id=path.name,
+                    axes={"trial": str(number), "seed": str(seed)},
+                    seed=seed,
+                    recipe=self.spec.recipe,
+                    overrides=trial_overrides(self.spec, params, seed),
+                    path=str(path),
+                )
+            )
+        return runs
+
     def _run_trial(self, trial) -> None:
         number, params = trial.number, dict(trial.params)
-        path = trial_dir(self.out, number)
-        run = PlannedRun(
-            run_id=path.name,
-            axes={"trial": str(number)},
-            seed=self.spec.seed,
-            recipe=self.spec.recipe,
-            overrides=trial_overrides(self.spec, params),
-            path=str(path),
-        )
+        folder = trial_dir(self.out, number)
+        runs = self._planned(number, params)
+        paths = [Path(r.path) for r in runs]
         with self.mutex:
-            trial.set_user_attr("run_dir", path.relative_to(self.out).as_posix())  # in the output folder
+            trial.set_user_attr("run_dir", folder.relative_to(self.out).as_posix())  # in the output folder
         shown = ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in params.items())
         again = " (resumed)" if number in self.resumed else ""
-        self.log(f"[trial {number}]{again} {shown}")
-        pruned = {"at": None}
+        seeds = self.spec.trial_seeds
+        self.log(
+            f"[trial {number}]{again} {shown}" + (f" (seeds {', '.join(map(str, seeds))})" if len(seeds) > 1 else "")
+        )
+        state = {"pruned_at": None, "failed": False}
+        guard = threading.Lock()  # each seed's run asks the watcher; one report at a time
 
         def watch() -> bool:
-            if self.stopping.is_set():
-                return True
-            if self._report(trial, path) and pruned["at"] is None:
-                pruned["at"] = self._last_step(trial)
-            return pruned["at"] is not None
+            if self.stopping.is_set() or state["failed"]:
+                return True  # interrupted, or a seed failed: the trial fails, its other runs need not go on
+            with guard:
+                if state["pruned_at"] is None and self._report(trial, paths):
+                    state["pruned_at"] = self._last_step(trial)
+                return state["pruned_at"] is not None
 
-        marker = path / TRIAL_FILE
+        def one(run: PlannedRun) -> PlannedRun:
+            run = self.launcher.run_watched(run, watch)
+            if run.status == "failed":
+                state["failed"] = True
+            return run
+
+        marker = folder / TRIAL_FILE
         if marker.is_file() and json.loads(marker.read_text()).get("state") == "PRUNED":
-            pruned["at"] = json.loads(marker.read_text()).get("pruned_at_frames")  # pruned, killed before the tell
-        elif not run_is_finished(path) and self._report(trial, path):
-            pruned["at"] = self._last_step(trial)  # its evaluations so far already prune it
-        if pruned["at"] is None:
-            run = execute_run(run, 1 if self.workers > 1 else None, watch=watch)
-            if run.status == "finished" or (run.status == "stopped" and run_is_finished(path)):
-                run.status = "finished"  # it trained to the end before the stop reached it: a complete trial
-                pruned["at"] = None
-            elif run.status == "stopped" and pruned["at"] is None:
+            state["pruned_at"] = json.loads(marker.read_text()).get("pruned_at_frames")  # killed before the tell
+        elif not all(run_is_finished(p) for p in paths) and self._report(trial, paths):
+            state["pruned_at"] = self._last_step(trial)  # its evaluations so far already prune it
+        if state["pruned_at"] is None:
+            for p in paths:
+                clear_stop(p)  # a stop asked of an earlier attempt (killed before it was told)
+            if len(runs) == 1:
+                runs = [one(runs[0])]
+            else:
+                with ThreadPoolExecutor(max_workers=len(runs)) as pool:
+                    try:
+                        runs = list(pool.map(one, runs))
+                    except BaseException:
+                        self.stopping.set()  # the other seeds' runs are stopped (checkpointed) and left to resume
+                        raise
+            for run in runs:
+                if run.status == "stopped" and run_is_finished(run.path):
+                    run.status = "finished"  # it trained to the end before the stop reached it
+            if all(r.status in ("finished", "skipped-finished") for r in runs):
+                state["pruned_at"] = None  # complete, whatever the pruner said after its last evaluation
+            elif state["pruned_at"] is None and not any(r.status == "failed" for r in runs):
                 return  # interrupted (stopping): left RUNNING, resumed by the next `adarl tune`
-        self._finish(trial, run, path, params, pruned["at"])
+        self._finish(trial, runs, folder, params, state["pruned_at"])
 
     def _last_step(self, trial) -> int | None:
         with self.mutex:
             steps = self.storage.get_trial(trial._trial_id).intermediate_values
         return max(steps) if steps else None
 
-    def _report(self, trial, path: Path) -> bool:
-        """Report the evaluations not reported yet; whether the pruner stops the trial."""
-        scores = _scores(path, self.spec.objective.score_last)
+    def _report(self, trial, paths: list[Path]) -> bool:
+        """Report the evaluations not reported yet (the mean over the trial's seeds); whether the pruner stops it."""
+        scores = mean_scores([_scores(p, self.spec.objective.score_last) for p in paths])
         with self.mutex:
             known = self.storage.get_trial(trial._trial_id).intermediate_values
             new = [(f, s) for f, s in scores if f not in known]
@@ -308,30 +381,45 @@ class _Study:
                 trial.report(score, step=frames)
             return bool(known or new) and bool(trial.should_prune())
 
-    def _finish(self, trial, run: PlannedRun, path: Path, params: dict, pruned_at) -> None:
+    def _finish(self, trial, runs: list[PlannedRun], folder: Path, params: dict, pruned_at) -> None:
         number = trial.number
         if pruned_at is not None:
-            _write_trial_file(path, number, params, "PRUNED", pruned_at_frames=pruned_at)
+            _write_trial_file(folder, number, params, "PRUNED", pruned_at_frames=pruned_at)
             with self.mutex:
                 self.study.tell(number, state=TrialState.PRUNED)
             self.log(f"[trial {number}] pruned at {pruned_at} frames")
             return
-        if run.status in ("finished", "skipped-finished"):
-            try:
-                value = self._objective(path)
-            except (AdaRLError, ValueError, OSError) as err:
-                run.status, run.message = "failed", f"objective: {err}"
-            else:
-                _write_trial_file(path, number, params, "COMPLETE", value)
+        failed = [r for r in runs if r.status not in ("finished", "skipped-finished")]
+        if not failed:
+            values = {}
+            for r in runs:
+                try:
+                    values[r.seed] = self._objective(Path(r.path))
+                except (AdaRLError, ValueError, OSError) as err:
+                    r.status, r.message = "failed", f"objective: {err}"
+                    failed.append(r)
+                    break
+        if not failed:
+            value = sum(values.values()) / len(values)  # the mean over seeds
+            extra = {}
+            if len(runs) > 1:
+                extra["seed_values"] = {str(s): v for s, v in values.items()}
                 with self.mutex:
-                    self.study.tell(number, value)
-                self.log(f"[trial {number}] value {value:.4g}")
-                return
-        _write_trial_file(path, number, params, "FAIL", message=run.message)
+                    trial.set_user_attr("seed_values", extra["seed_values"])
+            _write_trial_file(folder, number, params, "COMPLETE", value, **extra)
+            with self.mutex:
+                self.study.tell(number, value)
+            per_seed = ", ".join(f"seed {s}: {v:.4g}" for s, v in values.items())
+            self.log(f"[trial {number}] value {value:.4g}" + (f" (mean of {per_seed})" if len(runs) > 1 else ""))
+            return
+        message = "; ".join(
+            (f"seed {r.seed}: " if len(runs) > 1 else "") + r.message for r in failed if r.status == "failed"
+        ) or "; ".join(r.message for r in failed)
+        _write_trial_file(folder, number, params, "FAIL", message=message)
         with self.mutex:
-            trial.set_user_attr("message", run.message[:500])
+            trial.set_user_attr("message", message[:500])
             self.study.tell(number, state=TrialState.FAIL)
-        self.log(f"[trial {number}] failed: {run.message}")
+        self.log(f"[trial {number}] failed: {message}")
 
     def _objective(self, path: Path) -> float:
         o = self.spec.objective
@@ -354,16 +442,29 @@ def run_tune(
     output: str | os.PathLike | None = None,
     workers: int | None = None,
     log=print,
+    launcher: str | Launcher = "local",
+    launcher_options: dict | None = None,
 ) -> TuneResult:
     """Run (or continue) the study of the tune spec ``spec_path``; write ``best_recipe.yaml``, ``trials.csv`` and
     ``report.md`` in the output folder (default: the spec's ``output``, else ``runs/tune/<name>``).
 
-    The spec and its search space are validated before anything is written (:class:`RecipeError`)."""
+    ``workers`` trials at a time (default: the spec's), each trial's seeds at once. ``launcher``: where the runs
+    train, as for ``adarl experiment``: ``local`` (default), ``ray``, ``submitit`` (``launcher_options`` go to
+    :func:`~adarl.experiments.launchers.make_launcher`) or a :class:`~adarl.experiments.launchers.Launcher`; the
+    output folder must then be one the workers see at the same path (this process reads the trials' ``eval.csv``).
+
+    The spec and its search space are validated before anything is written (:class:`RecipeError`; a launcher whose
+    extra is not installed: :class:`~adarl.errors.MissingExtraError`)."""
     spec = load_tune_spec(spec_path)
     check_space(spec)
     if workers is not None and workers < 1:
         raise AdaRLValueError(f"workers must be >= 1, got {workers}")
+    workers = workers or spec.workers
     out = Path(output if output is not None else spec.output or f"runs/tune/{spec.name}")
+    if not isinstance(launcher, Launcher):  # first: a launcher whose extra is missing leaves no folder behind
+        launcher = make_launcher(
+            launcher, workers=workers * len(spec.trial_seeds), output=out, **(launcher_options or {})
+        )
     n_trials = spec.n_trials
     if spec.sampler.name == "grid" and _grid_size(spec.space) < n_trials:
         n_trials = _grid_size(spec.space)
@@ -371,14 +472,18 @@ def run_tune(
     out.mkdir(parents=True, exist_ok=True)
     fd = _lock(out)
     try:
-        (out / "tune_spec.yaml").write_text(yaml.safe_dump(spec.model_dump(mode="json"), sort_keys=False))
-        driver = _Study(spec, out, n_trials, workers or spec.workers, log)
+        dumped = spec.model_dump(mode="json")
+        dumped.pop("seed" if spec.seeds is not None else "seeds")  # the file is a spec `adarl tune` accepts
+        (out / "tune_spec.yaml").write_text(yaml.safe_dump(dumped, sort_keys=False))
+        driver = _Study(spec, out, n_trials, workers, log, launcher)
         finished = sum(t.state in _FINISHED for t in driver.study.trials)
+        where = "" if launcher.name == "local" else f" (runs on {launcher.name})"
         log(
             f"tune {spec.name}: {finished} of {n_trials} trials done, {len(driver.orphans)} interrupted to resume "
-            f"-> {out}"
+            f"-> {out}{where}"
         )
-        driver.run()
+        with launcher.session():
+            driver.run()
         study = driver.study
         write_outputs(study, spec, out, log=log)
         result = TuneResult(output=out, resumed=driver.resumed)

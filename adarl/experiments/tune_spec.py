@@ -7,6 +7,7 @@ A spec is a YAML file with ``kind: tune`` (the shipped ones are in ``recipes/tun
     name: cartpole_beta
     recipe: linear_cartpole_sac
     overrides: [collector.total_frames=4000]
+    seeds: [0, 1]          # or seed: 0 (one run per trial, the default)
     space:
       rank.beta: {type: float, low: 0.8, high: 0.99}
       algorithm.lr: {type: float, low: 1.0e-4, high: 3.0e-3, log: true}
@@ -172,7 +173,12 @@ class TuneSpec(_Model):
     description: str = ""
     recipe: str = Field(description="Base recipe (name or path).")
     overrides: list[str] = Field(default_factory=list, description="Overrides for every trial (e.g. a small budget).")
-    seed: int = Field(0, description="The seed of every trial.")
+    seed: int = Field(0, description="The seed of every trial (one run per trial).")
+    seeds: list[int] | None = Field(
+        None,
+        description="Several seeds per trial instead of `seed`: one run each, at the same time; the trial's value "
+        "(and what the pruner sees) is the mean over seeds.",
+    )
     space: dict[str, Param] = Field(min_length=1, description="Recipe key -> range or choices.")
     objective: Objective = Field(default_factory=Objective)
     direction: Literal["maximize", "minimize"] = "maximize"
@@ -186,11 +192,23 @@ class TuneSpec(_Model):
     def _check(self) -> TuneSpec:
         if not self.name or not set(self.name) <= _NAME_CHARS:
             raise ValueError(f"name may use letters, digits and . _ - + only, got {self.name!r}")
+        if self.seeds is not None:
+            if "seed" in self.model_fields_set:
+                raise ValueError("give `seed` (one run per trial) or `seeds` (one run per seed), not both")
+            if not self.seeds:
+                raise ValueError("`seeds` needs at least one seed")
+            if len(set(self.seeds)) != len(self.seeds):
+                raise ValueError(f"seeds must be distinct, got {self.seeds}")
         if self.sampler.name == "grid":
             bad = [k for k, p in self.space.items() if p.type == "float" and p.step is None]
             if bad:
                 raise ValueError(f"the grid sampler needs a finite grid: give float key(s) {bad} a `step`")
         return self
+
+    @property
+    def trial_seeds(self) -> list[int]:
+        """The seeds of each trial: ``seeds``, else ``[seed]``."""
+        return list(self.seeds) if self.seeds is not None else [self.seed]
 
 
 def _field_names(model: type[BaseModel], loc: tuple) -> list[str]:
@@ -272,9 +290,11 @@ def override_value(value: Choice) -> str:
     return str(value)
 
 
-def trial_overrides(spec: TuneSpec, params: dict[str, Any]) -> list[str]:
-    """The overrides of one trial: the spec's, then its point of the search space, then the seed."""
-    return [*spec.overrides, *(f"{k}={override_value(v)}" for k, v in params.items()), f"seed={spec.seed}"]
+def trial_overrides(spec: TuneSpec, params: dict[str, Any], seed: int | None = None) -> list[str]:
+    """The overrides of one run of a trial: the spec's, then its point of the search space, then the seed
+    (default: the trial's first seed)."""
+    seed = spec.trial_seeds[0] if seed is None else seed
+    return [*spec.overrides, *(f"{k}={override_value(v)}" for k, v in params.items()), f"seed={seed}"]
 
 
 def check_space(spec: TuneSpec) -> int:
@@ -283,7 +303,7 @@ def check_space(spec: TuneSpec) -> int:
     Each key must be a recipe key, and each end of its range (each choice) must validate as its value: the recipe is
     built with it. Raises :class:`RecipeError` naming the key (with the recipe's did-you-mean or allowed values).
     Returns the base recipe's frame budget."""
-    base = load_recipe(spec.recipe, [*spec.overrides, f"seed={spec.seed}"])
+    base = load_recipe(spec.recipe, [*spec.overrides, f"seed={spec.trial_seeds[0]}"])
     problems = []
     for key, param in spec.space.items():
         for value in param.ends():
