@@ -33,6 +33,7 @@ from adarl.envs.schedules import (
     schedule_problems,
 )
 from adarl.errors import NO_VALUE, AdaRLValueError, did_you_mean, one_of
+from adarl.runtime.config.local_plugins import entry_form_error
 
 __all__ = [
     "SCHEMA_VERSION",
@@ -869,8 +870,7 @@ class Recipe(_Section):
     @field_validator("plugins", mode="before")
     @classmethod
     def _plugin_entries_have_a_form(cls, v: Any) -> Any:
-        from adarl.runtime.config.local_plugins import entry_form_error  # the loader's own check, one rule
-
+        """The loader's own check of an entry's form (one rule), so that a recipe validated here loads from its file."""
         for entry in v if isinstance(v, list) else []:
             if (problem := entry_form_error(entry)) is not None:
                 raise AdaRLValueError(f"{entry!r}: {problem}")
