@@ -149,27 +149,25 @@ def _checkpoint_frames(run: Path) -> list[int]:
     return [int(p.stem.split("-")[1]) for p in (run / "checkpoints").glob("ckpt-*.pt")]
 
 
-@pytest.mark.slow
-def test_a_study_killed_mid_trial_continues_with_its_trial_count_and_no_duplicate(tmp_path):
-    spec = _spec(tmp_path)
-    out = tmp_path / "out"
+def _kill_9_mid_trial(spec: Path, out: Path, trial: Path, *args: str) -> None:
+    """``adarl tune SPEC -o OUT ARGS`` in a subprocess, killed with kill -9 once ``trial`` has a checkpoint past
+    frame 0; returns once the trial's trainer is gone too (it dies with its parent, or with the Ray it started)."""
     env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
     proc = subprocess.Popen(
-        [sys.executable, "-m", "adarl.cli", "tune", str(spec), "-o", str(out)],
+        [sys.executable, "-m", "adarl.cli", "tune", str(spec), "-o", str(out), *args],
         cwd=REPO,
         env=env,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
     )
-    second = out / "trials" / "trial-0001"
     deadline = time.monotonic() + 600  # a guard against a hang, not a timing window: we wait for the file
-    while not (second.is_dir() and any(f > 0 for f in _checkpoint_frames(second))):
+    while not (trial.is_dir() and any(f > 0 for f in _checkpoint_frames(trial))):
         assert proc.poll() is None, proc.stderr.read().decode()[-2000:]
         assert time.monotonic() < deadline
         time.sleep(0.05)
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait()
-    holder = json.loads((second / ".adarl.lock").read_text())["pid"]
+    holder = json.loads((trial / ".adarl.lock").read_text())["pid"]
     while True:  # the trial's trainer dies with its parent (PR_SET_PDEATHSIG); wait until it is gone
         try:
             os.kill(holder, 0)
@@ -177,6 +175,13 @@ def test_a_study_killed_mid_trial_continues_with_its_trial_count_and_no_duplicat
             break
         assert time.monotonic() < deadline
         time.sleep(0.05)
+
+
+@pytest.mark.slow
+def test_a_study_killed_mid_trial_continues_with_its_trial_count_and_no_duplicate(tmp_path):
+    spec = _spec(tmp_path)
+    out = tmp_path / "out"
+    _kill_9_mid_trial(spec, out, out / "trials" / "trial-0001")
 
     storage = f"sqlite:///{out / 'study.db'}"
     before = optuna.load_study(study_name="tiny", storage=storage).trials
@@ -450,30 +455,8 @@ def test_a_study_on_ray_prunes_and_continues_after_kill_9(tmp_path):
     spec = _spec(tmp_path, overrides=[*TINY, "collector.total_frames=900"], pruner=pruner)
     out = tmp_path / "out"
     _add_unbeatable_trial(spec, out)
-    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "adarl.cli", "tune", str(spec), "-o", str(out), "--launcher", "ray"],
-        cwd=REPO,
-        env=env,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-    )
     trial = out / "trials" / "trial-0001"
-    deadline = time.monotonic() + 600  # a guard against a hang, not a timing window: we wait for the file
-    while not (trial.is_dir() and any(f > 0 for f in _checkpoint_frames(trial))):
-        assert proc.poll() is None, proc.stderr.read().decode()[-2000:]
-        assert time.monotonic() < deadline
-        time.sleep(0.05)
-    os.kill(proc.pid, signal.SIGKILL)  # the Ray it started goes with it, and the trial's training with its worker
-    proc.wait()
-    holder = json.loads((trial / ".adarl.lock").read_text())["pid"]
-    while True:
-        try:
-            os.kill(holder, 0)
-        except ProcessLookupError:
-            break
-        assert time.monotonic() < deadline
-        time.sleep(0.05)
+    _kill_9_mid_trial(spec, out, trial, "--launcher", "ray")  # the Ray it started goes too, and the training
     storage = f"sqlite:///{out / 'study.db'}"
     before = optuna.load_study(study_name="tiny", storage=storage).trials
     assert [(t.number, t.state.name) for t in before] == [(0, "COMPLETE"), (1, "RUNNING")]

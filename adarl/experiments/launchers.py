@@ -56,9 +56,25 @@ class Launcher(ABC):
 
         ``watch()`` is called here every :data:`~adarl.experiments.execute.WATCH_POLL_S` seconds while the run
         trains; once it returns True the run is asked to stop (:func:`~adarl.experiments.execute.request_stop`, a
-        file in its folder, seen by the worker: the training gets SIGTERM and checkpoints first) and its status is
+        file beside its folder, seen by the worker: the training gets SIGTERM and checkpoints first) and its status is
         ``stopped`` (resumable). ``adarl tune`` prunes trials so."""
         raise NotImplementedError(f"the {self.name} launcher does not run watched runs (adarl tune)")
+
+
+def _take_result(run, result):
+    """Copy a worker's outcome (the run as ``execute_run`` returned it there) onto the driver's run."""
+    run.status, run.message, run.wall_time_s = result.status, result.message, result.wall_time_s
+    return run
+
+
+def _ray_outcome(ray, ref, run):
+    """The run of a finished Ray task, its status set; ``failed`` when the task raised (worker lost more than
+    ``max_retries`` times, etc.)."""
+    try:
+        return _take_result(run, ray.get(ref))
+    except Exception as err:  # noqa: BLE001 - any task failure is the run's failure, named
+        run.status, run.message = "failed", f"ray: {type(err).__name__}: {str(err).splitlines()[0]}"
+        return run
 
 
 def _watch_remote(run, watch: Callable[[], bool], asked: list[bool]) -> None:
@@ -183,11 +199,7 @@ class RayLauncher(Launcher):
             with contextlib.suppress(BaseException):
                 ray.wait([ref], timeout=60)
             raise
-        try:
-            result = ray.get(ref)
-            run.status, run.message, run.wall_time_s = result.status, result.message, result.wall_time_s
-        except Exception as err:  # noqa: BLE001 - worker lost more than max_retries times, etc.
-            run.status, run.message = "failed", f"ray: {type(err).__name__}: {str(err).splitlines()[0]}"
+        _ray_outcome(ray, ref, run)
         if asked[0]:
             clear_stop(run.path)
         return run
@@ -202,13 +214,7 @@ class RayLauncher(Launcher):
             while pending:
                 done, pending = ray.wait(pending, num_returns=1, timeout=self.poll_s)
                 for ref in done:
-                    run = refs[ref]
-                    try:
-                        result = ray.get(ref)
-                        run.status, run.message, run.wall_time_s = result.status, result.message, result.wall_time_s
-                    except Exception as err:  # noqa: BLE001 - worker lost more than max_retries times, etc.
-                        run.status, run.message = "failed", f"ray: {type(err).__name__}: {str(err).splitlines()[0]}"
-                    on_done(run)
+                    on_done(_ray_outcome(ray, ref, refs[ref]))
                 tick({refs[ref].run_id for ref in pending})
 
 
@@ -269,19 +275,25 @@ class SubmititLauncher(Launcher):
         finally:
             self._ex = None
 
+    def _settled(self, job, run, tries: int) -> bool:
+        """Set ``run``'s status from its finished ``job``; False when the job was lost (node failure, cancelled)
+        and is to be submitted again (``tries`` below ``max_retries``: the run resumes from its checkpoint)."""
+        try:
+            _take_result(run, job.result())
+        except Exception as err:  # noqa: BLE001 - a lost job is retried, then the run's failure, named
+            if tries < self.max_retries:
+                return False
+            run.status, run.message = "failed", f"submitit job {job.job_id}: {str(err).splitlines()[0]}"
+        return True
+
     def run_watched(self, run, watch):
         job_fn, asked = _CheckpointableRun(), [False]
         job, tries = self._ex.submit(job_fn, run, self.threads, StopAsked(run.path)), 0
         while True:
             if job.done():
-                try:
-                    result = job.result()
-                    run.status, run.message, run.wall_time_s = result.status, result.message, result.wall_time_s
-                except Exception as err:  # noqa: BLE001 - job lost (node failure, cancelled): retry from checkpoint
-                    if tries < self.max_retries:
-                        job, tries = self._ex.submit(job_fn, run, self.threads, StopAsked(run.path)), tries + 1
-                        continue
-                    run.status, run.message = "failed", f"submitit job {job.job_id}: {str(err).splitlines()[0]}"
+                if not self._settled(job, run, tries):
+                    job, tries = self._ex.submit(job_fn, run, self.threads, StopAsked(run.path)), tries + 1
+                    continue
                 break
             try:
                 _watch_remote(run, watch, asked)
@@ -301,14 +313,9 @@ class SubmititLauncher(Launcher):
             for run_id, (job, run, tries) in list(jobs.items()):
                 if not job.done():
                     continue
-                try:
-                    result = job.result()
-                    run.status, run.message, run.wall_time_s = result.status, result.message, result.wall_time_s
-                except Exception as err:  # noqa: BLE001 - job lost (node failure, cancelled): retry from checkpoint
-                    if tries < self.max_retries:
-                        jobs[run_id] = (ex.submit(job_fn, run, self.threads), run, tries + 1)
-                        continue
-                    run.status, run.message = "failed", f"submitit job {job.job_id}: {str(err).splitlines()[0]}"
+                if not self._settled(job, run, tries):
+                    jobs[run_id] = (ex.submit(job_fn, run, self.threads), run, tries + 1)
+                    continue
                 del jobs[run_id]
                 on_done(run)
             if jobs:
