@@ -7,7 +7,7 @@ process, ``adarl resume`` when the folder has a checkpoint) on this machine or t
 :meth:`~adarl.experiments.launchers.Launcher.run_watched`). While a trial trains, its nominal evaluations
 (``eval.csv``, the mean over seeds) are reported to Optuna (``trial.report(score, step=frames)``) and the pruner
 asked; a pruned trial is stopped with SIGTERM (it checkpoints: the folder stays resumable; on a worker, asked
-through a stop file in its folder) and marked (``tune_trial.json``). Its value is the mean over seeds of each
+through a stop file beside its folder) and marked (``tune_trial.json``). Its value is the mean over seeds of each
 seed's objective.
 
 Killed at any moment (``kill -9``) and started again, the study continues: finished trials are kept, and a trial
