@@ -270,13 +270,15 @@ def cmd_bench(args) -> int:
 
 def cmd_report(args) -> int:
     from adarl.experiments.aggregate import is_single_run, write_aggregate_report
+    from adarl.experiments.spec import report_options
     from adarl.runtime.report import write_report
 
     dirs = args.run_dir
-    if len(dirs) == 1 and is_single_run(dirs[0]) and not args.output:
+    options = report_options(args.report_options)  # checked first: a bad option writes nothing
+    if len(dirs) == 1 and is_single_run(dirs[0]) and not args.output and not options:
         print(write_report(dirs[0]))  # one run folder: its own report, as before
         return 0
-    print(write_aggregate_report(dirs, args.output))
+    print(write_aggregate_report(dirs, args.output, report=options))
     return 0
 
 
@@ -496,6 +498,16 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="folder (or fsspec URL) of the aggregate report (default: <DIR>/report for one experiment "
         "folder, else ./report)",
+    )
+    rp.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        dest="report_options",
+        help="a key of an experiment spec's report section, over the experiments' own (repeatable): e.g. "
+        "--set score_last=3 --set plateau=1500 --set reference=adarl reports loose run folders by issue 34's "
+        "protocol (keys: score_last, plateau, reference, columns, x_axis, intrinsic_rank, event_window, at_updates)",
     )
     rp.set_defaults(func=cmd_report)
 

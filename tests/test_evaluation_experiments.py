@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import shutil
 import statistics
 import subprocess
 import sys
@@ -317,11 +318,17 @@ def test_experiment_end_to_end_two_seeds_two_algorithms(tmp_path):
     again = run_experiment(path, output=out, report=False, log=said.append)
     assert sorted(r.status for r in again) == ["missing-recipe"] * 2 + ["skipped-finished"] * 4
     assert "4 already finished, 0 to run" in said[-1]
-    # Aggregating the run folders directly (no experiment.json) groups them by recipe name, and runs of one
-    # recipe with other settings apart (a variant naming the keys that differ): not four replicates of one setting
-    loose = write_aggregate_report(
-        [r["path"] for r in state["runs"] if r["status"] == "finished"], tmp_path / "loose"
-    ).read_text()
+    # Aggregating the run folders directly (no experiment.json) groups them by the axes their run ids name; copies
+    # under other names by recipe name, and runs of one recipe with other settings apart (a variant naming the keys
+    # that differ): never four replicates of one setting
+    finished = [Path(r["path"]) for r in state["runs"] if r["status"] == "finished"]
+    by_id = write_aggregate_report(finished, tmp_path / "by_id").read_text()
+    assert "(n=4)" not in by_id and by_id.count("(n=2)") >= 2 and "| fixed4 |" in by_id.replace("**", "")
+    copies = []
+    for i, run in enumerate(finished):
+        copies.append(tmp_path / "copies" / f"run{i}")
+        shutil.copytree(run, copies[-1], ignore=shutil.ignore_patterns("checkpoints"))
+    loose = write_aggregate_report(copies, tmp_path / "loose").read_text()
     assert "(n=4)" not in loose and loose.count("(n=2)") >= 2 and "rank.enabled=False" in loose
 
 

@@ -238,3 +238,60 @@ def test_score_is_the_mean_of_the_last_evaluations_with_plateau_counts_and_verdi
     assert "the mean of its last 3 evaluations" in md and (out / "learning_curves_by_seed.png").is_file()
     assert verdict((0.5, 0.2, 0.8), "a", "b") == "no difference shown"
     assert verdict((0.1, 0.0, 0.45), "a", "b") == "b beats a"
+
+
+def test_loose_run_folders_report_by_an_experiments_rule_given_on_the_command_line(tmp_path, capsys):
+    """Run folders copied out of an experiment (no experiment.json: e.g. a committed report's runs/) keep their axes
+    from their run ids, and ``adarl report --set`` gives them the experiment's rule, so the report re-derives the
+    experiment's own statistics; a bad option is refused before anything is written."""
+    import shutil
+
+    from adarl.cli import main
+    from adarl.experiments.aggregate import write_aggregate_report
+
+    exp, loose = tmp_path / "exp", tmp_path / "runs"
+    runs = []
+    for algo, per_seed in {
+        "adarl": [[100, 2000, 1700], [100, 900, 1400]],
+        "sac": [[100, 1000, 900], [100, 80, 90]],
+    }.items():
+        for seed, vals in enumerate(per_seed):
+            rid = f"env=hopper__algorithm={algo}__seed={seed}"
+            _fake_run(exp, rid, seed, 0, [(100 * (i + 1), v) for i, v in enumerate(vals)])
+            runs.append(
+                {"run_id": rid, "axes": {"env": "hopper", "algorithm": algo}, "seed": seed, "path": str(exp / rid)}
+            )
+            shutil.copytree(exp / rid, loose / rid)
+    report = {"columns": "algorithm", "reference": "adarl", "score_last": 2, "plateau": 1500.0}  # as model_dump()
+    (exp / "experiment.json").write_text(
+        json.dumps({"name": "f", "axes": ["env", "algorithm"], "runs": runs, "report": report})
+    )
+    write_aggregate_report([exp])
+
+    def stats(folder):
+        return {r["algorithm"]: r for r in csv.DictReader((folder / "statistics.csv").open())}
+
+    rule = ["--set", "score_last=2", "--set", "plateau=1500", "--set", "reference=adarl"]
+    assert main(["report", str(loose), "-o", str(tmp_path / "loose"), *rule]) == 0
+    assert stats(tmp_path / "loose") == stats(exp / "report")  # scores, plateau counts, P(adarl > sac), verdicts
+    assert "Report options given to `adarl report --set`" in (tmp_path / "loose" / "report.md").read_text()
+    assert main(["report", str(loose), "-o", str(tmp_path / "plain")]) == 0  # without them: the last evaluation
+    assert float(stats(tmp_path / "plain")["adarl"]["mean"]) == pytest.approx((1700 + 1400) / 2)
+    for bad, said in [
+        (["--set", "score_lst=2"], "did you mean 'score_last'"),
+        (["--set", "score_last=0"], "score_last: Input should be greater than or equal to 1"),
+        (["--set", "plateau"], "must be KEY=VALUE"),
+    ]:
+        capsys.readouterr()
+        assert main(["report", str(loose), "-o", str(tmp_path / "refused"), *bad]) == 2
+        assert said in capsys.readouterr().err
+        assert not (tmp_path / "refused").exists()
+
+
+def test_axes_from_run_id():
+    from adarl.experiments.aggregate import axes_from_run_id
+
+    assert axes_from_run_id("env=hopper__algorithm=adarl__seed=3", 3) == {"env": "hopper", "algorithm": "adarl"}
+    assert axes_from_run_id("env=hopper__algorithm=adarl__seed=3", 4) is None  # the id's seed is not the recipe's
+    for name in ("seed=3", "hopper_adarl", "env=hopper__seed", "env=hopper__x__seed=3", "env=hopper__algorithm=a"):
+        assert axes_from_run_id(name, 3) is None, name

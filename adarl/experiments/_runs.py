@@ -160,7 +160,7 @@ def _load_run(path: Path, axes: dict[str, str] | None) -> RunRecord | None:
         for f in sorted(sweep_dir.glob("*.csv")):
             sweeps[f.stem] = read_sweep(f)
     if axes is None:
-        axes = {"recipe": str(recipe.get("name", path.name))}
+        axes = axes_from_run_id(path.name, recipe.get("seed")) or {"recipe": str(recipe.get("name", path.name))}
     return RunRecord(
         path,
         axes,
@@ -175,6 +175,18 @@ def _load_run(path: Path, axes: dict[str, str] | None) -> RunRecord | None:
         eval_updates,
         rank_axis(run, run.read_rank_history()),
     )
+
+
+def axes_from_run_id(name: str, seed) -> dict[str, str] | None:
+    """The axes an experiment's run id names (``env=hopper__algorithm=adarl__seed=3``), for a run folder copied out
+    of its experiment (so ``adarl report`` on the copies groups them as the experiment did); None for any other name,
+    or when the id's seed is not the recipe's."""
+    parts = [part.partition("=") for part in name.split("__")]
+    if len(parts) < 2 or any(not sep or not key for key, sep, _ in parts) or parts[-1][0] != "seed":
+        return None
+    if parts[-1][2] != str(seed):
+        return None
+    return {key: value for key, _, value in parts[:-1]}
 
 
 def collect_runs(dirs: list[str | os.PathLike]) -> tuple[list[RunRecord], dict]:
@@ -256,8 +268,10 @@ def _split_loose_variants(runs: list[RunRecord]) -> None:
             r.axes["variant"] = ",".join(f"{k}={f.get(k)}" for k in keys)
 
 
-def aggregate_runs(dirs: list[str | os.PathLike]) -> Aggregate:
-    """Group the runs found in ``dirs`` by their axes (seeds are replicates)."""
+def aggregate_runs(dirs: list[str | os.PathLike], report: dict | None = None) -> Aggregate:
+    """Group the runs found in ``dirs`` by their axes (seeds are replicates). The layout and scoring rule are the
+    experiments' ``report`` sections, then ``report`` (keys of :class:`~adarl.experiments.spec.ReportSpec`) over
+    them: loose run folders have no spec to take the rule from."""
     runs, info = collect_runs(dirs)
     axes: list[str] = []
     for r in runs:
@@ -266,14 +280,15 @@ def aggregate_runs(dirs: list[str | os.PathLike]) -> Aggregate:
     for r in runs:
         key = tuple((a, r.axes.get(a, "-")) for a in axes)
         groups.setdefault(key, Group(key, [])).runs.append(r)
-    report = {}
+    layout: dict = {}
     for e in info["experiments"]:
-        report.update({k: v for k, v in (e.get("report") or {}).items() if v is not None})
-    last = int(report.get("score_last") or 1)
+        layout.update({k: v for k, v in (e.get("report") or {}).items() if v is not None})
+    layout.update(report or {})
+    last = int(layout.get("score_last") or 1)
     for g in groups.values():
         g.runs.sort(key=lambda r: r.seed)
         g.score_last = last
-    return Aggregate(list(groups.values()), axes, report, [str(d) for d in dirs], info)
+    return Aggregate(list(groups.values()), axes, layout, [str(d) for d in dirs], info)
 
 
 def _num_key(v: str):

@@ -44,6 +44,7 @@ from adarl.experiments._runs import (
     _load_run,
     _rank_series,
     aggregate_runs,
+    axes_from_run_id,
     collect_runs,
     event_dips,
     is_single_run,
@@ -58,6 +59,7 @@ __all__ = [
     "Aggregate",
     "collect_runs",
     "aggregate_runs",
+    "axes_from_run_id",
     "write_aggregate_report",
     "is_single_run",
     "intrinsic_rank",
@@ -72,16 +74,22 @@ _PRIVATE = (_load_run, _rank_series)
 
 
 def write_aggregate_report(
-    dirs: list[str | os.PathLike], output: str | os.PathLike | None = None, *, command: str | None = None
+    dirs: list[str | os.PathLike],
+    output: str | os.PathLike | None = None,
+    *,
+    command: str | None = None,
+    report: dict | None = None,
 ) -> Path | str:
     """Aggregate the runs in ``dirs`` and write the report folder; returns the path of its ``report.md``.
 
     ``dirs`` and ``output`` may be fsspec URLs (:mod:`adarl.runtime.results`): the runs' files (not their checkpoints)
     are copied to a temporary folder, the report is made there and uploaded (default output: ``<URL>/report`` for one
-    experiment at a URL); ``runs.csv`` names the runs by their URL, and the URL of ``report.md`` is returned."""
+    experiment at a URL); ``runs.csv`` names the runs by their URL, and the URL of ``report.md`` is returned.
+    ``report``: keys of an experiment spec's ``report`` section over the experiments' own (``adarl report --set``;
+    validate them with :func:`~adarl.experiments.spec.report_options`)."""
     if any(is_url(d) for d in dirs) or is_url(output):
-        return _write_report_via_copy(dirs, output, command=command)
-    agg = aggregate_runs(dirs)
+        return _write_report_via_copy(dirs, output, command=command, report=report)
+    agg = aggregate_runs(dirs, report)
     if output is None:
         only = Path(dirs[0]) if len(dirs) == 1 else None
         output = only / "report" if only is not None and (only / "experiment.json").is_file() else Path("report")
@@ -110,6 +118,9 @@ def write_aggregate_report(
     commands = [command] if command else [e["command"] for e in exps if e.get("command")]
     if commands:
         blocks += [Paragraph("Produced by:"), Code("\n".join(commands))]
+    if report:
+        given = ", ".join(f"{k}={v}" for k, v in report.items())
+        blocks.append(Paragraph(f"Report options given to `adarl report --set` (over the experiments' own): {given}."))
     if agg.info["unfinished"]:
         blocks.append(Paragraph("Not finished (left out): " + "; ".join(agg.info["unfinished"])))
     if agg.info["missing"]:
@@ -241,7 +252,7 @@ def write_aggregate_report(
     return out / "report.md"
 
 
-def _write_report_via_copy(dirs: list, output, *, command: str | None) -> Path | str:
+def _write_report_via_copy(dirs: list, output, *, command: str | None, report: dict | None) -> Path | str:
     if output is None:
         only = dirs[0] if len(dirs) == 1 else None
         if only is not None and is_url(only) and exists(join(only, "experiment.json")):
@@ -260,7 +271,7 @@ def _write_report_via_copy(dirs: list, output, *, command: str | None) -> Path |
             else:
                 local_dirs.append(d)
         local_out = Path(tmp) / "out" if is_url(output) else Path(output)
-        md = write_aggregate_report(local_dirs, local_out, command=command)
+        md = write_aggregate_report(local_dirs, local_out, command=command, report=report)
         runs_csv = local_out / "runs.csv"
         rows = list(csv.reader(io.StringIO(runs_csv.read_text())))
         for row in rows[1:]:  # local copies -> the URLs they came from

@@ -33,7 +33,7 @@ from typing import Annotated, Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from adarl.errors import AdaRLWarning, RecipeError
+from adarl.errors import AdaRLWarning, RecipeError, did_you_mean, one_of
 from adarl.runtime.config import EXPERIMENTS_DIR, recipes_dir
 from adarl.runtime.results import is_url
 
@@ -302,6 +302,34 @@ def load_experiment(path: str | os.PathLike) -> ExperimentSpec:
         return ExperimentSpec.model_validate(data)
     except ValidationError as err:
         raise RecipeError(_format_validation(err, repr(str(p)))) from None
+
+
+def report_options(pairs: list[str]) -> dict:
+    """``KEY=VALUE`` strings (``adarl report --set``) as a mapping of the spec's ``report:`` section, each value read as
+    YAML and checked by :class:`ReportSpec` (so that loose run folders can be reported by an experiment's rule, e.g.
+    ``score_last=3 plateau=1500``); :class:`RecipeError` names a bad key or value and the allowed ones."""
+    options: dict = {}
+    allowed = sorted(ReportSpec.model_fields)
+    for pair in pairs:
+        key, sep, text = pair.partition("=")
+        key = key.strip()
+        if not sep or not key:
+            raise RecipeError(f"report option {pair!r} must be KEY=VALUE with KEY one of {one_of(allowed)}")
+        if key not in ReportSpec.model_fields:
+            raise RecipeError(
+                f"unknown report option {key!r}{did_you_mean(key, allowed)}; the keys of an experiment spec's "
+                f"report section are {one_of(allowed)}"
+            )
+        try:
+            options[key] = yaml.safe_load(text) if text.strip() else None
+        except yaml.YAMLError as err:
+            raise RecipeError(f"report option {pair!r}: the value is not valid YAML: {err}") from None
+    try:
+        checked = ReportSpec.model_validate(options)
+    except ValidationError as err:
+        detail = _format_validation(err, "").split("\n", 1)[1]
+        raise RecipeError(f"report options (adarl report --set) are invalid:\n{detail}") from None
+    return {k: getattr(checked, k) for k in options}
 
 
 def shipped_experiments() -> list[str]:
