@@ -79,3 +79,27 @@ def test_report_statistics_re_derive_from_its_committed_runs(report):
             threshold = float(s[s_header.index("plateau")])
             above = sum(1 for b in best[key] if b > threshold)
             assert int(s[s_header.index("above_plateau")]) == above, key
+
+
+def test_fixed_final_takes_the_pilots_adarl_median_final_ranks():
+    """Issue 34's fixed_final arm: per factorised layer, the median (rounded half up) of the final ranks of the
+    pilot's 8 AdaRL seeds, re-derived from their committed ranks.json."""
+    import json
+    import math
+
+    from adarl.runtime.config import load_recipe
+
+    runs = sorted((REPORTS / "table1-pilot" / "runs").glob("env=hopper__algorithm=adarl__seed=*"))
+    assert len(runs) == 8
+    finals: dict[str, list[int]] = {}
+    for run in runs:
+        last = {}
+        for event in json.loads((run / "ranks.json").read_text()):
+            last.update({layer["name"]: int(layer["new_rank"]) for layer in event["layers"]})
+        for name, rank in last.items():
+            finals.setdefault(name, []).append(rank)
+    median = {name: math.floor(statistics.median(ranks) + 0.5) for name, ranks in finals.items()}
+    recipe = load_recipe("baselines/hopper_sac_fixed_final")
+    assert list(recipe.network.actor.rank) == [median["actor.layer0"], median["actor.layer1"]]
+    assert list(recipe.network.critic.rank) == [median["critic.layer0"], median["critic.layer1"]]
+    assert not recipe.rank.enabled
