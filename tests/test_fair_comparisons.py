@@ -129,6 +129,7 @@ def test_reproduction_specs_compare_what_the_paper_compares():
     t1 = load_experiment("table1")
     assert {
         "adarl",
+        "adarl_eq10",  # Eq. 10 alone (issue 34's amendment): the paper's rule without our acceptance tolerance
         "sac_full",
         "sac_fixed",
         "sac_restarts",
