@@ -103,3 +103,26 @@ def test_fixed_final_takes_the_pilots_adarl_median_final_ranks():
     assert list(recipe.network.actor.rank) == [median["actor.layer0"], median["actor.layer1"]]
     assert list(recipe.network.critic.rank) == [median["critic.layer0"], median["critic.layer1"]]
     assert not recipe.rank.enabled
+
+
+def test_the_pilots_stated_verdicts_are_its_reports():
+    """The verdicts README.md and docs/reproduction.md state for issue 34's pilot are the committed report's
+    statistics (re-derived above from the runs), not numbers typed once and left behind."""
+    stats = {r["algorithm"]: r for r in csv.DictReader((REPORTS / "table1-pilot" / "statistics.csv").open())}
+    docs = {
+        name: " ".join((REPORTS.parents[1] / name).read_text().split())
+        for name in ("README.md", "docs/reproduction.md")
+    }
+    sac = stats["sac_full"]
+    poi = f"{float(sac['poi_ref']):.2f} [{float(sac['poi_lo']):.2f}, {float(sac['poi_hi']):.2f}]"
+    assert float(sac["poi_hi"]) < 0.5  # the rule's "sac_full beats adarl": the claim is contradicted
+    for name, text in docs.items():
+        assert f"P(AdaRL > SAC) = {poi}" in text or f"P(AdaRL > `sac_full`) = {poi}" in text, name
+        plateau = f"{sac['above_plateau']} of {sac['n_seeds']}"
+        assert plateau in text and f"{stats['adarl']['above_plateau']} of {stats['adarl']['n_seeds']}" in text, name
+    for arm in ("adarl", "sac_full"):
+        row = stats[arm]
+        assert (
+            f"{float(row['mean']):.0f} ± {float(row['std']):.0f} (IQM {float(row['iqm']):.0f})"
+            in docs["docs/reproduction.md"]
+        ), arm
