@@ -270,11 +270,14 @@ def cmd_bench(args) -> int:
 
 def cmd_report(args) -> int:
     from adarl.experiments.aggregate import is_single_run, write_aggregate_report
-    from adarl.experiments.spec import report_options
+    from adarl.experiments.spec import load_experiment, report_options
     from adarl.runtime.report import write_report
 
     dirs = args.run_dir
-    options = report_options(args.report_options)  # checked first: a bad option writes nothing
+    options = {}  # checked first: a bad spec or option writes nothing
+    if args.spec is not None:
+        options = {k: v for k, v in load_experiment(args.spec).report.model_dump().items() if v not in (None, [])}
+    options.update(report_options(args.report_options))
     if len(dirs) == 1 and is_single_run(dirs[0]) and not args.output and not options:
         print(write_report(dirs[0]))  # one run folder: its own report, as before
         return 0
@@ -500,12 +503,19 @@ def build_parser() -> argparse.ArgumentParser:
         "folder, else ./report)",
     )
     rp.add_argument(
+        "--spec",
+        default=None,
+        metavar="SPEC",
+        help="take the report section (scoring rule, plateau, reference, pairs, ...) of this experiment spec (a "
+        "file, or a shipped name such as table1) over the experiments' own: loose run folders reported by its rule",
+    )
+    rp.add_argument(
         "--set",
         action="append",
         default=[],
         metavar="KEY=VALUE",
         dest="report_options",
-        help="a key of an experiment spec's report section, over the experiments' own (repeatable): e.g. "
+        help="a key of an experiment spec's report section, over the experiments' and --spec's (repeatable): e.g. "
         "--set score_last=3 --set plateau=1500 --set reference=adarl reports loose run folders by issue 34's "
         "protocol (keys: score_last, plateau, reference, columns, x_axis, intrinsic_rank, event_window, at_updates)",
     )

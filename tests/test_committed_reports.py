@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from adarl.experiments.aggregate import collect_runs
-from adarl.experiments.stats import iqm
+from adarl.experiments.stats import iqm, probability_of_improvement
 
 REPORTS = Path(__file__).resolve().parents[1] / "docs" / "reports"
 DERIVABLE = sorted(
@@ -79,6 +79,15 @@ def test_report_statistics_re_derive_from_its_committed_runs(report):
             threshold = float(s[s_header.index("plateau")])
             above = sum(1 for b in best[key] if b > threshold)
             assert int(s[s_header.index("above_plateau")]) == above, key
+    if (folder / "pairs.csv").is_file():  # report.pairs: P(a > b) of two arms' scores, point estimate
+        for pair in csv.DictReader((folder / "pairs.csv").open()):
+            (col,) = [a for a in axes if a not in pair]  # the column axis: the one pairs.csv does not list
+            key = {a: pair[a] for a in axes if a != col}
+            a, b = ({**key, col: pair[x]} for x in ("a", "b"))
+            sa, sb = (list(groups.get(tuple(k[x] for x in axes), {}).values()) for k in (a, b))
+            assert (int(pair["n_a"]), int(pair["n_b"])) == (len(sa), len(sb)), pair
+            if sa and sb:
+                assert float(pair["poi"]) == pytest.approx(probability_of_improvement(sa, sb), rel=1e-9), pair
 
 
 def test_fixed_final_takes_the_pilots_adarl_median_final_ranks():

@@ -8,6 +8,7 @@ import json
 
 import numpy as np
 import pytest
+import yaml
 from test_evaluation_experiments import _fake_run
 
 from adarl.experiments.stats import (
@@ -272,15 +273,38 @@ def test_loose_run_folders_report_by_an_experiments_rule_given_on_the_command_li
         return {r["algorithm"]: r for r in csv.DictReader((folder / "statistics.csv").open())}
 
     rule = ["--set", "score_last=2", "--set", "plateau=1500", "--set", "reference=adarl"]
-    assert main(["report", str(loose), "-o", str(tmp_path / "loose"), *rule]) == 0
+    pairs = ["--set", "pairs=[[sac, adarl], [sac, nothing]]"]
+    assert main(["report", str(loose), "-o", str(tmp_path / "loose"), *rule, *pairs]) == 0
     assert stats(tmp_path / "loose") == stats(exp / "report")  # scores, plateau counts, P(adarl > sac), verdicts
-    assert "Report options given to `adarl report --set`" in (tmp_path / "loose" / "report.md").read_text()
+    # report.pairs: P(a > b) between two arms (here the reference's comparison turned round), with the rule's verdict
+    compared = list(csv.DictReader((tmp_path / "loose" / "pairs.csv").open()))
+    assert [(r["a"], r["b"], r["n_a"], r["n_b"]) for r in compared] == [
+        ("sac", "adarl", "2", "2"),
+        ("sac", "nothing", "2", "0"),
+    ]
+    assert float(compared[0]["poi"]) == pytest.approx(1 - float(stats(exp / "report")["sac"]["poi_ref"]))
+    assert compared[0]["verdict"] == "adarl beats sac" and compared[1]["verdict"] == "no finished runs of nothing"
+    md = (tmp_path / "loose" / "report.md").read_text()
+    assert 'score_last=2, plateau=1500.0, reference="adarl", pairs=[["sac", "adarl"], ["sac", "nothing"]]' in md
+    # --spec: an experiment spec's report section (here the experiment's own), --set over it
+    spec = tmp_path / "spec.yaml"
+    axes = {"env": ["hopper"], "algorithm": ["adarl", "sac"]}
+    spec.write_text(
+        yaml.safe_dump({"kind": "experiment", "name": "f", "recipe": "quickstart", "axes": axes, "report": report})
+    )
+    assert main(["report", str(loose), "-o", str(tmp_path / "by_spec"), "--spec", str(spec)]) == 0
+    assert stats(tmp_path / "by_spec") == stats(exp / "report")
+    assert main(["report", str(loose), "-o", str(tmp_path / "over"), "--spec", str(spec), "--set", "score_last=1"]) == 0
+    assert float(stats(tmp_path / "over")["adarl"]["mean"]) == pytest.approx((1700 + 1400) / 2)
     assert main(["report", str(loose), "-o", str(tmp_path / "plain")]) == 0  # without them: the last evaluation
     assert float(stats(tmp_path / "plain")["adarl"]["mean"]) == pytest.approx((1700 + 1400) / 2)
     for bad, said in [
         (["--set", "score_lst=2"], "did you mean 'score_last'"),
         (["--set", "score_last=0"], "score_last: Input should be greater than or equal to 1"),
         (["--set", "plateau"], "must be KEY=VALUE"),
+        (["--set", "pairs=[[sac, sac]]"], "a pair compares two different values"),
+        (["--set", "pairs=[sac, adarl]"], "pairs.0"),
+        (["--spec", str(tmp_path / "nope.yaml")], "experiment spec"),
     ]:
         capsys.readouterr()
         assert main(["report", str(loose), "-o", str(tmp_path / "refused"), *bad]) == 2

@@ -119,8 +119,10 @@ def write_aggregate_report(
     if commands:
         blocks += [Paragraph("Produced by:"), Code("\n".join(commands))]
     if report:
-        given = ", ".join(f"{k}={v}" for k, v in report.items())
-        blocks.append(Paragraph(f"Report options given to `adarl report --set` (over the experiments' own): {given}."))
+        given = ", ".join(f"{k}={json.dumps(v)}" for k, v in report.items())
+        blocks.append(
+            Paragraph(f"Report options given to `adarl report` (--spec, --set; over the experiments' own): {given}.")
+        )
     if agg.info["unfinished"]:
         blocks.append(Paragraph("Not finished (left out): " + "; ".join(agg.info["unfinished"])))
     if agg.info["missing"]:

@@ -142,6 +142,12 @@ class ReportSpec(_Model):
         description="Optimisation steps at which to report each run's score as well (e.g. the "
         "ends of the paper's iterations 1, 3 and 5 in Table 2): the first evaluation at or after each.",
     )
+    pairs: list[tuple[str, str]] = Field(
+        default_factory=list,
+        description="Further comparisons between two values of the column axis, [a, b]: the report gives P(a > b) "
+        "with its interval and the decision rule's verdict (e.g. [sac_restarts, sac_full]: what the restarts alone "
+        "do), beside P(reference > each value).",
+    )
     score_last: Annotated[int, Field(ge=1)] = Field(
         1,
         description="A run's score is the mean of its last `score_last` nominal evaluations (issue 34's protocol: 3; "
@@ -152,6 +158,14 @@ class ReportSpec(_Model):
         description="A return threshold: the report counts, per setting, the seeds whose best nominal evaluation "
         "exceeds it (Hopper's stand-still plateau: 1500 in issue 34's protocol).",
     )
+
+    @field_validator("pairs")
+    @classmethod
+    def _pairs_compare_two_values(cls, pairs: list[tuple[str, str]]) -> list[tuple[str, str]]:
+        for a, b in pairs:
+            if a == b:
+                raise ValueError(f"a pair compares two different values, got [{a!r}, {b!r}]")
+        return pairs
 
 
 class ResourcesSpec(_Model):

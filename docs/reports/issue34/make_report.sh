@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
 # Re-make a committed report of issue 34 from its committed runs/ by the pre-registered rule (docs/reproduction.md):
-# score = mean of the last three nominal evaluations, plateau 1500, P(adarl > each arm). Run from the main checkout:
+# table1.yaml's report section: score = mean of the last three nominal evaluations, plateau 1500, P(adarl > each arm)
+# and the pairs it names.
+# Run from the main checkout:
 #   bash docs/reports/issue34/make_report.sh table1-pilot
 # Prints nothing for a report this protocol does not make (the loop in commit_landed.sh calls it for every folder).
 set -eu
@@ -10,5 +12,6 @@ case "$1" in
 esac
 d=docs/reports/$1
 [ -d "$d/runs" ] || exit 0
-.venv/bin/adarl report "$d/runs" --set score_last=3 --set plateau=1500 --set reference=adarl -o "$d" >/dev/null
+# table1.yaml's report section (the committed runs/ have no experiment.json to take it from)
+.venv/bin/adarl report "$d/runs" --spec recipes/experiments/table1.yaml -o "$d" >/dev/null
 echo "$d"
