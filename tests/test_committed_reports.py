@@ -135,3 +135,21 @@ def test_the_pilots_stated_verdicts_are_its_reports():
             f"{float(row['mean']):.0f} ± {float(row['std']):.0f} (IQM {float(row['iqm']):.0f})"
             in docs["docs/reproduction.md"]
         ), arm
+
+
+def test_the_pilots_stated_rank_settling_is_its_reports():
+    """docs/reproduction.md's Fig. 4 reading of the pilot (median final ranks, Eq. 10's candidates at the last
+    event, seeds unchanged over it) is the committed rank_settling.csv's."""
+    rows = list(csv.DictReader((REPORTS / "table1-pilot" / "rank_settling.csv").open()))
+    text = " ".join((REPORTS.parents[1] / "docs" / "reproduction.md").read_text().split())
+    finals, candidates, settled = [], [], []
+    for layer in ("actor.layer0", "actor.layer1", "critic.layer0", "critic.layer1"):
+        mine = [r for r in rows if r["algorithm"] == "adarl" and r["layer"] == layer]
+        assert len(mine) == 8, layer
+        finals.append(f"{statistics.median(int(r['final_rank']) for r in mine):g}")
+        candidates.append(f"{statistics.median(int(r['last_candidate']) for r in mine):g}")
+        settled.append(str(sum(int(r["events_after_last_change"]) >= 1 for r in mine)))
+    assert f"unchanged over the last event in {', '.join(settled[:-1])} and {settled[-1]} of 8 seeds" in text
+    where = ("actor layer 0, of 11", "actor layer 1, of 64", "critic layer 0, of 14", "critic layer 1, of 64")
+    assert "median final ranks " + ", ".join(f"{f} ({w})" for f, w in zip(finals, where)) in text
+    assert f"medians {', '.join(candidates[:-1])} and {candidates[-1]}" in text
