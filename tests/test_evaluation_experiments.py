@@ -108,6 +108,13 @@ def test_experiment_spec_errors_name_the_key(tmp_path):
         load_experiment(_spec(tmp_path, budgets={"small": {"axes": {"algo": ["zzz"]}}}))
     with pytest.raises(RecipeError, match="x_axis"):
         load_experiment(_spec(tmp_path, report={"x_axis": "rank"}))
+    with pytest.raises(RecipeError, match=r"report.pairs name \['c'\], not values of the column axis 'algo'"):
+        load_experiment(_spec(tmp_path, report={"columns": "algo", "pairs": [["a", "c"]]}))
+    with pytest.raises(RecipeError, match="a pair compares two different values"):
+        load_experiment(_spec(tmp_path, report={"columns": "algo", "pairs": [["a", "a"]]}))
+    assert load_experiment(_spec(tmp_path, report={"columns": "algo", "pairs": [["b", "a"]]})).report.pairs == [
+        ("b", "a")
+    ]
 
 
 def test_plan_runs_product_budget_and_templates(tmp_path):

@@ -259,6 +259,12 @@ class ExperimentSpec(_Model):
                 raise ValueError(
                     f"report.reference {self.report.reference!r} must be a value of the column axis {col!r}: {known}"
                 )
+        if self.report.pairs:
+            col = self.report.columns or ("algorithm" if "algorithm" in self.axes else None)
+            known = [v.name for v in self.axes.get(col, [])] if col else []
+            unknown = sorted({v for pair in self.report.pairs for v in pair if v not in known})
+            if unknown:
+                raise ValueError(f"report.pairs name {unknown}, not values of the column axis {col!r}: {known}")
         return self
 
 
