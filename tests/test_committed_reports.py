@@ -129,7 +129,16 @@ def test_the_pilots_stated_verdicts_are_its_reports():
         assert f"P(AdaRL > SAC) = {poi}" in text or f"P(AdaRL > `sac_full`) = {poi}" in text, name
         plateau = f"{sac['above_plateau']} of {sac['n_seeds']}"
         assert plateau in text and f"{stats['adarl']['above_plateau']} of {stats['adarl']['n_seeds']}" in text, name
-    for arm in ("adarl", "sac_full"):
+    restarts = stats["sac_restarts"]  # the control without truncation: beats AdaRL, no difference from SAC
+    pair = next(r for r in csv.DictReader((REPORTS / "table1-pilot" / "pairs.csv").open()) if r["a"] == "sac_restarts")
+    assert pair["b"] == "sac_full" and pair["verdict"] == "no difference shown" and float(restarts["poi_hi"]) < 0.5
+    p_restarts = f"{float(restarts['poi_ref']):.2f} [{float(restarts['poi_lo']):.2f}, {float(restarts['poi_hi']):.2f}]"
+    p_pair = f"{float(pair['poi']):.2f} [{float(pair['poi_lo']):.2f}, {float(pair['poi_hi']):.2f}]"
+    assert f"P(AdaRL > restarts) = {p_restarts}" in docs["README.md"]
+    assert f"P(AdaRL > `sac_restarts`) = {p_restarts}" in docs["docs/reproduction.md"]
+    assert f"P(`sac_restarts` > `sac_full`) = {p_pair}" in docs["docs/reproduction.md"]
+    assert f"{restarts['above_plateau']} of {restarts['n_seeds']} of its seeds leave" in docs["docs/reproduction.md"]
+    for arm in ("adarl", "sac_full", "sac_restarts"):
         row = stats[arm]
         assert (
             f"{float(row['mean']):.0f} ± {float(row['std']):.0f} (IQM {float(row['iqm']):.0f})"
