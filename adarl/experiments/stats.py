@@ -48,11 +48,8 @@ def stratified_bootstrap(
     tasks: Sequence[np.ndarray], statistic: Callable[[list[np.ndarray]], float], *, reps: int = REPS, seed: int = 0
 ) -> np.ndarray:
     """``reps`` values of ``statistic`` on resamples that draw each task's runs with replacement within the task."""
-    rng = np.random.default_rng(seed)
-    out = np.empty(reps)
-    for i in range(reps):
-        out[i] = statistic([t[rng.integers(0, len(t), len(t))] for t in tasks])
-    return out
+    idx = _resample_indices([len(t) for t in tasks], reps, np.random.default_rng(seed))
+    return np.array([statistic([t[i[r]] for t, i in zip(tasks, idx)]) for r in range(reps)], dtype=float)
 
 
 def _resample_indices(sizes: Sequence[int], reps: int, rng: np.random.Generator) -> list[np.ndarray]:
