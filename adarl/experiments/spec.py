@@ -252,19 +252,16 @@ class ExperimentSpec(_Model):
         for where, axis in (("report.columns", self.report.columns), ("report.x_axis", self.report.x_axis)):
             if axis is not None and axis not in self.axes:
                 raise ValueError(f"{where} {axis!r} is not an axis; axes: {list(self.axes)}")
+        col = self.report.columns or ("algorithm" if "algorithm" in self.axes else None)
+        known = [v.name for v in self.axes.get(col, [])] if col else []  # the column axis's values
         if self.report.reference is not None:
-            col = self.report.columns or ("algorithm" if "algorithm" in self.axes else None)
-            known = [v.name for v in self.axes.get(col, [])] if col else []
             if self.report.reference not in known:
                 raise ValueError(
                     f"report.reference {self.report.reference!r} must be a value of the column axis {col!r}: {known}"
                 )
-        if self.report.pairs:
-            col = self.report.columns or ("algorithm" if "algorithm" in self.axes else None)
-            known = [v.name for v in self.axes.get(col, [])] if col else []
-            unknown = sorted({v for pair in self.report.pairs for v in pair if v not in known})
-            if unknown:
-                raise ValueError(f"report.pairs name {unknown}, not values of the column axis {col!r}: {known}")
+        unknown = sorted({v for pair in self.report.pairs for v in pair if v not in known})
+        if unknown:
+            raise ValueError(f"report.pairs name {unknown}, not values of the column axis {col!r}: {known}")
         return self
 
 
