@@ -130,6 +130,7 @@ def test_reproduction_specs_compare_what_the_paper_compares():
     assert {
         "adarl",
         "adarl_eq10",  # Eq. 10 alone (issue 34's amendment): the paper's rule without our acceptance tolerance
+        "factorised_restarts",  # AdaRL never truncating (the second amendment): the truncation alone
         "sac_full",
         "sac_fixed",
         "sac_restarts",
@@ -187,6 +188,14 @@ def test_sac_restarts_restarts_where_adarl_does_and_truncates_nothing(tmp_path):
     assert s_restarts["warm_start_frames"] == s_adarl["warm_start_frames"]
     records = json.loads((tmp_path / "restarts" / "ranks.json").read_text())
     assert [r["step"] for r in records] == steps and all(r["restart"] and r["layers"] == [] for r in records)
+    # factorised_restarts (issue 34's second amendment): AdaRL's factorised layers, the same restarts, never cut
+    factorised, s_factorised = _run(tmp_path / "factorised", "rank.truncate=false")
+    assert isinstance(factorised.c.adapter, ScheduledRestarts)
+    layers = [layer for _, layer in iter_low_rank(factorised.c.modules.actor)]
+    assert len(layers) == 2 and all(layer.rank == layer.max_rank for layer in layers)  # still full rank at the end
+    assert [e.step for e in factorised.c.adapter.history] == steps
+    assert [r.step for r in factorised.c.warm_start.records] == steps
+    assert s_factorised["updates"] == s_adarl["updates"]
 
 
 def test_scheduled_restarts_checkpoint_and_refuse_bad_input():

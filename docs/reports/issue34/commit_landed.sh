@@ -4,7 +4,8 @@
 # so that a lost machine costs only the runs in flight. A commit that failed (e.g. a lock) is retried next time.
 cd /work/main || exit 1
 while true; do
-  for pair in table1-pilot table1-pilot-controls:table1-pilot table1-pilot-eq10:table1-pilot table1-decisive table2-laptop warmstart_ablation-laptop \
+  for pair in table1-pilot table1-pilot-controls:table1-pilot table1-pilot-eq10:table1-pilot \
+              table1-pilot-factorised:table1-pilot table1-decisive table2-laptop warmstart_ablation-laptop \
               rank_trajectory-laptop cartpole_rank_sweep-laptop_scored parseval_lambda-laptop; do
     src=/work/exp/${pair%%:*}
     [ -d "$src" ] || continue

@@ -8,12 +8,14 @@ PY=/work/exp/wt-g/.venv/bin/python
 SPECS=/work/exp/wt-g/recipes/experiments
 export ADARL_RECIPES_PATH=/work/exp/extra_recipes MUJOCO_GL=egl
 run() { echo "=== $(date -u +%FT%TZ) $*"; "$@" --workers 2 --no-live --progress 600 || echo "!!! failed: $*"; }
-while pgrep -f "budget pilot_core" >/dev/null; do sleep 30; done   # the first queue's pilot_core, if still running
+while pgrep -f "budget pilot_(core|controls)" >/dev/null; do sleep 30; done   # an earlier queue's run, if still running
 run $A experiment $SPECS/table1.yaml --budget pilot_core -o /work/exp/table1-pilot
 [ -f extra_recipes/baselines/hopper_sac_fixed_final.yaml ] || $PY protocol.py fixed-final /work/exp/table1-pilot
 run $A experiment /work/exp/table1_controls.yaml --budget pilot_controls -o /work/exp/table1-pilot-controls
 # amendment of 2026-11-26 (docs/reproduction.md): AdaRL with Eq. 10 alone, 5 seeds, reported beside the pilot
 run $A experiment /work/exp/table1_eq10.yaml --budget pilot_eq10 -o /work/exp/table1-pilot-eq10
+# amendment of 2026-11-26, 07:50 UTC (docs/reproduction.md): AdaRL's factorised layers + restarts, never truncated
+run $A experiment /work/exp/table1_factorised.yaml --budget pilot_factorised -o /work/exp/table1-pilot-factorised
 [ -f table1_decisive.yaml ] || $PY protocol.py strongest /work/exp/table1-pilot /work/exp/table1-pilot-controls
 run $A experiment /work/exp/table1_decisive.yaml --budget decisive -o /work/exp/table1-decisive
 run $A experiment $SPECS/table2.yaml --budget laptop -o /work/exp/table2-laptop
