@@ -144,19 +144,47 @@ def test_the_pilots_stated_verdicts_are_its_reports():
     assert f"P(AdaRL > `fixed_final`) = {p_fixed}" in docs["docs/reproduction.md"]
     assert f"P(AdaRL > fixed ranks) = {p_fixed}" in docs["README.md"]
     assert f"{fixed['above_plateau']} of {fixed['n_seeds']} of its seeds leave" in docs["docs/reproduction.md"]
+    parseval = stats["parseval"]  # Parseval (lambda 1e-5) beats AdaRL: Table 1's claim against it contradicted
+    assert int(parseval["n_seeds"]) == 5 and float(parseval["poi_hi"]) < 0.5
+    p_parseval = f"{float(parseval['poi_ref']):.2f} [{float(parseval['poi_lo']):.2f}, {float(parseval['poi_hi']):.2f}]"
+    assert f"P(AdaRL > `parseval`) = {p_parseval}" in docs["docs/reproduction.md"]
+    assert f"P(AdaRL > Parseval) = {p_parseval}" in docs["README.md"]
+    assert f"{parseval['above_plateau']} of {parseval['n_seeds']} of its seeds leave" in docs["docs/reproduction.md"]
     per_seed = {}  # each arm's scores in seed order, as the docs list them
     for row in sorted(csv.DictReader((REPORTS / "table1-pilot" / "runs.csv").open()), key=lambda r: int(r["seed"])):
         per_seed.setdefault(row["algorithm"], []).append(f"{float(row['score']):.0f}")
     text = docs["docs/reproduction.md"]
     assert f"Per seed, AdaRL {', '.join(per_seed['adarl'])}; `sac_full` {', '.join(per_seed['sac_full'])}" in text
-    for arm in ("sac_restarts", "fixed_final"):
+    for arm in ("sac_restarts", "fixed_final", "parseval"):
         assert f"per seed {', '.join(per_seed[arm])}" in text, arm
-    for arm in ("adarl", "sac_full", "sac_restarts", "fixed_final"):
+    for arm in ("adarl", "sac_full", "sac_restarts", "fixed_final", "parseval"):
         row = stats[arm]
         assert (
             f"{float(row['mean']):.0f} ± {float(row['std']):.0f} (IQM {float(row['iqm']):.0f})"
             in docs["docs/reproduction.md"]
         ), arm
+
+
+def test_stage_twos_control_is_the_pilots_strongest():
+    """The protocol's rule: stage 2 runs AdaRL against the control arm with the highest mean pilot score; the
+    recorded selection and the decisive spec it wrote agree with the committed report's means."""
+    import json
+
+    import yaml
+
+    stats = {r["algorithm"]: r for r in csv.DictReader((REPORTS / "table1-pilot" / "statistics.csv").open())}
+    controls = ("sac_full", "sac_restarts", "fixed_final", "parseval")
+    means = {arm: float(stats[arm]["mean"]) for arm in controls}
+    best = max(means, key=means.get)
+    record = json.loads((REPORTS / "issue34" / "strongest_control.json").read_text())
+    assert record["strongest"] == best
+    assert record["mean_scores"] == pytest.approx(means, rel=1e-9)
+    spec = yaml.safe_load((REPORTS / "issue34" / "table1_decisive.yaml").read_text())
+    assert spec["budgets"]["decisive"]["axes"]["algorithm"] == ["adarl", best]
+    text = " ".join((REPORTS.parents[1] / "docs" / "reproduction.md").read_text().split())
+    ranked = sorted(controls, key=means.get, reverse=True)
+    assert "Mean pilot scores of the four controls" in text
+    assert ", ".join(f"`{arm}` {means[arm]:.0f}" for arm in ranked) in text
 
 
 def test_the_pilots_stated_rank_settling_is_its_reports():
