@@ -387,3 +387,39 @@ def test_an_axis_value_may_run_fewer_seeds_than_its_budget():
     }
     assert per_arm["adarl"] == per_arm["sac_full"] == per_arm["sac_restarts"] == list(range(8))
     assert per_arm["fixed_final"] == per_arm["parseval"] == list(range(5))
+
+
+def test_a_budget_may_give_a_value_other_seeds():
+    """``value_seeds``: a budget replaces a value's own seeds (null: all the budget's), e.g. stage 2 of issue 34 runs
+    Parseval at 8 seeds where the pilot ran it at 5; an unknown axis or value is refused, naming the known ones."""
+    from pydantic import ValidationError
+
+    from adarl.experiments.spec import ExperimentSpec, load_experiment, plan_runs
+
+    def spec(value_seeds):
+        return ExperimentSpec.model_validate(
+            {
+                "kind": "experiment",
+                "name": "x",
+                "recipe": "quickstart",
+                "seeds": [0, 1, 2],
+                "axes": {"arm": [{"name": "a", "overrides": ["eval.episodes=1"]}, {"name": "b", "seeds": [1]}]},
+                "budgets": {"all": {"value_seeds": value_seeds}},
+            }
+        )
+
+    planned = lambda s: [(r.axes["arm"], r.seed) for r in plan_runs(s, "/x", "all")]  # noqa: E731
+    assert planned(spec({})) == [("a", 0), ("a", 1), ("a", 2), ("b", 1)]
+    assert planned(spec({"arm": {"b": None}})) == [("a", 0), ("a", 1), ("a", 2), ("b", 0), ("b", 1), ("b", 2)]
+    assert planned(spec({"arm": {"b": [0, 2], "a": [2]}})) == [("a", 2), ("b", 0), ("b", 2)]
+    with pytest.raises(ValidationError, match=r"value_seeds names unknown axis 'arms'; axes: \['arm'\]"):
+        spec({"arms": {"b": None}})
+    with pytest.raises(
+        ValidationError, match=r"value_seeds of axis 'arm' names no value\(s\) \['c'\]; values: \['a', 'b'\]"
+    ):
+        spec({"arm": {"c": None}})
+    # table1 --budget decisive plans exactly the runs stage 2 is made of (the spec the queue ran, committed)
+    decisive = plan_runs(load_experiment("table1"), "/x", "decisive")
+    made = plan_runs(load_experiment(str(REPO / "docs/reports/issue34/table1_decisive.yaml")), "/x", "decisive")
+    assert [(r.run_id, r.recipe, r.overrides) for r in decisive] == [(r.run_id, r.recipe, r.overrides) for r in made]
+    assert sorted({r.axes["algorithm"] for r in decisive}) == ["adarl", "parseval"] and len(decisive) == 16

@@ -112,6 +112,12 @@ class Budget(_Model):
     sweeps: list[SweepSpec] | None = Field(
         None, description="Robustness sweeps for this budget (default: the spec's); [] runs none."
     )
+    value_seeds: dict[str, dict[str, list[int] | None]] = Field(
+        default_factory=dict,
+        description="Per axis and value name, the seeds that value runs at in this budget, replacing the value's own "
+        "`seeds` (null: every seed of the budget), e.g. {algorithm: {parseval: null}} where a control that a smaller "
+        "budget runs at 5 seeds runs at all 8.",
+    )
 
     @field_validator("axes", mode="before")
     @classmethod
@@ -247,6 +253,17 @@ class ExperimentSpec(_Model):
                 unknown = [k for k in keep if k not in known]
                 if unknown:
                     raise ValueError(f"budget {bname!r}: axis {axis!r} has no value(s) {unknown}; values: {known}")
+            for axis, per_value in budget.value_seeds.items():
+                if axis not in self.axes:
+                    raise ValueError(
+                        f"budget {bname!r}: value_seeds names unknown axis {axis!r}; axes: {list(self.axes)}"
+                    )
+                known = [v.name for v in self.axes[axis]]
+                unknown = [k for k in per_value if k not in known]
+                if unknown:
+                    raise ValueError(
+                        f"budget {bname!r}: value_seeds of axis {axis!r} names no value(s) {unknown}; values: {known}"
+                    )
         if self.default_budget is not None and self.default_budget not in self.budgets:
             raise ValueError(f"default_budget {self.default_budget!r} is not one of the budgets {list(self.budgets)}")
         for where, axis in (("report.columns", self.report.columns), ("report.x_axis", self.report.x_axis)):
@@ -426,13 +443,18 @@ def plan_runs(spec: ExperimentSpec, output: str | os.PathLike, budget: str | Non
     _, b = resolve_budget(spec, budget)
     seeds = b.seeds if b.seeds is not None else spec.seeds
     axes = {a: [v for v in vals if a not in b.axes or v.name in b.axes[a]] for a, vals in spec.axes.items()}
+
+    def value_seeds(axis: str, v: AxisValue) -> list[int] | None:  # the budget's value_seeds, else the value's own
+        per_value = b.value_seeds.get(axis, {})
+        return per_value[v.name] if v.name in per_value else v.seeds
+
     url = is_url(output)
     out = str(output).rstrip("/") if url else Path(output)
     runs = []
     for combo in itertools.product(*axes.values()) if axes else [()]:
         named = dict(zip(axes, combo))
         for seed in seeds:
-            if any(v.seeds is not None and seed not in v.seeds for v in named.values()):
+            if any((own := value_seeds(a, v)) is not None and seed not in own for a, v in named.items()):
                 continue
             values = {a: v.name for a, v in named.items()} | {"seed": str(seed)}
             recipe_t = spec.recipe
