@@ -203,3 +203,24 @@ def test_the_pilots_stated_rank_settling_is_its_reports():
     where = ("actor layer 0, of 11", "actor layer 1, of 64", "critic layer 0, of 14", "critic layer 1, of 64")
     assert "median final ranks " + ", ".join(f"{f} ({w})" for f, w in zip(finals, where)) in text
     assert f"medians {', '.join(candidates[:-1])} and {candidates[-1]}" in text
+
+
+def test_every_protocol_report_is_made_by_its_rule():
+    """commit_landed.sh commits each protocol experiment's runs into a report folder; make_report.sh must re-make
+    every such folder from its own spec's report section (else a report lands without its verdicts), and Fig. 1's
+    spec must name the protocol's pairs."""
+    import re
+
+    import yaml
+
+    issue34 = REPORTS / "issue34"
+    landed = re.search(r"for pair in (.*?); do", (issue34 / "commit_landed.sh").read_text(), re.S).group(1)
+    folders = {p.split(":")[-1] for p in landed.replace("\\", " ").split()}
+    specs = dict(re.findall(r"^\s*([\w|-]+)\) spec=(\w+) ;;", (issue34 / "make_report.sh").read_text(), re.M))
+    made = {folder: spec for names, spec in specs.items() for folder in names.split("|")}
+    assert folders == set(made), (folders ^ set(made))
+    root = REPORTS.parents[1] / "recipes" / "experiments"
+    for spec in set(made.values()):
+        assert (root / f"{spec}.yaml").is_file(), spec
+    cartpole = yaml.safe_load((root / "cartpole_rank_sweep.yaml").read_text())["report"]
+    assert cartpole["pairs"] == [["8", "4"], ["8", "16"]] and cartpole["score_last"] == 3

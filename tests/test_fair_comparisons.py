@@ -196,6 +196,13 @@ def test_sac_restarts_restarts_where_adarl_does_and_truncates_nothing(tmp_path):
     assert [e.step for e in factorised.c.adapter.history] == steps
     assert [r.step for r in factorised.c.warm_start.records] == steps
     assert s_factorised["updates"] == s_adarl["updates"]
+    # its ranks are reported (the full ones, unchanged), where the dense control has none
+    full = {"actor.layer0", "actor.layer1", "critic.layer0", "critic.layer1"}
+    assert set(factorised.c.adapter.named_ranks) == full and restarts.c.adapter.ranks == {}
+    assert set(s_factorised["ranks"]) == set(s_adarl["ranks"])
+    assert sorted(s_factorised["layer_names"].values()) == sorted(full) and s_restarts["ranks"] == {}
+    max_ranks = {s.path: s.max_rank for s in factorised.c.adapter.sites}
+    assert s_factorised["ranks"] == max_ranks
 
 
 def test_scheduled_restarts_checkpoint_and_refuse_bad_input():

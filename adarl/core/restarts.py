@@ -30,6 +30,9 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from torch import nn
+
+from adarl.core._sites import find_low_rank_layers
 from adarl.core.lr_schedule import restart_lr_scheduler, warmup_cosine_lambdas
 from adarl.errors import AdaRLValueError
 
@@ -73,6 +76,9 @@ class ScheduledRestarts:
         on_truncate: callables ``fn(event)`` run at every restart, as a rank adapter runs them after an event that
             changed a rank (e.g. :class:`~adarl.core.warmstart.ReplayWarmStart`).
         on_event: callables ``fn(event)`` run after them (records, logs).
+        loss_module: the loss whose ``LowRankLinear`` layers (if any) :attr:`ranks` reports: a factorised network
+            trained with restarts alone (issue 34's ``factorised_restarts``) keeps its full ranks, and logs, eval.csv
+            and summary.json say so instead of showing no ranks. Its layers are never changed.
 
     Call :meth:`step` after every optimisation step (or register it: :meth:`register`).
     """
@@ -84,6 +90,7 @@ class ScheduledRestarts:
         *,
         on_truncate: Sequence[Callable] | Callable = (),
         on_event: Sequence[Callable] | Callable = (),
+        loss_module: nn.Module | None = None,
     ) -> None:
         if isinstance(interval, bool) or not isinstance(interval, int) or interval < 1:
             raise AdaRLValueError(f"ScheduledRestarts: interval must be an integer >= 1, got {interval!r}")
@@ -99,11 +106,24 @@ class ScheduledRestarts:
         self.on_event = _callbacks("on_event", on_event)
         self.step_count = 0
         self.history: list[RestartEvent] = []
+        self.sites = find_low_rank_layers(loss_module, "both")[0] if loss_module is not None else []
 
     # the rank adapter's read-only surface: a restart keeps every rank
-    ranks: dict = {}
-    names: dict = {}
-    named_ranks: dict = {}
+
+    @property
+    def ranks(self) -> dict[str, int]:
+        """``{layer_path: rank}`` of ``loss_module``'s low-rank layers (empty without one): never changed here."""
+        return {s.path: s.rank for s in self.sites}
+
+    @property
+    def names(self) -> dict[str, str]:
+        """``{layer_path: human name}`` (``actor.layer0``), as :attr:`~adarl.core.adapter.RankAdapter.names`."""
+        return {s.path: s.name for s in self.sites}
+
+    @property
+    def named_ranks(self) -> dict[str, int]:
+        """:attr:`ranks` keyed by human name."""
+        return {s.name: s.rank for s in self.sites}
 
     def step(self) -> RestartEvent | None:
         """Count one optimisation step; every ``interval`` steps restart (:meth:`adapt`) and return the event."""

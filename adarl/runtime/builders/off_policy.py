@@ -245,7 +245,7 @@ def make_rank_control(
     if recipe.rank.truncate:
         adapter = _rank_adapter(recipe, loss, optimizers, schedulers, replay_buffer)
     else:  # the events' restarts without their truncations (the sac_restarts control)
-        adapter = ScheduledRestarts(recipe.rank.interval, list(schedulers.values()))
+        adapter = ScheduledRestarts(recipe.rank.interval, list(schedulers.values()), loss_module=loss)
     return adapter, warm_start
 
 
