@@ -216,7 +216,7 @@ def test_every_protocol_report_is_made_by_its_rule():
     issue34 = REPORTS / "issue34"
     landed = re.search(r"for pair in (.*?); do", (issue34 / "commit_landed.sh").read_text(), re.S).group(1)
     folders = {p.split(":")[-1] for p in landed.replace("\\", " ").split()}
-    specs = dict(re.findall(r"^\s*([\w|-]+)\) spec=(\w+) ;;", (issue34 / "make_report.sh").read_text(), re.M))
+    specs = dict(re.findall(r"^\s*([\w|-]+)\) spec=(\w+)[^\n]*;;", (issue34 / "make_report.sh").read_text(), re.M))
     made = {folder: spec for names, spec in specs.items() for folder in names.split("|")}
     assert folders == set(made), (folders ^ set(made))
     root = REPORTS.parents[1] / "recipes" / "experiments"

@@ -8,8 +8,11 @@
 #   bash docs/reports/issue34/make_report.sh table1-pilot
 # Prints nothing for a report this protocol does not make (the loop in commit_landed.sh calls it for every folder).
 set -eu
+extra=()
 case "$1" in
-  table1-pilot|table1-decisive) spec=table1 ;;
+  table1-pilot) spec=table1 ;;
+  # stage 2 runs two arms: P(adarl > parseval) is the reference column, table1's pairs name arms it does not run
+  table1-decisive) spec=table1 extra=(--set 'pairs=[]') ;;
   table2-laptop) spec=table2 ;;
   warmstart_ablation-laptop) spec=warmstart_ablation ;;
   rank_trajectory-laptop) spec=rank_trajectory ;;
@@ -19,5 +22,5 @@ case "$1" in
 esac
 d=docs/reports/$1
 [ -d "$d/runs" ] || exit 0
-.venv/bin/adarl report "$d/runs" --spec "recipes/experiments/$spec.yaml" -o "$d" >/dev/null
+.venv/bin/adarl report "$d/runs" --spec "recipes/experiments/$spec.yaml" "${extra[@]}" -o "$d" >/dev/null
 echo "$d"
