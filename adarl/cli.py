@@ -274,14 +274,19 @@ def cmd_report(args) -> int:
     from adarl.runtime.report import write_report
 
     dirs = args.run_dir
-    options = {}  # checked first: a bad spec or option writes nothing
+    options, spec_values = {}, {}  # checked first: a bad spec or option writes nothing
     if args.spec is not None:
-        options = {k: v for k, v in load_experiment(args.spec).report.model_dump().items() if v not in (None, [])}
-    options.update(report_options(args.report_options))
+        spec = load_experiment(args.spec)
+        options = {k: v for k, v in spec.report.model_dump().items() if v not in (None, [])}
+        spec_values = {axis: {v.name for v in values} for axis, values in spec.axes.items()}  # its pairs name these
+    given = report_options(args.report_options)
+    options.update(given)
     if len(dirs) == 1 and is_single_run(dirs[0]) and not args.output and not options:
         print(write_report(dirs[0]))  # one run folder: its own report, as before
         return 0
-    print(write_aggregate_report(dirs, args.output, report=options))
+    # --set pairs=...: each value must be the column axis's, of a run found or of the spec (a typo is refused)
+    pair_values = spec_values if given.get("pairs") else None
+    print(write_aggregate_report(dirs, args.output, report=options, pair_values=pair_values))
     return 0
 
 

@@ -273,22 +273,19 @@ def test_loose_run_folders_report_by_an_experiments_rule_given_on_the_command_li
         return {r["algorithm"]: r for r in csv.DictReader((folder / "statistics.csv").open())}
 
     rule = ["--set", "score_last=2", "--set", "plateau=1500", "--set", "reference=adarl"]
-    pairs = ["--set", "pairs=[[sac, adarl], [sac, nothing]]"]
+    pairs = ["--set", "pairs=[[sac, adarl]]"]
     assert main(["report", str(loose), "-o", str(tmp_path / "loose"), *rule, *pairs]) == 0
     assert stats(tmp_path / "loose") == stats(exp / "report")  # scores, plateau counts, P(adarl > sac), verdicts
     # report.pairs: P(a > b) between two arms (here the reference's comparison turned round), with the rule's verdict
     compared = list(csv.DictReader((tmp_path / "loose" / "pairs.csv").open()))
-    assert [(r["a"], r["b"], r["n_a"], r["n_b"]) for r in compared] == [
-        ("sac", "adarl", "2", "2"),
-        ("sac", "nothing", "2", "0"),
-    ]
+    assert [(r["a"], r["b"], r["n_a"], r["n_b"]) for r in compared] == [("sac", "adarl", "2", "2")]
     assert float(compared[0]["poi"]) == pytest.approx(1 - float(stats(exp / "report")["sac"]["poi_ref"]))
-    assert compared[0]["verdict"] == "adarl beats sac" and compared[1]["verdict"] == "no finished runs of nothing"
+    assert compared[0]["verdict"] == "adarl beats sac"
     md = (tmp_path / "loose" / "report.md").read_text()
-    assert 'score_last=2, plateau=1500.0, reference="adarl", pairs=[["sac", "adarl"], ["sac", "nothing"]]' in md
+    assert 'score_last=2, plateau=1500.0, reference="adarl", pairs=[["sac", "adarl"]]' in md
     # --spec: an experiment spec's report section (here the experiment's own), --set over it
     spec = tmp_path / "spec.yaml"
-    axes = {"env": ["hopper"], "algorithm": ["adarl", "sac"]}
+    axes = {"env": ["hopper"], "algorithm": ["adarl", "sac", "later"]}  # "later": an arm not run yet
     spec.write_text(
         yaml.safe_dump({"kind": "experiment", "name": "f", "recipe": "quickstart", "axes": axes, "report": report})
     )
@@ -296,12 +293,20 @@ def test_loose_run_folders_report_by_an_experiments_rule_given_on_the_command_li
     assert stats(tmp_path / "by_spec") == stats(exp / "report")
     assert main(["report", str(loose), "-o", str(tmp_path / "over"), "--spec", str(spec), "--set", "score_last=1"]) == 0
     assert float(stats(tmp_path / "over")["adarl"]["mean"]) == pytest.approx((1700 + 1400) / 2)  # the last evaluation
+    # a pair may name the spec's arm that has no runs yet (a stage in progress): said in its row, not refused
+    later = ["--spec", str(spec), "--set", "pairs=[[sac, later]]"]
+    assert main(["report", str(loose), "-o", str(tmp_path / "later"), *later]) == 0
+    (row,) = csv.DictReader((tmp_path / "later" / "pairs.csv").open())
+    assert (row["n_a"], row["n_b"], row["verdict"]) == ("2", "0", "no finished runs of later")
     for bad, said in [
         (["--set", "score_lst=2"], "did you mean 'score_last'"),
         (["--set", "score_last=0"], "score_last: Input should be greater than or equal to 1"),
         (["--set", "plateau"], "must be KEY=VALUE"),
         (["--set", "pairs=[[sac, sac]]"], "a pair compares two different values"),
         (["--set", "pairs=[sac, adarl]"], "pairs.0"),
+        # a value of no run and no spec: a typo, refused with the values there are
+        (["--set", "pairs=[[sac, adrl]]"], "report.pairs name ['adrl'], not values of the column axis 'algorithm'"),
+        (["--spec", str(spec), "--set", "pairs=[[sac, adrl]]"], "in these runs or the spec: ['adarl', 'later', 'sac']"),
         (["--spec", str(tmp_path / "nope.yaml")], "experiment spec"),
     ]:
         capsys.readouterr()

@@ -27,6 +27,7 @@ import tempfile
 from pathlib import Path
 
 from adarl.envs.registry import ACTION_DIMS, intrinsic_rank
+from adarl.errors import RecipeError
 from adarl.experiments._blocks import Code, Heading, Image, Paragraph, Table, csv_text, render_html, render_markdown
 from adarl.experiments._figures import (
     plot_learning_curves,
@@ -42,6 +43,7 @@ from adarl.experiments._runs import (
     Group,
     RunRecord,
     _load_run,
+    _num_key,
     _rank_series,
     aggregate_runs,
     axes_from_run_id,
@@ -79,6 +81,7 @@ def write_aggregate_report(
     *,
     command: str | None = None,
     report: dict | None = None,
+    pair_values: dict[str, set[str]] | None = None,
 ) -> Path | str:
     """Aggregate the runs in ``dirs`` and write the report folder; returns the path of its ``report.md``.
 
@@ -86,10 +89,15 @@ def write_aggregate_report(
     are copied to a temporary folder, the report is made there and uploaded (default output: ``<URL>/report`` for one
     experiment at a URL); ``runs.csv`` names the runs by their URL, and the URL of ``report.md`` is returned.
     ``report``: keys of an experiment spec's ``report`` section over the experiments' own (``adarl report --set``;
-    validate them with :func:`~adarl.experiments.spec.report_options`)."""
+    validate them with :func:`~adarl.experiments.spec.report_options`). ``pair_values``: check ``report.pairs``
+    against the column axis's values of the runs found plus ``pair_values[axis]`` (a spec's own ``{axis: values}``,
+    which may have no runs yet):
+    a value in neither is refused before anything is written (``adarl report --set pairs=...``: a typo)."""
     if any(is_url(d) for d in dirs) or is_url(output):
-        return _write_report_via_copy(dirs, output, command=command, report=report)
+        return _write_report_via_copy(dirs, output, command=command, report=report, pair_values=pair_values)
     agg = aggregate_runs(dirs, report)
+    if pair_values is not None:
+        _check_pair_values(agg, pair_values)
     if output is None:
         only = Path(dirs[0]) if len(dirs) == 1 else None
         output = only / "report" if only is not None and (only / "experiment.json").is_file() else Path("report")
@@ -254,7 +262,24 @@ def write_aggregate_report(
     return out / "report.md"
 
 
-def _write_report_via_copy(dirs: list, output, *, command: str | None, report: dict | None) -> Path | str:
+def _check_pair_values(agg, allowed: dict[str, set[str]]) -> None:
+    col = agg.report.get("columns") or ("algorithm" if "algorithm" in agg.axes else None)
+    pairs = agg.report.get("pairs") or []
+    if col is None or not pairs:
+        return
+    extra = {str(v) for v in allowed.get(col, ())}
+    known = {dict(g.key)[col] for g in agg.groups if col in dict(g.key)} | extra
+    unknown = sorted({str(v) for pair in pairs for v in pair} - known)
+    if unknown:
+        raise RecipeError(
+            f"report.pairs name {unknown}, not values of the column axis {col!r} in these runs"
+            f"{' or the spec' if extra else ''}: {sorted(known, key=_num_key)}"
+        )
+
+
+def _write_report_via_copy(
+    dirs: list, output, *, command: str | None, report: dict | None, pair_values: dict | None = None
+) -> Path | str:
     if output is None:
         only = dirs[0] if len(dirs) == 1 else None
         if only is not None and is_url(only) and exists(join(only, "experiment.json")):
@@ -273,7 +298,7 @@ def _write_report_via_copy(dirs: list, output, *, command: str | None, report: d
             else:
                 local_dirs.append(d)
         local_out = Path(tmp) / "out" if is_url(output) else Path(output)
-        md = write_aggregate_report(local_dirs, local_out, command=command, report=report)
+        md = write_aggregate_report(local_dirs, local_out, command=command, report=report, pair_values=pair_values)
         runs_csv = local_out / "runs.csv"
         rows = list(csv.reader(io.StringIO(runs_csv.read_text())))
         for row in rows[1:]:  # local copies -> the URLs they came from
