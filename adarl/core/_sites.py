@@ -29,6 +29,7 @@ __all__ = [
     "network_candidates",
     "layer_indices",
     "find_low_rank_layers",
+    "SiteRanks",
 ]
 
 SCOPES = ("actor", "critic", "both")
@@ -269,3 +270,32 @@ def find_low_rank_layers(loss_module: nn.Module, scope: str = "both") -> tuple[l
             sites.append(LowRankSite(path, name, role, module_path, network, layer, params, w1, w2, tw1, tw2, extra))
     _name_sites(sites)
     return sites, searched
+
+
+class SiteRanks:
+    """The read-only rank views of an object holding ``sites`` (its :class:`LowRankSite` list): the surface logs,
+    eval.csv, summary.json and reports read, shared by :class:`~adarl.core.adapter.RankAdapter` (which changes the
+    ranks) and :class:`~adarl.core.restarts.ScheduledRestarts` (which never does)."""
+
+    sites: list[LowRankSite]
+
+    @property
+    def ranks(self) -> dict[str, int]:
+        """``{layer_path: current rank}`` of the layers (e.g. ``"actor_network.module.0.module.0.0"``)."""
+        return {s.path: s.rank for s in self.sites}
+
+    @property
+    def layers(self) -> dict[str, str]:
+        """``{layer_path: "actor" | "critic"}`` of the layers."""
+        return {s.path: s.role for s in self.sites}
+
+    @property
+    def names(self) -> dict[str, str]:
+        """``{layer_path: human name}``, e.g. ``{"actor_network.module.0.module.0.0": "actor.layer0"}``: the names
+        logs, tables and plots show (``<role>.layer<k>``, ``k`` the recipe's hidden-layer index)."""
+        return {s.path: s.name for s in self.sites}
+
+    @property
+    def named_ranks(self) -> dict[str, int]:
+        """:attr:`ranks` keyed by human name (``{"actor.layer0": 11, ...}``)."""
+        return {s.name: s.rank for s in self.sites}

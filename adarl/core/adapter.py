@@ -49,6 +49,7 @@ from adarl.core._sites import (
     SUPPORTED_LOSSES,
     UNSUPPORTED_LOSSES,
     LowRankSite,
+    SiteRanks,
     _name_sites,
     check_loss_supported,
     find_low_rank_layers,
@@ -126,7 +127,7 @@ class _Verdict:
     note: str | None = None
 
 
-class RankAdapter(TrainerHookBase):
+class RankAdapter(SiteRanks, TrainerHookBase):
     """Rank adaptation (Algorithm 1, step 6) for the LowRankLinear layers behind a TorchRL loss.
 
     Args:
@@ -260,29 +261,6 @@ class RankAdapter(TrainerHookBase):
         self.step_count = 0
         self.history: list[RankEvent] = []
         _LIVE.add(self)
-
-    # -- properties ---------------------------------------------------------------------------------------------
-
-    @property
-    def ranks(self) -> dict[str, int]:
-        """``{layer_path: current rank}`` of the adapted layers (e.g. ``"actor_network.module.0.module.0.0"``)."""
-        return {s.path: s.rank for s in self.sites}
-
-    @property
-    def layers(self) -> dict[str, str]:
-        """``{layer_path: "actor" | "critic"}`` of the adapted layers."""
-        return {s.path: s.role for s in self.sites}
-
-    @property
-    def names(self) -> dict[str, str]:
-        """``{layer_path: human name}``, e.g. ``{"actor_network.module.0.module.0.0": "actor.layer0"}``: the names
-        logs, tables and plots show (``<role>.layer<k>``, ``k`` the recipe's hidden-layer index)."""
-        return {s.path: s.name for s in self.sites}
-
-    @property
-    def named_ranks(self) -> dict[str, int]:
-        """:attr:`ranks` keyed by human name (``{"actor.layer0": 11, ...}``)."""
-        return {s.name: s.rank for s in self.sites}
 
     # -- hooks --------------------------------------------------------------------------------------------------
 

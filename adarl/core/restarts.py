@@ -32,7 +32,7 @@ from typing import Any
 
 from torch import nn
 
-from adarl.core._sites import find_low_rank_layers
+from adarl.core._sites import SiteRanks, find_low_rank_layers
 from adarl.core.lr_schedule import restart_lr_scheduler, warmup_cosine_lambdas
 from adarl.errors import AdaRLValueError
 
@@ -66,7 +66,7 @@ def _callbacks(name: str, value) -> list[Callable]:
     return value
 
 
-class ScheduledRestarts:
+class ScheduledRestarts(SiteRanks):
     """Every ``interval`` optimisation steps: restart the LR schedules, then run ``on_truncate`` and ``on_event``.
 
     Args:
@@ -106,24 +106,8 @@ class ScheduledRestarts:
         self.on_event = _callbacks("on_event", on_event)
         self.step_count = 0
         self.history: list[RestartEvent] = []
+        # the rank adapter's read-only views (SiteRanks) over these: a restart keeps every rank
         self.sites = find_low_rank_layers(loss_module, "both")[0] if loss_module is not None else []
-
-    # the rank adapter's read-only surface: a restart keeps every rank
-
-    @property
-    def ranks(self) -> dict[str, int]:
-        """``{layer_path: rank}`` of ``loss_module``'s low-rank layers (empty without one): never changed here."""
-        return {s.path: s.rank for s in self.sites}
-
-    @property
-    def names(self) -> dict[str, str]:
-        """``{layer_path: human name}`` (``actor.layer0``), as :attr:`~adarl.core.adapter.RankAdapter.names`."""
-        return {s.path: s.name for s in self.sites}
-
-    @property
-    def named_ranks(self) -> dict[str, int]:
-        """:attr:`ranks` keyed by human name."""
-        return {s.name: s.rank for s in self.sites}
 
     def step(self) -> RestartEvent | None:
         """Count one optimisation step; every ``interval`` steps restart (:meth:`adapt`) and return the event."""

@@ -91,8 +91,8 @@ def write_aggregate_report(
     ``report``: keys of an experiment spec's ``report`` section over the experiments' own (``adarl report --set``;
     validate them with :func:`~adarl.experiments.spec.report_options`). ``pair_values``: check ``report.pairs``
     against the column axis's values of the runs found plus ``pair_values[axis]`` (a spec's own ``{axis: values}``,
-    which may have no runs yet):
-    a value in neither is refused before anything is written (``adarl report --set pairs=...``: a typo)."""
+    which may have no runs yet): a value in neither is refused before anything is written (a typo in ``adarl report
+    --set pairs=...``)."""
     if any(is_url(d) for d in dirs) or is_url(output):
         return _write_report_via_copy(dirs, output, command=command, report=report, pair_values=pair_values)
     agg = aggregate_runs(dirs, report)
