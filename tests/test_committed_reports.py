@@ -169,6 +169,23 @@ def _poi_text(p: str, lo: str, hi: str) -> str:
     return f"{float(p):.2f} [{float(lo):.2f}, {float(hi):.2f}]"
 
 
+def _stated_arm(arm: str, n_seeds: int, text: str) -> dict:
+    """An amendment arm's statistics row of the pilot's report, after checking what docs/reproduction.md (``text``)
+    states of it: mean ± std (IQM), the plateau count and every seed's score in seed order."""
+    pilot = REPORTS / "table1-pilot"
+    row = next(r for r in csv.DictReader((pilot / "statistics.csv").open()) if r["algorithm"] == arm)
+    assert int(row["n_seeds"]) == n_seeds, arm
+    assert f"{float(row['mean']):.0f} ± {float(row['std']):.0f} (IQM {float(row['iqm']):.0f})" in text, arm
+    assert f"{row['above_plateau']} of {row['n_seeds']} of its seeds leave" in text, arm
+    scores = sorted(
+        (int(r["seed"]), f"{float(r['score']):.0f}")
+        for r in csv.DictReader((pilot / "runs.csv").open())
+        if r["algorithm"] == arm
+    )
+    assert f"per seed {', '.join(v for _, v in scores)}" in text, arm
+    return row
+
+
 def test_eq10_alones_stated_results_are_its_reports():
     """The first amendment's arm (AdaRL with Eq. 10 alone): the score, P against AdaRL and each control, and its
     ranks as docs/reproduction.md (and README.md) state them are the committed report's."""
@@ -177,24 +194,15 @@ def test_eq10_alones_stated_results_are_its_reports():
     pilot = REPORTS / "table1-pilot"
     text = " ".join((REPORTS.parents[1] / "docs" / "reproduction.md").read_text().split())
     readme = " ".join((REPORTS.parents[1] / "README.md").read_text().split())
-    eq10 = next(r for r in csv.DictReader((pilot / "statistics.csv").open()) if r["algorithm"] == "adarl_eq10")
-    assert int(eq10["n_seeds"]) == 5
+    eq10 = _stated_arm("adarl_eq10", 5, text)
     p_ref = _poi_text(eq10["poi_ref"], eq10["poi_lo"], eq10["poi_hi"])
     assert float(eq10["poi_lo"]) <= 0.5 <= float(eq10["poi_hi"])  # no difference shown against AdaRL
     assert f"P(AdaRL > `adarl_eq10`) = {p_ref}" in text and f"P(AdaRL > Eq. 10 alone) = {p_ref}" in readme
-    assert f"{float(eq10['mean']):.0f} ± {float(eq10['std']):.0f} (IQM {float(eq10['iqm']):.0f})" in text
-    assert f"{eq10['above_plateau']} of {eq10['n_seeds']} of its seeds leave" in text
     pairs = [r for r in csv.DictReader((pilot / "pairs.csv").open()) if r["a"] == "adarl_eq10"]
     assert {r["b"] for r in pairs} == {"sac_full", "sac_restarts", "fixed_final", "parseval"}
     for r in pairs:  # every control beats it
         assert r["verdict"] == f"{r['b']} beats adarl_eq10" and float(r["poi_hi"]) < 0.5
         assert f"P(`adarl_eq10` > `{r['b']}`) = {_poi_text(r['poi'], r['poi_lo'], r['poi_hi'])}" in text
-    scores = sorted(
-        (int(r["seed"]), f"{float(r['score']):.0f}")
-        for r in csv.DictReader((pilot / "runs.csv").open())
-        if r["algorithm"] == "adarl_eq10"
-    )
-    assert f"per seed {', '.join(v for _, v in scores)}" in text
     # Fig. 4 without the acceptance step: the first cut of the actor's input layer is 7 in every seed, each later
     # event cuts again, nothing is unchanged over the last event
     rows = [r for r in csv.DictReader((pilot / "rank_settling.csv").open()) if r["algorithm"] == "adarl_eq10"]
@@ -223,8 +231,7 @@ def test_factorised_restarts_stated_results_are_its_reports():
     pilot = REPORTS / "table1-pilot"
     text = " ".join((REPORTS.parents[1] / "docs" / "reproduction.md").read_text().split())
     readme = " ".join((REPORTS.parents[1] / "README.md").read_text().split())
-    arm = next(r for r in csv.DictReader((pilot / "statistics.csv").open()) if r["algorithm"] == "factorised_restarts")
-    assert int(arm["n_seeds"]) == 5
+    arm = _stated_arm("factorised_restarts", 5, text)
     p_trunc = _poi_text(arm["poi_ref"], arm["poi_lo"], arm["poi_hi"])
     assert f"P(AdaRL > `factorised_restarts`) = {p_trunc}" in text and f"P(AdaRL > never cut) = {p_trunc}" in readme
     (pair,) = [r for r in csv.DictReader((pilot / "pairs.csv").open()) if r["a"] == "factorised_restarts"]
@@ -235,14 +242,6 @@ def test_factorised_restarts_stated_results_are_its_reports():
     assert pair["verdict"] == "sac_restarts beats factorised_restarts" and float(pair["poi_hi"]) < 0.5
     assert f"P(`factorised_restarts` > `sac_restarts`) = {p_fact}" in text
     assert f"P(never cut > dense with restarts) = {p_fact}" in readme
-    assert f"{float(arm['mean']):.0f} ± {float(arm['std']):.0f} (IQM {float(arm['iqm']):.0f})" in text
-    assert f"{arm['above_plateau']} of {arm['n_seeds']} of its seeds leave" in text
-    scores = sorted(
-        (int(r["seed"]), f"{float(r['score']):.0f}")
-        for r in csv.DictReader((pilot / "runs.csv").open())
-        if r["algorithm"] == "factorised_restarts"
-    )
-    assert f"per seed {', '.join(v for _, v in scores)}" in text
 
 
 def test_stage_twos_control_is_the_pilots_strongest():
