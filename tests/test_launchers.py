@@ -358,3 +358,63 @@ def test_progress_counts_the_frames_of_runs_that_have_not_started(tmp_path):
     _, totals = board.snapshot()
     assert (totals.done_frames, totals.all_frames, totals.n_done, totals.n) == (800, 4000, 0, 4)
     assert "0/4 runs done, 20% of frames" in totals.line(10)
+
+
+def test_a_run_stopped_by_sigterm_from_outside_is_interrupted_not_failed_and_resumes(tmp_path):
+    """A training process sent SIGTERM by someone else (a session's end, a scheduler) checkpoints and exits 143: the
+    experiment says the run was interrupted and resumes on the next call, not that it failed; the attempt log says
+    the same. The next `adarl experiment` resumes it (never starts it again) and finishes it."""
+    spec = tmp_path / "one.yaml"
+    spec.write_text(
+        yaml.safe_dump({"kind": "experiment", "name": "one", "recipe": "quickstart", "overrides": TINY, "seeds": [0]})
+    )
+    out = tmp_path / "exp"
+    sent: list[int] = []
+    done = threading.Event()
+
+    def sigterm_the_training_after_its_first_checkpoint():
+        while not done.is_set() and not sent:
+            frames = [int(c.stem.split("-")[1]) for c in out.glob("*/checkpoints/ckpt-*.pt")]
+            if any(0 < f < 500 for f in frames):
+                pids = _training_pids(str(out))
+                if pids:
+                    os.kill(pids[0], signal.SIGTERM)
+                    sent.append(pids[0])
+                    return
+            time.sleep(0.05)
+
+    sender = threading.Thread(target=sigterm_the_training_after_its_first_checkpoint, daemon=True)
+    sender.start()
+    try:
+        with pytest.raises(AdaRLError, match="1 of 1 runs were interrupted by a signal and resume") as err:
+            run_experiment(spec, output=out, report=False, log=lambda *_: None)
+    finally:
+        done.set()
+        sender.join()
+    assert sent, "no training was sent SIGTERM mid-run"
+    assert "failed" not in str(err.value)
+    (run_id,) = [p.name for p in out.iterdir() if p.is_dir() and p.name != "attempts"]
+    state = json.loads((out / "experiment.json").read_text())
+    assert [(r["run_id"], r["status"]) for r in state["runs"]] == [(run_id, "interrupted")]
+    assert "interrupted by SIGTERM (exit 143)" in state["runs"][0]["message"]
+    assert read_attempts(out, run_id)[-1]["status"] == "interrupted"
+
+    runs = run_experiment(spec, output=out, report=False, log=lambda *_: None)
+    assert [r.status for r in runs] == ["finished"]
+    assert [(e["event"], e["action"]) for e in read_attempts(out, run_id)] == [
+        ("start", "ran"),
+        ("end", "ran"),
+        ("start", "resumed"),
+        ("end", "resumed"),
+    ]
+
+
+def test_an_exit_status_names_the_interrupting_signal_only_for_sigint_and_sigterm():
+    from adarl.experiments.execute import interrupting_signal
+
+    assert interrupting_signal(128 + signal.SIGTERM) == signal.SIGTERM
+    assert interrupting_signal(-signal.SIGTERM) == signal.SIGTERM
+    assert interrupting_signal(128 + signal.SIGINT) == signal.SIGINT
+    assert interrupting_signal(-signal.SIGINT) == signal.SIGINT
+    for other in (0, 1, 2, -signal.SIGKILL, 128 + signal.SIGKILL, None):  # SIGKILL: the OOM killer's, a failure
+        assert interrupting_signal(other) is None

@@ -492,3 +492,30 @@ def test_a_study_on_submitit_prunes_a_trial_so_that_it_checkpoints(tmp_path, mon
     assert result.states == {"COMPLETE": 1, "PRUNED": 1}, said
     _assert_pruned_and_checkpointed(out, 1, 0)
     assert (out / "submitit").is_dir()
+
+
+def test_a_trial_whose_run_was_interrupted_from_outside_is_resumed_not_failed(tmp_path):
+    """A trial's run stopped by SIGINT/SIGTERM from outside the study (status ``interrupted``, what
+    ``execute_run`` gives a training that exits 130/143: tests/test_launchers.py) is said and left unfinished, and
+    the next `adarl tune` resumes it; before, it failed the trial."""
+    from adarl.experiments.launchers import LocalLauncher
+    from adarl.experiments.tune import run_tune
+
+    class InterruptedFromOutside(LocalLauncher):
+        def run_watched(self, run, watch):
+            run.status = "interrupted"
+            run.message = "interrupted by SIGTERM (exit 143); resumes from its last checkpoint (log: x.log)"
+            return run
+
+    spec = _spec(tmp_path, n_trials=1)
+    out = tmp_path / "out"
+    said: list[str] = []
+    first = run_tune(spec, output=out, log=said.append, launcher=InterruptedFromOutside())
+    assert first.states == {"RUNNING": 1}, said
+    assert any(line.startswith("[trial 0] interrupted by SIGTERM (exit 143)") for line in said), said
+    assert not (out / "trials" / "trial-0000" / "tune_trial.json").is_file()  # neither failed nor complete
+
+    said.clear()
+    again = run_tune(spec, output=out, log=said.append)
+    assert "0 of 1 trials done, 1 interrupted to resume" in said[0], said
+    assert again.states == {"COMPLETE": 1} and again.resumed == [0]

@@ -199,9 +199,38 @@ def execute_run(run: PlannedRun, threads: int | None, watch: Callable[[], bool] 
         run.status, run.message = "stopped", f"stopped by its watcher (exit {proc.returncode}); resumable (log: {log})"
     else:
         tail = log.read_text().strip().splitlines()[-1:] if log.is_file() else []
-        run.status, run.message = "failed", f"exit {proc.returncode}: {' '.join(tail)} (log: {log})"
+        _set_unfinished(run, proc.returncode, tail, log)
     _record_attempt(run, event="end", action=action, status=run.status)
     return run
+
+
+#: The signals a training checkpoints and stops on (:mod:`adarl.runtime.signals`): a run ended by one was
+#: interrupted from outside (a session's end, a scheduler, Ctrl-C), not broken; it resumes exactly when asked.
+INTERRUPTING_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+def interrupting_signal(returncode: int | None) -> signal.Signals | None:
+    """The signal of :data:`INTERRUPTING_SIGNALS` a training process's exit status says stopped it: ``128 + n``
+    (``adarl run`` after its checkpoint) or ``-n`` (killed by it before its handler was set); None otherwise."""
+    for sig in INTERRUPTING_SIGNALS:
+        if returncode in (128 + int(sig), -int(sig)):
+            return sig
+    return None
+
+
+def _set_unfinished(run: PlannedRun, returncode: int | None, tail: list[str], log) -> None:
+    """Status of a run whose training ended before its budget: ``interrupted`` when a signal of
+    :data:`INTERRUPTING_SIGNALS` stopped it (resumable: the next ``adarl experiment`` resumes it from its last
+    checkpoint), ``failed`` otherwise (SIGKILL included: the out-of-memory killer sends it, and would again)."""
+    sig = interrupting_signal(returncode)
+    if sig is not None:
+        run.status = "interrupted"
+        run.message = (
+            f"interrupted by {sig.name} (exit {returncode}); resumes from its last checkpoint when the experiment "
+            f"is run again (log: {log})"
+        )
+    else:
+        run.status, run.message = "failed", f"exit {returncode}: {' '.join(tail)} (log: {log})"
 
 
 WATCH_POLL_S = 1.0  # how often a watched run's watcher is asked whether to stop it
@@ -312,6 +341,6 @@ def _execute_at_url(run: PlannedRun, threads: int | None) -> PlannedRun:
             where = remote_log
         except Exception:  # noqa: BLE001 - the local log is still there
             where = str(log)
-        run.status, run.message = "failed", f"exit {returncode}: {' '.join(tail)} (log: {where})"
+        _set_unfinished(run, returncode, tail, where)
     _record_attempt(run, event="end", action=action, status=run.status)
     return run

@@ -230,11 +230,21 @@ def run_experiment(
                 _sweep(r, sweeps)
     _write_state(out, spec, budget, runs, command)
     failed = [r for r in runs if r.status == "failed"]
+    interrupted = [r for r in runs if r.status == "interrupted"]
     if report:
         path = write_aggregate_report([out], f"{out}/report" if is_url(out) else out / "report")
         log(f"report: {path}")
-    if failed:
-        raise AdaRLError(
-            f"{len(failed)} of {len(runs)} runs failed: " + "; ".join(f"{r.run_id}: {r.message}" for r in failed[:5])
-        )
+    if failed or interrupted:
+        said = []
+        if failed:
+            said.append(
+                f"{len(failed)} of {len(runs)} runs failed: "
+                + "; ".join(f"{r.run_id}: {r.message}" for r in failed[:5])
+            )
+        if interrupted:
+            said.append(
+                f"{len(interrupted)} of {len(runs)} runs were interrupted by a signal and resume from their last "
+                f"checkpoint when this command is run again: " + ", ".join(r.run_id for r in interrupted[:5])
+            )
+        raise AdaRLError(". ".join(said))
     return runs

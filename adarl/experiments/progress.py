@@ -32,7 +32,8 @@ __all__ = ["RunProgress", "BoardTotals", "read_progress", "ProgressBoard", "Live
 
 @dataclass
 class RunProgress:
-    """Where one run stands: ``state`` is pending | running | finished | failed | skipped-finished | missing-recipe."""
+    """Where one run stands: ``state`` is pending | running | finished | failed | interrupted | skipped-finished |
+    missing-recipe."""
 
     run_id: str
     state: str
@@ -181,16 +182,17 @@ _STYLES = {
     "finished": "green",
     "skipped-finished": "green",
     "failed": "bold red",
+    "interrupted": "yellow",
     "pending": "dim",
     "missing-recipe": "yellow",
 }
-_KEEP_FIRST = ("running", "failed")  # rows kept when the terminal is too short for all of them
+_KEEP_FIRST = ("running", "failed", "interrupted")  # rows kept when the terminal is too short for all of them
 
 
 class LiveBoard:
     """A :class:`ProgressBoard` redrawn in place with rich: the aggregate bar, then a table with one row per run
     (state, run, frames, last return, ETA). Messages go through :meth:`log` and scroll above it. When the terminal
-    is too short for every row, running and failed runs are shown first and the rest is counted."""
+    is too short for every row, running, failed and interrupted runs are shown first and the rest is counted."""
 
     def __init__(self, board: ProgressBoard, console=None) -> None:
         self.board = board

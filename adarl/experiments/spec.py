@@ -292,7 +292,7 @@ class PlannedRun:
     recipe: str
     overrides: list[str]
     path: str
-    status: str = "pending"  # pending | finished | skipped-finished | missing-recipe | failed | stopped (a watch)
+    status: str = "pending"  # pending | finished | skipped-finished | missing-recipe | failed | interrupted | stopped
     message: str = ""
     total_frames: int | None = None  # the recipe's frame budget, known once it validated (progress before it starts)
     wall_time_s: float = 0.0

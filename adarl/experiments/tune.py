@@ -363,7 +363,10 @@ class _Study:
             if all(r.status in ("finished", "skipped-finished") for r in runs):
                 state["pruned_at"] = None  # complete, whatever the pruner said after its last evaluation
             elif state["pruned_at"] is None and not any(r.status == "failed" for r in runs):
-                return  # interrupted (stopping): left RUNNING, resumed by the next `adarl tune`
+                for r in runs:
+                    if r.status == "interrupted":  # a signal from outside, not this study: said, not hidden
+                        self.log(f"[trial {number}] {r.message.split(' (log:')[0]}")
+                return  # interrupted (stopping, or a signal): left RUNNING, resumed by the next `adarl tune`
         self._finish(trial, runs, folder, params, state["pruned_at"])
 
     def _last_step(self, trial) -> int | None:
