@@ -522,7 +522,7 @@ import adarl.runtime.run_dir as rd
 from adarl.errors import CheckpointError
 root, check = sys.argv[1], sys.argv[2] == "check"
 if not check:
-    rd._check_free_space = lambda *a: None  # let the write itself meet the full disk
+    rd.check_free_space = lambda *a: None  # let the write itself meet the full disk
 rb = TensorDictReplayBuffer(storage=LazyTensorStorage(20000), batch_size=4)
 rb.extend(TensorDict({"obs": torch.randn(20000, 40)}, [20000]))  # 3.2 MB on a 3 MB disk
 run = rd.RunDir.create(root + "/run")

@@ -147,13 +147,13 @@ def test_disk_full_while_writing_keeps_the_previous_checkpoint(finished_run, tmp
     run = _copy_run(finished_run, tmp_path / "run")
     before = run.checkpoints()
     good = run.load_checkpoint(before[-1])
-    import adarl.runtime.run_dir as rd
+    import adarl.runtime._file_safety as file_safety
 
     def full_disk(obj, fh, *a, **k):
         fh.write(b"PK\x03\x04partial")  # some bytes made it, then the disk filled up
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
 
-    monkeypatch.setattr(rd.torch, "save", full_disk)
+    monkeypatch.setattr(file_safety.torch, "save", full_disk)
     with pytest.raises(CheckpointError, match="disk full") as info:
         run.save_checkpoint(good, frames=10_000, keep_last=1)
     assert before[-1].name in str(info.value)

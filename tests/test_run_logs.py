@@ -90,7 +90,8 @@ def test_metric_names_are_sb3s_where_sb3_has_the_quantity():
 
 def test_metric_files_have_a_header_and_files_without_one_still_read(tmp_path):
     from adarl.experiments.progress import read_progress
-    from adarl.runtime.run_dir import RunDir, _Fanout
+    from adarl.runtime._run_loggers import Fanout as _Fanout
+    from adarl.runtime.run_dir import RunDir
 
     run = RunDir(tmp_path)
     import torchrl.record.loggers as loggers

@@ -21,8 +21,10 @@ Checkpoints are written to a temporary file, fsync'ed and renamed, so a crash or
 previous one intact; the last ``keep_last`` are kept. Each names the recipe fingerprint it was written under
 (:func:`recipe_fingerprint`), checked before any of its tensors is used.
 
-Long because: one class, :class:`RunDir`, knows the whole layout above and writes every file of it safely (atomic
-renames, fsync, the lock, free-space checks); split by file kind, the layout would be spread over modules.
+Long because: one class, :class:`RunDir`, knows the whole layout above (a method per file it writes or
+reads); how a file is written and read safely (atomic renames, fsync, free-space checks, loads of tensors only) is
+:mod:`adarl.runtime._file_safety`'s, the folder's kernel lock :mod:`adarl.runtime._folder_lock`'s, and how a scalar
+reaches each logger :mod:`adarl.runtime._run_loggers`'s.
 """
 
 from __future__ import annotations
@@ -30,22 +32,15 @@ from __future__ import annotations
 import contextlib
 import csv
 import errno
-import importlib.util
 import io
 import json
-import math
 import os
-import pickle
 import re
 import shutil
-import socket
-import stat
-import time
 import uuid
 import warnings
 from pathlib import Path
 
-import torch
 from torchrl.record import loggers as torchrl_loggers
 
 from adarl import __version__, plugins
@@ -55,17 +50,27 @@ from adarl.errors import (
     AdaRLWarning,
     CheckpointError,
     CheckpointFallbackWarning,
-    MissingExtraError,
     RecipeError,
     describe_os_error,
 )
 from adarl.runtime import metrics
+from adarl.runtime._file_safety import (
+    NotAFile,
+    atomic_torch_save,
+    atomic_write_text,
+    buffer_nbytes,
+    check_free_space,
+    fsync_dir,
+    naming,
+    nbytes,
+    os_why,
+    plain,
+    safe_load,
+    why_unloadable,
+)
+from adarl.runtime._folder_lock import HELD_LOCKS, KERNEL_LOCKS, hold_lock, holder, release_lock
+from adarl.runtime._run_loggers import Fanout, logging_backends, null_logger, tensorboard_logger
 from adarl.runtime.config import load_recipe, local_plugins, recipe_to_yaml, save_resolved
-
-try:  # POSIX: a lock the kernel drops when its process dies (kill -9 included)
-    import fcntl
-except ImportError:  # pragma: no cover - Windows: folders are still created exclusively, but not locked while in use
-    fcntl = None
 
 __all__ = [
     "RunDir",
@@ -103,7 +108,6 @@ TRAINING_RECORDS = (
 # `--overwrite` replaces only a folder that holds nothing else (a thesis.tex in it is refused by name).
 OTHER_OUTPUTS = ("wandb_run_id", "report.md", "plots/", "eval_nominal.json", "sweeps/")
 _EVAL_FIELDS = ["frames", "updates", "mean", "std", "ci95", "episodes", "returns", "ranks"]
-_HELD_LOCKS: dict[str, int] = {}  # lock files this process holds (path -> fd): a lock excludes other processes only
 
 
 def recipe_fingerprint(recipe) -> dict:
@@ -148,75 +152,9 @@ def _same_in_fingerprint(key: str, theirs: dict, ours: dict) -> bool:
     )
 
 
-def logging_backends(recipe) -> set[str]:
-    """The recipe's logging backends that will log (wandb not when ``wandb_mode`` is disabled), each one's package
-    checked first: a missing one is a :class:`~adarl.errors.MissingExtraError` naming the ``pip install``, raised
-    before anything is written (``adarl run`` checks it before it makes the run folder)."""
-    backends = set(recipe.logging.backends)
-    if recipe.logging.wandb_mode == "disabled":
-        backends.discard("wandb")
-    for backend, package in (("tensorboard", "tensorboard"), ("wandb", "wandb")):
-        if backend in backends and importlib.util.find_spec(package) is None:
-            raise MissingExtraError(
-                f"logging.backends includes {backend!r} but the {package!r} package is not installed; "
-                f"install it (pip install 'adarl[{backend}]') or remove {backend!r} from logging.backends "
-                f"(allowed without extras: ['csv'])"
-            )
-    return backends
-
-
 class RunFolderGone(AdaRLError):
     """The run folder was deleted or moved while a process trained in it: the run stops instead of writing on (it
     would recreate a folder without its recipe or records, which neither resume nor eval can read)."""
-
-
-class _Fanout:
-    """Send each scalar to every configured TorchRL logger (CSV always; tensorboard / wandb on request).
-
-    ``check``: called before each scalar (the run folder is still there, :meth:`RunDir.ensure_present`), so a
-    logger never recreates a deleted run folder (TorchRL's CSV logger makes the folders of a new metric's file)."""
-
-    def __init__(self, loggers, check=None):
-        self.loggers = loggers
-        self.check = check
-
-    def log_scalar(self, name: str, value: float, step: int | None = None) -> None:
-        if self.check is not None:
-            self.check()
-        for lg in self.loggers:
-            try:
-                _csv_header(getattr(lg, "experiment", None), name)
-                lg.log_scalar(name, float(value), step=step)
-            except OSError as err:  # a full disk fails the CSV logger's flush, which names no file: name it
-                if err.filename is not None:
-                    raise
-                exp = getattr(lg, "experiment", None)
-                where = (
-                    os.path.join(exp.log_dir, "scalars", name + ".csv")
-                    if hasattr(exp, "files")  # CSV: the metric's own file
-                    else getattr(lg, "log_dir", None)
-                )
-                raise OSError(err.errno, err.strerror, where) from None
-
-
-def _csv_header(exp, name: str) -> None:
-    """Start a new metric file of TorchRL's CSV logger (``exp``: its experiment; anything else is left alone) with
-    the header row ``step,value``, as pandas and spreadsheet users expect; a file that has rows is left as it is
-    (run folders of earlier versions have none: readers skip a header row and take files without one)."""
-    files = getattr(exp, "files", None)
-    if files is None:
-        return
-    path = os.path.join(exp.log_dir, "scalars", name + ".csv")
-    if path in files or (os.path.isfile(path) and os.path.getsize(path) > 0):
-        return
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    with open(path, "a") as fh:
-        fh.write(metrics.CSV_HEADER + "\n")
-
-
-def null_logger() -> _Fanout:
-    """A logger that records nothing: a run loaded read-only, to evaluate it."""
-    return _Fanout([])
 
 
 class RunDir:
@@ -243,11 +181,11 @@ class RunDir:
             raise AdaRLError(f"run folder {str(p)!r} exists and is not a folder; choose another output.dir") from None
         except OSError as err:
             raise AdaRLError(
-                f"cannot create run folder {str(p)!r}: {_os_why(err, p)}; choose a writable place "
+                f"cannot create run folder {str(p)!r}: {os_why(err, p)}; choose a writable place "
                 f"with -o/--output or output.root"
             ) from None
         entries = list(p.iterdir())
-        if entries and fcntl is not None and all(_claim_leftover(e.name) for e in entries):
+        if entries and KERNEL_LOCKS and all(_claim_leftover(e.name) for e in entries):
             return cls._reclaim(p, entries)  # `adarl run` was stopped before it wrote its recipe: nothing ran
         if entries:
             foreign = _foreign_entries(entries)
@@ -267,7 +205,7 @@ class RunDir:
                     f"or output.dir (--overwrite replaces only an adarl run folder that holds nothing else)"
                 )
             cls(p).lock()  # refuses when another process trains in it
-            _release_lock(p / LOCK_FILE)
+            release_lock(p / LOCK_FILE)
             aside = p.with_name(f".{p.name}.replaced-{uuid.uuid4().hex[:8]}")
             with contextlib.suppress(FileNotFoundError):  # another --overwrite moved it first
                 os.rename(p, aside)
@@ -278,17 +216,17 @@ class RunDir:
             fd = os.open(p / LOCK_FILE, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o644)
         except FileExistsError:
             raise AdaRLError(
-                f"run folder {str(p)!r} was just claimed by another process ({_holder(p / LOCK_FILE)}); "
+                f"run folder {str(p)!r} was just claimed by another process ({holder(p / LOCK_FILE)}); "
                 f"choose another output.dir"
             ) from None
         except OSError as err:
             raise AdaRLError(
-                f"cannot create run folder {str(p)!r}: {_os_why(err, p)}; choose a writable place "
+                f"cannot create run folder {str(p)!r}: {os_why(err, p)}; choose a writable place "
                 f"with -o/--output or output.root"
             ) from None
-        if not _hold_lock(p / LOCK_FILE, fd):  # a stale claim's reclaimer (below) took it between our open and lock
+        if not hold_lock(p / LOCK_FILE, fd):  # a stale claim's reclaimer (below) took it between our open and lock
             raise AdaRLError(
-                f"run folder {str(p)!r} was just claimed by another process ({_holder(p / LOCK_FILE)}); "
+                f"run folder {str(p)!r} was just claimed by another process ({holder(p / LOCK_FILE)}); "
                 f"choose another output.dir"
             )
         return run
@@ -303,13 +241,12 @@ class RunDir:
             fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
         except OSError as err:
             raise AdaRLError(
-                f"cannot create run folder {str(p)!r}: {_os_why(err, p)}; choose a writable place "
+                f"cannot create run folder {str(p)!r}: {os_why(err, p)}; choose a writable place "
                 f"with -o/--output or output.root"
             ) from None
-        if not _hold_lock(lock, fd):
+        if not hold_lock(lock, fd):
             raise AdaRLError(
-                f"run folder {str(p)!r} was just claimed by another process ({_holder(lock)}); choose another "
-                f"output.dir"
+                f"run folder {str(p)!r} was just claimed by another process ({holder(lock)}); choose another output.dir"
             )
         for e in entries:  # a half-written recipe's temporary file
             if e.name != LOCK_FILE:
@@ -355,7 +292,7 @@ class RunDir:
         is gone or is another file): writing on would recreate a folder without its recipe or records.
         Does nothing where this process holds no lock on it (evaluation)."""
         lock = self.path / LOCK_FILE
-        fd = _HELD_LOCKS.get(str(lock.absolute()))
+        fd = HELD_LOCKS.get(str(lock.absolute()))
         if fd is None:
             return
         try:
@@ -376,29 +313,27 @@ class RunDir:
         Re-entrant in one process."""
         lock = self.path / LOCK_FILE
         key = str(lock.absolute())
-        fd = _HELD_LOCKS.get(key)
+        fd = HELD_LOCKS.get(key)
         if fd is not None:
             try:
                 if os.fstat(fd).st_ino == os.stat(lock).st_ino:
                     return
             except OSError:
                 pass
-            _release_lock(lock)
+            release_lock(lock)
         try:
             fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
         except OSError as err:
+            raise AdaRLError(f"cannot lock run folder {str(self.path)!r} to train in it: {os_why(err, lock)}") from None
+        if not hold_lock(lock, fd):
             raise AdaRLError(
-                f"cannot lock run folder {str(self.path)!r} to train in it: {_os_why(err, lock)}"
-            ) from None
-        if not _hold_lock(lock, fd):
-            raise AdaRLError(
-                f"run folder {str(self.path)!r} is in use by another process ({_holder(lock)}); wait "
+                f"run folder {str(self.path)!r} is in use by another process ({holder(lock)}); wait "
                 f"for it to finish or stop it first"
             )
 
     def unlock(self) -> None:
         """Release this process's lock (training ended); another process may train in the folder again."""
-        _release_lock(self.path / LOCK_FILE)
+        release_lock(self.path / LOCK_FILE)
 
     def discard(self, *, keep_folder: bool = False) -> None:
         """Undo :meth:`create` when nothing ran (a recipe that fails to build): the folder goes (or only its contents,
@@ -430,7 +365,7 @@ class RunDir:
             "modules": local_plugins.record(recipe.plugins),
         }
         try:
-            _atomic_write_text(self.plugins_path, json.dumps(record, indent=2) + "\n")
+            atomic_write_text(self.plugins_path, json.dumps(record, indent=2) + "\n")
         except OSError as err:
             raise AdaRLError(f"cannot write {str(self.plugins_path)!r}: {describe_os_error(err)}") from None
 
@@ -486,10 +421,10 @@ class RunDir:
             if rid:
                 return rid
         rid = uuid.uuid4().hex[:16]
-        _atomic_write_text(p, rid + "\n")
+        atomic_write_text(p, rid + "\n")
         return rid
 
-    def make_logger(self, recipe, *, step: int | None = None) -> _Fanout:
+    def make_logger(self, recipe, *, step: int | None = None) -> Fanout:
         """TorchRL loggers from ``recipe.logging``: CSV into ``metrics/``, optional tensorboard and wandb.
 
         ``step``: the frames a resume continues from (None: a new run). TensorBoard then hides the events logged
@@ -501,7 +436,7 @@ class RunDir:
         config = recipe.model_dump(mode="json") if hasattr(recipe, "model_dump") else None
         if "tensorboard" in backends:
             new = not (self.path / "tensorboard").exists()
-            tb = _tensorboard_logger(self.path, purge_step=None if step is None else int(step) + 1)
+            tb = tensorboard_logger(self.path, purge_step=None if step is None else int(step) + 1)
             if new and config is not None:
                 tb.experiment.add_text("recipe", "```yaml\n" + recipe_to_yaml(recipe) + "```", global_step=0)
             loggers.append(tb)
@@ -516,9 +451,9 @@ class RunDir:
                     config=config,
                 )
             )
-        return _Fanout(loggers, check=self.ensure_present)
+        return Fanout(loggers, check=self.ensure_present)
 
-    def close_logger(self, logger: _Fanout) -> None:
+    def close_logger(self, logger: Fanout) -> None:
         for lg in logger.loggers:
             exp = getattr(lg, "experiment", None)
             if not hasattr(exp, "files"):  # wandb: finish (a resume or rollback re-opens the run by its id); TB
@@ -567,7 +502,7 @@ class RunDir:
                         keep.append(line)
                 except (ValueError, IndexError):
                     continue
-            _atomic_write_text(f, "".join(k + "\n" for k in keep))
+            atomic_write_text(f, "".join(k + "\n" for k in keep))
         ev = self.path / "eval.csv"
         if ev.is_file():
             rows = [r for r in self.read_eval() if int(r["frames"]) <= frames]
@@ -578,7 +513,7 @@ class RunDir:
         self.ensure_present()
         path = self.path / "eval.csv"
         new = not path.exists()
-        with _naming(path), path.open("a", newline="") as fh:
+        with naming(path), path.open("a", newline="") as fh:
             w = csv.DictWriter(fh, fieldnames=_EVAL_FIELDS)
             if new:
                 w.writeheader()
@@ -597,13 +532,13 @@ class RunDir:
             fh.flush()
             os.fsync(fh.fileno())
 
-    def sync_metrics(self, logger: _Fanout) -> None:
+    def sync_metrics(self, logger: Fanout) -> None:
         """Flush and fsync the CSV metric files, so that what a checkpoint says was logged is on disk."""
         self.ensure_present()
         for lg in logger.loggers:
             for name, fd in list(getattr(getattr(lg, "experiment", None), "files", {}).items()):
                 try:
-                    with _naming(Path(name)):
+                    with naming(Path(name)):
                         fd.flush()
                         os.fsync(fd.fileno())
                 except ValueError:  # closed file; an OSError (a full disk) propagates: the checkpoint would lie
@@ -621,7 +556,7 @@ class RunDir:
         w = csv.DictWriter(buf, fieldnames=_EVAL_FIELDS)
         w.writeheader()
         w.writerows(rows)
-        _atomic_write_text(self.path / "eval.csv", buf.getvalue())
+        atomic_write_text(self.path / "eval.csv", buf.getvalue())
 
     def last_eval(self) -> dict | None:
         rows = self.read_eval()
@@ -677,7 +612,7 @@ class RunDir:
             w = csv.DictWriter(buf, fieldnames=keys)
             w.writeheader()
             w.writerows(flat)
-            _atomic_write_text(self.path / "ranks.csv", buf.getvalue())
+            atomic_write_text(self.path / "ranks.csv", buf.getvalue())
 
     def read_rank_history(self) -> list[dict]:
         p = self.path / "ranks.json"
@@ -686,7 +621,7 @@ class RunDir:
     def write_json(self, name: str, obj) -> None:
         """Write ``name`` atomically as strict JSON: NaN and infinities become ``null`` (JSON has no NaN)."""
         self.ensure_present()
-        _atomic_write_text(self.path / name, json.dumps(_plain(obj), indent=2, allow_nan=False) + "\n")
+        atomic_write_text(self.path / name, json.dumps(plain(obj), indent=2, allow_nan=False) + "\n")
 
     # ------------------------------------------------------------------ checkpoints
     def checkpoints(self) -> list[Path]:
@@ -732,18 +667,18 @@ class RunDir:
             if replay_buffer is not None:
                 shutil.rmtree(rb_tmp, ignore_errors=True)
                 writing = rb_dir / REPLAY_BUFFER_FILE
-                _check_free_space(
+                check_free_space(
                     self.checkpoint_dir,
-                    _buffer_nbytes(replay_buffer) + _nbytes(state),
+                    buffer_nbytes(replay_buffer) + nbytes(state),
                     "the checkpoint with its replay buffer",
                 )
                 rb_tmp.mkdir()
-                _atomic_torch_save(replay_buffer.state_dict(), rb_tmp / REPLAY_BUFFER_FILE)
+                atomic_torch_save(replay_buffer.state_dict(), rb_tmp / REPLAY_BUFFER_FILE)
                 shutil.rmtree(rb_dir, ignore_errors=True)
                 os.replace(rb_tmp, rb_dir)
             writing = path
-            _atomic_torch_save(self._payload(state, frames, fingerprint, replay_buffer=replay_buffer is not None), path)
-            _fsync_dir(self.checkpoint_dir)
+            atomic_torch_save(self._payload(state, frames, fingerprint, replay_buffer=replay_buffer is not None), path)
+            fsync_dir(self.checkpoint_dir)
         except OSError as err:
             shutil.rmtree(rb_tmp, ignore_errors=True)
             if replay_buffer is not None and not path.exists():
@@ -768,7 +703,7 @@ class RunDir:
         self.ensure_present()
         try:
             self.checkpoint_dir.mkdir(parents=True, exist_ok=True)
-            _atomic_torch_save(self._payload(state, frames, fingerprint, score=float(score)), self.best_checkpoint_path)
+            atomic_torch_save(self._payload(state, frames, fingerprint, score=float(score)), self.best_checkpoint_path)
         except OSError as err:
             warnings.warn(f"could not update {self.best_checkpoint_path}: {describe_os_error(err)}", stacklevel=2)
             return None
@@ -796,13 +731,13 @@ class RunDir:
             return CheckpointError(f"checkpoint {str(path)!r} {reason}", path=path, reason=reason)
 
         try:
-            payload = _safe_load(path)
+            payload = safe_load(path)
         except FileNotFoundError:
             raise refuse("does not exist") from None
-        except _NotAFile as err:
+        except NotAFile as err:
             raise refuse(str(err)) from None
         except Exception as err:  # truncated zip, pickle with code, garbage bytes
-            raise refuse(f"cannot be loaded safely: {_why_unloadable(err)}") from None
+            raise refuse(f"cannot be loaded safely: {why_unloadable(err)}") from None
         if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
             raise refuse("is not an adarl checkpoint (format marker missing)")
         state = payload.get("state")
@@ -836,13 +771,13 @@ class RunDir:
                 # load_replay_buffer, which then does not read the file again).
                 self._buffer_cache = None
                 try:
-                    self._buffer_cache = (rb.absolute(), _safe_load(rb / REPLAY_BUFFER_FILE))
-                except _NotAFile as err:
+                    self._buffer_cache = (rb.absolute(), safe_load(rb / REPLAY_BUFFER_FILE))
+                except NotAFile as err:
                     raise refuse(f"has lost its replay buffer: {rb.name}/{REPLAY_BUFFER_FILE} {err}") from None
                 except Exception as err:  # noqa: BLE001 - any unreadable buffer file is refused the same way
                     raise refuse(
                         f"has lost its replay buffer: {rb.name}/{REPLAY_BUFFER_FILE} cannot be loaded safely: "
-                        f"{_why_unloadable(err)}"
+                        f"{why_unloadable(err)}"
                     ) from None
         state["checkpoint_file"] = str(path)
         return state
@@ -916,51 +851,18 @@ class RunDir:
             replay_buffer.load_state_dict(cached[1])
         elif (rb_dir / REPLAY_BUFFER_FILE).exists() or (rb_dir / REPLAY_BUFFER_FILE).is_symlink():
             try:
-                sd = _safe_load(rb_dir / REPLAY_BUFFER_FILE)
+                sd = safe_load(rb_dir / REPLAY_BUFFER_FILE)
             except Exception as err:  # noqa: BLE001 - any unreadable file is refused the same way
                 raise CheckpointError(
                     f"replay buffer {str(rb_dir / REPLAY_BUFFER_FILE)!r} cannot be loaded safely: "
-                    f"{_why_unloadable(err)}",
+                    f"{why_unloadable(err)}",
                     path=rb_dir,
-                    reason=_why_unloadable(err),
+                    reason=why_unloadable(err),
                 ) from None
             replay_buffer.load_state_dict(sd)
         else:
             replay_buffer.loads(str(rb_dir))
         return True
-
-
-def _tensorboard_logger(path: Path, *, purge_step: int | None):
-    """TorchRL's TensorboardLogger, with SummaryWriter's ``purge_step`` (events at or after it are hidden)."""
-
-    class _Tensorboard(torchrl_loggers.TensorboardLogger):
-        def _create_experiment(self):
-            from torch.utils.tensorboard import SummaryWriter  # the optional tensorboard package
-
-            return SummaryWriter(log_dir=os.path.join(self.log_dir, self.exp_name), purge_step=purge_step)
-
-    return _Tensorboard(exp_name="tensorboard", log_dir=str(path))
-
-
-def _hold_lock(lock: Path, fd: int) -> bool:
-    """Take the kernel lock on ``fd`` (False, fd closed, when another process holds it) and note who holds it."""
-    if fcntl is not None:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            os.close(fd)
-            return False
-    with contextlib.suppress(OSError):  # who holds it, for the message another process gets
-        os.ftruncate(fd, 0)
-        os.pwrite(
-            fd,
-            json.dumps(
-                {"pid": os.getpid(), "host": socket.gethostname(), "since": time.strftime("%Y-%m-%d %H:%M:%S")}
-            ).encode(),
-            0,
-        )
-    _HELD_LOCKS[str(lock.absolute())] = fd
-    return True
 
 
 def _adarl_name(name: str) -> bool:
@@ -986,192 +888,8 @@ def _names(entries: list[Path], most: int = 5) -> str:
     return ", ".join(shown) + more
 
 
-def _release_lock(lock: Path) -> None:
-    fd = _HELD_LOCKS.pop(str(lock.absolute()), None)
-    if fd is not None:
-        with contextlib.suppress(OSError):
-            os.close(fd)  # closing the only descriptor drops the kernel lock
-
-
-def _holder(lock: Path) -> str:
-    try:
-        info = json.loads(lock.read_text())
-        return f"pid {info['pid']} on {info['host']}, since {info['since']}"
-    except (OSError, ValueError, KeyError, TypeError):
-        return "holder unknown"
-
-
-def _plain(obj):
-    """``obj`` as plain JSON values: tensors as lists, records as dicts, non-finite floats as None."""
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if obj is None or isinstance(obj, (str, int, bool)):
-        return obj
-    if isinstance(obj, dict):
-        return {str(k): _plain(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_plain(v) for v in obj]
-    if isinstance(obj, torch.Tensor):
-        return _plain(obj.tolist())
-    if hasattr(obj, "as_dict"):
-        return _plain(obj.as_dict())
-    if hasattr(obj, "item") and callable(obj.item):  # numpy scalars
-        return _plain(obj.item())
-    if hasattr(obj, "__dict__"):
-        return _plain(vars(obj))
-    return str(obj)
-
-
-def _os_why(err: OSError, path: Path) -> str:
-    """:func:`describe_os_error`, without the file name when it is ``path`` (already in the message)."""
-    if err.filename is not None and Path(os.fsdecode(err.filename)) == Path(path):
-        err = OSError(err.errno, err.strerror)
-    return describe_os_error(err)
-
-
 def _frames_of(checkpoint: Path) -> int | None:
     try:
         return int(checkpoint.name.split(".")[0].removeprefix("ckpt-"))
     except ValueError:
         return None
-
-
-class _NotAFile(Exception):
-    """A path to load that is not a regular file (a FIFO, a directory, a device): refused unread."""
-
-
-def _safe_load(path: Path):
-    """``torch.load(weights_only=True)`` of a regular file only. A FIFO would block the reader forever (until
-    something writes into it), a device could give endless bytes: such a path is refused before reading a byte
-    (opened non-blocking, checked with ``fstat``, so the check is about the file read, not an earlier one)."""
-    fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
-    try:
-        mode = os.fstat(fd).st_mode
-        if not stat.S_ISREG(mode):
-            kinds = {stat.S_ISFIFO: "a FIFO", stat.S_ISDIR: "a directory", stat.S_ISSOCK: "a socket"}
-            kind = next((k for test, k in kinds.items() if test(mode)), "a device")
-            raise _NotAFile(f"is not a regular file ({kind}); refused unread")
-        fh = os.fdopen(fd, "rb")
-    except BaseException:
-        os.close(fd)
-        raise
-    with fh, warnings.catch_warnings():  # torch's pickle-protocol chatter about files it then refuses anyway
-        warnings.simplefilter("ignore")
-        return torch.load(fh, map_location="cpu", weights_only=True)
-
-
-def _why_unloadable(err: Exception) -> str:
-    """Why ``torch.load(weights_only=True)`` refused a file, in our words: torch's own message advises retrying
-    with ``weights_only=False``, which would run any code in the file, so it is never passed on."""
-    text = str(err)
-    if isinstance(err, _NotAFile):
-        return text.removeprefix("is ")
-    if isinstance(err, EOFError) or not text.strip():
-        return "it is empty or cut short (truncated)"
-    if isinstance(err, pickle.UnpicklingError):
-        found = re.search(r"GLOBAL ([\w.]+)", text)
-        if found:
-            return (
-                f"it holds a Python object ({found.group(1)}), not only tensors and plain containers; refused "
-                f"unread, nothing in it ran"
-            )
-        return "it is corrupt or not a torch checkpoint (only tensors and plain containers are accepted)"
-    if "zip" in text.lower() or "PytorchStreamReader" in text:
-        return "it is truncated or corrupt (its zip archive is incomplete)"
-    return f"it is corrupt ({type(err).__name__})"
-
-
-def _buffer_nbytes(replay_buffer) -> int:
-    """Bytes of a replay buffer's storage tensors (what its dump will take), 0 when unknown."""
-    try:
-        data = replay_buffer._storage._storage
-        leaves = [data] if isinstance(data, torch.Tensor) else data.values(include_nested=True, leaves_only=True)
-        return sum(t.numel() * t.element_size() for t in leaves if isinstance(t, torch.Tensor))
-    except Exception:  # noqa: BLE001 - an estimate only; the write itself still reports a full disk
-        return 0
-
-
-def _nbytes(obj) -> int:
-    """Bytes of the tensors in a (nested) state dict."""
-    if isinstance(obj, torch.Tensor):
-        return obj.numel() * obj.element_size()
-    if isinstance(obj, dict):
-        return sum(_nbytes(v) for v in obj.values())
-    if isinstance(obj, (list, tuple)):
-        return sum(_nbytes(v) for v in obj)
-    return 0
-
-
-def _check_free_space(folder: Path, nbytes: int, what: str) -> None:
-    """Refuse before writing when ``what`` cannot fit (a clear message, nothing partial to clean up)."""
-    margin = 64 << 10  # file headers, pickled containers, metadata
-    free = shutil.disk_usage(folder).free
-    if nbytes + margin > free:
-        raise OSError(
-            errno.ENOSPC,
-            f"No space left on device ({what} needs {(nbytes + margin) / 1e6:.1f} MB, {free / 1e6:.1f} MB free)",
-            str(folder),
-        )
-
-
-@contextlib.contextmanager
-def _naming(path: Path):
-    """An ``OSError`` without a file name (a full disk met by a buffered write's flush) gets ``path``: every disk
-    error adarl reports names the file it could not write."""
-    try:
-        yield
-    except OSError as err:
-        if err.filename is not None:
-            raise
-        raise OSError(err.errno, err.strerror, str(path)) from None
-
-
-def _atomic_write_text(path: Path, text: str) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    try:
-        with tmp.open("w") as fh:
-            fh.write(text)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException as err:
-        with contextlib.suppress(OSError):
-            tmp.unlink(missing_ok=True)
-        if isinstance(err, OSError) and err.filename == str(tmp):  # name the file the user knows
-            raise OSError(err.errno, err.strerror, str(path)) from None
-        raise
-
-
-def _atomic_torch_save(obj, path: Path) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    try:
-        with tmp.open("wb") as fh:
-            try:
-                torch.save(obj, fh)
-            except RuntimeError as err:
-                # A failed write (ENOSPC) inside torch.save surfaces as torch's "unexpected pos" RuntimeError from
-                # closing the zip; the OSError that caused it is its context: report that one.
-                cause = err.__context__
-                while cause is not None and not isinstance(cause, OSError):
-                    cause = cause.__context__
-                if cause is None:
-                    raise
-                raise cause from None
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            tmp.unlink(missing_ok=True)
-        raise
-
-
-def _fsync_dir(path: Path) -> None:
-    try:
-        fd = os.open(path, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
