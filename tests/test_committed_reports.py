@@ -150,6 +150,10 @@ def test_the_pilots_stated_verdicts_are_its_reports():
     assert f"P(AdaRL > `parseval`) = {p_parseval}" in docs["docs/reproduction.md"]
     assert f"P(AdaRL > Parseval) = {p_parseval}" in docs["README.md"]
     assert f"{parseval['above_plateau']} of {parseval['n_seeds']} of its seeds leave" in docs["docs/reproduction.md"]
+    table = docs["docs/reproduction.md"]  # the verdict table of "Where the runs stand": the same numbers
+    for arm, p in (("sac_full", poi), ("parseval", p_parseval), ("fixed_final", p_fixed)):
+        row = stats[arm]
+        assert f"| `adarl` {stats['adarl']['n_seeds']}, `{arm}` {row['n_seeds']} | {p} |" in table, arm
     per_seed = {}  # each arm's scores in seed order, as the docs list them
     for row in sorted(csv.DictReader((REPORTS / "table1-pilot" / "runs.csv").open()), key=lambda r: int(r["seed"])):
         per_seed.setdefault(row["algorithm"], []).append(f"{float(row['score']):.0f}")
