@@ -325,6 +325,55 @@ def test_baseline_networks_and_an_asymmetric_box_export(recipe, overrides, tmp_p
         np.testing.assert_allclose(batch, want[:5].numpy(), atol=ATOL, rtol=0)
 
 
+@pytest.mark.parametrize("clamp", [False, True])
+def test_a_td3_actor_exports_its_tanh_action_on_an_asymmetric_box(clamp, tmp_path):
+    """TD3's and DDPG's actor (network -> ``param`` -> TorchRL's ``TanhModule`` -> ``action``), truncated, exports
+    the action the actor gives, inside the box; ``clamp=True`` (a user's TanhModule) clamps as TorchRL does."""
+    from tensordict.nn import TensorDictModule, TensorDictSequential
+    from torch import nn
+    from torchrl.modules import TanhModule
+
+    from adarl.core.lowrank import iter_low_rank
+    from adarl.errors import AdaRLValueError
+    from adarl.runtime.builders.common import spec_env
+    from adarl.runtime.builders.td3 import make_recipe_td3_actor
+    from adarl.runtime.config import load_recipe
+    from adarl.runtime.export import export_actor
+    from adarl.runtime.exported import ExportedPolicy
+
+    box = {
+        "observation_dim": 11,
+        "action_kind": "box",
+        "action_low": torch.tensor([-0.4, -2.0, 0.0]),
+        "action_high": torch.tensor([0.4, 1.0, 3.0]),
+    }
+    torch.manual_seed(0)
+    env = spec_env(box, "cpu")
+    actor = make_recipe_td3_actor(load_recipe("quickstart", ["algorithm.name=td3"]), env).requires_grad_(False)
+    for _, layer in iter_low_rank(actor):
+        layer.truncate_(layer.rank // 2)
+    net, head = actor.module
+    if clamp:
+        actor = TensorDictSequential(
+            net, TanhModule(in_keys=head.in_keys, out_keys=head.out_keys, spec=head.spec["action"], clamp=True)
+        )
+    obs = _observations(300, 11, seed=7)
+    obs[:3] *= 1e3  # saturated: tanh(x) = +-1 up to the clamp
+    want = _actor_actions(actor, obs)
+    for fmt in ("torchscript", "export"):
+        result = export_actor(actor, tmp_path / f"td3.{fmt}", format=fmt)
+        assert result.metadata["policy"] == "deterministic_tanh" and result.metadata["action_kind"] == "box"
+        assert result.metadata["action_high"] == pytest.approx([0.4, 1.0, 3.0])
+        assert [layer["rank"] for layer in result.metadata["layers"]] == [5, 32]
+        got = ExportedPolicy(result.path)(obs)
+        assert float((got - want).abs().max()) <= ATOL, fmt
+        assert bool((got >= box["action_low"]).all()) and bool((got <= box["action_high"]).all())
+    # a TanhModule actor whose network reads another key is refused by name
+    odd = TensorDictSequential(TensorDictModule(nn.Linear(11, 3), in_keys=["pixels"], out_keys=["param"]), head)
+    with pytest.raises(AdaRLValueError, match="its network reads \\['pixels'\\]"):
+        export_actor(odd, tmp_path / "odd.pt")
+
+
 def test_what_cannot_be_exported_is_refused_by_name(tmp_path):
     from tensordict.nn import NormalParamExtractor, TensorDictModule
     from torch import nn

@@ -191,10 +191,20 @@ class L2TD3Loss(TD3Loss):
 LOAD_POLICY = """
 import sys, torch
 from tensordict import TensorDict
-from adarl import load_policy
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+from adarl import ExportedPolicy, export_policy, load_policy
 actor = load_policy(sys.argv[1])
 action = actor(TensorDict(observation=torch.randn(11)))["action"]
 assert type(actor).__name__ == "TensorDictSequential" and action.shape == (3,) and action.abs().max() <= 1, action
+# `adarl export`: the truncated actor as a program torch alone loads, the same deterministic action
+result = export_policy(sys.argv[1], sys.argv[2])
+assert result.metadata["policy"] == "deterministic_tanh", result.metadata
+assert any(layer["rank"] < layer["max_rank"] for layer in result.metadata["layers"]), result.metadata  # truncated
+obs = 2 * torch.randn(64, 11)
+with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+    want = actor(TensorDict(observation=obs, batch_size=[64]))["action"]
+assert float((torch.jit.load(sys.argv[2])(obs) - want).abs().max()) <= 1e-5
+assert float((ExportedPolicy(sys.argv[2])(obs) - want).abs().max()) <= 1e-5
 print("ok")
 """
 
@@ -321,9 +331,12 @@ def test_a_td3_plugin_runs_from_a_recipe_through_rank_events_kill_9_resume_and_a
     assert summary["rank_events"] == 3 and summary["warm_start_frames"] == 150, summary
     assert json.loads((ref / "plugins.json").read_text())["algorithm"]["package"] == "adarl-l2-td3"
     assert all(v > 0 for v in _metric(ref, "actor_sq_norm")) and _metric(ref, "loss_actor_l2")
-    # the trained deterministic actor loads without the training stack, and acts in the action box
+    # the trained deterministic actor loads without the training stack, acts in the action box, and exports
     with subprocess.Popen(
-        [sys.executable, "-c", LOAD_POLICY, str(ref)], env=_env(plugin), stdout=subprocess.PIPE, text=True
+        [sys.executable, "-c", LOAD_POLICY, str(ref), str(tmp_path / "l2_td3.pt")],
+        env=_env(plugin),
+        stdout=subprocess.PIPE,
+        text=True,
     ) as loaded:
         assert loaded.communicate(timeout=300)[0].split()[-1] == "ok"
     want, got = _results(ref), _results(killed)

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import torch
 from tensordict.nn import AddStateIndependentNormalScale, NormalParamExtractor
 from torch import nn
-from torchrl.modules import MLP, OneHotCategorical, TanhNormal
+from torchrl.modules import MLP, OneHotCategorical, TanhModule, TanhNormal
 
 from adarl.baselines.mlp import BaselineMLP
 from adarl.baselines.normalization import RunningObsNorm
@@ -94,6 +94,26 @@ class _Clamp(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return torch.clamp(x, self.low, self.high)
+
+
+class _BoxTanh(nn.Module):
+    """TorchRL's ``TanhModule`` (TD3's and DDPG's deterministic head): ``low + (high - low) * (tanh(x) + 1) / 2``,
+    ``tanh(x)`` first clamped to ``+-(1 - resolution)`` when the module clamps. TorchRL applies the map even on the
+    ``[-1, 1]`` box (its ``non_trivial`` test is a dict, always true), and so does this, for the same rounding."""
+
+    __constants__ = ["limit"]
+
+    def __init__(self, low: torch.Tensor, high: torch.Tensor, limit: float) -> None:
+        super().__init__()
+        self.register_buffer("low", low.detach().clone())
+        self.register_buffer("high", high.detach().clone())
+        self.limit = float(limit)  # 1.0: no clamp
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        x = torch.tanh(x)
+        if self.limit < 1.0:
+            x = x.clamp(-self.limit, self.limit)
+        return self.low + (self.high - self.low) * (x + 1) / 2
 
 
 class _OneHotMode(nn.Module):
@@ -214,7 +234,8 @@ def _actor_parts(actor) -> tuple[nn.Module, object]:
     except (AttributeError, IndexError, TypeError):
         raise AdaRLValueError(
             f"cannot export {type(actor).__name__}: export_policy takes adarl's actors (a TorchRL "
-            "ProbabilisticActor of one network and its distribution, as load_policy returns)"
+            "ProbabilisticActor of one network and its distribution, or TD3's network and TanhModule, as "
+            "load_policy returns)"
         ) from None
     if len(actor.module) != 2 or in_keys != ["observation"]:
         raise AdaRLValueError(
@@ -224,9 +245,41 @@ def _actor_parts(actor) -> tuple[nn.Module, object]:
     return net, dist_module
 
 
+def _tanh_head_parts(actor) -> tuple[nn.Module, TanhModule] | None:
+    """The network and ``TanhModule`` of a deterministic actor as TD3 and DDPG build it (a ``TensorDictSequential``
+    of the network on ``observation`` writing ``param``, then ``TanhModule`` from ``param`` to ``action``); None for
+    any other actor."""
+    modules = getattr(actor, "module", None)
+    if not isinstance(modules, nn.ModuleList) or len(modules) != 2 or not isinstance(modules[1], TanhModule):
+        return None
+    net_module, head = modules
+    if list(getattr(net_module, "in_keys", [])) != ["observation"] or list(head.out_keys) != ["action"]:
+        raise AdaRLValueError(
+            f"cannot export this actor: its network reads {list(getattr(net_module, 'in_keys', []))} and its "
+            f"TanhModule writes {list(head.out_keys)}; export_policy takes one network on 'observation' and a "
+            "TanhModule writing 'action'"
+        )
+    if list(head.in_keys) != list(net_module.out_keys):
+        raise AdaRLValueError(
+            f"cannot export this actor: its TanhModule reads {list(head.in_keys)}, its network writes "
+            f"{list(net_module.out_keys)}"
+        )
+    return net_module.module, head
+
+
+def _tanh_head(head: TanhModule, action_dim: int) -> tuple[nn.Module, torch.Tensor, torch.Tensor]:
+    """The program's layer for a ``TanhModule`` and its action bounds."""
+    low = head.action_low.to(torch.float32)
+    high = head.action_high.to(torch.float32)
+    limit = 1.0 - torch.finfo(torch.float32).resolution if head.clamp else 1.0
+    low, high = (torch.broadcast_to(t, (action_dim,)).clone() for t in (low, high))
+    return _BoxTanh(low, high, limit), low, high
+
+
 def deterministic_program(actor, layers: str = "auto") -> Program:
-    """The deterministic action of a TorchRL ``ProbabilisticActor`` (what :func:`adarl.load_policy` returns) as an
-    ``nn.Sequential`` of plain torch layers: float32 observation in, action out.
+    """The deterministic action of a TorchRL ``ProbabilisticActor``, or of TD3's and DDPG's network + ``TanhModule``
+    (what :func:`adarl.load_policy` returns), as an ``nn.Sequential`` of plain torch layers: float32 observation in,
+    action out.
 
     ``layers``: ``auto`` (each LowRankLinear merged or factored by multiply-adds), ``merged`` or ``factored``.
     Raises :class:`~adarl.errors.AdaRLValueError` naming what it cannot export (a distribution or layer it does
@@ -234,17 +287,25 @@ def deterministic_program(actor, layers: str = "auto") -> Program:
     """
     if layers not in LAYER_FORMS:
         raise AdaRLValueError(f"layers must be one of {one_of(LAYER_FORMS)}, got {layers!r}")
-    net, dist_module = _actor_parts(actor)
-    dist_class, kwargs = dist_module.distribution_class, dict(dist_module.distribution_kwargs or {})
+    tanh_head = _tanh_head_parts(actor)
+    if tanh_head is not None:  # TD3 / DDPG: the network's output is the pre-tanh action
+        net, head = tanh_head
+        dist_class, kwargs = None, {}
+        spec = head.spec.get("action") if "action" in head.spec.keys() else None
+    else:
+        net, dist_module = _actor_parts(actor)
+        dist_class, kwargs = dist_module.distribution_class, dict(dist_module.distribution_kwargs or {})
+        spec = getattr(actor, "spec", None)
+        spec = spec.get("action") if spec is not None and "action" in spec.keys() else spec
     leaves = _leaves(net)
     if not leaves:
         raise AdaRLValueError("cannot export an actor whose network has no layers")
-    spec = getattr(actor, "spec", None)
-    spec = spec.get("action") if spec is not None and "action" in spec.keys() else spec
 
     # the distribution's parameters: drop what only makes the scale
     _, last = leaves[-1]
-    if isinstance(last, NormalParamExtractor):  # (..., 2A) -> loc (first half), scale
+    if tanh_head is not None:
+        halve = False
+    elif isinstance(last, NormalParamExtractor):  # (..., 2A) -> loc (first half), scale
         leaves = leaves[:-1]
         halve = True
     elif isinstance(last, AddStateIndependentNormalScale):  # loc passes through, the scale is a parameter
@@ -307,7 +368,14 @@ def deterministic_program(actor, layers: str = "auto") -> Program:
         action_dim = int(spec.shape[-1]) if spec is not None else -1
 
     low = high = None
-    if issubclass(dist_class, TanhNormal):
+    if tanh_head is not None:
+        layer, low_t, high_t = _tanh_head(
+            tanh_head[1], int(spec.shape[-1]) if spec is not None else _last_out_features(out)
+        )
+        action_dim = int(low_t.shape[-1])
+        out.append(layer)
+        policy, action_kind = "deterministic_tanh", "box"
+    elif issubclass(dist_class, TanhNormal):
         if kwargs.get("tanh_loc", False):
             raise AdaRLValueError("cannot export a TanhNormal policy with tanh_loc=True (its loc is rescaled)")
         low_t = torch.as_tensor(kwargs.get("low", -1.0), dtype=torch.float32)
@@ -332,6 +400,7 @@ def deterministic_program(actor, layers: str = "auto") -> Program:
     else:
         raise AdaRLValueError(
             f"cannot export a policy with distribution {dist_class.__name__}: supported are TanhNormal (SAC), "
+            "a TanhModule head (TD3, DDPG), "
             "ClippedNormal (RNAC's PPO) and OneHotCategorical (discrete SAC)"
         )
     if low_t is not None:
@@ -341,6 +410,15 @@ def deterministic_program(actor, layers: str = "auto") -> Program:
     module = nn.Sequential(*out).eval().requires_grad_(False)
     obs_dim = _observation_dim(module)
     return Program(module, policy, action_kind, obs_dim, action_dim, low, high, choices, obs_norm)
+
+
+def _last_out_features(layers: list[nn.Module]) -> int:
+    """The output size of the program's last linear layer (a deterministic head's action size)."""
+    for layer in reversed(layers):
+        for m in reversed(list(layer.modules())):
+            if isinstance(m, nn.Linear):
+                return int(m.out_features)
+    raise AdaRLValueError("cannot tell the actor's action size: its network has no linear layer")
 
 
 def _observation_dim(module: nn.Module) -> int:

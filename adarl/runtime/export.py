@@ -11,7 +11,8 @@ adarl, TorchRL or tensordict):
   at batch 1), or as asked (``layers=``);
 * the distribution's deterministic action, as the actor computes it outside ``set_exploration_type``:
   TanhNormal's ``tanh(loc)`` (clamped as TorchRL's safe tanh does) mapped affinely onto the action box, RNAC's
-  clipped Gaussian's ``clamp(loc, low, high)``, a discrete policy's one-hot arg-max; the output rows of the head
+  clipped Gaussian's ``clamp(loc, low, high)``, a discrete policy's one-hot arg-max; TD3's and DDPG's deterministic
+  actor's ``TanhModule``, ``low + (high - low) * (tanh(x) + 1) / 2``; the output rows of the head
   that only feed the scale are dropped;
 * the PPO baselines' running observation normalisation, baked in with the statistics of the checkpoint.
 
