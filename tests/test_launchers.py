@@ -418,3 +418,27 @@ def test_an_exit_status_names_the_interrupting_signal_only_for_sigint_and_sigter
     assert interrupting_signal(-signal.SIGINT) == signal.SIGINT
     for other in (0, 1, 2, -signal.SIGKILL, 128 + signal.SIGKILL, None):  # SIGKILL: the OOM killer's, a failure
         assert interrupting_signal(other) is None
+
+
+def test_a_dry_run_names_the_runs_it_would_resume_and_from_which_frames(tmp_path):
+    """`adarl experiment --dry-run` of a folder with an interrupted run: that run is listed as resumable from its
+    latest checkpoint's frames, the others as pending; nothing is run or written."""
+    spec = _spec(tmp_path)
+    out = tmp_path / "exp"
+    planned = plan_runs(load_experiment(spec), out)
+    ckpts = Path(planned[1].path) / "checkpoints"
+    ckpts.mkdir(parents=True)
+    for frames in (100, 350):
+        (ckpts / f"ckpt-{frames:012d}.pt").write_bytes(b"")
+    said: list[str] = []
+    runs = run_experiment(spec, output=out, dry_run=True, log=said.append)
+    assert [r.status for r in runs] == ["pending"] * 4
+    rows = [line.split() for line in said if line.startswith("  ")]
+    assert [(row[0], row[1].rstrip(":")) for row in rows] == [
+        ("resumable" if r.run_id == planned[1].run_id else "pending", r.run_id) for r in planned
+    ]
+    (line,) = [line for line in said if "resumable" in line]
+    assert line.endswith("(resumes from its checkpoint at 350 frames)")
+    assert sorted(p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file()) == [
+        f"{planned[1].run_id}/checkpoints/ckpt-{f:012d}.pt" for f in (100, 350)
+    ]

@@ -116,6 +116,19 @@ def _read_previous(out: Path | str) -> str | None:
     return previous.read_text() if previous.is_file() else None
 
 
+def _checkpointed_frames(path: str) -> int | None:
+    """The frames of a local run folder's latest checkpoint (what ``adarl experiment`` resumes it from), else None."""
+    if is_url(path):
+        return None
+    frames = []
+    for ckpt in (Path(path) / "checkpoints").glob("ckpt-*.pt"):
+        try:
+            frames.append(int(ckpt.name.split(".")[0].removeprefix("ckpt-")))
+        except ValueError:
+            continue
+    return max(frames) if frames else None
+
+
 def run_experiment(
     spec_path: str | os.PathLike,
     *,
@@ -179,7 +192,10 @@ def run_experiment(
     )
     if dry_run:
         for r in runs:
-            log(f"  {r.status:<16} {r.run_id}: {r.recipe} {' '.join(r.overrides)}")
+            frames = _checkpointed_frames(r.path) if r in todo else None
+            state = r.status if frames is None else "resumable"
+            resumes = "" if frames is None else f"  (resumes from its checkpoint at {frames} frames)"
+            log(f"  {state:<16} {r.run_id}: {r.recipe} {' '.join(r.overrides)}{resumes}")
         return runs
     if not isinstance(launcher, Launcher):  # first: a launcher whose extra is missing leaves no folder behind
         launcher = make_launcher(
