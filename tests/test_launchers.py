@@ -310,8 +310,8 @@ def test_url_results_resume_on_a_fresh_scratch_and_match_local(tmp_path, local_r
 
 @pytest.mark.slow
 def test_an_experiment_started_with_sigint_ignored_still_stops_on_sigint(tmp_path):
-    """`adarl experiment ... &` from a script inherits SIGINT ignored; `kill -INT` must still stop it (its runs go
-    with it and resume from their last checkpoint)."""
+    """`adarl experiment ... &` from a script inherits SIGINT ignored; `kill -INT` must still stop it: its running
+    runs checkpoint and stop (``interrupted``), no other starts, and it exits 130 saying how to resume."""
     out = tmp_path / "exp"
     proc = subprocess.Popen(
         [sys.executable, "-m", "adarl.cli", "experiment", str(_spec(tmp_path)), "-o", str(out), "--no-live"],
@@ -331,9 +331,19 @@ def test_an_experiment_started_with_sigint_ignored_still_stops_on_sigint(tmp_pat
     except subprocess.TimeoutExpired:
         proc.kill()
         pytest.fail("SIGINT did not stop an experiment started with SIGINT ignored")
-    assert proc.returncode != 0, err[-2000:]
-    time.sleep(1)
+    assert proc.returncode == 128 + signal.SIGINT, err[-2000:]
+    assert "experiment stopped on SIGINT" in err and "run the same `adarl experiment` command" in err, err[-2000:]
     assert _training_pids(str(out)) == []
+    # it stopped its running runs after a checkpoint and started no other (before: every pending run still ran)
+    state = {r["run_id"]: r["status"] for r in json.loads((out / "experiment.json").read_text())["runs"]}
+    started = {f.stem for f in (out / "attempts").glob("*.jsonl")}
+    assert len(state) == 4 and 1 <= len(started) <= 2, (state, started)
+    assert all(state[r] == "pending" for r in state if r not in started), state
+    assert all(state[r] in ("interrupted", "finished") for r in started), state
+    assert any(state[r] == "interrupted" for r in started), state
+    for r in started:  # (one stopped before its first batch has no checkpoint: the next call starts it afresh)
+        if state[r] == "interrupted":
+            assert read_attempts(out, r)[-1]["status"] == "interrupted"
 
 
 def test_progress_counts_the_frames_of_runs_that_have_not_started(tmp_path):

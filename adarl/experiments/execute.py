@@ -10,6 +10,7 @@ launchers, progress boards or reports.
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import json
 import os
@@ -18,6 +19,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 import uuid
 from collections.abc import Callable
@@ -49,6 +51,35 @@ __all__ = [
 ]
 
 ATTEMPTS_DIR = "attempts"  # <output>/attempts/<run id>.jsonl: one line per start and end of a run, by any launcher
+
+_LIVE: dict[subprocess.Popen, int | None] = {}  # training processes this process waits for -> the signal sent
+_LIVE_LOCK = threading.Lock()
+
+
+def signal_live_trainings(sig: int) -> int:
+    """Send ``sig`` to every training process this process is waiting for that has not had it yet; returns how many
+    got it. SIGTERM: each checkpoints after its batch and exits (``interrupted``, resumable); SIGKILL: at once, each
+    keeping its last checkpoint. A launcher stopping on a signal calls it until its runs have ended."""
+    with _LIVE_LOCK:
+        todo = [proc for proc, sent in _LIVE.items() if sent != sig]
+        for proc in todo:
+            _LIVE[proc] = sig
+    for proc in todo:
+        with contextlib.suppress(OSError):
+            proc.send_signal(sig)
+    return len(todo)
+
+
+@contextlib.contextmanager
+def _live(proc: subprocess.Popen):
+    """``proc`` is one of :func:`signal_live_trainings`'s while the block runs."""
+    with _LIVE_LOCK:
+        _LIVE[proc] = None
+    try:
+        yield proc
+    finally:
+        with _LIVE_LOCK:
+            _LIVE.pop(proc, None)
 
 
 def stop_file(path: str | os.PathLike) -> Path:
@@ -190,7 +221,8 @@ def execute_run(run: PlannedRun, threads: int | None, watch: Callable[[], bool] 
             env=env,
             preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None,
         )
-        stopped = _wait(proc, watch)
+        with _live(proc):
+            stopped = _wait(proc, watch)
     run.wall_time_s = time.perf_counter() - start
     if proc.returncode == 0 and run_is_finished(path):
         run.status, run.message = "finished", action
@@ -301,6 +333,8 @@ def _execute_at_url(run: PlannedRun, threads: int | None) -> PlannedRun:
                 preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None,
             )
             try:
+                with _LIVE_LOCK:
+                    _LIVE[proc] = None
                 while True:
                     try:
                         returncode = proc.wait(timeout=_POLL_S)
@@ -317,6 +351,9 @@ def _execute_at_url(run: PlannedRun, threads: int | None) -> PlannedRun:
                 proc.kill()
                 proc.wait()
                 raise
+            finally:
+                with _LIVE_LOCK:
+                    _LIVE.pop(proc, None)
     run.wall_time_s = time.perf_counter() - start
     finished_here = returncode == 0 and run_is_finished(local)
     try:

@@ -17,6 +17,7 @@ from __future__ import annotations
 import contextlib
 import importlib.util
 import os
+import signal
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterator
@@ -24,12 +25,44 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from adarl.errors import AdaRLValueError, MissingExtraError
-from adarl.experiments.execute import WATCH_POLL_S, StopAsked, clear_stop, execute_run, request_stop
+from adarl.experiments.execute import (
+    WATCH_POLL_S,
+    StopAsked,
+    clear_stop,
+    execute_run,
+    request_stop,
+    signal_live_trainings,
+)
 from adarl.runtime.results import is_url
+from adarl.runtime.signals import GracefulInterrupt, RunInterrupted
 
-__all__ = ["Launcher", "LocalLauncher", "RayLauncher", "SubmititLauncher", "make_launcher", "LAUNCHERS"]
+__all__ = [
+    "Launcher",
+    "LocalLauncher",
+    "RayLauncher",
+    "SubmititLauncher",
+    "make_launcher",
+    "LAUNCHERS",
+    "ExperimentInterrupted",
+]
 
 LAUNCHERS = ("local", "ray", "submitit")
+
+
+class ExperimentInterrupted(RunInterrupted):
+    """An experiment stopped on SIGINT/SIGTERM: its running runs checkpointed and stopped, the others never started;
+    the same ``adarl experiment`` command resumes them all. ``exit_code`` is 128 + the signal number."""
+
+    def __init__(self, signum: int, stopped: list[str], not_started: int) -> None:
+        name = signal.Signals(signum).name
+        which = f" ({', '.join(stopped[:5])}{' ...' if len(stopped) > 5 else ''})" if stopped else ""
+        super().__init__(
+            f"experiment stopped on {name}: {len(stopped)} running runs stopped after a checkpoint{which}, "
+            f"{not_started} not started; run the same `adarl experiment` command to resume them",
+            signum=signum,
+            checkpoint=None,
+        )
+        self.stopped, self.not_started = stopped, not_started
 
 
 class Launcher(ABC):
@@ -99,26 +132,49 @@ class LocalLauncher(Launcher):
         return 1 if self.workers > 1 else None
 
     def launch(self, runs, on_done, *, tick=lambda running: None) -> None:
+        """Run ``runs``, ``workers`` at a time. The first SIGINT or SIGTERM (called from the main thread) stops the
+        experiment: no run starts after it, each running one is sent SIGTERM (it checkpoints after its batch and
+        exits, ``interrupted``), and once they have ended :class:`ExperimentInterrupted` is raised; a second signal
+        kills them at once (each keeps its last checkpoint)."""
         running: set[str] = set()
+        interrupt = GracefulInterrupt()
+        interrupt.notice = "stopping the running runs after their next checkpoint, starting no other"
 
         def one(r):
+            if interrupt.requested is not None:  # asked to stop before this run started: it never starts
+                return r
             running.add(r.run_id)
             try:
                 return execute_run(r, self.threads)
             finally:
                 running.discard(r.run_id)
 
-        with ThreadPoolExecutor(max_workers=self.workers) as pool:
+        with interrupt, ThreadPoolExecutor(max_workers=self.workers) as pool:
             futures = {pool.submit(one, r): r for r in runs}
             pending = set(futures)
-            while pending:
-                done = {f for f in pending if f.done()}
-                for f in done:
-                    on_done(f.result())
-                pending -= done
-                if pending:
-                    tick(set(running))
-                    time.sleep(min(self.poll_s, 0.2) if not done else 0)
+            try:
+                while pending:
+                    if interrupt.requested is not None:
+                        for f in pending:
+                            f.cancel()
+                        pending = {f for f in pending if not f.cancelled()}
+                        signal_live_trainings(signal.SIGTERM)  # again each poll: a run that had just started
+                    done = {f for f in pending if f.done()}
+                    for f in done:
+                        run = f.result()
+                        if run.status != "pending":  # not one that was asked to stop before it started
+                            on_done(run)
+                    pending -= done
+                    if pending:
+                        tick(set(running))
+                        time.sleep(min(self.poll_s, 0.2) if not done else 0)
+            except BaseException:  # a second signal (KeyboardInterrupt): stop them at once
+                signal_live_trainings(signal.SIGKILL)
+                raise
+        if interrupt.requested is not None:
+            stopped = [r.run_id for r in runs if r.status == "interrupted"]
+            never = sum(r.status == "pending" for r in runs)
+            raise ExperimentInterrupted(interrupt.requested, stopped, never)
 
     def run_watched(self, run, watch):
         return execute_run(run, self.threads, watch=watch)

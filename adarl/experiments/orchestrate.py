@@ -20,7 +20,7 @@ from typing import Any
 from adarl.errors import AdaRLError, AdaRLValueError, RecipeError
 from adarl.experiments.aggregate import write_aggregate_report
 from adarl.experiments.execute import run_is_finished
-from adarl.experiments.launchers import Launcher, make_launcher
+from adarl.experiments.launchers import ExperimentInterrupted, Launcher, make_launcher
 from adarl.experiments.progress import LiveBoard, ProgressBoard
 from adarl.experiments.spec import (
     ExperimentSpec,
@@ -233,11 +233,15 @@ def run_experiment(
                     log(line)
 
     if todo:
-        if screen is not None:
-            with screen:
+        try:
+            if screen is not None:
+                with screen:
+                    launcher.launch(todo, done, tick=tick)
+            else:
                 launcher.launch(todo, done, tick=tick)
-        else:
-            launcher.launch(todo, done, tick=tick)
+        except ExperimentInterrupted:  # SIGINT/SIGTERM: the state as it stands, no report; the same command resumes
+            _write_state(out, spec, budget, runs, command)
+            raise
     _, b = resolve_budget(spec, budget)
     sweeps = spec.sweeps if b.sweeps is None else b.sweeps
     if sweeps:
