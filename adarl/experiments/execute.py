@@ -72,14 +72,16 @@ def signal_live_trainings(sig: int) -> int:
 
 @contextlib.contextmanager
 def _live(proc: subprocess.Popen):
-    """``proc`` is one of :func:`signal_live_trainings`'s while the block runs."""
+    """``proc`` is one of :func:`signal_live_trainings`'s while the block runs; yields a list that holds, after it,
+    the signal this process sent it (None: none)."""
+    sent: list[int | None] = [None]
     with _LIVE_LOCK:
         _LIVE[proc] = None
     try:
-        yield proc
+        yield sent
     finally:
         with _LIVE_LOCK:
-            _LIVE.pop(proc, None)
+            sent[0] = _LIVE.pop(proc, None)
 
 
 def stop_file(path: str | os.PathLike) -> Path:
@@ -221,7 +223,7 @@ def execute_run(run: PlannedRun, threads: int | None, watch: Callable[[], bool] 
             env=env,
             preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None,
         )
-        with _live(proc):
+        with _live(proc) as sent:
             stopped = _wait(proc, watch)
     run.wall_time_s = time.perf_counter() - start
     if proc.returncode == 0 and run_is_finished(path):
@@ -231,7 +233,7 @@ def execute_run(run: PlannedRun, threads: int | None, watch: Callable[[], bool] 
         run.status, run.message = "stopped", f"stopped by its watcher (exit {proc.returncode}); resumable (log: {log})"
     else:
         tail = log.read_text().strip().splitlines()[-1:] if log.is_file() else []
-        _set_unfinished(run, proc.returncode, tail, log)
+        _set_unfinished(run, proc.returncode, tail, log, sent=sent[0])
     _record_attempt(run, event="end", action=action, status=run.status)
     return run
 
@@ -250,12 +252,16 @@ def interrupting_signal(returncode: int | None) -> signal.Signals | None:
     return None
 
 
-def _set_unfinished(run: PlannedRun, returncode: int | None, tail: list[str], log) -> None:
+def _set_unfinished(run: PlannedRun, returncode: int | None, tail: list[str], log, sent: int | None = None) -> None:
     """Status of a run whose training ended before its budget: ``interrupted`` when a signal of
     :data:`INTERRUPTING_SIGNALS` stopped it (resumable: the next ``adarl experiment`` resumes it from its last
-    checkpoint), ``failed`` otherwise (SIGKILL included: the out-of-memory killer sends it, and would again)."""
+    checkpoint) or when this process killed it (``sent``: a launcher told to stop at once), ``failed`` otherwise
+    (another SIGKILL included: the out-of-memory killer sends it, and would again)."""
     sig = interrupting_signal(returncode)
-    if sig is not None:
+    if sent == signal.SIGKILL and returncode == -signal.SIGKILL:
+        run.status = "interrupted"
+        run.message = f"killed at once by its launcher (a second signal); resumes from its last checkpoint (log: {log})"
+    elif sig is not None:
         run.status = "interrupted"
         run.message = (
             f"interrupted by {sig.name} (exit {returncode}); resumes from its last checkpoint when the experiment "
@@ -322,7 +328,7 @@ def _execute_at_url(run: PlannedRun, threads: int | None) -> PlannedRun:
         cmd, action = _cli("resume", str(local), "--quiet"), "resumed"
     _record_attempt(run, event="start", action=action, scratch=str(local))
     start = time.perf_counter()
-    returncode, upload_error = 0, None
+    returncode, upload_error, sent = 0, None, None
     if cmd is not None:
         with log.open("w") as fh:
             proc = subprocess.Popen(
@@ -353,7 +359,7 @@ def _execute_at_url(run: PlannedRun, threads: int | None) -> PlannedRun:
                 raise
             finally:
                 with _LIVE_LOCK:
-                    _LIVE.pop(proc, None)
+                    sent = _LIVE.pop(proc, None)
     run.wall_time_s = time.perf_counter() - start
     finished_here = returncode == 0 and run_is_finished(local)
     try:
@@ -378,6 +384,6 @@ def _execute_at_url(run: PlannedRun, threads: int | None) -> PlannedRun:
             where = remote_log
         except Exception:  # noqa: BLE001 - the local log is still there
             where = str(log)
-        _set_unfinished(run, returncode, tail, where)
+        _set_unfinished(run, returncode, tail, where, sent=sent)
     _record_attempt(run, event="end", action=action, status=run.status)
     return run

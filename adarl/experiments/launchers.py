@@ -53,11 +53,16 @@ class ExperimentInterrupted(RunInterrupted):
     """An experiment stopped on SIGINT/SIGTERM: its running runs checkpointed and stopped, the others never started;
     the same ``adarl experiment`` command resumes them all. ``exit_code`` is 128 + the signal number."""
 
-    def __init__(self, signum: int, stopped: list[str], not_started: int) -> None:
+    def __init__(self, signum: int, stopped: list[str], not_started: int, *, at_once: bool = False) -> None:
         name = signal.Signals(signum).name
         which = f" ({', '.join(stopped[:5])}{' ...' if len(stopped) > 5 else ''})" if stopped else ""
+        how = (
+            "killed at once by a second signal (each keeps its last checkpoint)"
+            if at_once
+            else "stopped after a checkpoint"
+        )
         super().__init__(
-            f"experiment stopped on {name}: {len(stopped)} running runs stopped after a checkpoint{which}, "
+            f"experiment stopped on {name}: {len(stopped)} running runs {how}{which}, "
             f"{not_started} not started; run the same `adarl experiment` command to resume them",
             signum=signum,
             checkpoint=None,
@@ -137,6 +142,7 @@ class LocalLauncher(Launcher):
         exits, ``interrupted``), and once they have ended :class:`ExperimentInterrupted` is raised; a second signal
         kills them at once (each keeps its last checkpoint)."""
         running: set[str] = set()
+        at_once = False
         interrupt = GracefulInterrupt()
         interrupt.notice = "stopping the running runs after their next checkpoint, starting no other"
 
@@ -168,13 +174,25 @@ class LocalLauncher(Launcher):
                     if pending:
                         tick(set(running))
                         time.sleep(min(self.poll_s, 0.2) if not done else 0)
-            except BaseException:  # a second signal (KeyboardInterrupt): stop them at once
+            except KeyboardInterrupt:  # a second signal: stop them at once
+                if interrupt.requested is None:  # not a signal this launcher saw (e.g. raised by a callback)
+                    signal_live_trainings(signal.SIGKILL)
+                    raise
+                signal_live_trainings(signal.SIGKILL)
+                at_once = True
+                for f in pending:
+                    if f.cancelled():
+                        continue
+                    run = f.result()  # its process is gone: the thread returns at once
+                    if run.status != "pending":
+                        on_done(run)
+            except BaseException:
                 signal_live_trainings(signal.SIGKILL)
                 raise
         if interrupt.requested is not None:
             stopped = [r.run_id for r in runs if r.status == "interrupted"]
             never = sum(r.status == "pending" for r in runs)
-            raise ExperimentInterrupted(interrupt.requested, stopped, never)
+            raise ExperimentInterrupted(interrupt.requested, stopped, never, at_once=at_once)
 
     def run_watched(self, run, watch):
         return execute_run(run, self.threads, watch=watch)
