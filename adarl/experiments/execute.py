@@ -258,14 +258,15 @@ def _set_unfinished(run: PlannedRun, returncode: int | None, tail: list[str], lo
     checkpoint) or when this process killed it (``sent``: a launcher told to stop at once), ``failed`` otherwise
     (another SIGKILL included: the out-of-memory killer sends it, and would again)."""
     sig = interrupting_signal(returncode)
+    fresh = not is_url(run.path) and not any((Path(run.path) / "checkpoints").glob("ckpt-*.pt"))
+    resumes = "it had no checkpoint yet, so it starts afresh" if fresh else "resumes from its last checkpoint"
     if sent == signal.SIGKILL and returncode == -signal.SIGKILL:
         run.status = "interrupted"
-        run.message = f"killed at once by its launcher (a second signal); resumes from its last checkpoint (log: {log})"
+        run.message = f"killed at once by its launcher (a second signal); {resumes} (log: {log})"
     elif sig is not None:
         run.status = "interrupted"
         run.message = (
-            f"interrupted by {sig.name} (exit {returncode}); resumes from its last checkpoint when the experiment "
-            f"is run again (log: {log})"
+            f"interrupted by {sig.name} (exit {returncode}); {resumes} when the experiment is run again (log: {log})"
         )
     else:
         run.status, run.message = "failed", f"exit {returncode}: {' '.join(tail)} (log: {log})"
