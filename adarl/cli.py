@@ -302,19 +302,26 @@ def cmd_experiment(args) -> int:
     if progress is None:  # a live board redraws often; plain lines every 30 s; a URL costs requests per refresh
         target = args.output if args.output is not None else load_experiment(args.spec).output
         progress = (10.0 if is_url(target) else 2.0) if live else 30.0
-    runs = run_experiment(
-        args.spec,
-        budget=args.budget,
-        output=args.output,
-        workers=args.workers,
-        dry_run=args.dry_run,
-        report=not args.no_report,
-        launcher=args.launcher,
-        launcher_options=options,
-        progress_interval=progress,
-        scratch=args.scratch,
-        live=live,
-    )
+    try:
+        runs = run_experiment(
+            args.spec,
+            budget=args.budget,
+            output=args.output,
+            workers=args.workers,
+            dry_run=args.dry_run,
+            report=not args.no_report,
+            launcher=args.launcher,
+            launcher_options=options,
+            progress_interval=progress,
+            scratch=args.scratch,
+            live=live,
+        )
+    except KeyboardInterrupt:  # stopped at once (a second signal, or a launcher that stops its runs so)
+        _err(
+            "experiment interrupted (stopped at once; each run keeps its previous checkpoint): run the same "
+            "`adarl experiment` command to resume it"
+        )
+        return 130
     if not args.dry_run:
         counts: dict[str, int] = {}
         for r in runs:

@@ -452,3 +452,18 @@ def test_a_dry_run_names_the_runs_it_would_resume_and_from_which_frames(tmp_path
     assert sorted(p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file()) == [
         f"{planned[1].run_id}/checkpoints/ckpt-{f:012d}.pt" for f in (100, 350)
     ]
+
+
+def test_an_experiment_stopped_at_once_says_how_to_resume_it(tmp_path, monkeypatch, capsys):
+    """A KeyboardInterrupt out of the experiment (a second signal on Ray or submitit) is one line that names the
+    command that resumes it, exit 130, not `adarl resume RUN_DIR` of a single run."""
+    import adarl.experiments.orchestrate as orchestrate
+    from adarl.cli import main
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(orchestrate, "run_experiment", interrupted)
+    assert main(["experiment", str(_spec(tmp_path)), "-o", str(tmp_path / "out"), "--no-live"]) == 130
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "run the same `adarl experiment` command to resume it" in err, err
