@@ -38,6 +38,7 @@ from adarl.runtime.results import (
     scratch_folder,
     write_atomic,
 )
+from adarl.runtime.run_dir import RunDir
 
 __all__ = [
     "execute_run",
@@ -204,7 +205,7 @@ def execute_run(run: PlannedRun, threads: int | None, watch: Callable[[], bool] 
     if run_is_finished(path):  # e.g. a retried task whose first try finished before its worker was lost
         run.status, run.message = "skipped-finished", "already finished"
         return run
-    if (path / "checkpoints").is_dir() and any((path / "checkpoints").glob("ckpt-*.pt")):
+    if RunDir(path).latest_checkpoint_frames() is not None:
         cmd, action = _cli("resume", str(path), "--quiet"), "resumed"
     else:
         if path.exists():
@@ -258,7 +259,7 @@ def _set_unfinished(run: PlannedRun, returncode: int | None, tail: list[str], lo
     checkpoint) or when this process killed it (``sent``: a launcher told to stop at once), ``failed`` otherwise
     (another SIGKILL included: the out-of-memory killer sends it, and would again)."""
     sig = interrupting_signal(returncode)
-    fresh = not is_url(run.path) and not any((Path(run.path) / "checkpoints").glob("ckpt-*.pt"))
+    fresh = not is_url(run.path) and RunDir(run.path).latest_checkpoint_frames() is None
     resumes = "it had no checkpoint yet, so it starts afresh" if fresh else "resumes from its last checkpoint"
     if sent == signal.SIGKILL and returncode == -signal.SIGKILL:
         run.status = "interrupted"

@@ -44,6 +44,7 @@ from adarl.runtime.results import (
     upload_tree,
     write_atomic,
 )
+from adarl.runtime.run_dir import RunDir
 
 __all__ = ["run_experiment", "EXPERIMENT_FILE"]
 
@@ -116,19 +117,6 @@ def _read_previous(out: Path | str) -> str | None:
     return previous.read_text() if previous.is_file() else None
 
 
-def _checkpointed_frames(path: str) -> int | None:
-    """The frames of a local run folder's latest checkpoint (what ``adarl experiment`` resumes it from), else None."""
-    if is_url(path):
-        return None
-    frames = []
-    for ckpt in (Path(path) / "checkpoints").glob("ckpt-*.pt"):
-        try:
-            frames.append(int(ckpt.name.split(".")[0].removeprefix("ckpt-")))
-        except ValueError:
-            continue
-    return max(frames) if frames else None
-
-
 def run_experiment(
     spec_path: str | os.PathLike,
     *,
@@ -192,7 +180,7 @@ def run_experiment(
     )
     if dry_run:
         for r in runs:
-            frames = _checkpointed_frames(r.path) if r in todo else None
+            frames = RunDir(r.path).latest_checkpoint_frames() if r in todo and not is_url(r.path) else None
             state = r.status if frames is None else "resumable"
             resumes = "" if frames is None else f"  (resumes from its checkpoint at {frames} frames)"
             log(f"  {state:<16} {r.run_id}: {r.recipe} {' '.join(r.overrides)}{resumes}")

@@ -629,6 +629,10 @@ class RunDir:
         d = self.checkpoint_dir
         return sorted(d.glob("ckpt-*.pt")) if d.is_dir() else []
 
+    def latest_checkpoint_frames(self) -> int | None:
+        """The frames of the newest checkpoint (what ``adarl resume`` starts from, if it loads), None without one."""
+        return max((f for f in map(_frames_of, self.checkpoints()) if f is not None), default=None)
+
     @property
     def best_checkpoint_path(self) -> Path:
         """``checkpoints/best.pt``: the state at the best nominal evaluation so far (no replay buffer)."""
