@@ -174,21 +174,15 @@ class LocalLauncher(Launcher):
                     if pending:
                         tick(set(running))
                         time.sleep(min(self.poll_s, 0.2) if not done else 0)
-            except KeyboardInterrupt:  # a second signal: stop them at once
-                if interrupt.requested is None:  # not a signal this launcher saw (e.g. raised by a callback)
-                    signal_live_trainings(signal.SIGKILL)
-                    raise
+            except BaseException as err:  # a second signal (KeyboardInterrupt), or a failure here: stop them at once
                 signal_live_trainings(signal.SIGKILL)
+                if not isinstance(err, KeyboardInterrupt) or interrupt.requested is None:
+                    raise
                 at_once = True
                 for f in pending:
-                    if f.cancelled():
-                        continue
-                    run = f.result()  # its process is gone: the thread returns at once
-                    if run.status != "pending":
+                    run = None if f.cancelled() else f.result()  # its process is gone: the thread returns at once
+                    if run is not None and run.status != "pending":
                         on_done(run)
-            except BaseException:
-                signal_live_trainings(signal.SIGKILL)
-                raise
         if interrupt.requested is not None:
             stopped = [r.run_id for r in runs if r.status == "interrupted"]
             never = sum(r.status == "pending" for r in runs)

@@ -291,7 +291,7 @@ def deterministic_program(actor, layers: str = "auto") -> Program:
     if tanh_head is not None:  # TD3 / DDPG: the network's output is the pre-tanh action
         net, head = tanh_head
         dist_class, kwargs = None, {}
-        spec = head.spec.get("action") if "action" in head.spec.keys() else None
+        spec = head.spec.get("action")  # None for a TanhModule built without one
     else:
         net, dist_module = _actor_parts(actor)
         dist_class, kwargs = dist_module.distribution_class, dict(dist_module.distribution_kwargs or {})
