@@ -134,80 +134,125 @@ def test_progress_board_lines_and_bar(tmp_path, local_reference):
     assert lines[-1].startswith("[") and "1/4 runs done" in lines[-1]
 
 
+def _experiment_cli(spec: Path, out: Path, *args: str) -> list[str]:
+    return [sys.executable, "-m", "adarl.cli", "experiment", str(spec), "-o", str(out), "--no-live", *args]
+
+
+def _wait_for(condition, what: str, proc: subprocess.Popen, limit_s: float = 600) -> None:
+    """Poll ``condition`` until it holds (a generous limit: a loaded machine starts Ray slowly); fail at once if
+    ``proc`` ends first."""
+    end = time.monotonic() + limit_s
+    while not condition():
+        assert proc.poll() is None, f"the experiment ended before its {what}: {proc.communicate()[1][-2000:]}"
+        assert time.monotonic() < end, f"no {what} in {limit_s} s"
+        time.sleep(0.05)
+
+
+def _events(out: Path, run_id: str) -> list[dict]:
+    try:
+        return read_attempts(out, run_id)
+    except ValueError:  # a line being written
+        return []
+
+
+def _stopped_on_sigint(proc: subprocess.Popen, out: Path) -> dict[str, str]:
+    """The statuses of an experiment after its SIGINT: it exited 130 saying how to resume; each run that had started
+    stopped after a checkpoint (``interrupted``, never "at once") or had finished, the others never started
+    (``pending``); no training process and no stop request is left."""
+    _, err = proc.communicate(timeout=300)
+    assert proc.returncode == 128 + signal.SIGINT, err[-3000:]
+    assert "experiment stopped on SIGINT" in err and "run the same `adarl experiment` command" in err, err[-2000:]
+    assert _training_pids(str(out)) == []
+    assert not list(out.glob(".*.stop")) and not list(out.parent.glob(".*.stop"))
+    runs = {r["run_id"]: r for r in json.loads((out / "experiment.json").read_text())["runs"]}
+    state = {r: runs[r]["status"] for r in runs}
+    assert "interrupted" in state.values(), state
+    for r, status in state.items():
+        assert status in ("interrupted", "pending", "finished"), state
+        log = out / f"{r}.log"
+        if status == "interrupted" and log.is_file():  # (none: stopped before its training process started)
+            assert "stopped at once" not in log.read_text(), r
+    return state
+
+
 @pytest.mark.slow
-def test_ray_launcher_survives_a_killed_worker_and_matches_local(tmp_path, local_reference):
+def test_ray_launcher_survives_a_killed_worker_stops_on_sigint_and_resumes_to_local_results(tmp_path, local_reference):
+    """``adarl experiment --launcher ray``: a Ray worker killed mid-run is retried from the run's checkpoint; a
+    SIGINT then stops the experiment (the running runs checkpoint through their stop files, no other starts); the same
+    command resumes every run to the local launcher's results, each finished once."""
     pytest.importorskip("ray")
-    ref_out, ref_report = local_reference
-    out = tmp_path / "exp"
-    spec = _spec(tmp_path)
-    killed: list[str] = []
-    done = threading.Event()
-
-    def kill_one_worker_mid_run():
-        # a generous window (a loaded machine starts Ray slowly), closed as soon as the experiment returns
-        end = time.monotonic() + 900
-        while time.monotonic() < end and not killed and not done.is_set():
-            for f in sorted((out / "attempts").glob("*.jsonl")) if (out / "attempts").is_dir() else []:
-                events = [json.loads(x) for x in f.read_text().splitlines()]
-                run = out / f.stem
-                ckpts = list((run / "checkpoints").glob("ckpt-*.pt")) if (run / "checkpoints").is_dir() else []
-                if len(events) == 1 and any(int(c.stem.split("-")[1]) > 0 for c in ckpts):
-                    os.kill(events[0]["pid"], signal.SIGKILL)  # the Ray worker process running this run
-                    killed.append(f.stem)
-                    return
-            time.sleep(0.05)
-
-    killer = threading.Thread(target=kill_one_worker_mid_run, daemon=True)
-    killer.start()
-    said: list[str] = []
-    runs = run_experiment(
-        spec, output=out, launcher="ray", log=said.append, launcher_options={"max_retries": 2}, progress_interval=1
+    _, ref_report = local_reference
+    out, spec = tmp_path / "exp", _spec(tmp_path)
+    proc = subprocess.Popen(
+        _experiment_cli(spec, out, "--launcher", "ray"),
+        cwd=REPO,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
     )
-    done.set()
-    killer.join()
-    assert killed, "no worker was killed mid-run"
-    assert sorted(r.status for r in runs) == ["finished"] * 4, said
+    killed: list[str] = []
+
+    def a_worker_killed_mid_run() -> bool:
+        for f in sorted((out / "attempts").glob("*.jsonl")) if (out / "attempts").is_dir() else []:
+            events, run = _events(out, f.stem), out / f.stem
+            ckpts = list((run / "checkpoints").glob("ckpt-*.pt")) if (run / "checkpoints").is_dir() else []
+            if len(events) == 1 and any(int(c.stem.split("-")[1]) > 0 for c in ckpts):
+                os.kill(events[0]["pid"], signal.SIGKILL)  # the Ray worker process running this run
+                killed.append(f.stem)
+                return True
+        return False
+
+    def retried() -> bool:
+        return [e["event"] for e in _events(out, killed[0])][-1:] == ["start"] and len(_events(out, killed[0])) > 1
+
+    try:
+        _wait_for(a_worker_killed_mid_run, "run with a checkpoint to kill", proc)
+        _wait_for(retried, "retry of the killed run", proc)
+        proc.send_signal(signal.SIGINT)
+        state = _stopped_on_sigint(proc, out)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert [e["action"] for e in _events(out, killed[0]) if e["event"] == "start"][:2] == ["ran", "resumed"]
+    # the same command resumes them all: every run finished exactly once, with the local launcher's results
+    said: list[str] = []
+    runs = run_experiment(spec, output=out, launcher="ray", log=said.append, progress_interval=1)
+    resumed = sorted("skipped-finished" if state[r.run_id] == "finished" else "finished" for r in runs)
+    assert sorted(r.status for r in runs) == resumed, said
     _assert_each_finished_once(out, runs)
-    starts = [e["action"] for e in read_attempts(out, killed[0]) if e["event"] == "start"]
-    assert starts == ["ran", "resumed"], read_attempts(out, killed[0])
     assert any("runs done" in line for line in said)
     assert _report_content(out) == ref_report
-    # finished runs are never re-run
-    again = run_experiment(spec, output=out, launcher="ray", report=False, log=lambda *_: None)
-    assert sorted(r.status for r in again) == ["skipped-finished"] * 4
-    _assert_each_finished_once(out, runs)
 
 
 @pytest.mark.slow
-def test_submitit_local_executor_matches_local(tmp_path, local_reference):
+def test_submitit_local_executor_stops_on_ctrl_c_and_resumes_to_local_results(tmp_path, local_reference):
+    """``adarl experiment --launcher submitit`` (its local executor): a Ctrl-C to its process group (the driver and
+    its job processes) mid-run stops every running run after a checkpoint; the same command resumes them to the
+    local launcher's results, each finished once."""
     pytest.importorskip("submitit")
     _, ref_report = local_reference
-    out = tmp_path / "exp"
-    proc = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "adarl.cli",
-            "experiment",
-            str(_spec(tmp_path)),
-            "-o",
-            str(out),
-            "--launcher",
-            "submitit",
-            "--submitit-cluster",
-            "local",
-            "--progress",
-            "2",
-        ],
-        capture_output=True,
-        text=True,
-        cwd=REPO,
-        timeout=600,
+    out, spec = tmp_path / "exp", _spec(tmp_path)
+    cmd = _experiment_cli(spec, out, "--launcher", "submitit", "--submitit-cluster", "local")
+    proc = subprocess.Popen(
+        cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True
     )
-    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
-    assert "4 finished" in proc.stdout
-    runs = plan_runs(load_experiment(_spec(tmp_path)), out)
+
+    def mid_run() -> bool:
+        return any(int(c.stem.split("-")[1]) > 0 for c in out.glob("*/checkpoints/ckpt-*.pt"))
+
+    try:
+        _wait_for(mid_run, "first checkpoint", proc)
+        os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C in its terminal
+        state = _stopped_on_sigint(proc, out)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    again = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO, timeout=600)
+    assert again.returncode == 0, again.stdout[-2000:] + again.stderr[-3000:]
+    runs = plan_runs(load_experiment(spec), out)
     _assert_each_finished_once(out, runs)
+    assert f"{sum(s != 'finished' for s in state.values())} finished" in again.stdout, again.stdout[-2000:]
     assert _report_content(out) == ref_report
     assert (out / "submitit").is_dir()
 
@@ -309,9 +354,11 @@ def test_url_results_resume_on_a_fresh_scratch_and_match_local(tmp_path, local_r
 
 
 @pytest.mark.slow
-def test_an_experiment_started_with_sigint_ignored_still_stops_on_sigint(tmp_path):
-    """`adarl experiment ... &` from a script inherits SIGINT ignored; `kill -INT` must still stop it: its running
-    runs checkpoint and stop (``interrupted``), no other starts, and it exits 130 saying how to resume."""
+def test_an_experiment_started_with_sigint_ignored_still_stops_on_a_ctrl_c_to_its_process_group(tmp_path):
+    """`adarl experiment ... &` from a script inherits SIGINT ignored; a SIGINT must still stop it. Sent as a terminal
+    sends Ctrl-C, to the whole process group: the training processes must not take it themselves (a second signal,
+    the launcher's SIGTERM, would then stop them at once, without a checkpoint). Its running runs checkpoint and stop
+    (``interrupted`` by the launcher's one SIGTERM), no other starts, and it exits 130 saying how to resume."""
     out = tmp_path / "exp"
     proc = subprocess.Popen(
         [sys.executable, "-m", "adarl.cli", "experiment", str(_spec(tmp_path)), "-o", str(out), "--no-live"],
@@ -319,31 +366,35 @@ def test_an_experiment_started_with_sigint_ignored_still_stops_on_sigint(tmp_pat
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
         text=True,
+        start_new_session=True,  # its own process group, as a shell's job
         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN),
     )
     deadline = time.monotonic() + 300
-    while time.monotonic() < deadline and proc.poll() is None and not list(out.glob("*/recipe.yaml")):
+    while time.monotonic() < deadline and proc.poll() is None and not list(out.glob("*/checkpoints/ckpt-*.pt")):
         time.sleep(0.2)
     assert proc.poll() is None, "the experiment ended before it could be interrupted"
-    proc.send_signal(signal.SIGINT)
+    os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C in its terminal
     try:
         _, err = proc.communicate(timeout=90)
     except subprocess.TimeoutExpired:
-        proc.kill()
+        os.killpg(proc.pid, signal.SIGKILL)
         pytest.fail("SIGINT did not stop an experiment started with SIGINT ignored")
     assert proc.returncode == 128 + signal.SIGINT, err[-2000:]
     assert "experiment stopped on SIGINT" in err and "run the same `adarl experiment` command" in err, err[-2000:]
     assert _training_pids(str(out)) == []
     # it stopped its running runs after a checkpoint and started no other (before: every pending run still ran)
-    state = {r["run_id"]: r["status"] for r in json.loads((out / "experiment.json").read_text())["runs"]}
+    runs = {r["run_id"]: r for r in json.loads((out / "experiment.json").read_text())["runs"]}
+    state = {r: runs[r]["status"] for r in runs}
     started = {f.stem for f in (out / "attempts").glob("*.jsonl")}
     assert len(state) == 4 and 1 <= len(started) <= 2, (state, started)
     assert all(state[r] == "pending" for r in state if r not in started), state
     assert all(state[r] in ("interrupted", "finished") for r in started), state
     assert any(state[r] == "interrupted" for r in started), state
-    for r in started:  # (one stopped before its first batch has no checkpoint: the next call starts it afresh)
-        if state[r] == "interrupted":
+    for r in started:
+        if state[r] == "interrupted":  # by the launcher's SIGTERM alone, after a checkpoint: not at once
             assert read_attempts(out, r)[-1]["status"] == "interrupted"
+            assert "interrupted by SIGTERM (exit 143)" in runs[r]["message"], runs[r]
+            assert "stopped at once" not in (out / f"{r}.log").read_text()
 
 
 def test_progress_counts_the_frames_of_runs_that_have_not_started(tmp_path):

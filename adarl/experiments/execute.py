@@ -92,10 +92,20 @@ def stop_file(path: str | os.PathLike) -> Path:
     return p.parent / f".{p.name}.stop"
 
 
+def _stop_url(url: str) -> str:
+    """:func:`stop_file` of a run at an fsspec URL: ``.<name>.stop`` beside it, in the same store."""
+    parent, name = url.rstrip("/").rsplit("/", 1)
+    return join(parent, f".{name}.stop")
+
+
 def request_stop(path: str | os.PathLike) -> None:
-    """Ask the run in the folder ``path`` to stop (it checkpoints first) from any machine that sees the folder:
-    the :class:`StopAsked` watcher of the :func:`execute_run` running it (on a Ray worker, in a SLURM job) sends the
-    training SIGTERM within :data:`WATCH_POLL_S` seconds. ``adarl tune`` stops a pruned trial on a launcher so."""
+    """Ask the run at ``path`` (a folder, or an fsspec URL) to stop (it checkpoints first) from any machine that sees
+    it: the :class:`StopAsked` watcher of the :func:`execute_run` running it (on a Ray worker, in a SLURM job) sends the
+    training SIGTERM within :data:`WATCH_POLL_S` seconds. ``adarl tune`` stops a pruned trial so, and the Ray and
+    submitit launchers stop an experiment's runs so on its first SIGINT/SIGTERM."""
+    if is_url(path):
+        write_atomic(_stop_url(str(path)), f"{os.getpid()}\n")
+        return
     f = stop_file(path)
     f.parent.mkdir(parents=True, exist_ok=True)
     f.write_text(f"{os.getpid()}\n")
@@ -103,16 +113,24 @@ def request_stop(path: str | os.PathLike) -> None:
 
 def clear_stop(path: str | os.PathLike) -> None:
     """Withdraw a :func:`request_stop` (before the run is started again)."""
+    if is_url(path):
+        fs, rpath = filesystem(_stop_url(str(path)))
+        with contextlib.suppress(FileNotFoundError):
+            fs.rm(rpath)
+        return
     stop_file(path).unlink(missing_ok=True)
 
 
 class StopAsked:
-    """A picklable ``watch`` for :func:`execute_run`: true once :func:`request_stop` was called on the run folder."""
+    """A picklable ``watch`` for :func:`execute_run`: true once :func:`request_stop` was called on the run."""
 
     def __init__(self, path: str | os.PathLike) -> None:
         self.path = str(path)
 
     def __call__(self) -> bool:
+        if is_url(self.path):
+            fs, rpath = filesystem(_stop_url(self.path))
+            return fs.exists(rpath)
         return stop_file(self.path).exists()
 
 
@@ -145,7 +163,11 @@ def _cli(*args: str) -> list[str]:
 
 def _die_with_parent() -> None:  # pragma: no cover - runs in the child between fork and exec
     """Linux: the training process gets SIGKILL when its launcher process dies (a lost Ray worker, a killed job),
-    so a retried run never races an orphan writing the same folder."""
+    so a retried run never races an orphan writing the same folder.
+
+    The training process also runs in its own process group (``process_group=0``): a Ctrl-C in the terminal goes to
+    the launcher's group only, and the launcher passes one SIGTERM on. Were it in the launcher's group it would get
+    both, and a second signal stops a run at once, without its checkpoint."""
     try:
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, int(signal.SIGKILL))  # PR_SET_PDEATHSIG
     except (OSError, AttributeError):
@@ -194,17 +216,19 @@ def execute_run(run: PlannedRun, threads: int | None, watch: Callable[[], bool] 
     What every launcher executes, wherever it runs; a finished run is left alone (``skipped-finished``). A run at a
     URL trains in a local scratch folder copied to the URL (:func:`_execute_at_url`).
 
-    ``watch`` (a local run only): called every :data:`WATCH_POLL_S` seconds while the run trains; when it returns
-    True the run is sent SIGTERM (it checkpoints and stops, resumable) and its status is ``stopped`` (``adarl tune``
-    prunes a trial so, on the evaluations the run has written)."""
-    if is_url(run.path):
-        if watch is not None:
-            raise ValueError("execute_run: watch is for runs in a local folder")
-        return _execute_at_url(run, threads)
-    path = Path(run.path)
-    if run_is_finished(path):  # e.g. a retried task whose first try finished before its worker was lost
+    ``watch``: called every :data:`WATCH_POLL_S` seconds while the run trains; when it returns True the run is sent
+    SIGTERM (it checkpoints and stops, resumable) and its status is ``stopped`` (``adarl tune`` prunes a trial so, on
+    the evaluations the run has written; a launcher stops its runs so on a signal). A run whose ``watch`` is already
+    true when it would start is not started: its status stays ``pending``."""
+    if run_is_finished(run.path):  # e.g. a retried task whose first try finished before its worker was lost
         run.status, run.message = "skipped-finished", "already finished"
         return run
+    if watch is not None and watch():  # its launcher stopped before this worker started it
+        run.status, run.message = "pending", "asked to stop before it started"
+        return run
+    if is_url(run.path):
+        return _execute_at_url(run, threads, watch)
+    path = Path(run.path)
     if RunDir(path).latest_checkpoint_frames() is not None:
         cmd, action = _cli("resume", str(path), "--quiet"), "resumed"
     else:
@@ -223,19 +247,28 @@ def execute_run(run: PlannedRun, threads: int | None, watch: Callable[[], bool] 
             stderr=subprocess.STDOUT,
             env=env,
             preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None,
+            process_group=0,  # a terminal's Ctrl-C reaches its launcher alone, which stops it once (_wait)
         )
         with _live(proc) as sent:
-            stopped = _wait(proc, watch)
+            try:
+                stopped, interrupted = _wait(proc, watch), None
+            except KeyboardInterrupt as err:  # its worker was interrupted: the training has stopped (_end_training)
+                stopped, interrupted = False, err
     run.wall_time_s = time.perf_counter() - start
-    if proc.returncode == 0 and run_is_finished(path):
+    if _ended_finished(proc.returncode, path):
         run.status, run.message = "finished", action
         log.unlink(missing_ok=True)
     elif stopped:
-        run.status, run.message = "stopped", f"stopped by its watcher (exit {proc.returncode}); resumable (log: {log})"
+        run.status, run.message = (
+            "stopped",
+            f"stopped by its watcher (exit {proc.returncode}); {_resumes(run)} (log: {log})",
+        )
     else:
         tail = log.read_text().strip().splitlines()[-1:] if log.is_file() else []
         _set_unfinished(run, proc.returncode, tail, log, sent=sent[0])
     _record_attempt(run, event="end", action=action, status=run.status)
+    if interrupted is not None:  # recorded: now the caller (a job, a task, adarl tune) is interrupted as it asked
+        raise interrupted
     return run
 
 
@@ -253,14 +286,25 @@ def interrupting_signal(returncode: int | None) -> signal.Signals | None:
     return None
 
 
+def _ended_finished(returncode: int | None, path) -> bool:
+    """Whether a training process that exited so finished its run: exit 0, or a stop signal received after its last
+    batch (it writes its summary and report first, then exits with the signal's status) with the budget spent."""
+    return (returncode == 0 or interrupting_signal(returncode) is not None) and run_is_finished(path)
+
+
+def _resumes(run: PlannedRun) -> str:
+    """How an unfinished run goes on: from its last checkpoint, or afresh when it had none (a local folder)."""
+    fresh = not is_url(run.path) and RunDir(run.path).latest_checkpoint_frames() is None
+    return "it had no checkpoint yet, so it starts afresh" if fresh else "resumes from its last checkpoint"
+
+
 def _set_unfinished(run: PlannedRun, returncode: int | None, tail: list[str], log, sent: int | None = None) -> None:
     """Status of a run whose training ended before its budget: ``interrupted`` when a signal of
     :data:`INTERRUPTING_SIGNALS` stopped it (resumable: the next ``adarl experiment`` resumes it from its last
     checkpoint) or when this process killed it (``sent``: a launcher told to stop at once), ``failed`` otherwise
     (another SIGKILL included: the out-of-memory killer sends it, and would again)."""
     sig = interrupting_signal(returncode)
-    fresh = not is_url(run.path) and RunDir(run.path).latest_checkpoint_frames() is None
-    resumes = "it had no checkpoint yet, so it starts afresh" if fresh else "resumes from its last checkpoint"
+    resumes = _resumes(run)
     if sent == signal.SIGKILL and returncode == -signal.SIGKILL:
         run.status = "interrupted"
         run.message = f"killed at once by its launcher (a second signal); {resumes} (log: {log})"
@@ -277,8 +321,9 @@ WATCH_POLL_S = 1.0  # how often a watched run's watcher is asked whether to stop
 
 
 def _wait(proc: subprocess.Popen, watch: Callable[[], bool] | None) -> bool:
-    """Wait for the training process (killed if this thread is interrupted, as ``subprocess.run`` does); with a
-    ``watch``, ask it now and then and send SIGTERM when it says stop. Returns whether it was stopped so."""
+    """Wait for the training process; with a ``watch``, ask it now and then and send SIGTERM when it says stop.
+    Returns whether it was stopped so. Interrupted (``KeyboardInterrupt``), it stops the training first
+    (:func:`_end_training`), then raises."""
     stopped = False
     try:
         while True:
@@ -290,10 +335,25 @@ def _wait(proc: subprocess.Popen, watch: Callable[[], bool] | None) -> bool:
             if watch():
                 stopped = True
                 proc.send_signal(signal.SIGTERM)  # the trainer checkpoints after its batch and exits
-    except BaseException:
-        proc.kill()
-        proc.wait()
+    except BaseException as err:
+        _end_training(proc, err, sigterm_sent=stopped)
         raise
+
+
+def _end_training(proc: subprocess.Popen, err: BaseException, *, sigterm_sent: bool) -> None:
+    """The training process of a waiting thread that was interrupted. ``KeyboardInterrupt`` (a Ctrl-C to a submitit
+    job's process group, its cancel, ``ray.cancel``): it is sent SIGTERM (once) and waited for, so it checkpoints after
+    its batch first; a second interrupt, or any other exception, kills it at once (it keeps its last checkpoint)."""
+    if isinstance(err, KeyboardInterrupt):
+        try:
+            if not sigterm_sent:
+                proc.send_signal(signal.SIGTERM)
+            proc.wait()
+            return
+        except BaseException:  # noqa: BLE001 - interrupted again: at once, below
+            pass
+    proc.kill()
+    proc.wait()
 
 
 def _train_env(threads: int | None) -> dict:
@@ -306,12 +366,9 @@ def _train_env(threads: int | None) -> dict:
 _POLL_S = 1.0  # how often a URL run's scratch folder is checked for a new checkpoint to upload
 
 
-def _execute_at_url(run: PlannedRun, threads: int | None) -> PlannedRun:
+def _execute_at_url(run: PlannedRun, threads: int | None, watch: Callable[[], bool] | None = None) -> PlannedRun:
     """:func:`execute_run` for a run at a URL: train in the local scratch folder (downloaded from the URL first when
     it lacks the URL's latest checkpoint), upload after each checkpoint and at the end (:class:`RunMirror`)."""
-    if run_is_finished(run.path):
-        run.status, run.message = "skipped-finished", "already finished"
-        return run
     local = scratch_folder(run.path, run.run_id, run.scratch)
     local.parent.mkdir(parents=True, exist_ok=True)
     mirror = RunMirror(local, run.path)
@@ -330,7 +387,7 @@ def _execute_at_url(run: PlannedRun, threads: int | None) -> PlannedRun:
         cmd, action = _cli("resume", str(local), "--quiet"), "resumed"
     _record_attempt(run, event="start", action=action, scratch=str(local))
     start = time.perf_counter()
-    returncode, upload_error, sent = 0, None, None
+    returncode, upload_error, sent, stopped, interrupted = 0, None, None, False, None
     if cmd is not None:
         with log.open("w") as fh:
             proc = subprocess.Popen(
@@ -339,6 +396,7 @@ def _execute_at_url(run: PlannedRun, threads: int | None) -> PlannedRun:
                 stderr=subprocess.STDOUT,
                 env=_train_env(threads),
                 preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None,
+                process_group=0,  # a terminal's Ctrl-C reaches its launcher alone, which stops it once (_wait)
             )
             try:
                 with _LIVE_LOCK:
@@ -349,21 +407,25 @@ def _execute_at_url(run: PlannedRun, threads: int | None) -> PlannedRun:
                         break
                     except subprocess.TimeoutExpired:
                         pass
+                    if watch is not None and not stopped and watch():
+                        stopped = True
+                        proc.send_signal(signal.SIGTERM)  # the trainer checkpoints after its batch; uploaded below
                     if mirror.has_new_checkpoint() or time.monotonic() - mirror.last_push >= SYNC_INTERVAL_S:
                         try:
                             mirror.push()
                         except Exception as err:  # noqa: BLE001 - retried at the next checkpoint; the run goes on
                             fh.write(f"adarl: upload to {run.path} failed (retrying later): {err}\n")
                             fh.flush()
-            except BaseException:
-                proc.kill()
-                proc.wait()
-                raise
+            except BaseException as err:
+                _end_training(proc, err, sigterm_sent=stopped)
+                if not isinstance(err, KeyboardInterrupt):
+                    raise
+                returncode, interrupted = proc.returncode, err  # stopped after its checkpoint: uploaded below
             finally:
                 with _LIVE_LOCK:
                     sent = _LIVE.pop(proc, None)
     run.wall_time_s = time.perf_counter() - start
-    finished_here = returncode == 0 and run_is_finished(local)
+    finished_here = _ended_finished(returncode, local)
     try:
         mirror.push(final=finished_here)
         upload_error = None
@@ -386,6 +448,11 @@ def _execute_at_url(run: PlannedRun, threads: int | None) -> PlannedRun:
             where = remote_log
         except Exception:  # noqa: BLE001 - the local log is still there
             where = str(log)
-        _set_unfinished(run, returncode, tail, where, sent=sent)
+        if stopped:
+            run.status, run.message = "stopped", f"stopped by its watcher (exit {returncode}); resumable (log: {where})"
+        else:
+            _set_unfinished(run, returncode, tail, where, sent=sent)
     _record_attempt(run, event="end", action=action, status=run.status)
+    if interrupted is not None:
+        raise interrupted
     return run

@@ -30,6 +30,7 @@ from adarl.experiments.execute import (
     StopAsked,
     clear_stop,
     execute_run,
+    read_attempts,
     request_stop,
     signal_live_trainings,
 )
@@ -120,6 +121,67 @@ def _watch_remote(run, watch: Callable[[], bool], asked: list[bool]) -> None:
     if not asked[0] and watch():
         asked[0] = True
         request_stop(run.path)
+
+
+class _RemoteStop:
+    """The first-signal stop of the launchers whose runs train elsewhere (Ray tasks, submitit jobs), as the local
+    launcher stops: on the first SIGINT/SIGTERM each unfinished run is asked to stop through its stop file
+    (:func:`~adarl.experiments.execute.request_stop`: the worker's training gets SIGTERM and checkpoints after its
+    batch; a worker that had not started its run returns without starting it). :meth:`raise_if_asked` then raises
+    :class:`ExperimentInterrupted`. A second signal raises ``KeyboardInterrupt`` in the launcher's loop: it stops the
+    runs at once (:meth:`killed_at_once`)."""
+
+    def __init__(self, runs: list) -> None:
+        self.runs, self.asked, self.at_once, self.since = runs, False, False, time.time()
+        self.interrupt = GracefulInterrupt()
+        self.interrupt.notice = "stopping the running runs after their next checkpoint, starting no other"
+        for r in runs:
+            clear_stop(r.path)  # a stop asked by an earlier driver that was killed before it withdrew it
+
+    def __enter__(self) -> _RemoteStop:
+        self.interrupt.__enter__()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.interrupt.__exit__(*exc)
+        if self.asked:
+            for r in self.runs:
+                clear_stop(r.path)
+
+    def poll(self, unfinished: list) -> bool:
+        """Ask ``unfinished`` runs to stop once the first signal came (the first time only); True once asked."""
+        if self.interrupt.requested is not None and not self.asked:
+            self.asked = True
+            for r in unfinished:
+                request_stop(r.path)
+        return self.asked
+
+    def outcome(self, run):
+        """``run`` as its worker returned it: a run stopped through its stop file was interrupted by the signal."""
+        if self.asked and run.status == "stopped":
+            run.status = "interrupted"
+            run.message = f"{signal.Signals(self.interrupt.requested).name} to its experiment: {run.message}"
+        return run
+
+    def started(self, run) -> bool:
+        """Whether this launch started ``run`` (its attempts record a start since; a lost worker records no end)."""
+        output = run.path.rsplit("/", 1)[0] if is_url(run.path) else Path(run.path).parent
+        return any(
+            e["event"] == "start" and e.get("time", 0) >= self.since - 1 for e in read_attempts(output, run.run_id)
+        )
+
+    def ended(self, run, why: str):
+        """``run``, whose worker ended without its outcome (cancelled, killed at once): ``interrupted`` if it had
+        started, else left ``pending`` (it never started)."""
+        if self.started(run):
+            run.status, run.message = "interrupted", f"{why}; resumes from its last checkpoint"
+        return run
+
+    def raise_if_asked(self) -> None:
+        if self.interrupt.requested is not None:
+            stopped = [r.run_id for r in self.runs if r.status == "interrupted"]
+            never = sum(r.status == "pending" for r in self.runs)
+            raise ExperimentInterrupted(self.interrupt.requested, stopped, never, at_once=self.at_once)
 
 
 class LocalLauncher(Launcher):
@@ -273,17 +335,37 @@ class RayLauncher(Launcher):
         return run
 
     def launch(self, runs, on_done, *, tick=lambda running: None) -> None:
+        """One task per run. The first SIGINT or SIGTERM stops the experiment as the local launcher does (through each
+        run's stop file: the running ones checkpoint and stop, ``interrupted``; a task that starts afterwards returns
+        without training); a second one cancels the tasks at once (each run keeps its last checkpoint)."""
         with self.session():
             import ray
 
             task = self._task
-            refs = {task.remote(r, self.threads): r for r in runs}
-            pending = list(refs)
-            while pending:
-                done, pending = ray.wait(pending, num_returns=1, timeout=self.poll_s)
-                for ref in done:
-                    on_done(_ray_outcome(ray, ref, refs[ref]))
-                tick({refs[ref].run_id for ref in pending})
+            stop = _RemoteStop(runs)
+            with stop:
+                refs = {task.remote(r, self.threads, StopAsked(r.path)): r for r in runs}
+                pending = list(refs)
+                try:
+                    while pending:
+                        stop.poll([refs[ref] for ref in pending])
+                        done, pending = ray.wait(pending, num_returns=1, timeout=min(self.poll_s, 1.0))
+                        for ref in done:
+                            run = stop.outcome(_ray_outcome(ray, ref, refs[ref]))
+                            if run.status != "pending":  # not one asked to stop before it started
+                                on_done(run)
+                        tick({refs[ref].run_id for ref in pending})
+                except KeyboardInterrupt:
+                    if stop.interrupt.requested is None:
+                        raise
+                    stop.at_once = True
+                    for ref in pending:
+                        with contextlib.suppress(Exception):
+                            ray.cancel(ref, force=True)  # its worker dies, and its training with it
+                        run = stop.ended(refs[ref], "killed at once by its launcher (a second signal)")
+                        if run.status != "pending":
+                            on_done(run)
+            stop.raise_if_asked()
 
 
 class SubmititLauncher(Launcher):
@@ -374,21 +456,65 @@ class SubmititLauncher(Launcher):
         return run
 
     def launch(self, runs, on_done, *, tick=lambda running: None) -> None:
+        """One job per run. The first SIGINT or SIGTERM stops the experiment as the local launcher does (through each
+        run's stop file: the running ones checkpoint and stop, ``interrupted``; jobs still queued are cancelled and
+        never start; no job is resubmitted); a second one cancels every job at once (each keeps its last checkpoint)."""
         ex = self._executor()
         job_fn = _CheckpointableRun()
-        jobs = {r.run_id: (ex.submit(job_fn, r, self.threads), r, 0) for r in runs}
-        while jobs:
-            for run_id, (job, run, tries) in list(jobs.items()):
-                if not job.done():
-                    continue
-                if not self._settled(job, run, tries):
-                    jobs[run_id] = (ex.submit(job_fn, run, self.threads), run, tries + 1)
-                    continue
-                del jobs[run_id]
-                on_done(run)
-            if jobs:
-                tick(set(jobs))
-                time.sleep(min(self.poll_s, 1.0))
+
+        def submit(run):
+            return ex.submit(job_fn, run, self.threads, StopAsked(run.path))
+
+        stop = _RemoteStop(runs)
+        with stop:
+            jobs = {r.run_id: (submit(r), r, 0) for r in runs}
+            try:
+                while jobs:
+                    if not stop.asked and stop.poll([run for _, run, _ in jobs.values()]):
+                        for job, _, _ in jobs.values():
+                            if _job_state(job) == "PENDING":  # still queued: it never starts
+                                with contextlib.suppress(Exception):
+                                    job.cancel(check=False)
+                    for run_id, (job, run, tries) in list(jobs.items()):
+                        if not job.done():
+                            continue
+                        if stop.asked:  # nothing is resubmitted after the stop
+                            del jobs[run_id]
+                            try:
+                                run = stop.outcome(_take_result(run, job.result()))
+                            except Exception as err:  # noqa: BLE001 - cancelled in the queue, or lost
+                                run = stop.ended(
+                                    run, f"its job {job.job_id} ended after the stop ({type(err).__name__})"
+                                )
+                            if run.status != "pending":
+                                on_done(run)
+                            continue
+                        if not self._settled(job, run, tries):
+                            jobs[run_id] = (submit(run), run, tries + 1)
+                            continue
+                        del jobs[run_id]
+                        on_done(run)
+                    if jobs:
+                        tick(set(jobs))
+                        time.sleep(min(self.poll_s, 1.0))
+            except KeyboardInterrupt:
+                if stop.interrupt.requested is None:
+                    raise
+                stop.at_once = True
+                for job, run, _ in jobs.values():
+                    with contextlib.suppress(Exception):
+                        job.cancel(check=False)
+                    if stop.ended(run, "killed at once by its launcher (a second signal)").status != "pending":
+                        on_done(run)
+        stop.raise_if_asked()
+
+
+def _job_state(job) -> str:
+    """A submitit job's scheduler state (``PENDING``: queued, not started); ``UNKNOWN`` when it cannot be read."""
+    try:
+        return str(job.state)
+    except Exception:  # noqa: BLE001 - the scheduler does not answer: treat it as started (it is asked to stop)
+        return "UNKNOWN"
 
 
 try:  # submitit's requeue-on-preemption protocol, when submitit is installed
