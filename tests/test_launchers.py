@@ -393,7 +393,8 @@ def test_an_experiment_started_with_sigint_ignored_still_stops_on_a_ctrl_c_to_it
     for r in started:
         if state[r] == "interrupted":  # by the launcher's SIGTERM alone, after a checkpoint: not at once
             assert read_attempts(out, r)[-1]["status"] == "interrupted"
-            assert "interrupted by SIGTERM (exit 143)" in runs[r]["message"], runs[r]
+            # (exit 143 after its checkpoint; -15 when it had not yet set its handler, just started)
+            assert "interrupted by SIGTERM (exit " in runs[r]["message"], runs[r]
             assert "stopped at once" not in (out / f"{r}.log").read_text()
 
 
