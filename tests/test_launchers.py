@@ -482,6 +482,45 @@ def test_an_exit_status_names_the_interrupting_signal_only_for_sigint_and_sigter
         assert interrupting_signal(other) is None
 
 
+def test_an_interrupted_wait_stops_the_training_with_one_sigterm_and_waits_for_it():
+    """A job or task process interrupted while its run trains (``KeyboardInterrupt``: submitit's cancel, ``ray.cancel``,
+    a Ctrl-C to its group) sends the training one SIGTERM and waits for it to end (after its checkpoint), then is
+    interrupted: it does not kill it mid-batch."""
+    from adarl.experiments.execute import _wait
+
+    handler = (
+        "import signal, sys, time\n"
+        "signal.signal(signal.SIGTERM, lambda *_: (print('checkpointed', flush=True), sys.exit(143)))\n"
+        "print('ready', flush=True)\n"
+        "while True: time.sleep(0.05)\n"
+    )
+    proc = subprocess.Popen([sys.executable, "-c", handler], stdout=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().strip() == "ready"
+
+    def interrupted():
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        _wait(proc, interrupted)
+    assert proc.returncode == 143 and proc.stdout.read().strip() == "checkpointed"
+
+
+def test_a_stop_request_reaches_a_run_in_a_folder_and_at_a_url(tmp_path, fake_s3):
+    """The Ray and submitit launchers stop a run through a file beside it, in a shared folder or in the same store
+    as a URL output; withdrawn, it no longer stops it."""
+    from adarl.experiments.execute import StopAsked, clear_stop, request_stop
+
+    for path in (str(tmp_path / "exp" / "run"), f"fakes3://{tmp_path}/bucket/exp/run"):
+        watch = StopAsked(path)
+        assert not watch()
+        request_stop(path)
+        assert watch()
+        clear_stop(path)
+        assert not watch()
+        clear_stop(path)  # withdrawing twice is fine
+    assert (tmp_path / "bucket" / "exp").is_dir() and not list((tmp_path / "bucket" / "exp").iterdir())
+
+
 def test_a_dry_run_names_the_runs_it_would_resume_and_from_which_frames(tmp_path):
     """`adarl experiment --dry-run` of a folder with an interrupted run: that run is listed as resumable from its
     latest checkpoint's frames, the others as pending; nothing is run or written."""
