@@ -10,6 +10,7 @@ from adarl.experiments.execute import (
     clear_stop,
     read_attempts,
     request_stop,
+    run_is_finished,
 )
 from adarl.experiments.launchers._base import ExperimentInterrupted
 from adarl.runtime.results import is_url
@@ -22,7 +23,7 @@ class _RemoteStop:
     (:func:`~adarl.experiments.execute.request_stop`: the worker's training gets SIGTERM and checkpoints after its
     batch; a worker that had not started its run returns without starting it). :meth:`raise_if_asked` then raises
     :class:`ExperimentInterrupted`. A second signal raises ``KeyboardInterrupt`` in the launcher's loop: it stops the
-    runs at once (:meth:`killed_at_once`)."""
+    runs at once (:meth:`ended` then says what became of each)."""
 
     def __init__(self, runs: list) -> None:
         self.runs, self.asked, self.at_once, self.since = runs, False, False, time.time()
@@ -64,9 +65,11 @@ class _RemoteStop:
         )
 
     def ended(self, run, why: str):
-        """``run``, whose worker ended without its outcome (cancelled, killed at once): ``interrupted`` if it had
-        started, else left ``pending`` (it never started)."""
-        if self.started(run):
+        """``run``, whose worker ended without its outcome (cancelled, killed at once, interrupted itself):
+        ``finished`` if its budget is spent, ``interrupted`` if it had started, else left ``pending``."""
+        if run_is_finished(run.path):
+            run.status, run.message = "finished", f"finished ({why} after it)"
+        elif self.started(run):
             run.status, run.message = "interrupted", f"{why}; resumes from its last checkpoint"
         return run
 
