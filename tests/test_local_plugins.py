@@ -57,3 +57,28 @@ def test_a_recipe_validated_from_a_mapping_refuses_an_entry_its_file_could_not_l
     data["plugins"] = [entry]
     with pytest.raises(RecipeError, match=r"plugins = .*(module name|\.py)"):
         validate_recipe(data)
+
+
+def test_a_file_beside_the_recipe_never_shadows_a_module_imported_later(recipe, tmp_path):
+    """The recipe's folder goes last on sys.path: a ``wave.py`` beside it (any script that shares a standard or an
+    installed module's name) must not replace that module for the code that imports it after the plugin loaded;
+    a plugin that has such a name is refused by name rather than silently not imported."""
+    import subprocess
+    import sys
+
+    (tmp_path / "wave.py").write_text("raise RuntimeError('the wave.py beside the recipe was imported')\n")
+    probe = (
+        "import sys\n"
+        "from adarl.runtime.config import load_recipe\n"
+        f"load_recipe({str(recipe)!r})\n"
+        "before = 'wave' in sys.modules\n"
+        "import wave\n"
+        "print(before, wave.__file__)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    before, where = out.stdout.split()
+    assert before == "False" and Path(where).parent != tmp_path, out.stdout  # (a module not imported yet: it could)
+    (tmp_path / "json.py").write_text("VALUE = 1\n")
+    with pytest.raises(RecipeError, match=r"plugins: .*json.py.*'json'"):
+        load_recipe(recipe, [f"plugins=[{tmp_path / 'json.py'}]"])

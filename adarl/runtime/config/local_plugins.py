@@ -7,12 +7,13 @@ import registers what it names (``register_algorithm``, ``register_env``, ``regi
     # or: plugins: [./lib/my_algo.py]   a path, relative to this recipe file
     algorithm: {name: my_sac}
 
-Each entry is resolved where the recipe file that names it is (so ``extends`` keeps working), and the resolved
-recipe (``adarl show``, a run folder's recipe.yaml) holds the absolute path of a local file, or the module name of
-one found on ``PYTHONPATH``. The file's folder goes first on ``sys.path`` (process workers, which inherit it, import
-it by name when they unpickle its classes). A run folder's plugins.json records each module's file and sha256
-(:func:`record`): ``adarl resume``, ``eval`` and ``report`` of a run whose module is missing or changed are refused
-by name (:func:`check_recorded`), as a run whose plugin package is gone is.
+Each entry is resolved where the recipe file that names it is (so ``extends`` keeps working), and the resolved recipe
+(``adarl show``, a run folder's recipe.yaml) holds the absolute path of a local file, or the module name of one found
+on ``PYTHONPATH``. The file's folder goes last on ``sys.path`` (process workers, which inherit it, import it by name
+when they unpickle its classes): another file beside the recipe never shadows a module imported later, and a plugin
+whose name an installed or standard module already has is refused by name. A run folder's plugins.json records each
+module's file and sha256 (:func:`record`): ``adarl resume``, ``eval`` and ``report`` of a run whose module is missing
+or changed are refused by name (:func:`check_recorded`), as a run whose plugin package is gone is.
 """
 
 from __future__ import annotations
@@ -77,8 +78,8 @@ def _locate(entry: str) -> tuple[str, Path]:
         if not path.exists():
             raise RecipeError(f"plugins: {entry!r}: the module is missing")
         folder = str(path.parent)
-        if folder not in sys.path:
-            sys.path.insert(0, folder)
+        if folder not in sys.path:  # last: a sibling file must not shadow a module imported later (csv.py, wave.py)
+            sys.path.append(folder)
         return path.stem if path.is_file() else path.name, path
     try:
         spec = importlib.util.find_spec(entry)
@@ -123,13 +124,19 @@ def import_plugins(entries: Iterable[str]) -> None:
             )
         try:
             with plugins.providing(name):
-                importlib.import_module(name)
+                module = importlib.import_module(name)
         except RecipeError:
             raise
         except Exception as err:  # noqa: BLE001 - any failure of the user's module, named with it
             raise RecipeError(
                 f"plugins: {entry!r}: importing {name!r} ({path}) failed: {type(err).__name__}: {err}"
             ) from err
+        found = getattr(module, "__file__", None)
+        if found is None or Path(found).resolve() not in (path.resolve(), path.resolve() / "__init__.py"):
+            raise RecipeError(  # the name is an installed or standard module's, found before the recipe's folder
+                f"plugins: {entry!r}: the module name {name!r} is taken by {found or 'a built-in module'}, which "
+                f"Python finds first; rename the file"
+            )
         _IMPORTED[entry] = {"entry": entry, "module": name, "path": str(path), "sha256": _sha256(path)}
 
 
