@@ -558,3 +558,76 @@ def test_an_experiment_stopped_at_once_says_how_to_resume_it(tmp_path, monkeypat
     assert main(["experiment", str(_spec(tmp_path)), "-o", str(tmp_path / "out"), "--no-live"]) == 130
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "run the same `adarl experiment` command to resume it" in err, err
+
+
+@pytest.mark.parametrize("command", ["experiment", "tune"])
+def test_a_second_driver_on_the_same_output_is_refused_and_writes_nothing(tmp_path, command):
+    """Two `adarl experiment` (or `adarl tune`) on one output folder would start the same pending runs, and the second
+    clears the folder of a run the first had just started: the second is refused, naming who holds the folder, before
+    it writes anything. The lock is the kernel's: once its holder is killed (kill -9), the folder is free."""
+    from adarl.errors import AdaRLError as Refused
+
+    out = tmp_path / "exp"
+    out.mkdir()
+    lock = out / (".adarl-experiment.lock" if command == "experiment" else ".tune.lock")
+    holder = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import sys; from pathlib import Path; from adarl.runtime.run_dir import exclusive_lock\n"
+            f"with exclusive_lock(Path({str(lock)!r}), RuntimeError):\n"
+            "    print('held', flush=True); sys.stdin.read()\n",
+        ],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(Refused, match=rf"another `adarl {command}` is running on .*\(pid {holder.pid} on "):
+            if command == "experiment":
+                run_experiment(_spec(tmp_path), output=out, log=lambda *_: None)
+            else:
+                from adarl.experiments.tune import run_tune
+
+                run_tune(REPO / "recipes" / "tune" / "cartpole_beta.yaml", output=out, log=lambda *_: None)
+        assert sorted(p.name for p in out.iterdir()) == [lock.name]  # nothing written
+    finally:
+        holder.kill()
+        holder.wait()
+    from adarl.runtime.run_dir import exclusive_lock
+
+    with exclusive_lock(lock, RuntimeError):  # a killed holder holds it no more
+        pass
+
+
+def test_a_run_folder_another_process_trains_in_is_never_cleared(tmp_path):
+    """A run folder without a checkpoint is cleared before its run starts (nothing to keep), but not while another
+    process trains in it (its first checkpoint not written yet): the run is not started, and says why."""
+    from adarl.experiments.execute import execute_run
+    from adarl.experiments.spec import PlannedRun
+
+    folder = tmp_path / "exp" / "run"
+    folder.mkdir(parents=True)
+    (folder / "recipe.yaml").write_text("written by the run that trains here\n")
+    holder = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import sys; from adarl.runtime.run_dir import RunDir\n"
+            f"RunDir({str(folder)!r}).lock(); print('training', flush=True); sys.stdin.read()\n",
+        ],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert holder.stdout.readline().strip() == "training"
+        run = PlannedRun("run", {}, 0, "quickstart", [], str(folder))
+        assert execute_run(run, 1).status == "failed"
+        assert f"is in use by another process (pid {holder.pid} on " in run.message, run.message
+        assert (folder / "recipe.yaml").read_text() == "written by the run that trains here\n"
+        assert not (tmp_path / "exp" / "attempts").exists()  # not started
+    finally:
+        holder.kill()
+        holder.wait()

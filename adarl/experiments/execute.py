@@ -27,6 +27,7 @@ from pathlib import Path
 
 import yaml
 
+from adarl.errors import AdaRLError
 from adarl.experiments.spec import PlannedRun
 from adarl.runtime.results import (
     SYNC_INTERVAL_S,
@@ -232,8 +233,14 @@ def execute_run(run: PlannedRun, threads: int | None, watch: Callable[[], bool] 
     if RunDir(path).latest_checkpoint_frames() is not None:
         cmd, action = _cli("resume", str(path), "--quiet"), "resumed"
     else:
-        if path.exists():
-            shutil.rmtree(path)  # a start that never checkpointed: nothing to keep
+        if path.exists():  # a start that never checkpointed: nothing to keep, unless a process trains in it now
+            try:
+                RunDir(path).lock()
+            except AdaRLError as err:  # (another driver, an `adarl run`/`resume` by hand): left alone
+                run.status, run.message = "failed", f"not started: {err}"
+                return run
+            shutil.rmtree(path)
+            RunDir(path).unlock()
         cmd, action = _cli("run", run.recipe, *run.overrides, "-o", str(path), "--quiet"), "ran"
     env = _train_env(threads)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -10,6 +10,7 @@ the attempt records, the progress board and the report read and write the URL.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import tempfile
@@ -44,11 +45,24 @@ from adarl.runtime.results import (
     upload_tree,
     write_atomic,
 )
-from adarl.runtime.run_dir import RunDir
+from adarl.runtime.run_dir import RunDir, exclusive_lock
 
 __all__ = ["run_experiment", "EXPERIMENT_FILE"]
 
 EXPERIMENT_FILE = "experiment.json"
+#: held by the ``adarl experiment`` running on a local output folder: a second one on the same folder is refused (it
+#: would start the same pending runs, and clear the folder of a run the first had just started)
+EXPERIMENT_LOCK = ".adarl-experiment.lock"
+
+
+def _busy(out: Path):
+    def refused(who: str) -> AdaRLError:
+        return AdaRLError(
+            f"another `adarl experiment` is running on {out} ({who}); wait for it to end, or stop it (kill -INT "
+            f"<pid>: its runs checkpoint) and run this command again. `--dry-run` shows the runs' state meanwhile"
+        )
+
+    return refused
 
 
 def _check_recipes(runs: list[PlannedRun]) -> None:
@@ -198,61 +212,62 @@ def run_experiment(
         makedirs(out)
     else:
         out.mkdir(parents=True, exist_ok=True)
-    command = f"adarl experiment {spec_path}" + (f" --budget {budget}" if budget else "") + f" -o {out}"
-    _write_state(out, spec, budget, runs, command)
-    board, last_tick = ProgressBoard(runs), [time.monotonic()]
-    screen = LiveBoard(board, console=console) if live and progress_interval > 0 else None
-    say = screen.log if screen is not None else log
-
-    def done(r: PlannedRun) -> None:
-        say(f"[{r.status}] {r.run_id} ({r.wall_time_s:.0f} s){'' if r.status == 'finished' else ': ' + r.message}")
+    with contextlib.nullcontext() if is_url(out) else exclusive_lock(out / EXPERIMENT_LOCK, _busy(out)):
+        command = f"adarl experiment {spec_path}" + (f" --budget {budget}" if budget else "") + f" -o {out}"
         _write_state(out, spec, budget, runs, command)
-        if screen is not None:
-            screen.update()
+        board, last_tick = ProgressBoard(runs), [time.monotonic()]
+        screen = LiveBoard(board, console=console) if live and progress_interval > 0 else None
+        say = screen.log if screen is not None else log
 
-    def tick(running: set) -> None:
-        board.running = running
-        if progress_interval > 0 and time.monotonic() - last_tick[0] >= progress_interval:
-            last_tick[0] = time.monotonic()
+        def done(r: PlannedRun) -> None:
+            say(f"[{r.status}] {r.run_id} ({r.wall_time_s:.0f} s){'' if r.status == 'finished' else ': ' + r.message}")
+            _write_state(out, spec, budget, runs, command)
             if screen is not None:
                 screen.update()
-            else:
-                for line in board.render():
-                    log(line)
 
-    if todo:
-        try:
-            if screen is not None:
-                with screen:
+        def tick(running: set) -> None:
+            board.running = running
+            if progress_interval > 0 and time.monotonic() - last_tick[0] >= progress_interval:
+                last_tick[0] = time.monotonic()
+                if screen is not None:
+                    screen.update()
+                else:
+                    for line in board.render():
+                        log(line)
+
+        if todo:
+            try:
+                if screen is not None:
+                    with screen:
+                        launcher.launch(todo, done, tick=tick)
+                else:
                     launcher.launch(todo, done, tick=tick)
-            else:
-                launcher.launch(todo, done, tick=tick)
-        except ExperimentInterrupted:  # SIGINT/SIGTERM: the state as it stands, no report; the same command resumes
-            _write_state(out, spec, budget, runs, command)
-            raise
-    _, b = resolve_budget(spec, budget)
-    sweeps = spec.sweeps if b.sweeps is None else b.sweeps
-    if sweeps:
-        for r in runs:
-            if r.status in ("finished", "skipped-finished"):
-                _sweep(r, sweeps)
-    _write_state(out, spec, budget, runs, command)
-    failed = [r for r in runs if r.status == "failed"]
-    interrupted = [r for r in runs if r.status == "interrupted"]
-    if report:
-        path = write_aggregate_report([out], f"{out}/report" if is_url(out) else out / "report")
-        log(f"report: {path}")
-    if failed or interrupted:
-        said = []
-        if failed:
-            said.append(
-                f"{len(failed)} of {len(runs)} runs failed: "
-                + "; ".join(f"{r.run_id}: {r.message}" for r in failed[:5])
-            )
-        if interrupted:
-            said.append(
-                f"{len(interrupted)} of {len(runs)} runs were interrupted by a signal and resume from their last "
-                f"checkpoint when this command is run again: " + ", ".join(r.run_id for r in interrupted[:5])
-            )
-        raise AdaRLError(". ".join(said))
-    return runs
+            except ExperimentInterrupted:  # SIGINT/SIGTERM: the state as it stands, no report; the same command resumes
+                _write_state(out, spec, budget, runs, command)
+                raise
+        _, b = resolve_budget(spec, budget)
+        sweeps = spec.sweeps if b.sweeps is None else b.sweeps
+        if sweeps:
+            for r in runs:
+                if r.status in ("finished", "skipped-finished"):
+                    _sweep(r, sweeps)
+        _write_state(out, spec, budget, runs, command)
+        failed = [r for r in runs if r.status == "failed"]
+        interrupted = [r for r in runs if r.status == "interrupted"]
+        if report:
+            path = write_aggregate_report([out], f"{out}/report" if is_url(out) else out / "report")
+            log(f"report: {path}")
+        if failed or interrupted:
+            said = []
+            if failed:
+                said.append(
+                    f"{len(failed)} of {len(runs)} runs failed: "
+                    + "; ".join(f"{r.run_id}: {r.message}" for r in failed[:5])
+                )
+            if interrupted:
+                said.append(
+                    f"{len(interrupted)} of {len(runs)} runs were interrupted by a signal and resume from their last "
+                    f"checkpoint when this command is run again: " + ", ".join(r.run_id for r in interrupted[:5])
+                )
+            raise AdaRLError(". ".join(said))
+        return runs

@@ -19,7 +19,6 @@ counted twice. The budget counts every trial the study holds (complete, pruned, 
 from __future__ import annotations
 
 import csv
-import fcntl
 import json
 import math
 import os
@@ -48,6 +47,7 @@ from adarl.experiments.tune_spec import (
     load_tune_spec,
     trial_overrides,
 )
+from adarl.runtime.run_dir import exclusive_lock
 
 __all__ = ["run_tune", "TuneResult", "STUDY_FILE", "TRIAL_FILE", "trial_dir", "distributions"]
 
@@ -121,20 +121,6 @@ def _pruner(spec: TuneSpec):
     if p.name == "none":
         return optuna.pruners.NopPruner()
     return optuna.pruners.MedianPruner(n_startup_trials=p.n_startup_trials, n_warmup_steps=p.n_warmup_steps)
-
-
-def _lock(out: Path) -> int:
-    """One ``adarl tune`` per output folder (a RUNNING trial in the database is then an orphan to resume); the
-    lock is the kernel's, so a killed process holds it no more."""
-    fd = os.open(out / _LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o644)
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
-        os.close(fd)
-        raise AdaRLError(f"another `adarl tune` is running on {out} (it holds {out / _LOCK_FILE})") from None
-    os.ftruncate(fd, 0)
-    os.write(fd, f"{os.getpid()}\n".encode())
-    return fd
 
 
 def _scores(run: Path, last: int) -> list[tuple[int, float]]:
@@ -473,8 +459,10 @@ def run_tune(
         n_trials = _grid_size(spec.space)
         log(f"note: the grid has {n_trials} points; the study stops there (n_trials {spec.n_trials})")
     out.mkdir(parents=True, exist_ok=True)
-    fd = _lock(out)
-    try:
+    refused = lambda who: AdaRLError(  # noqa: E731 - the refusal, named where it is used
+        f"another `adarl tune` is running on {out} ({who}); wait for it to end, or stop it and run this command again"
+    )
+    with exclusive_lock(out / _LOCK_FILE, refused):
         dumped = spec.model_dump(mode="json")
         dumped.pop("seed" if spec.seeds is not None else "seeds")  # the file is a spec `adarl tune` accepts
         (out / "tune_spec.yaml").write_text(yaml.safe_dump(dumped, sort_keys=False))
@@ -497,5 +485,3 @@ def run_tune(
             best = study.best_trial
             result.best_number, result.best_value, result.best_params = best.number, best.value, dict(best.params)
         return result
-    finally:
-        os.close(fd)

@@ -1,8 +1,10 @@
-"""The kernel lock on a run folder's ``.adarl.lock``: one process trains in a folder at a time.
+"""The kernel lock on a run folder's ``.adarl.lock``: one process trains in a folder at a time; and
+:func:`exclusive_lock`, the same lock held over a block: one ``adarl experiment`` (or ``adarl tune``) per output folder.
 
-Behind :mod:`adarl.runtime.run_dir` (its only user). ``flock`` is dropped by the kernel when its process dies
-(kill -9 included), so a crashed run never leaves a stale lock; the file says who holds it, for the message another
-process gets. On systems without ``fcntl`` folders are still created exclusively, but not locked while in use.
+Behind :mod:`adarl.runtime.run_dir`, which re-exports :func:`exclusive_lock`. ``flock`` is dropped by the kernel when
+its process dies (kill -9 included), so a crashed run never leaves a stale lock; the file says who holds it, for the
+message another process gets. On systems without ``fcntl`` folders are still created exclusively, but not locked while
+in use.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ import json
 import os
 import socket
 import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 try:  # POSIX: a lock the kernel drops when its process dies (kill -9 included)
@@ -19,7 +22,7 @@ try:  # POSIX: a lock the kernel drops when its process dies (kill -9 included)
 except ImportError:  # pragma: no cover - Windows: folders are still created exclusively, but not locked while in use
     fcntl = None
 
-__all__ = ["HELD_LOCKS", "KERNEL_LOCKS", "hold_lock", "holder", "release_lock"]
+__all__ = ["HELD_LOCKS", "KERNEL_LOCKS", "hold_lock", "holder", "release_lock", "exclusive_lock"]
 
 KERNEL_LOCKS = fcntl is not None  # whether a lock excludes other processes (False: Windows)
 HELD_LOCKS: dict[str, int] = {}  # lock files this process holds (path -> fd): a lock excludes other processes only
@@ -61,3 +64,17 @@ def holder(lock: Path) -> str:
         return f"pid {info['pid']} on {info['host']}, since {info['since']}"
     except (OSError, ValueError, KeyError, TypeError):
         return "holder unknown"
+
+
+@contextlib.contextmanager
+def exclusive_lock(lock: Path, refused: Callable[[str], Exception]) -> Iterator[None]:
+    """Hold the kernel lock on the file ``lock`` (created if missing) while the block runs; when another process
+    holds it, raise ``refused(who)`` (``who``: ``pid N on host, since ...``) before the block starts. A killed holder
+    holds it no more (the kernel drops it), so nothing stale is left to clean."""
+    fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+    if not hold_lock(lock, fd):
+        raise refused(holder(lock))
+    try:
+        yield
+    finally:
+        release_lock(lock)

@@ -68,7 +68,7 @@ from adarl.runtime._file_safety import (
     safe_load,
     why_unloadable,
 )
-from adarl.runtime._folder_lock import HELD_LOCKS, KERNEL_LOCKS, hold_lock, holder, release_lock
+from adarl.runtime._folder_lock import HELD_LOCKS, KERNEL_LOCKS, exclusive_lock, hold_lock, holder, release_lock
 from adarl.runtime._run_loggers import Fanout, logging_backends, null_logger, tensorboard_logger
 from adarl.runtime.config import load_recipe, local_plugins, recipe_to_yaml, save_resolved
 
@@ -79,6 +79,7 @@ __all__ = [
     "TRAINING_RECORDS",
     "OTHER_OUTPUTS",
     "RunFolderGone",
+    "exclusive_lock",
     "recipe_fingerprint",
     "null_logger",
     "logging_backends",
