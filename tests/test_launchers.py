@@ -560,31 +560,38 @@ def test_an_experiment_stopped_at_once_says_how_to_resume_it(tmp_path, monkeypat
     assert err.count("\n") == 1 and "run the same `adarl experiment` command to resume it" in err, err
 
 
-@pytest.mark.parametrize("command", ["experiment", "tune"])
-def test_a_second_driver_on_the_same_output_is_refused_and_writes_nothing(tmp_path, command):
-    """Two `adarl experiment` (or `adarl tune`) on one output folder would start the same pending runs, and the second
-    clears the folder of a run the first had just started: the second is refused, naming who holds the folder, before
-    it writes anything. The lock is the kernel's: once its holder is killed (kill -9), the folder is free."""
-    from adarl.errors import AdaRLError as Refused
-
-    out = tmp_path / "exp"
-    out.mkdir()
-    lock = out / (".adarl-experiment.lock" if command == "experiment" else ".tune.lock")
+def _hold_kernel_lock(lock: Path) -> subprocess.Popen:
+    """Another process holding the kernel lock on ``lock`` as adarl does (flock, and who holds it in the file),
+    until it is killed; started in milliseconds (no adarl import)."""
     holder = subprocess.Popen(
         [
             sys.executable,
             "-c",
-            "import sys; from pathlib import Path; from adarl.runtime.run_dir import exclusive_lock\n"
-            f"with exclusive_lock(Path({str(lock)!r}), RuntimeError):\n"
-            "    print('held', flush=True); sys.stdin.read()\n",
+            "import fcntl, json, os, socket, sys\n"
+            f"fd = os.open({str(lock)!r}, os.O_RDWR | os.O_CREAT, 0o644)\n"
+            "fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)\n"
+            "os.write(fd, json.dumps({'pid': os.getpid(), 'host': socket.gethostname(), 'since': 'now'}).encode())\n"
+            "print('held', flush=True); sys.stdin.read()\n",
         ],
         stdin=subprocess.PIPE,
         stdout=subprocess.PIPE,
         text=True,
     )
+    assert holder.stdout.readline().strip() == "held"
+    return holder
+
+
+@pytest.mark.parametrize("command", ["experiment", "tune"])
+def test_a_second_driver_on_the_same_output_is_refused_and_writes_nothing(tmp_path, command):
+    """Two `adarl experiment` (or `adarl tune`) on one output folder would start the same pending runs, and the second
+    clears the folder of a run the first had just started: the second is refused, naming who holds the folder, before
+    it writes anything. The lock is the kernel's: once its holder is killed (kill -9), the folder is free."""
+    out = tmp_path / "exp"
+    out.mkdir()
+    lock = out / (".adarl-experiment.lock" if command == "experiment" else ".tune.lock")
+    holder = _hold_kernel_lock(lock)
     try:
-        assert holder.stdout.readline().strip() == "held"
-        with pytest.raises(Refused, match=rf"another `adarl {command}` is running on .*\(pid {holder.pid} on "):
+        with pytest.raises(AdaRLError, match=rf"another `adarl {command}` is running on .*\(pid {holder.pid} on "):
             if command == "experiment":
                 run_experiment(_spec(tmp_path), output=out, log=lambda *_: None)
             else:
@@ -610,19 +617,8 @@ def test_a_run_folder_another_process_trains_in_is_never_cleared(tmp_path):
     folder = tmp_path / "exp" / "run"
     folder.mkdir(parents=True)
     (folder / "recipe.yaml").write_text("written by the run that trains here\n")
-    holder = subprocess.Popen(
-        [
-            sys.executable,
-            "-c",
-            "import sys; from adarl.runtime.run_dir import RunDir\n"
-            f"RunDir({str(folder)!r}).lock(); print('training', flush=True); sys.stdin.read()\n",
-        ],
-        stdin=subprocess.PIPE,
-        stdout=subprocess.PIPE,
-        text=True,
-    )
+    holder = _hold_kernel_lock(folder / ".adarl.lock")  # a run training there, its first checkpoint not yet written
     try:
-        assert holder.stdout.readline().strip() == "training"
         run = PlannedRun("run", {}, 0, "quickstart", [], str(folder))
         assert execute_run(run, 1).status == "failed"
         assert f"is in use by another process (pid {holder.pid} on " in run.message, run.message
