@@ -5,13 +5,15 @@ tests/test_plugin_e2e.py, on the same run as the pip-installed plugin."""
 
 from __future__ import annotations
 
+import sys
 import textwrap
 from pathlib import Path
 
 import pytest
 
+from adarl import plugins
 from adarl.errors import RecipeError
-from adarl.runtime.config import load_recipe, validate_recipe
+from adarl.runtime.config import load_recipe, local_plugins, validate_recipe
 
 MODULE = '''
 """A SAC whose loss is a subclass of TorchRL's, registered at import."""
@@ -30,6 +32,17 @@ extends: quickstart
 plugins: [my_algo]
 algorithm: {name: local_sac}
 """
+
+
+@pytest.fixture(autouse=True)
+def _undone(monkeypatch):
+    """Each test's plugin imports and registrations are undone after it: another test on the same worker (the
+    doctests of adarl.plugins list the registered algorithms) must not see ``local_sac``."""
+    monkeypatch.setattr(plugins, "_algorithms", dict(plugins._algorithms))
+    monkeypatch.setattr(local_plugins, "_IMPORTED", {})
+    monkeypatch.setattr(sys, "path", list(sys.path))
+    yield
+    sys.modules.pop("my_algo", None)
 
 
 @pytest.fixture
@@ -64,7 +77,6 @@ def test_a_file_beside_the_recipe_never_shadows_a_module_imported_later(recipe, 
     installed module's name) must not replace that module for the code that imports it after the plugin loaded;
     a plugin that has such a name is refused by name rather than silently not imported."""
     import subprocess
-    import sys
 
     (tmp_path / "wave.py").write_text("raise RuntimeError('the wave.py beside the recipe was imported')\n")
     probe = (
