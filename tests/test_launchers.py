@@ -226,10 +226,11 @@ def test_ray_launcher_survives_a_killed_worker_stops_on_sigint_and_resumes_to_lo
 
 
 @pytest.mark.slow
-def test_submitit_local_executor_stops_on_ctrl_c_and_resumes_to_local_results(tmp_path, local_reference):
-    """``adarl experiment --launcher submitit`` (its local executor): a Ctrl-C to its process group (the driver and
-    its job processes) mid-run stops every running run after a checkpoint; the same command resumes them to the
-    local launcher's results, each finished once."""
+def test_submitit_local_executor_stops_on_sigint_and_resumes_to_local_results(tmp_path, local_reference):
+    """``adarl experiment --launcher submitit`` (its local executor): SIGINT to the driver mid-run stops every
+    running run after a checkpoint (through its stop file); the same command resumes them to the local launcher's
+    results, each finished once. (Not a Ctrl-C to the whole group: submitit's local controller then kills its jobs a
+    second later, and the runs resume from their last complete checkpoint instead.)"""
     pytest.importorskip("submitit")
     _, ref_report = local_reference
     out, spec = tmp_path / "exp", _spec(tmp_path)
@@ -243,7 +244,7 @@ def test_submitit_local_executor_stops_on_ctrl_c_and_resumes_to_local_results(tm
 
     try:
         _wait_for(mid_run, "first checkpoint", proc)
-        os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C in its terminal
+        proc.send_signal(signal.SIGINT)
         state = _stopped_on_sigint(proc, out)
     finally:
         if proc.poll() is None:
@@ -627,3 +628,27 @@ def test_a_run_folder_another_process_trains_in_is_never_cleared(tmp_path):
     finally:
         holder.kill()
         holder.wait()
+
+
+@pytest.mark.slow
+def test_an_output_folder_deleted_mid_experiment_stops_it_in_one_line_and_is_not_recreated(tmp_path):
+    """`rm -rf` of the output folder while `adarl experiment` runs: the runs are stopped, no queued run starts, the
+    folder is not recreated half-filled, and the command says so in one line (before: a FileNotFoundError
+    traceback, after the queued runs had trained in a recreated folder)."""
+    import shutil
+
+    out = tmp_path / "exp"
+    proc = subprocess.Popen(
+        _experiment_cli(_spec(tmp_path), out), cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+    try:
+        _wait_for(lambda: any(int(c.stem.split("-")[1]) > 0 for c in out.glob("*/checkpoints/ckpt-*.pt")), "run", proc)
+        while out.exists():  # (files written while it is removed: again)
+            shutil.rmtree(out, ignore_errors=True)
+        _, err = proc.communicate(timeout=300)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 1, err[-3000:]
+    assert "was deleted or moved while the experiment ran" in err and "Traceback" not in err, err[-3000:]
+    assert not out.exists() and _training_pids(str(out)) == []

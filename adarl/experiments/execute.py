@@ -50,12 +50,25 @@ __all__ = [
     "StopAsked",
     "request_stop",
     "clear_stop",
+    "OutputFolderGone",
 ]
 
 ATTEMPTS_DIR = "attempts"  # <output>/attempts/<run id>.jsonl: one line per start and end of a run, by any launcher
 
 _LIVE: dict[subprocess.Popen, int | None] = {}  # training processes this process waits for -> the signal sent
 _LIVE_LOCK = threading.Lock()
+
+
+class OutputFolderGone(AdaRLError):
+    """The experiment's output folder was deleted or moved while it ran: its runs had nowhere left to write, and
+    nothing is recreated there (a half-filled folder would pass for the experiment)."""
+
+    def __init__(self, output: str | os.PathLike) -> None:
+        super().__init__(
+            f"output folder {str(output)!r} was deleted or moved while the experiment ran: its runs were stopped and "
+            f"nothing was recreated there. Run the command again to start afresh, or, if it was moved, with -o and "
+            f"the new place to resume its runs there"
+        )
 
 
 def signal_live_trainings(sig: int) -> int:
@@ -175,6 +188,24 @@ def _die_with_parent() -> None:  # pragma: no cover - runs in the child between 
         pass
 
 
+def _make_below(run: PlannedRun, folder: Path) -> None:
+    """Create ``folder`` (and its parents) below the run's output folder, never the output folder itself: once that
+    was deleted or moved, :class:`OutputFolderGone` (nothing is recreated half-filled)."""
+    root = Path(run.output) if run.output is not None and not is_url(run.output) else None
+    if root is None or not folder.is_relative_to(root):
+        folder.mkdir(parents=True, exist_ok=True)
+        return
+    here = root
+    try:
+        for part in folder.relative_to(root).parts:
+            here = here / part
+            here.mkdir(exist_ok=True)
+        if not root.is_dir():
+            raise FileNotFoundError(root)
+    except FileNotFoundError:
+        raise OutputFolderGone(root) from None
+
+
 def _record_attempt(run: PlannedRun, **event) -> None:
     if is_url(run.path):  # object stores cannot append: one small file per event, named so that they sort in order
         event = {"time": time.time(), "host": socket.gethostname(), "pid": os.getpid(), **event}
@@ -182,7 +213,7 @@ def _record_attempt(run: PlannedRun, **event) -> None:
         write_atomic(join(run.path.rsplit("/", 1)[0], ATTEMPTS_DIR, run.run_id, name), json.dumps(event) + "\n")
         return
     folder = Path(run.path).parent / ATTEMPTS_DIR
-    folder.mkdir(parents=True, exist_ok=True)
+    _make_below(run, folder)
     event = {"time": time.time(), "host": socket.gethostname(), "pid": os.getpid(), **event}
     with (folder / f"{run.run_id}.jsonl").open("a") as fh:
         fh.write(json.dumps(event) + "\n")
@@ -243,7 +274,7 @@ def execute_run(run: PlannedRun, threads: int | None, watch: Callable[[], bool] 
             RunDir(path).unlock()
         cmd, action = _cli("run", run.recipe, *run.overrides, "-o", str(path), "--quiet"), "ran"
     env = _train_env(threads)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    _make_below(run, path.parent)
     log = path.parent / f"{run.run_id}.log"
     _record_attempt(run, event="start", action=action)
     start = time.perf_counter()
@@ -262,6 +293,8 @@ def execute_run(run: PlannedRun, threads: int | None, watch: Callable[[], bool] 
             except KeyboardInterrupt as err:  # its worker was interrupted: the training has stopped (_end_training)
                 stopped, interrupted = False, err
     run.wall_time_s = time.perf_counter() - start
+    if not Path(run.output or path.parent).is_dir():  # deleted or moved under the run (which stopped with it)
+        raise OutputFolderGone(run.output or path.parent)
     if _ended_finished(proc.returncode, path):
         run.status, run.message = "finished", action
         log.unlink(missing_ok=True)

@@ -20,7 +20,7 @@ from typing import Any
 
 from adarl.errors import AdaRLError, AdaRLValueError, RecipeError
 from adarl.experiments.aggregate import write_aggregate_report
-from adarl.experiments.execute import run_is_finished
+from adarl.experiments.execute import OutputFolderGone, run_is_finished
 from adarl.experiments.launchers import ExperimentInterrupted, Launcher, make_launcher
 from adarl.experiments.progress import LiveBoard, ProgressBoard
 from adarl.experiments.spec import (
@@ -119,6 +119,8 @@ def _write_state(
     if is_url(out):
         write_atomic(join(out, EXPERIMENT_FILE), json.dumps(payload, indent=2) + "\n")
         return
+    if not out.is_dir():  # deleted or moved while the experiment ran: never recreated half-filled
+        raise OutputFolderGone(out)
     tmp = out / (EXPERIMENT_FILE + ".tmp")
     tmp.write_text(json.dumps(payload, indent=2) + "\n")
     os.replace(tmp, out / EXPERIMENT_FILE)

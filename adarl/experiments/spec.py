@@ -297,9 +297,13 @@ class PlannedRun:
     total_frames: int | None = None  # the recipe's frame budget, known once it validated (progress before it starts)
     wall_time_s: float = 0.0
     scratch: str | None = None  # URL runs: local folder to train in (None: $TMPDIR/adarl-scratch of the worker)
+    # the experiment's (or study's) output folder, which holds the run folder: a run never creates it, so one deleted
+    # or moved while the experiment runs stops the runs instead of coming back half-filled (None: created as needed)
+    output: str | None = None
 
     def as_dict(self) -> dict:
         d = asdict(self)
+        del d["output"]  # experiment.json is in it
         if d["scratch"] is None:
             del d["scratch"]
         return d
@@ -475,6 +479,7 @@ def plan_runs(spec: ExperimentSpec, output: str | os.PathLike, budget: str | Non
                     recipe,
                     overrides,
                     f"{out}/{run_id}" if url else str(out / run_id),
+                    output=str(out),
                 )
             )
     return runs

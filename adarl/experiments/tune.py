@@ -292,6 +292,7 @@ class _Study:
                     recipe=self.spec.recipe,
                     overrides=trial_overrides(self.spec, params, seed),
                     path=str(path),
+                    output=str(self.out),
                 )
             )
         return runs

@@ -666,6 +666,7 @@ class RunDir:
         path = self.checkpoint_dir / f"ckpt-{int(frames):012d}.pt"
         rb_dir = self.checkpoint_dir / f"rb-{int(frames):012d}"
         rb_tmp = rb_dir.with_name(rb_dir.name + ".tmp")
+        rb_old = rb_dir.with_name(rb_dir.name + ".old.tmp")
         writing = self.checkpoint_dir  # what the message names when a write fails
         try:
             self.checkpoint_dir.mkdir(parents=True, exist_ok=True)
@@ -679,11 +680,14 @@ class RunDir:
                 )
                 rb_tmp.mkdir()
                 atomic_torch_save(replay_buffer.state_dict(), rb_tmp / REPLAY_BUFFER_FILE)
-                shutil.rmtree(rb_dir, ignore_errors=True)
-                os.replace(rb_tmp, rb_dir)
+                if rb_dir.exists():  # written again at the same frames (the run's end): renamed aside, not emptied
+                    shutil.rmtree(rb_old, ignore_errors=True)  # in place, so that a kill meanwhile never leaves a
+                    os.replace(rb_dir, rb_old)  # checkpoint beside a half-deleted buffer (it then has none, and
+                os.replace(rb_tmp, rb_dir)  # resume falls back to the previous one, saying so)
             writing = path
             atomic_torch_save(self._payload(state, frames, fingerprint, replay_buffer=replay_buffer is not None), path)
             fsync_dir(self.checkpoint_dir)
+            shutil.rmtree(rb_old, ignore_errors=True)
         except OSError as err:
             shutil.rmtree(rb_tmp, ignore_errors=True)
             if replay_buffer is not None and not path.exists():
@@ -770,6 +774,10 @@ class RunDir:
             rb = self._replay_buffer_dir(path, frames)
             if not rb.is_dir():
                 raise refuse(f"has lost its replay buffer: the folder {rb.name} is missing beside it")
+            buffer_file = rb / REPLAY_BUFFER_FILE
+            if not (buffer_file.exists() or buffer_file.is_symlink() or (rb / "storage").is_dir()):
+                # (neither this version's buffer.pt nor an older one's dumps() folder: emptied by a kill mid-write)
+                raise refuse(f"has lost its replay buffer: {rb.name} holds no {REPLAY_BUFFER_FILE}")
             if (rb / REPLAY_BUFFER_FILE).exists() or (rb / REPLAY_BUFFER_FILE).is_symlink():
                 # Read now, not when the trainer fills its buffer: a damaged buffer makes the whole checkpoint
                 # unusable, so resume falls back to the previous one as for a missing buffer (kept for

@@ -35,16 +35,19 @@ class LocalLauncher(Launcher):
         exits, ``interrupted``), and once they have ended :class:`ExperimentInterrupted` is raised; a second signal
         kills them at once (each keeps its last checkpoint)."""
         running: set[str] = set()
-        at_once = False
+        at_once, broken = False, [False]  # broken: this loop failed (or a second signal): no queued run may start
         interrupt = GracefulInterrupt()
         interrupt.notice = "stopping the running runs after their next checkpoint, starting no other"
 
         def one(r):
-            if interrupt.requested is not None:  # asked to stop before this run started: it never starts
+            if interrupt.requested is not None or broken[0]:  # stopping before this run started: it never starts
                 return r
             running.add(r.run_id)
             try:
                 return execute_run(r, self.threads)
+            except BaseException:  # (its output folder went, ...): this thread must not take the next queued run
+                broken[0] = True
+                raise
             finally:
                 running.discard(r.run_id)
 
@@ -68,8 +71,14 @@ class LocalLauncher(Launcher):
                         tick(set(running))
                         time.sleep(min(self.poll_s, 0.2) if not done else 0)
             except BaseException as err:  # a second signal (KeyboardInterrupt), or a failure here: stop them at once
+                broken[0] = True
                 signal_live_trainings(signal.SIGKILL)
                 if not isinstance(err, KeyboardInterrupt) or interrupt.requested is None:
+                    for f in pending:  # none of the queued runs starts (before, they all trained first)
+                        f.cancel()
+                    while not all(f.done() for f in pending):  # and one that was starting as this failed is killed
+                        signal_live_trainings(signal.SIGKILL)
+                        time.sleep(0.05)
                     raise
                 at_once = True
                 for f in pending:

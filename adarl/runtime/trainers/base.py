@@ -275,11 +275,14 @@ class BaseTrainer:
             self._sync_bar()  # the batch and any warm-start frames that count towards the budget
             if self.frames - self.last_eval_frames >= rc.eval.interval:
                 self._evaluate()
+            saved = None
             if self.frames - self.last_ckpt_frames >= rc.checkpoint.interval:
-                self.save_checkpoint()
+                saved = self.save_checkpoint()
             bar.set_postfix(refresh=False, **self._postfix())
             if interrupt.requested is not None and self.frames < total:
-                path = self.save_checkpoint(scheduled=False)
+                # this batch's checkpoint when one was just written (the same state: writing it again would only
+                # open a window in which a kill leaves it half-replaced)
+                path = saved or self.save_checkpoint(scheduled=False)
                 self.close()
                 name = signal.Signals(interrupt.requested).name
                 raise RunInterrupted(
