@@ -460,9 +460,13 @@ def run_tune(
         n_trials = _grid_size(spec.space)
         log(f"note: the grid has {n_trials} points; the study stops there (n_trials {spec.n_trials})")
     out.mkdir(parents=True, exist_ok=True)
-    refused = lambda who: AdaRLError(  # noqa: E731 - the refusal, named where it is used
-        f"another `adarl tune` is running on {out} ({who}); wait for it to end, or stop it and run this command again"
-    )
+
+    def refused(who: str) -> AdaRLError:
+        return AdaRLError(
+            f"another `adarl tune` is running on {out} ({who}); wait for it to end, or stop it and run this command "
+            f"again"
+        )
+
     with exclusive_lock(out / _LOCK_FILE, refused):
         dumped = spec.model_dump(mode="json")
         dumped.pop("seed" if spec.seeds is not None else "seeds")  # the file is a spec `adarl tune` accepts

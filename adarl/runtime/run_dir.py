@@ -680,10 +680,13 @@ class RunDir:
                 )
                 rb_tmp.mkdir()
                 atomic_torch_save(replay_buffer.state_dict(), rb_tmp / REPLAY_BUFFER_FILE)
-                if rb_dir.exists():  # written again at the same frames (the run's end): renamed aside, not emptied
-                    shutil.rmtree(rb_old, ignore_errors=True)  # in place, so that a kill meanwhile never leaves a
-                    os.replace(rb_dir, rb_old)  # checkpoint beside a half-deleted buffer (it then has none, and
-                os.replace(rb_tmp, rb_dir)  # resume falls back to the previous one, saying so)
+                if rb_dir.exists():
+                    # Written again at the same frames (the run's end): the old buffer is renamed aside, not emptied
+                    # in place, so that a kill meanwhile never leaves the checkpoint beside a half-deleted buffer (it
+                    # then has none, and resume falls back to the previous checkpoint, saying so).
+                    shutil.rmtree(rb_old, ignore_errors=True)
+                    os.replace(rb_dir, rb_old)
+                os.replace(rb_tmp, rb_dir)
             writing = path
             atomic_torch_save(self._payload(state, frames, fingerprint, replay_buffer=replay_buffer is not None), path)
             fsync_dir(self.checkpoint_dir)
@@ -778,13 +781,13 @@ class RunDir:
             if not (buffer_file.exists() or buffer_file.is_symlink() or (rb / "storage").is_dir()):
                 # (neither this version's buffer.pt nor an older one's dumps() folder: emptied by a kill mid-write)
                 raise refuse(f"has lost its replay buffer: {rb.name} holds no {REPLAY_BUFFER_FILE}")
-            if (rb / REPLAY_BUFFER_FILE).exists() or (rb / REPLAY_BUFFER_FILE).is_symlink():
+            if buffer_file.exists() or buffer_file.is_symlink():
                 # Read now, not when the trainer fills its buffer: a damaged buffer makes the whole checkpoint
                 # unusable, so resume falls back to the previous one as for a missing buffer (kept for
                 # load_replay_buffer, which then does not read the file again).
                 self._buffer_cache = None
                 try:
-                    self._buffer_cache = (rb.absolute(), safe_load(rb / REPLAY_BUFFER_FILE))
+                    self._buffer_cache = (rb.absolute(), safe_load(buffer_file))
                 except NotAFile as err:
                     raise refuse(f"has lost its replay buffer: {rb.name}/{REPLAY_BUFFER_FILE} {err}") from None
                 except Exception as err:  # noqa: BLE001 - any unreadable buffer file is refused the same way
