@@ -155,11 +155,24 @@ def _events(out: Path, run_id: str) -> list[dict]:
         return []
 
 
-def _stopped_on_sigint(proc: subprocess.Popen, out: Path) -> dict[str, str]:
-    """The statuses of an experiment after its SIGINT: it exited 130 saying how to resume; each run that had started
-    stopped after a checkpoint (``interrupted``, never "at once") or had finished, the others never started
-    (``pending``); no training process and no stop request is left."""
-    _, err = proc.communicate(timeout=300)
+def _checkpointed_mid_run(out: Path) -> bool:
+    """Some run of the experiment in ``out`` has a checkpoint past frame 0."""
+    return any(int(c.stem.split("-")[1]) > 0 for c in out.glob("*/checkpoints/ckpt-*.pt"))
+
+
+def _stopped_on_sigint(proc: subprocess.Popen, out: Path, *waits) -> dict[str, str]:
+    """Wait for each ``(condition, what)`` of ``waits``, send the experiment SIGINT, and return its runs' statuses
+    after it: it exited 130 saying how to resume; each run that had started stopped after a checkpoint
+    (``interrupted``, never "at once") or had finished, the others never started (``pending``); no training process
+    and no stop request is left."""
+    try:
+        for condition, what in waits:
+            _wait_for(condition, what, proc)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=300)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
     assert proc.returncode == 128 + signal.SIGINT, err[-3000:]
     assert "experiment stopped on SIGINT" in err and "run the same `adarl experiment` command" in err, err[-2000:]
     assert _training_pids(str(out)) == []
@@ -206,14 +219,9 @@ def test_ray_launcher_survives_a_killed_worker_stops_on_sigint_and_resumes_to_lo
     def retried() -> bool:
         return [e["event"] for e in _events(out, killed[0])][-1:] == ["start"] and len(_events(out, killed[0])) > 1
 
-    try:
-        _wait_for(a_worker_killed_mid_run, "run with a checkpoint to kill", proc)
-        _wait_for(retried, "retry of the killed run", proc)
-        proc.send_signal(signal.SIGINT)
-        state = _stopped_on_sigint(proc, out)
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
+    state = _stopped_on_sigint(
+        proc, out, (a_worker_killed_mid_run, "run with a checkpoint to kill"), (retried, "retry of the killed run")
+    )
     assert [e["action"] for e in _events(out, killed[0]) if e["event"] == "start"][:2] == ["ran", "resumed"]
     # the same command resumes them all: every run finished exactly once, with the local launcher's results
     said: list[str] = []
@@ -238,17 +246,7 @@ def test_submitit_local_executor_stops_on_sigint_and_resumes_to_local_results(tm
     proc = subprocess.Popen(
         cmd, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True
     )
-
-    def mid_run() -> bool:
-        return any(int(c.stem.split("-")[1]) > 0 for c in out.glob("*/checkpoints/ckpt-*.pt"))
-
-    try:
-        _wait_for(mid_run, "first checkpoint", proc)
-        proc.send_signal(signal.SIGINT)
-        state = _stopped_on_sigint(proc, out)
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
+    state = _stopped_on_sigint(proc, out, (lambda: _checkpointed_mid_run(out), "checkpoint past frame 0"))
     again = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO, timeout=600)
     assert again.returncode == 0, again.stdout[-2000:] + again.stderr[-3000:]
     runs = plan_runs(load_experiment(spec), out)
@@ -642,7 +640,7 @@ def test_an_output_folder_deleted_mid_experiment_stops_it_in_one_line_and_is_not
         _experiment_cli(_spec(tmp_path), out), cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
     )
     try:
-        _wait_for(lambda: any(int(c.stem.split("-")[1]) > 0 for c in out.glob("*/checkpoints/ckpt-*.pt")), "run", proc)
+        _wait_for(lambda: _checkpointed_mid_run(out), "checkpoint past frame 0", proc)
         while out.exists():  # (files written while it is removed: again)
             shutil.rmtree(out, ignore_errors=True)
         _, err = proc.communicate(timeout=300)
