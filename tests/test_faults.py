@@ -661,7 +661,10 @@ def test_fault_table_rows_are_tests():
     assert len(rows) >= 15
     defined = _defined_tests()
     for row in rows:
-        names = re.findall(r"`(test_\w+\.py::test_\w+)`", row)
+        # a test, or one case of a parametrised test: `test_x.py::test_y[case]`
+        names = re.findall(r"`(test_\w+\.py::test_\w+)(?:\[([^\]`]+)\])?`", row)
         assert names, f"fault table row without a test: {row}"
-        for name in names:
+        for name, case in names:
             assert name in defined, f"{name} (docs/resuming.md) is not a test"
+            source = (REPO / "tests" / name.split("::")[0]).read_text()
+            assert not case or f'"{case}"' in source, f"{name}[{case}] (docs/resuming.md): no such case"

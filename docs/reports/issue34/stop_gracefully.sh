@@ -17,5 +17,5 @@ for i in $(seq 1 300); do
   sleep 1
 done
 echo "trainers exited after ${i}s"
-pkill -KILL -f queue4.sh; kill -KILL "$DRV"; pkill -f commit_landed.sh
-sleep 1; pgrep -af "adarl|queue4|commit_landed" | grep -v stop_gracefully || echo "all stopped"
+pkill -KILL -f "queue[0-9]*.sh"; kill -KILL "$DRV"; pkill -f commit_landed.sh
+sleep 1; pgrep -af "adarl|queue[0-9]*.sh|commit_landed" | grep -v stop_gracefully || echo "all stopped"
