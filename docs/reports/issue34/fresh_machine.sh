@@ -1,0 +1,36 @@
+#!/usr/bin/env bash
+# Issue 34 on a machine without /work/exp (each session may get a new one: its checkpoints are lost, the committed
+# small files are not). Builds the worktree at 579fa0b with its own non-editable install, restores every committed
+# finished run into its experiment folder (a run folder with summary.json + recipe.yaml counts as finished, so the
+# driver skips it), then starts `queue.sh rest` and the commit loop, both at nice 10. Run from the main checkout,
+# after `make install`:
+#   bash docs/reports/issue34/fresh_machine.sh
+set -eu
+MAIN=$(pwd)
+EXP=/work/exp
+I=$MAIN/docs/reports/issue34
+echo 0 > /proc/sys/kernel/sched_autogroup_enabled 2>/dev/null || echo "could not turn sched_autogroup off"
+mkdir -p $EXP
+[ -d $EXP/wt-g ] || git worktree add $EXP/wt-g 579fa0b
+if [ ! -x $EXP/wt-g/.venv/bin/adarl ]; then
+  python3 -m venv $EXP/wt-g/.venv
+  $EXP/wt-g/.venv/bin/pip install -q --upgrade pip
+  $EXP/wt-g/.venv/bin/pip install -q torch==2.13.0
+  (cd $EXP/wt-g && .venv/bin/pip install -q -c constraints.txt .)
+fi
+cp -n $I/table1_decisive.yaml $I/table1_controls.yaml $I/table1_eq10.yaml $I/table1_factorised.yaml \
+  $I/protocol.py $I/strongest_control.json $I/queue.sh $EXP/
+# the experiments of `queue.sh rest` whose finished runs are committed (docs/reports/<folder>/runs)
+for name in table1-decisive table2-laptop warmstart_ablation-laptop rank_trajectory-laptop \
+            cartpole_rank_sweep-laptop_scored parseval_lambda-laptop; do
+  src=$MAIN/docs/reports/$name/runs
+  [ -d "$src" ] || continue
+  mkdir -p $EXP/$name
+  for run in "$src"/*/; do
+    [ -e "$EXP/$name/$(basename "$run")" ] || cp -a "$run" "$EXP/$name/"
+  done
+  echo "restored $(ls "$src" | wc -l) runs of $name"
+done
+cd $EXP && setsid nohup nice -n 10 bash ./queue.sh rest >> queue.log 2>&1 < /dev/null &
+cd $MAIN && setsid nohup nice -n 10 bash docs/reports/issue34/commit_landed.sh >> $EXP/commit_landed.log 2>&1 < /dev/null &
+echo "queue and commit loop started (logs: $EXP/queue.log, $EXP/commit_landed.log)"
