@@ -227,20 +227,20 @@ class _ProductWeight(torch.Tensor):
                 return cls.wrap(result, layer, src._root)
         return result
 
-    def _plain(self) -> torch.Tensor:
+    def _as_tensor(self) -> torch.Tensor:
         with torch._C.DisableTorchFunctionSubclass():
             return torch.Tensor.as_subclass(self, torch.Tensor)
 
     def __repr__(self, **kwargs) -> str:
-        return repr(self._plain())
+        return repr(self._as_tensor())
 
     def __deepcopy__(self, memo) -> torch.Tensor:  # a copy is a plain tensor: it is no longer the layer's weight
         with torch._C.DisableTorchFunctionSubclass():
-            return self._plain().detach().clone()
+            return self._as_tensor().detach().clone()
 
     def __reduce_ex__(self, protocol):  # saved (torch.save, pickle) as a plain tensor
         with torch._C.DisableTorchFunctionSubclass():
-            return self._plain().detach().__reduce_ex__(protocol)
+            return self._as_tensor().detach().__reduce_ex__(protocol)
 
 
 class LowRankLinear(nn.Module):

@@ -77,21 +77,21 @@ def exact_resume_supported(env: EnvBase) -> bool:
 
 
 def _rng_state(gen: np.random.Generator) -> dict:
-    return _plain(gen.bit_generator.state)
+    return _weights_only_safe(gen.bit_generator.state)
 
 
-def _plain(obj):
+def _weights_only_safe(obj):
     """Numpy scalars/ints (PCG64 state holds 128-bit ints) as plain Python types, loadable with weights_only."""
     if isinstance(obj, dict):
-        return {k: _plain(v) for k, v in obj.items()}
+        return {k: _weights_only_safe(v) for k, v in obj.items()}
     if isinstance(obj, (np.integer, int)) and not isinstance(obj, bool):
         return str(int(obj)) if abs(int(obj)) >= 2**63 else int(obj)
     return obj
 
 
-def _unplain(obj):
+def _from_weights_only(obj):
     if isinstance(obj, dict):
-        return {k: _unplain(v) for k, v in obj.items()}
+        return {k: _from_weights_only(v) for k, v in obj.items()}
     if isinstance(obj, str) and obj.lstrip("-").isdigit():
         return int(obj)
     return obj
@@ -156,7 +156,7 @@ def _load_worker_state(env: EnvBase, state: dict) -> None:
             w._has_reset = True
     if state["np_random"] is not None:
         # In place: the perturbation transform tells a reseed by the generator object's identity.
-        unwrapped.np_random.bit_generator.state = _unplain(state["np_random"])
+        unwrapped.np_random.bit_generator.state = _from_weights_only(state["np_random"])
     sim = state["sim"]
     if sim["kind"] == "mujoco":
         import mujoco
@@ -222,4 +222,4 @@ def load_gym_rng_state_dict(env: EnvBase, state: list | None) -> None:
         if isinstance(s, dict) and "native" in s and _native(e) is not None:
             _native(e).restore(s["native"])
         elif s is not None:
-            _gym_chain(e)[-1].np_random.bit_generator.state = _unplain(s)
+            _gym_chain(e)[-1].np_random.bit_generator.state = _from_weights_only(s)

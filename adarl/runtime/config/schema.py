@@ -208,7 +208,7 @@ class EnvConfig(_Section):
         if not problems:
             # adarl.envs is the authority on schedules: build it, then check every value it can produce
             try:
-                validate_schedule(self.id, schedule_from_dict(_plain(sched)))
+                validate_schedule(self.id, schedule_from_dict(_plain_copy(sched)))
             except (ValueError, TypeError) as err:  # AdaRLValueError, or a value no schedule can take
                 problems.append(("perturbation.schedule", NO_VALUE, f"rejected by adarl.envs: {err}"))
         if problems:
@@ -547,7 +547,7 @@ class AlgorithmConfig(_Section):
                 [
                     (
                         "rnac",
-                        _plain(rnac),
+                        _plain_copy(rnac),
                         "is the old form of the RNAC baselines (it needs name 'ppo' and mode 'ipm' or 'ds'); "
                         "write algorithm.name: rnac_ipm (options: kappa) or rnac_ds (options: num_candidates, noise)",
                     )
@@ -683,7 +683,7 @@ class RankConfig(_Section):
                 [
                     (
                         "rule_options",
-                        _plain(self.rule_options),
+                        _plain_copy(self.rule_options),
                         f"must be empty with adarl's own rule {self.rule!r}: set rank.beta, rank.target_rank or "
                         "rank.lam instead (rule_options are a registered plugin rule's keyword arguments)",
                     )
@@ -1009,7 +1009,7 @@ def _validated_options(model: type[BaseModel], options: Any, key: str, what: str
     """``options`` checked by a registered options model (an algorithm's, a rank rule's: unknown key, type, range,
     each a problem under ``key``), returned with every default filled in (what recipe.yaml records)."""
     try:
-        return model.model_validate(_plain(options)).model_dump(mode="python")
+        return model.model_validate(_plain_copy(options)).model_dump(mode="python")
     except ValidationError as err:
         allowed = list(model.model_fields)
         problems = []
@@ -1029,12 +1029,12 @@ def _show(v: Any, limit: int = 80) -> str:
     return s if len(s) <= limit else s[: limit - 3] + "..."
 
 
-def _plain(obj: Any) -> Any:
+def _plain_copy(obj: Any) -> Any:
     """A deep copy made of plain dicts and lists (what the env module and YAML expect)."""
     if isinstance(obj, Mapping):
-        return {k: _plain(v) for k, v in obj.items()}
+        return {k: _plain_copy(v) for k, v in obj.items()}
     if isinstance(obj, list):
-        return [_plain(v) for v in obj]
+        return [_plain_copy(v) for v in obj]
     return obj
 
 
