@@ -5,9 +5,10 @@
 # driver skips it), then starts `queue.sh rest` and the commit loop, both at nice 10. Run from the main checkout,
 # after `make install`:
 #   bash docs/reports/issue34/fresh_machine.sh
+#   bash docs/reports/issue34/fresh_machine.sh --restore-only    # everything but starting the queue and the loop
 set -eu
 MAIN=$(pwd)
-EXP=/work/exp
+EXP=${ISSUE34_EXP:-/work/exp}   # queue.sh and the commit loop read /work/exp: override only to check a restore
 I=$MAIN/docs/reports/issue34
 echo 0 > /proc/sys/kernel/sched_autogroup_enabled 2>/dev/null || echo "could not turn sched_autogroup off"
 mkdir -p $EXP
@@ -31,6 +32,7 @@ for name in table1-decisive table2-laptop warmstart_ablation-laptop rank_traject
   done
   echo "restored $(ls "$src" | wc -l) runs of $name"
 done
+[ "${1:-}" = --restore-only ] && exit 0
 cd $EXP && setsid nohup nice -n 10 bash ./queue.sh rest >> queue.log 2>&1 < /dev/null &
 cd $MAIN && setsid nohup nice -n 10 bash docs/reports/issue34/commit_landed.sh >> $EXP/commit_landed.log 2>&1 < /dev/null &
 echo "queue and commit loop started (logs: $EXP/queue.log, $EXP/commit_landed.log)"
