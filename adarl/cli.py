@@ -34,7 +34,7 @@ from adarl.errors import (
 from adarl.experiments import tune_cli
 from adarl.experiments.bench import add_arguments as bench_arguments
 from adarl.experiments.launcher_args import add_launcher_arguments, launcher_options
-from adarl.runtime.signals import RunInterrupted
+from adarl.runtime.signals import RunInterrupted, silence_stdout, stdout_reader_gone
 
 __all__ = ["main"]
 
@@ -607,7 +607,14 @@ def main(argv: list[str] | None = None) -> int:
     _quiet_env(bool(getattr(args, "quiet", False)))
     _one_line_warnings()
     try:
-        return int(args.func(args) or 0)
+        status = int(args.func(args) or 0)
+        sys.stdout.flush()  # here, not at the interpreter's exit: a closed pipe is then caught below
+        return status
+    except BrokenPipeError:
+        if not stdout_reader_gone():
+            raise
+        silence_stdout()  # as a Unix tool killed by SIGPIPE: no traceback, exit 128 + 13
+        return 128 + signal.SIGPIPE
     except RunInterrupted as err:  # SIGINT/SIGTERM: a checkpoint was saved, the run can be resumed
         _err(str(err))
         return err.exit_code

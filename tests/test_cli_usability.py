@@ -221,3 +221,33 @@ def test_device_index_beyond_the_visible_gpus(monkeypatch):
         r"'cpu', 'cuda', 'cuda:0', 'cuda:1'",
     ):
         check_device("cuda:3")
+
+
+@pytest.mark.parametrize("argv", [["recipes"], ["show", "quickstart"]])
+def test_a_closed_output_pipe_ends_the_command_quietly(argv):
+    """`adarl recipes | head` once `head` has exited: as a Unix tool killed by SIGPIPE, no traceback (before: a
+    BrokenPipeError traceback and exit 1). The pipe's read end is closed before the command starts, so its first
+    write fails whatever the buffering."""
+    read_end, write_end = os.pipe()
+    os.close(read_end)
+    try:
+        env = {**os.environ, "PYTHONPATH": str(REPO)}
+        done = subprocess.run(
+            [sys.executable, "-m", "adarl.cli", *argv], cwd=REPO, env=env, stdout=write_end, stderr=subprocess.PIPE
+        )
+    finally:
+        os.close(write_end)
+    assert (done.returncode, done.stderr.decode()) == (128 + 13, "")
+
+
+def test_a_broken_pipe_that_is_not_stdouts_is_a_real_failure(monkeypatch):
+    """Only a closed stdout is taken for the reader going away: a BrokenPipeError from anything else (a worker's
+    pipe) propagates, never a quiet exit."""
+    import adarl.cli as cli
+
+    def broken(args):
+        raise BrokenPipeError(32, "Broken pipe")
+
+    monkeypatch.setattr(cli, "cmd_recipes", broken)
+    with pytest.raises(BrokenPipeError):
+        cli.main(["recipes"])

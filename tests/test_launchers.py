@@ -397,6 +397,41 @@ def test_an_experiment_started_with_sigint_ignored_still_stops_on_a_ctrl_c_to_it
             assert "stopped at once" not in (out / f"{r}.log").read_text()
 
 
+def test_an_experiment_whose_output_reader_goes_away_stops_as_on_a_ctrl_c(tmp_path):
+    """`adarl experiment ... | head` once `head` has exited (or a killed `tee`): the first progress line written to the
+    closed pipe stops the experiment as a Unix tool stops on SIGPIPE, but as a Ctrl-C does here: each running run
+    checkpoints and stops (``interrupted``), no other starts, the command says how to resume and exits 141. Before,
+    the BrokenPipeError broke the launcher's loop, which killed the trainings at once, and ended in a traceback."""
+    out = tmp_path / "exp"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "adarl.cli", "experiment", str(_spec(tmp_path)), "-o", str(out), "--no-live"]
+        + ["--progress", "1"],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    try:
+        _wait_for(lambda: _checkpointed_mid_run(out), "checkpoint past frame 0", proc)
+        proc.stdout.close()  # the reader goes away; the driver's next progress line hits the closed pipe
+        err = proc.stderr.read()
+        proc.wait(timeout=300)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 128 + signal.SIGPIPE, err[-2000:]
+    assert "Traceback" not in err, err[-3000:]
+    assert "experiment stopped on SIGPIPE" in err and "run the same `adarl experiment` command" in err, err[-2000:]
+    assert _training_pids(str(out)) == []
+    runs = {r["run_id"]: r for r in json.loads((out / "experiment.json").read_text())["runs"]}
+    state = {r: runs[r]["status"] for r in runs}
+    assert "interrupted" in state.values() and set(state.values()) <= {"interrupted", "pending", "finished"}, state
+    for r, status in state.items():
+        if status == "interrupted":  # after a checkpoint, by the launcher's one SIGTERM: not at once
+            assert "stopped at once" not in (out / f"{r}.log").read_text()
+
+
 def test_progress_counts_the_frames_of_runs_that_have_not_started(tmp_path):
     """0/4 runs done must not read as most of the frames: a pending run has no recipe.yaml yet, but its planned
     budget (known once its recipe validated) counts towards the total."""

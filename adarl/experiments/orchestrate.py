@@ -13,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import signal
 import tempfile
 import time
 from pathlib import Path
@@ -46,6 +47,7 @@ from adarl.runtime.results import (
     write_atomic,
 )
 from adarl.runtime.run_dir import RunDir, exclusive_lock
+from adarl.runtime.signals import silence_stdout, stdout_reader_gone, stop_as_on_a_signal
 
 __all__ = ["run_experiment", "EXPERIMENT_FILE"]
 
@@ -219,7 +221,18 @@ def run_experiment(
         _write_state(out, spec, budget, runs, command)
         board, last_tick = ProgressBoard(runs), [time.monotonic()]
         screen = LiveBoard(board, console=console) if live and progress_interval > 0 else None
-        say = screen.log if screen is not None else log
+        shown = screen.log if screen is not None else log
+
+        def say(line: str) -> None:
+            """A progress line. Once stdout's reader has gone (``| head`` exited, a killed ``tee``), nothing more is
+            shown and the launcher stops the experiment as on a Ctrl-C (a checkpoint of each run), exit 141."""
+            try:
+                shown(line)
+            except BrokenPipeError:
+                if not stdout_reader_gone():
+                    raise
+                silence_stdout()
+                stop_as_on_a_signal(signal.SIGPIPE, "its output was closed")
 
         def done(r: PlannedRun) -> None:
             say(f"[{r.status}] {r.run_id} ({r.wall_time_s:.0f} s){'' if r.status == 'finished' else ': ' + r.message}")
@@ -235,7 +248,7 @@ def run_experiment(
                     screen.update()
                 else:
                     for line in board.render():
-                        log(line)
+                        say(line)
 
         if todo:
             try:

@@ -15,8 +15,9 @@ from adarl.runtime.signals import RunInterrupted
 
 
 class ExperimentInterrupted(RunInterrupted):
-    """An experiment stopped on SIGINT/SIGTERM: its running runs checkpointed and stopped, the others never started;
-    the same ``adarl experiment`` command resumes them all. ``exit_code`` is 128 + the signal number."""
+    """An experiment stopped on SIGINT/SIGTERM (SIGPIPE: its output's reader went away): its running runs checkpointed
+    and stopped, the others never started; the same ``adarl experiment`` command resumes them all. ``exit_code`` is
+    128 + the signal number."""
 
     def __init__(self, signum: int, stopped: list[str], not_started: int, *, at_once: bool = False) -> None:
         name = signal.Signals(signum).name
