@@ -519,3 +519,22 @@ def test_a_trial_whose_run_was_interrupted_from_outside_is_resumed_not_failed(tm
     again = run_tune(spec, output=out, log=said.append)
     assert "0 of 1 trials done, 1 interrupted to resume" in said[0], said
     assert again.states == {"COMPLETE": 1} and again.resumed == [0]
+
+
+def test_a_study_whose_output_closes_leaves_its_trial_to_resume_never_failed(tmp_path):
+    """`adarl tune ... | head` once `head` has exited: the BrokenPipeError of a trial's line ends the study (exit 141
+    in the CLI), its trial left RUNNING for the next `adarl tune` to resume, never told FAIL for a closed pipe."""
+    from adarl.experiments.tune import run_tune
+
+    said: list[str] = []
+
+    def closed_after_the_first_line(line: str) -> None:
+        if said:
+            raise BrokenPipeError(32, "Broken pipe")
+        said.append(line)
+
+    out = tmp_path / "study"
+    with pytest.raises(BrokenPipeError):
+        run_tune(_spec(tmp_path), output=out, log=closed_after_the_first_line)
+    trials = optuna.load_study(study_name="tiny", storage=f"sqlite:///{out / 'study.db'}").trials
+    assert [(t.number, t.state.name) for t in trials] == [(0, "RUNNING")]
