@@ -285,7 +285,7 @@ def test_stage_twos_landed_runs_are_stated_as_its_report_has_them():
     assert found, "the stage-2 paragraph is not where the test looks for it"
     numbers = [[int(x) for x in re.findall(r"\d+", found.group(i))] for i in (2, 3, 4)]
     seeds, scores, best = numbers
-    assert int(found.group(1)) == len(seeds) and len(scores) == len(best) == len(seeds)
+    assert len(scores) == len(best) == len(seeds)
     rows = {
         int(r["seed"]): r
         for r in csv.DictReader((REPORTS / "table1-decisive" / "runs.csv").open())
@@ -310,6 +310,22 @@ def test_stage_twos_landed_runs_are_stated_as_its_report_has_them():
         )
     assert re.findall(r"\[\d+, \d+\]", found.group(5)) == [r[0] for r in ranks], found.group(5)
     assert re.findall(r"\[\d+, \d+\]", found.group(6)) == [r[1] for r in ranks], found.group(6)
+    # Parseval's seeds as they land: the count in the heading is both arms' runs
+    control = re.search(
+        r"Parseval seeds ([\d, and]+) are in: scores ([\d, and]+), best evaluations ([\d, and]+) ", found.string
+    )
+    if control is None:
+        assert int(found.group(1)) == len(seeds)
+        return
+    p_seeds, p_scores, p_best = ([int(x) for x in re.findall(r"\d+", control.group(i))] for i in (1, 2, 3))
+    assert int(found.group(1)) == len(seeds) + len(p_seeds) and len(p_scores) == len(p_best) == len(p_seeds)
+    rows = {
+        int(r["seed"]): r
+        for r in csv.DictReader((REPORTS / "table1-decisive" / "runs.csv").open())
+        if r["algorithm"] == "parseval"
+    }
+    assert [f"{float(rows[s]['score']):.0f}" for s in p_seeds] == [str(x) for x in p_scores]
+    assert [f"{float(rows[s]['best_eval']):.0f}" for s in p_seeds] == [str(x) for x in p_best]
 
 
 def test_the_pilots_stated_rank_settling_is_its_reports():
