@@ -529,8 +529,8 @@ def build_parser() -> argparse.ArgumentParser:
         dest="report_options",
         help="a key of an experiment spec's report section, over the experiments' and --spec's (repeatable): e.g. "
         "--set score_last=3 --set plateau=1500 --set reference=adarl reports loose run folders by issue 34's "
-        "protocol (keys: score_last, plateau, reference, pairs, columns, x_axis, intrinsic_rank, event_window, "
-        "at_updates)",
+        "protocol (keys: score_last, plateau, reference, pairs, verdict_seeds, columns, x_axis, intrinsic_rank, "
+        "event_window, at_updates)",
     )
     rp.set_defaults(func=cmd_report)
 

@@ -298,6 +298,17 @@ def test_loose_run_folders_report_by_an_experiments_rule_given_on_the_command_li
     assert main(["report", str(loose), "-o", str(tmp_path / "later"), *later]) == 0
     (row,) = csv.DictReader((tmp_path / "later" / "pairs.csv").open())
     assert (row["n_a"], row["n_b"], row["verdict"]) == ("2", "0", "no finished runs of later")
+    # verdict_seeds: the seeds a protocol planned; runs landing one by one give P as an interim estimate, no verdict
+    waits = ["--set", "verdict_seeds=3", *pairs]
+    assert main(["report", str(loose), "-o", str(tmp_path / "waits"), *rule, *waits]) == 0
+    assert stats(tmp_path / "waits") == stats(exp / "report")  # the same P and intervals
+    (row,) = csv.DictReader((tmp_path / "waits" / "pairs.csv").open())
+    assert row["verdict"] == "waits for 3 seeds each (has 2 and 2)"
+    md = (tmp_path / "waits" / "report.md").read_text()
+    assert "| waits for 3 seeds each (has 2 and 2) |" in md and "adarl beats sac" not in md
+    assert main(["report", str(loose), "-o", str(tmp_path / "enough"), *rule, "--set", "verdict_seeds=2", *pairs]) == 0
+    (row,) = csv.DictReader((tmp_path / "enough" / "pairs.csv").open())
+    assert row["verdict"] == "adarl beats sac"
     for bad, said in [
         (["--set", "score_lst=2"], "did you mean 'score_last'"),
         (["--set", "score_last=0"], "score_last: Input should be greater than or equal to 1"),

@@ -162,12 +162,16 @@ def _ci(point: float, lo: float, hi: float) -> str:
     return f"{point:.1f} [{lo:.1f}, {hi:.1f}]" if not math.isnan(lo) else f"{point:.1f}"
 
 
-def verdict(poi: tuple[float, float, float], a: str, b: str) -> str:
+def verdict(
+    poi: tuple[float, float, float], a: str, b: str, seeds: tuple[int, int] = (0, 0), need: int | None = None
+) -> str:
     """The protocol's decision rule on P(a > b) [low, high]: a side beats the other only when the 95% interval
-    excludes 0.5 (docs/reproduction.md)."""
+    excludes 0.5 (docs/reproduction.md); none while either side has fewer than ``need`` of its ``seeds``."""
     _, low, high = poi
     if math.isnan(low) or math.isnan(high):
         return "–"
+    if need is not None and min(seeds) < need:
+        return f"waits for {need} seeds each (has {seeds[0]} and {seeds[1]})"
     if low > 0.5:
         return f"{a} beats {b}"
     if high < 0.5:
@@ -195,7 +199,7 @@ def _statistics_blocks(agg: Aggregate, out: Path) -> list[Block]:
         want = {**dict(g.key), col_axis: ref}
         return next((h for h in agg.groups if dict(h.key) == want), None)
 
-    plateau = agg.report.get("plateau")
+    plateau, need = agg.report.get("plateau"), agg.report.get("verdict_seeds")
     header = ["setting", "n", "mean ± std", "mean [95% CI]", "IQM [95% CI]"]
     if plateau is not None:
         header.append(f"seeds with best eval > {plateau:g}")
@@ -214,7 +218,8 @@ def _statistics_blocks(agg: Aggregate, out: Path) -> list[Block]:
         if ref is not None:
             if h is not None and h.scores and f:
                 p = poi_estimate(h.scores, f)
-                row += [f"{p[0]:.2f} [{p[1]:.2f}, {p[2]:.2f}]", verdict(p, ref, dict(g.key)[col_axis])]
+                said = verdict(p, ref, dict(g.key)[col_axis], (len(h.scores), len(f)), need)
+                row += [f"{p[0]:.2f} [{p[1]:.2f}, {p[2]:.2f}]", said]
             else:
                 row += ["–", "–"]
         rows.append(row)
@@ -261,6 +266,11 @@ def _statistics_blocks(agg: Aggregate, out: Path) -> list[Block]:
                 f"; P({ref} > setting): the probability that a run of {ref} scores above a run of the setting "
                 "(ties count half), with its bootstrap interval, and the verdict it gives: one side 'beats' the "
                 "other when the interval excludes 0.5, else 'no difference shown'"
+                + (
+                    f", and only once both sides have {need} seeds (the count planned; before, P is interim)"
+                    if need
+                    else ""
+                )
                 if ref is not None
                 else ""
             )
@@ -282,7 +292,7 @@ def _statistics_blocks(agg: Aggregate, out: Path) -> list[Block]:
         blocks.append(Paragraph("Seeds found more than once (counted once, the first run found): " + "; ".join(dups)))
     window = agg.report.get("event_window")
     if window:
-        blocks += _event_window_blocks(groups, int(window), out, col_axis=col_axis, ref=ref)
+        blocks += _event_window_blocks(groups, int(window), out, col_axis=col_axis, ref=ref, need=need)
     at = list(agg.report.get("at_updates") or [])
     if at:
         head = ["setting"] + [f"at {u:,} steps" for u in at]
@@ -333,16 +343,17 @@ def _pair_blocks(
                 crow.append([*rk, a, b, *counts, "", "", "", f"no finished runs of {missing}"])
                 continue
             p = poi_estimate(ga.scores, gb.scores)
+            said = verdict(p, a, b, (len(ga.scores), len(gb.scores)), agg.report.get("verdict_seeds"))
             rows.append(
                 [
                     label,
                     f"P({a} > {b})",
                     f"{len(ga.scores)} vs {len(gb.scores)}",
                     f"{p[0]:.2f} [{p[1]:.2f}, {p[2]:.2f}]",
-                    verdict(p, a, b),
+                    said,
                 ]
             )
-            crow.append([*rk, a, b, len(ga.scores), len(gb.scores), *p, verdict(p, a, b)])
+            crow.append([*rk, a, b, len(ga.scores), len(gb.scores), *p, said])
     (out / "pairs.csv").write_text(
         csv_text(crow, [*row_axes, "a", "b", "n_a", "n_b", "poi", "poi_lo", "poi_hi", "verdict"])
     )
@@ -358,7 +369,13 @@ def _pair_blocks(
 
 
 def _event_window_blocks(
-    groups: list[Group], window: int, out: Path, *, col_axis: str | None = None, ref: str | None = None
+    groups: list[Group],
+    window: int,
+    out: Path,
+    *,
+    col_axis: str | None = None,
+    ref: str | None = None,
+    need: int | None = None,
 ) -> list[Block]:
     rows, crow, per_seed = [], [], {}
     for g in groups:
@@ -401,7 +418,8 @@ def _event_window_blocks(
             ref_key = tuple((a, ref if a == col_axis else v) for a, v in g.key)
             if key.get(col_axis) != ref and ref_key in per_seed:
                 p = poi_estimate(per_seed[ref_key], per_seed[g.key])
-                row += [f"{p[0]:.2f} [{p[1]:.2f}, {p[2]:.2f}]", verdict(p, ref, key[col_axis])]
+                counts = (len(per_seed[ref_key]), len(per_seed[g.key]))
+                row += [f"{p[0]:.2f} [{p[1]:.2f}, {p[2]:.2f}]", verdict(p, ref, key[col_axis], counts, need)]
             else:
                 row += ["–", "–"]
         table.append(row)

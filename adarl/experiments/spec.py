@@ -164,6 +164,12 @@ class ReportSpec(_Model):
         description="A return threshold: the report counts, per setting, the seeds whose best nominal evaluation "
         "exceeds it (Hopper's stand-still plateau: 1500 in issue 34's protocol).",
     )
+    verdict_seeds: Annotated[int, Field(ge=2)] | None = Field(
+        None,
+        description="The seed count a protocol planned: the decision rule gives a verdict only when both sides have "
+        "at least this many seeds; before, the report shows P with its interval as an interim estimate and says the "
+        "verdict waits (runs that land one by one are never read as a decision).",
+    )
 
     @field_validator("pairs")
     @classmethod

@@ -7,16 +7,17 @@
 # Run from the main checkout:
 #   bash docs/reports/issue34/make_report.sh table1-pilot
 # Prints nothing for a report this protocol does not make (the loop in commit_landed.sh calls it for every folder).
+# verdict_seeds: each spec's planned seeds per arm; while its runs land one by one, a verdict waits for them all.
 set -eu
 extra=()
 case "$1" in
   table1-pilot) spec=table1 ;;
   # stage 2 runs two arms: P(adarl > parseval) is the reference column, table1's pairs name arms it does not run
-  table1-decisive) spec=table1 extra=(--set 'pairs=[]') ;;
-  table2-laptop) spec=table2 ;;
-  warmstart_ablation-laptop) spec=warmstart_ablation ;;
+  table1-decisive) spec=table1 extra=(--set 'pairs=[]' --set verdict_seeds=8) ;;
+  table2-laptop) spec=table2 extra=(--set verdict_seeds=5) ;;
+  warmstart_ablation-laptop) spec=warmstart_ablation extra=(--set verdict_seeds=5) ;;
   rank_trajectory-laptop) spec=rank_trajectory ;;
-  cartpole_rank_sweep-laptop_scored) spec=cartpole_rank_sweep ;;
+  cartpole_rank_sweep-laptop_scored) spec=cartpole_rank_sweep extra=(--set verdict_seeds=10) ;;
   parseval_lambda-laptop) spec=parseval_lambda ;;
   *) exit 0 ;;
 esac
