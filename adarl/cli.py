@@ -601,8 +601,21 @@ def _restore_sigint() -> None:
         signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
+def _line_buffered_stdout() -> None:
+    """Each output line is written when printed, also into a pipe or a file (Python buffers 8 KB there): a
+    ``| tee log`` shows an experiment's progress as it happens, and a reader that has gone is noticed at the next
+    line, not hours later."""
+    reconfigure = getattr(sys.stdout, "reconfigure", None)
+    if reconfigure is not None:
+        try:
+            reconfigure(line_buffering=True)
+        except (ValueError, OSError):  # a replaced stdout that cannot (detached, closed)
+            pass
+
+
 def main(argv: list[str] | None = None) -> int:
     _restore_sigint()
+    _line_buffered_stdout()
     args = build_parser().parse_args(argv)
     _quiet_env(bool(getattr(args, "quiet", False)))
     _one_line_warnings()

@@ -240,6 +240,37 @@ def test_a_closed_output_pipe_ends_the_command_quietly(argv):
     assert (done.returncode, done.stderr.decode()) == (128 + 13, "")
 
 
+def test_output_into_a_pipe_is_written_line_by_line():
+    """`adarl experiment ... | tee log`: each progress line reaches the pipe when printed (Python's default there is
+    8 KB blocks: progress appeared in bursts, and a reader that had gone was noticed only when a block filled). The
+    command's stdout is a pipe; what it prints after `main` returns reaches the reader while it still runs."""
+    script = (
+        "import sys; from adarl.cli import main; main(['recipes']); "
+        "print('after main'); print(sys.stdout.line_buffering, file=sys.stderr); sys.stdin.read()"
+    )
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    proc = subprocess.Popen(
+        [sys.executable, "-c", script],
+        cwd=REPO,
+        env=env,
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+        stderr=subprocess.PIPE,
+    )
+    try:
+        assert proc.stderr.readline() == "True\n"  # waits for the event, no clock
+        lines = []
+        while not lines or lines[-1] != "after main\n":  # read while the process waits on its stdin
+            line = proc.stdout.readline()
+            assert line, "".join(lines)[-500:]
+            lines.append(line)
+        assert proc.poll() is None
+    finally:
+        proc.stdin.close()
+        proc.wait(timeout=60)
+
+
 def test_a_broken_pipe_that_is_not_stdouts_is_a_real_failure(monkeypatch):
     """Only a closed stdout is taken for the reader going away: a BrokenPipeError from anything else (a worker's
     pipe) propagates, never a quiet exit."""
