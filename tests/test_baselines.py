@@ -621,7 +621,7 @@ def test_bad_baseline_settings_are_recipe_errors(recipe, overrides, expected):
 def test_recipes_with_the_old_rnac_section_still_load(tmp_path):
     """Run folders written before RNAC became registered algorithms say name: ppo + algorithm.rnac: read as the new
     names, and their checkpoints (fingerprint algorithm.name 'ppo', no options) still load."""
-    from adarl.runtime.run_dir import _same_in_fingerprint, recipe_fingerprint
+    from adarl.runtime._run_checkpoints import _same_in_fingerprint, recipe_fingerprint
 
     old = tmp_path / "old.yaml"
     base = (REPO / "recipes" / "baselines" / "ppo_base.yaml").as_posix()
