@@ -284,8 +284,9 @@ def cmd_report(args) -> int:
     if len(dirs) == 1 and is_single_run(dirs[0]) and not args.output and not options:
         print(write_report(dirs[0]))  # one run folder: its own report, as before
         return 0
-    # --set pairs=...: each value must be the column axis's, of a run found or of the spec (a typo is refused)
-    pair_values = spec_values if given.get("pairs") else None
+    # --set pairs=... (or verdict_seeds per arm): each value must be the column axis's, of a run found or of the
+    # spec (a typo is refused)
+    pair_values = spec_values if given.get("pairs") or isinstance(given.get("verdict_seeds"), dict) else None
     print(write_aggregate_report(dirs, args.output, report=options, pair_values=pair_values))
     return 0
 

@@ -115,6 +115,13 @@ def test_experiment_spec_errors_name_the_key(tmp_path):
     assert load_experiment(_spec(tmp_path, report={"columns": "algo", "pairs": [["b", "a"]]})).report.pairs == [
         ("b", "a")
     ]
+    # per-arm planned seeds: every arm named once (an arm left out would decide with no planned count)
+    with pytest.raises(RecipeError, match=r"report.verdict_seeds per arm must name each value of the column axis"):
+        load_experiment(_spec(tmp_path, report={"columns": "algo", "verdict_seeds": {"a": 8}}))
+    with pytest.raises(RecipeError, match=r"verdict_seeds"):
+        load_experiment(_spec(tmp_path, report={"columns": "algo", "verdict_seeds": {"a": 8, "b": 5, "c": 5}}))
+    per_arm = load_experiment(_spec(tmp_path, report={"columns": "algo", "verdict_seeds": {"a": 8, "b": 5}}))
+    assert per_arm.report.verdict_seeds == {"a": 8, "b": 5}
 
 
 def test_plan_runs_product_budget_and_templates(tmp_path):

@@ -309,6 +309,21 @@ def test_loose_run_folders_report_by_an_experiments_rule_given_on_the_command_li
     assert main(["report", str(loose), "-o", str(tmp_path / "enough"), *rule, "--set", "verdict_seeds=2", *pairs]) == 0
     (row,) = csv.DictReader((tmp_path / "enough" / "pairs.csv").open())
     assert row["verdict"] == "adarl beats sac"
+    # per arm (a protocol planned 8 of one arm and 5 of another): each side waits for its own count
+    per_arm = ["--set", "verdict_seeds={adarl: 2, sac: 3}", *pairs]
+    assert main(["report", str(loose), "-o", str(tmp_path / "per_arm"), *rule, *per_arm]) == 0
+    (row,) = csv.DictReader((tmp_path / "per_arm" / "pairs.csv").open())
+    assert row["verdict"] == "waits for 3 and 2 seeds (has 2 and 2)"  # P(sac > adarl): sac's 3, adarl's 2
+    md = " ".join((tmp_path / "per_arm" / "report.md").read_text().split())
+    assert "| 1.00 [1.00, 1.00] | waits for 2 and 3 seeds (has 2 and 2) |" in md  # P(adarl > sac): adarl's 2, sac's 3
+    assert "only once both sides have their planned seeds (adarl 2, sac 3)" in md
+    met = ["--set", "verdict_seeds={adarl: 2, sac: 2}", *pairs]
+    assert main(["report", str(loose), "-o", str(tmp_path / "met"), *rule, *met]) == 0
+    (row,) = csv.DictReader((tmp_path / "met" / "pairs.csv").open())
+    assert row["verdict"] == "adarl beats sac"
+    # ... and the spec's arm with no runs yet may have its count
+    later_count = ["--spec", str(spec), "--set", "verdict_seeds={adarl: 2, sac: 2, later: 5}"]
+    assert main(["report", str(loose), "-o", str(tmp_path / "later_count"), *later_count]) == 0
     for bad, said in [
         (["--set", "score_lst=2"], "did you mean 'score_last'"),
         (["--set", "score_last=0"], "score_last: Input should be greater than or equal to 1"),
@@ -319,6 +334,10 @@ def test_loose_run_folders_report_by_an_experiments_rule_given_on_the_command_li
         (["--set", "pairs=[[sac, adrl]]"], "report.pairs name ['adrl'], not values of the column axis 'algorithm'"),
         (["--spec", str(spec), "--set", "pairs=[[sac, adrl]]"], "in these runs or the spec: ['adarl', 'later', 'sac']"),
         (["--spec", str(tmp_path / "nope.yaml")], "experiment spec"),
+        # a per-arm count that leaves an arm out would let it decide with no planned count; a typo names the arms
+        (["--set", "verdict_seeds={adarl: 8}"], "report.verdict_seeds has no seed count for ['sac']; the arms:"),
+        (["--set", "verdict_seeds={adarl: 8, sac: 8, sca: 5}"], "names ['sca'], not values of the column axis"),
+        (["--set", "verdict_seeds={adarl: 1, sac: 8}"], "greater than or equal to 2"),
     ]:
         capsys.readouterr()
         assert main(["report", str(loose), "-o", str(tmp_path / "refused"), *bad]) == 2

@@ -163,20 +163,34 @@ def _ci(point: float, lo: float, hi: float) -> str:
 
 
 def verdict(
-    poi: tuple[float, float, float], a: str, b: str, seeds: tuple[int, int] = (0, 0), need: int | None = None
+    poi: tuple[float, float, float],
+    a: str,
+    b: str,
+    seeds: tuple[int, int] = (0, 0),
+    need: int | dict[str, int] | None = None,
 ) -> str:
     """The protocol's decision rule on P(a > b) [low, high]: a side beats the other only when the 95% interval
-    excludes 0.5 (docs/reproduction.md); none while either side has fewer than ``need`` of its ``seeds``."""
+    excludes 0.5 (docs/reproduction.md); none while a side has fewer ``seeds`` than ``need`` plans for it (one
+    count for both, or a count per arm)."""
     _, low, high = poi
     if math.isnan(low) or math.isnan(high):
         return "–"
-    if need is not None and min(seeds) < need:
-        return f"waits for {need} seeds each (has {seeds[0]} and {seeds[1]})"
+    if need is not None:
+        planned = (need[a], need[b]) if isinstance(need, dict) else (need, need)
+        if seeds[0] < planned[0] or seeds[1] < planned[1]:
+            each = f"{planned[0]} seeds each" if planned[0] == planned[1] else f"{planned[0]} and {planned[1]} seeds"
+            return f"waits for {each} (has {seeds[0]} and {seeds[1]})"
     if low > 0.5:
         return f"{a} beats {b}"
     if high < 0.5:
         return f"{b} beats {a}"
     return "no difference shown"
+
+
+def _planned_seeds(need: int | dict[str, int]) -> str:
+    if isinstance(need, dict):
+        return "their planned seeds (" + ", ".join(f"{k} {v}" for k, v in need.items()) + ")"
+    return f"{need} seeds"
 
 
 def _statistics_blocks(agg: Aggregate, out: Path) -> list[Block]:
@@ -267,7 +281,7 @@ def _statistics_blocks(agg: Aggregate, out: Path) -> list[Block]:
                 "(ties count half), with its bootstrap interval, and the verdict it gives: one side 'beats' the "
                 "other when the interval excludes 0.5, else 'no difference shown'"
                 + (
-                    f", and only once both sides have {need} seeds (the count planned; before, P is interim)"
+                    f", and only once both sides have {_planned_seeds(need)} (the count planned; before, P is interim)"
                     if need
                     else ""
                 )
@@ -375,7 +389,7 @@ def _event_window_blocks(
     *,
     col_axis: str | None = None,
     ref: str | None = None,
-    need: int | None = None,
+    need: int | dict[str, int] | None = None,
 ) -> list[Block]:
     rows, crow, per_seed = [], [], {}
     for g in groups:

@@ -92,12 +92,14 @@ def write_aggregate_report(
     validate them with :func:`~adarl.experiments.spec.report_options`). ``pair_values``: check ``report.pairs``
     against the column axis's values of the runs found plus ``pair_values[axis]`` (a spec's own ``{axis: values}``,
     which may have no runs yet): a value in neither is refused before anything is written (a typo in ``adarl report
-    --set pairs=...``)."""
+    --set pairs=...``); a per-arm ``report.verdict_seeds`` is checked against the same values (and must name every
+    arm of the runs)."""
     if any(is_url(d) for d in dirs) or is_url(output):
         return _write_report_via_copy(dirs, output, command=command, report=report, pair_values=pair_values)
     agg = aggregate_runs(dirs, report)
     if pair_values is not None:
         _check_pair_values(agg, pair_values)
+    _check_verdict_seeds(agg, pair_values or {})
     if output is None:
         only = Path(dirs[0]) if len(dirs) == 1 else None
         output = only / "report" if only is not None and (only / "experiment.json").is_file() else Path("report")
@@ -274,6 +276,31 @@ def _check_pair_values(agg, allowed: dict[str, set[str]]) -> None:
         raise RecipeError(
             f"report.pairs name {unknown}, not values of the column axis {col!r} in these runs"
             f"{' or the spec' if extra else ''}: {sorted(known, key=_num_key)}"
+        )
+
+
+def _check_verdict_seeds(agg, allowed: dict[str, set[str]]) -> None:
+    """A per-arm ``report.verdict_seeds`` names every arm of the runs, and only values of the column axis (of the
+    runs, or the spec's arms with none yet): an arm left out would get a verdict with no planned count."""
+    need = agg.report.get("verdict_seeds")
+    if not isinstance(need, dict):
+        return
+    col = agg.report.get("columns") or ("algorithm" if "algorithm" in agg.axes else None)
+    if col is None:
+        raise RecipeError(f"report.verdict_seeds per arm needs a column axis (report.columns); none in {agg.axes}")
+    found = {dict(g.key)[col] for g in agg.groups if col in dict(g.key)}
+    known = found | {str(v) for v in allowed.get(col, ())}
+    unknown = sorted(set(need) - known, key=_num_key)
+    missing = sorted(found - set(need), key=_num_key)
+    if unknown or missing:
+        said = []
+        if unknown:
+            said.append(f"names {unknown}, not values of the column axis {col!r}")
+        if missing:
+            said.append(f"has no seed count for {missing}")
+        raise RecipeError(
+            f"report.verdict_seeds {' and '.join(said)}; the arms: {sorted(known, key=_num_key)} (give one count "
+            "for all, or one for each)"
         )
 
 

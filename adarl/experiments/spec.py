@@ -164,11 +164,12 @@ class ReportSpec(_Model):
         description="A return threshold: the report counts, per setting, the seeds whose best nominal evaluation "
         "exceeds it (Hopper's stand-still plateau: 1500 in issue 34's protocol).",
     )
-    verdict_seeds: Annotated[int, Field(ge=2)] | None = Field(
+    verdict_seeds: Annotated[int, Field(ge=2)] | dict[str, Annotated[int, Field(ge=2)]] | None = Field(
         None,
         description="The seed count a protocol planned: the decision rule gives a verdict only when both sides have "
         "at least this many seeds; before, the report shows P with its interval as an interim estimate and says the "
-        "verdict waits (runs that land one by one are never read as a decision).",
+        "verdict waits (runs that land one by one are never read as a decision). One count for every arm, or one "
+        "per value of the column axis (`{adarl: 8, fixed_final: 5}`: every arm of the runs must be named).",
     )
 
     @field_validator("pairs")
@@ -285,6 +286,12 @@ class ExperimentSpec(_Model):
         unknown = sorted({v for pair in self.report.pairs for v in pair if v not in known})
         if unknown:
             raise ValueError(f"report.pairs name {unknown}, not values of the column axis {col!r}: {known}")
+        need = self.report.verdict_seeds
+        if isinstance(need, dict) and set(need) != set(known):
+            raise ValueError(
+                f"report.verdict_seeds per arm must name each value of the column axis {col!r} once: {known} "
+                f"(it names {list(need)}); or give one count for all"
+            )
         return self
 
 
