@@ -232,7 +232,8 @@ def run_experiment(
                 if not stdout_reader_gone():
                     raise
                 silence_stdout()
-                stop_as_on_a_signal(signal.SIGPIPE, "its output was closed")
+                if not stop_as_on_a_signal(signal.SIGPIPE, "its output was closed"):
+                    raise  # no launcher's stop to ask (never in a launch): exit 141 now, never go on unseen
 
         def done(r: PlannedRun) -> None:
             say(f"[{r.status}] {r.run_id} ({r.wall_time_s:.0f} s){'' if r.status == 'finished' else ': ' + r.message}")
