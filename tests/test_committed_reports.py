@@ -328,6 +328,31 @@ def test_stage_twos_landed_runs_are_stated_as_its_report_has_them():
     assert [f"{float(rows[s]['best_eval']):.0f}" for s in p_seeds] == [str(x) for x in p_best]
 
 
+def test_stage_twos_verdict_is_stated_once_both_arms_are_complete_and_then_by_the_rule():
+    """Stage 2's row in docs/reproduction.md's verdict table: "running", with no P, while an arm has fewer than its
+    8 planned seeds (the count of runs in as the report has them); once both have 8, P(AdaRL > `parseval`) as the
+    report computes it and the verdict the pre-registered rule gives, here and in README.md."""
+    import re
+
+    stats = {r["algorithm"]: r for r in csv.DictReader((REPORTS / "table1-decisive" / "statistics.csv").open())}
+    n_adarl, n_parseval = int(stats["adarl"]["n_seeds"]), int(stats["parseval"]["n_seeds"])
+    text = " ".join((REPORTS.parents[1] / "docs" / "reproduction.md").read_text().split())
+    readme = " ".join((REPORTS.parents[1] / "README.md").read_text().split())
+    row = re.search(
+        r"\| Table 1: AdaRL above Parseval \(1e-5\) \| 2 \(1e6\) \| `adarl` 8, `parseval` 8 \| (.+?) \| (.+?) \|", text
+    )
+    assert row, "stage 2's row is not in the verdict table"
+    if min(n_adarl, n_parseval) < 8:
+        assert row.group(1) == "–" and row.group(2).startswith(f"running ({n_adarl + n_parseval} of 16 runs in"), row[0]
+        assert "the decisive stage (1e6 frames, 8 seeds each) is running" in readme
+        return
+    lo, hi = float(stats["parseval"]["poi_lo"]), float(stats["parseval"]["poi_hi"])
+    p = f"{float(stats['parseval']['poi_ref']):.2f} [{lo:.2f}, {hi:.2f}]"
+    said = "reproduced" if lo > 0.5 else "contradicted" if hi < 0.5 else "not reproduced (no difference shown)"
+    assert (row.group(1), row.group(2)) == (p, said), row[0]
+    assert f"P(AdaRL > Parseval) = {p} at 1e6 frames" in readme
+
+
 def test_the_pilots_stated_rank_settling_is_its_reports():
     """docs/reproduction.md's Fig. 4 reading of the pilot (median final ranks, Eq. 10's candidates at the last
     event, seeds unchanged over it) is the committed rank_settling.csv's."""
