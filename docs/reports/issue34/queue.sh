@@ -25,6 +25,8 @@ stage1() {
 
 rest() {
   run $A experiment /work/exp/table1_decisive.yaml --budget decisive -o /work/exp/table1-decisive
+  # Fig. 1 before Table 2 since 2026-11-27: begun in the ends of sessions, its short runs finish a claim soonest
+  run $A experiment $SPECS/cartpole_rank_sweep.yaml --budget laptop_scored -o /work/exp/cartpole_rank_sweep-laptop_scored
   run $A experiment $SPECS/table2.yaml --budget laptop -o /work/exp/table2-laptop
   mkdir -p /work/exp/warmstart_ablation-laptop
   for s in 0 1 2 3 4; do  # the refill arm is the pilot's AdaRL (the same resolved recipe): its run, or its small files
@@ -35,7 +37,6 @@ rest() {
   done
   run $A experiment $SPECS/warmstart_ablation.yaml --budget laptop -o /work/exp/warmstart_ablation-laptop
   run $A experiment $SPECS/rank_trajectory.yaml --budget laptop -o /work/exp/rank_trajectory-laptop
-  run $A experiment $SPECS/cartpole_rank_sweep.yaml --budget laptop_scored -o /work/exp/cartpole_rank_sweep-laptop_scored
   run $A experiment $SPECS/parseval_lambda.yaml --budget laptop -o /work/exp/parseval_lambda-laptop
   echo "=== $(date -u +%FT%TZ) queue done"
 }
