@@ -286,7 +286,7 @@ def cmd_report(args) -> int:
         return 0
     # --set pairs=... (or verdict_seeds per arm): each value must be the column axis's, of a run found or of the
     # spec (a typo is refused)
-    pair_values = spec_values if given.get("pairs") or isinstance(given.get("verdict_seeds"), dict) else None
+    pair_values = spec_values if given.get("pairs") or isinstance(options.get("verdict_seeds"), dict) else None
     print(write_aggregate_report(dirs, args.output, report=options, pair_values=pair_values))
     return 0
 

@@ -120,6 +120,8 @@ def test_experiment_spec_errors_name_the_key(tmp_path):
         load_experiment(_spec(tmp_path, report={"columns": "algo", "verdict_seeds": {"a": 8}}))
     with pytest.raises(RecipeError, match=r"verdict_seeds"):
         load_experiment(_spec(tmp_path, report={"columns": "algo", "verdict_seeds": {"a": 8, "b": 5, "c": 5}}))
+    with pytest.raises(RecipeError, match=r"report.verdict_seeds per arm needs a column axis"):
+        load_experiment(_spec(tmp_path, report={"verdict_seeds": {"a": 8, "b": 5}}))
     per_arm = load_experiment(_spec(tmp_path, report={"columns": "algo", "verdict_seeds": {"a": 8, "b": 5}}))
     assert per_arm.report.verdict_seeds == {"a": 8, "b": 5}
 

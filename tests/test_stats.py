@@ -321,9 +321,26 @@ def test_loose_run_folders_report_by_an_experiments_rule_given_on_the_command_li
     assert main(["report", str(loose), "-o", str(tmp_path / "met"), *rule, *met]) == 0
     (row,) = csv.DictReader((tmp_path / "met" / "pairs.csv").open())
     assert row["verdict"] == "adarl beats sac"
-    # ... and the spec's arm with no runs yet may have its count
+    # ... and the spec's arm with no runs yet may have its count, given on the command line or in the spec itself
     later_count = ["--spec", str(spec), "--set", "verdict_seeds={adarl: 2, sac: 2, later: 5}"]
     assert main(["report", str(loose), "-o", str(tmp_path / "later_count"), *later_count]) == 0
+    own = tmp_path / "own.yaml"
+    own.write_text(
+        yaml.safe_dump(
+            {
+                "kind": "experiment",
+                "name": "f",
+                "recipe": "quickstart",
+                "axes": axes,
+                "report": {**report, "verdict_seeds": {"adarl": 2, "sac": 3, "later": 5}},
+            }
+        )
+    )
+    assert main(["report", str(loose), "-o", str(tmp_path / "own"), "--spec", str(own)]) == 0
+    assert "| waits for 2 and 3 seeds (has 2 and 2) |" in (tmp_path / "own" / "report.md").read_text()
+    # an experiment's own report (its mapping checked against its spec, whose budget may not run every arm)
+    write_aggregate_report([exp], tmp_path / "exp_own", report={"verdict_seeds": {"adarl": 2, "sac": 2, "later": 5}})
+    assert "adarl beats sac" in (tmp_path / "exp_own" / "report.md").read_text()
     for bad, said in [
         (["--set", "score_lst=2"], "did you mean 'score_last'"),
         (["--set", "score_last=0"], "score_last: Input should be greater than or equal to 1"),

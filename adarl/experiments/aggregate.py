@@ -99,7 +99,7 @@ def write_aggregate_report(
     agg = aggregate_runs(dirs, report)
     if pair_values is not None:
         _check_pair_values(agg, pair_values)
-    _check_verdict_seeds(agg, pair_values or {})
+    _check_verdict_seeds(agg, pair_values)
     if output is None:
         only = Path(dirs[0]) if len(dirs) == 1 else None
         output = only / "report" if only is not None and (only / "experiment.json").is_file() else Path("report")
@@ -279,9 +279,11 @@ def _check_pair_values(agg, allowed: dict[str, set[str]]) -> None:
         )
 
 
-def _check_verdict_seeds(agg, allowed: dict[str, set[str]]) -> None:
-    """A per-arm ``report.verdict_seeds`` names every arm of the runs, and only values of the column axis (of the
-    runs, or the spec's arms with none yet): an arm left out would get a verdict with no planned count."""
+def _check_verdict_seeds(agg, allowed: dict[str, set[str]] | None) -> None:
+    """A per-arm ``report.verdict_seeds`` names every arm of the runs (an arm left out would get a verdict with no
+    planned count); given on the command line (``allowed`` not None: the spec's ``{axis: values}``, or ``{}``), only
+    values of the column axis, of the runs or of the spec. An experiment's own mapping was checked against its spec's
+    arms, which a budget may run only some of."""
     need = agg.report.get("verdict_seeds")
     if not isinstance(need, dict):
         return
@@ -289,7 +291,7 @@ def _check_verdict_seeds(agg, allowed: dict[str, set[str]]) -> None:
     if col is None:
         raise RecipeError(f"report.verdict_seeds per arm needs a column axis (report.columns); none in {agg.axes}")
     found = {dict(g.key)[col] for g in agg.groups if col in dict(g.key)}
-    known = found | {str(v) for v in allowed.get(col, ())}
+    known = found | {str(v) for v in (allowed or {}).get(col, ())} | (set(need) if allowed is None else set())
     unknown = sorted(set(need) - known, key=_num_key)
     missing = sorted(found - set(need), key=_num_key)
     if unknown or missing:

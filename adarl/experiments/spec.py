@@ -287,6 +287,10 @@ class ExperimentSpec(_Model):
         if unknown:
             raise ValueError(f"report.pairs name {unknown}, not values of the column axis {col!r}: {known}")
         need = self.report.verdict_seeds
+        if isinstance(need, dict) and col is None:
+            raise ValueError(
+                f"report.verdict_seeds per arm needs a column axis (report.columns); axes: {list(self.axes)}"
+            )
         if isinstance(need, dict) and set(need) != set(known):
             raise ValueError(
                 f"report.verdict_seeds per arm must name each value of the column axis {col!r} once: {known} "
