@@ -72,12 +72,17 @@ def _finish(proc: subprocess.Popen, timeout: float = 300) -> tuple[int, str]:
 
 
 def _wait_for_checkpoint(
-    path: Path, proc: subprocess.Popen, newer_than: set[str] = frozenset(), timeout: float = 120
+    path: Path,
+    proc: subprocess.Popen,
+    newer_than: set[str] = frozenset(),
+    timeout: float = 120,
+    min_frames: int = 0,
 ) -> bool:
+    """Wait for a checkpoint not in `newer_than` at `min_frames` or later (False if the process ends first)."""
     end = time.monotonic() + timeout
     while time.monotonic() < end:
         names = {p.name for p in (path / "checkpoints").glob("ckpt-*.pt")} if (path / "checkpoints").is_dir() else set()
-        if names - set(newer_than):
+        if any(int(n[5:-3]) >= min_frames for n in names - set(newer_than)):
             return True
         if proc.poll() is not None:
             return False
@@ -125,25 +130,33 @@ def test_kill_9_at_random_moments_then_resume_matches_an_uninterrupted_run(tmp_p
     run = [*base, *extra]
     reference = _start("run", recipe, *base, *ref_extra, "-o", str(ref), "--quiet")  # beside the killed one
 
+    # One kill in each fifth of the run's first three quarters, at a random frame: the kill waits for the first new
+    # checkpoint at or past that frame (the process is past start-up, training), then a random delay lands it
+    # anywhere in the training loop. Frame targets, not wall-clock delays alone: a slow (loaded) or fast machine
+    # moves the run on by different amounts in the same delay, and five delays could carry the run to its end
+    # (CI once killed a run after its last checkpoint, leaving nothing for the next kill).
+    total = int(next(a for a in run if a.startswith("collector.total_frames=")).split("=")[1])
+    lo, hi = total // 20, total * 3 // 4
+    targets = [rng.randrange(lo + i * (hi - lo) // 5, lo + (i + 1) * (hi - lo) // 5) for i in range(5)]
     kills = []
     proc = _start("run", recipe, *run, "-o", str(killed), "--quiet")
-    for _ in range(5):
+    for target in targets:
         seen = (
             {p.name for p in (killed / "checkpoints").glob("ckpt-*.pt")} if (killed / "checkpoints").is_dir() else set()
         )
-        # Kill after a random delay once the process is past start-up (it has written a new checkpoint or a
-        # resumed one is training), so that every kill lands somewhere in the training loop.
-        assert _wait_for_checkpoint(killed, proc, newer_than=seen if kills else set()), proc.communicate()[1][-3000:]
-        time.sleep(rng.uniform(0.0, 0.8))
-        if proc.poll() is not None:  # finished before the kill: nothing left to kill
-            break
+        reached = _wait_for_checkpoint(killed, proc, newer_than=seen if kills else set(), min_frames=target)
+        assert reached, (
+            f"seed {seed}: no checkpoint at {target}+ frames after kills {kills}: {proc.communicate()[1][-3000:]}"
+        )
+        time.sleep(rng.uniform(0.0, 0.3))
+        assert proc.poll() is None, f"seed {seed}: the run ended before its kill at {target}+ frames (kills {kills})"
         proc.send_signal(signal.SIGKILL)
         proc.wait()
         kills.append(sorted(p.name for p in (killed / "checkpoints").glob("ckpt-*.pt"))[-1])
         proc = _start("resume", str(killed), "--quiet")
     rc, err = _finish(proc)
     assert rc == 0, f"seed {seed}: {err[-3000:]}"
-    assert len(kills) >= 5, f"seed {seed}: the run finished after {len(kills)} kills ({kills})"
+    assert len(kills) == 5, f"seed {seed}: {kills}"
     rc, err = _finish(reference)
     assert rc == 0, err[-3000:]
 
