@@ -171,7 +171,11 @@ def test_sigterm_saves_a_checkpoint_and_exits_cleanly(tmp_path):
     run = tmp_path / "run"
     proc = _start("run", "quickstart", *RUN, "checkpoint.interval=10000", "-o", str(run), "--quiet")
     assert _wait_for_checkpoint(run, proc), proc.communicate()[1][-3000:]  # the frame-0 checkpoint: training began
-    time.sleep(2.0)
+    updates = run / "metrics" / "scalars" / "train" / "n_updates.csv"
+    end = time.monotonic() + 120  # an event, not a clock: the first logged update (past the random frames)
+    while not (updates.is_file() and updates.read_text().count("\n") >= 2) and proc.poll() is None:
+        assert time.monotonic() < end, "no update logged in 120 s"
+        time.sleep(0.05)
     proc.send_signal(signal.SIGTERM)
     rc, err = _finish(proc, timeout=120)
     assert rc == 128 + signal.SIGTERM, err[-3000:]
