@@ -353,6 +353,46 @@ def test_stage_twos_verdict_is_stated_once_both_arms_are_complete_and_then_by_th
     assert f"P(AdaRL > Parseval) = {p} at 1e6 frames" in readme
 
 
+def test_fig1s_verdict_is_stated_once_every_rank_is_complete_and_then_by_the_rule():
+    """Fig. 1's row in docs/reproduction.md's verdict table: "running (N of 80 runs in" with no P while a rank has
+    fewer than its 10 seeds; once all have 10, P(rank 8 > 4) and P(rank 8 > 16) as pairs.csv has them and the
+    pre-registered rule's verdict (reproduced when both lower ends are above 0.5; contradicted when either upper
+    end is below it), here and in README.md."""
+    import re
+
+    folder = REPORTS / "cartpole_rank_sweep-laptop_scored"
+    counts = [int(r["n_seeds"]) for r in csv.DictReader((folder / "statistics.csv").open())]
+    pairs = {(r["a"], r["b"]): r for r in csv.DictReader((folder / "pairs.csv").open())}
+    text = " ".join((REPORTS.parents[1] / "docs" / "reproduction.md").read_text().split())
+    readme = " ".join((REPORTS.parents[1] / "README.md").read_text().split())
+    row = re.search(
+        r"\| Fig\. 1: an interior optimum of the rank \(linear CartPole\) \| `laptop_scored` \| 8 ranks x 10 seeds \| "
+        r"(.+?) \| (.+?) \|",
+        text,
+    )
+    assert row, "Fig. 1's row is not in the verdict table"
+    if len(counts) < 8 or min(counts) < 10:
+        assert row.group(1) == "–" and row.group(2).startswith(f"running ({sum(counts)} of 80 runs in"), row[0]
+        return
+    said = [
+        f"P(8 > {b}) = {float(pairs['8', b]['poi']):.2f} [{float(pairs['8', b]['poi_lo']):.2f}, "
+        f"{float(pairs['8', b]['poi_hi']):.2f}]"
+        for b in ("4", "16")
+    ]
+    lows = [float(pairs["8", b]["poi_lo"]) for b in ("4", "16")]
+    highs = [float(pairs["8", b]["poi_hi"]) for b in ("4", "16")]
+    verdict = (
+        "reproduced"
+        if min(lows) > 0.5
+        else "contradicted"
+        if min(highs) < 0.5
+        else "not reproduced (no difference shown)"
+    )
+    assert row.group(1) == "; ".join(said), row[0]
+    assert row.group(2).startswith(verdict), row[0]
+    assert f"Fig. 1 (linear CartPole, 10 seeds per rank): {'; '.join(said)}: {verdict}" in readme
+
+
 def test_the_pilots_stated_rank_settling_is_its_reports():
     """docs/reproduction.md's Fig. 4 reading of the pilot (median final ranks, Eq. 10's candidates at the last
     event, seeds unchanged over it) is the committed rank_settling.csv's."""
