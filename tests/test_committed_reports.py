@@ -393,6 +393,83 @@ def test_fig1s_verdict_is_stated_once_every_rank_is_complete_and_then_by_the_rul
     assert f"Fig. 1 (linear CartPole, 10 seeds per rank): {'; '.join(said)}: {verdict}" in readme
 
 
+def _verdict_row(claim: str) -> tuple[str, str, str]:
+    """(arms, P, verdict) of a claim's row in docs/reproduction.md's verdict table (its first cell starts with
+    `claim`)."""
+    import re
+
+    text = " ".join((REPORTS.parents[1] / "docs" / "reproduction.md").read_text().split())
+    row = re.search(r"\| " + re.escape(claim) + r"[^|]*\| [^|]+ \| ([^|]+) \| ([^|]+) \| ([^|]+?) \|", text)
+    assert row, f"no row for {claim!r} in the verdict table"
+    return row.group(1), row.group(2), row.group(3)
+
+
+def _by_rule(lows: list[float], highs: list[float]) -> str:
+    """The pre-registered rule over a claim's comparisons (each must be won: every lower end above 0.5)."""
+    if min(lows) > 0.5:
+        return "reproduced"
+    return "contradicted" if min(highs) < 0.5 else "not reproduced (no difference shown)"
+
+
+def test_table2s_verdict_is_stated_once_every_scope_is_complete_and_then_by_the_rule():
+    """Table 2's row: "running (N of 15 runs in" (or "queued" before any run) with no P while a scope has fewer than
+    5 seeds; then P(both > actor) and P(both > critic) as the report's statistics.csv has them, and the rule's
+    verdict ("both is best": both lower ends above 0.5), here and in README.md."""
+    folder = REPORTS / "table2-laptop"
+    stats = {r["scope"]: r for r in csv.DictReader((folder / "statistics.csv").open())} if folder.is_dir() else {}
+    counts = {k: int(r["n_seeds"]) for k, r in stats.items()}
+    _, p, said = _verdict_row("Table 2:")
+    if set(counts) != {"actor", "critic", "both"} or min(counts.values()) < 5:
+        assert p == "–", p
+        n = sum(counts.values())
+        assert said.startswith(f"running ({n} of 15 runs in" if n else ("queued", "running (0 of 15")), said
+        return
+    want = "; ".join(
+        f"P(both > {b}) = {float(stats[b]['poi_ref']):.2f} [{float(stats[b]['poi_lo']):.2f}, "
+        f"{float(stats[b]['poi_hi']):.2f}]"
+        for b in ("actor", "critic")
+    )
+    lows = [float(stats[b]["poi_lo"]) for b in ("actor", "critic")]
+    highs = [float(stats[b]["poi_hi"]) for b in ("actor", "critic")]
+    assert p == want and said.startswith(_by_rule(lows, highs)), (p, said)
+    readme = " ".join((REPORTS.parents[1] / "README.md").read_text().split())
+    assert f"Table 2 (Hopper, high uncertainty, 5 seeds per scope): {want}: {_by_rule(lows, highs)}" in readme
+
+
+def test_fig9s_verdict_is_stated_once_both_arms_are_complete_and_then_by_the_rule():
+    """Fig. 9's row: no P while an arm has fewer than 5 seeds; then P(refill dips less than reset), re-derived here
+    from event_window.csv (each seed's mean change over its events, the seed counted once) with the report's own
+    estimator, and the rule's verdict, here and in README.md."""
+    from adarl.experiments.stats import poi_estimate
+
+    folder = REPORTS / "warmstart_ablation-laptop"
+    seeds: dict[str, dict[str, list[float]]] = {}
+    if (folder / "event_window.csv").is_file():
+        for r in csv.DictReader((folder / "event_window.csv").open()):
+            change = float(r["return_after"]) - float(r["return_before"])
+            seeds.setdefault(r["warm_start"], {}).setdefault(r["seed"], []).append(change)
+    done = (
+        {
+            arm: len({r["seed"] for r in csv.DictReader((folder / "runs.csv").open()) if r.get("warm_start") == arm})
+            for arm in ("refill", "reset")
+        }
+        if (folder / "runs.csv").is_file()
+        else {"refill": 0, "reset": 0}
+    )
+    _, p, said = _verdict_row("Fig. 9:")
+    if min(done.values()) < 5:
+        assert p == "–", p
+        n = sum(done.values())
+        assert said.startswith(f"running ({n} of 10 runs in" if n else ("queued", "running (0 of 10")), said
+        return
+    means = {arm: [statistics.fmean(v) for v in seeds[arm].values()] for arm in ("refill", "reset")}
+    point, lo, hi = poi_estimate(means["refill"], means["reset"])
+    want = f"P(refill dips less than reset) = {point:.2f} [{lo:.2f}, {hi:.2f}]"
+    assert p == want and said.startswith(_by_rule([lo], [hi])), (p, said)
+    readme = " ".join((REPORTS.parents[1] / "README.md").read_text().split())
+    assert f"Fig. 9 (Hopper, 5 seeds per arm): {want}: {_by_rule([lo], [hi])}" in readme
+
+
 def test_the_pilots_stated_rank_settling_is_its_reports():
     """docs/reproduction.md's Fig. 4 reading of the pilot (median final ranks, Eq. 10's candidates at the last
     event, seeds unchanged over it) is the committed rank_settling.csv's."""
