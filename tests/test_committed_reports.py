@@ -470,6 +470,58 @@ def test_fig9s_verdict_is_stated_once_both_arms_are_complete_and_then_by_the_rul
     assert f"Fig. 9 (Hopper, 5 seeds per arm): {want}: {_by_rule([lo], [hi])}" in readme
 
 
+def test_the_pilots_fig8_reading_is_its_sweeps():
+    """docs/reproduction.md's Fig. 8 reading of the pilot (each arm's grid average and worst mean, the post-hoc
+    P(AdaRL > `sac_full`) and P(AdaRL > `parseval`)) re-derived from every committed run's sweep summary."""
+    import json
+    import re
+
+    from adarl.experiments.stats import poi_estimate
+
+    runs = REPORTS / "table1-pilot" / "runs"
+    per: dict[tuple[str, str], dict[int, dict]] = {}
+    for f in sorted(runs.glob("*/sweeps/*.json")):
+        arm, seed = re.search(r"algorithm=(\w+)__seed=(\d+)", f.parent.parent.name).groups()
+        s = json.loads(f.read_text())
+        per.setdefault((s["name"], arm), {})[int(seed)] = s
+    arms = ("adarl", "sac_full", "sac_restarts", "parseval", "fixed_final", "factorised_restarts", "adarl_eq10")
+    assert {a for _, a in per} == set(arms) and all(len(v) == (8 if a in arms[:3] else 5) for (_, a), v in per.items())
+    text = " ".join((REPORTS.parents[1] / "docs" / "reproduction.md").read_text().split())
+
+    def arm_mean(arm, sweep, key):  # the report's grid-point means averaged over the grid = mean of the runs' averages
+        return statistics.fmean(s[key] for s in per[sweep, arm].values())
+
+    for key, label in (("average", "Grid average"), ("worst_mean", "Worst mean over the grid")):
+        if key == "average":
+            cells = [f"{arm_mean(a, 'torso_length', key):.0f} / {arm_mean(a, 'foot_length', key):.0f}" for a in arms]
+        else:  # the report's worst mean: the lowest grid point of the across-seed mean curve
+            cells = []
+            for a in arms:
+                worst = []
+                for sweep in ("torso_length", "foot_length"):
+                    curves = [
+                        [float(r["mean"]) for r in csv.DictReader((runs / d / "sweeps" / f"{sweep}.csv").open())]
+                        for d in sorted(p.name for p in runs.iterdir() if f"algorithm={a}__" in p.name)
+                    ]
+                    worst.append(min(statistics.fmean(col) for col in zip(*curves)))
+                cells.append(f"{worst[0]:.0f} / {worst[1]:.0f}")
+        said = ", ".join(f"{'AdaRL' if a == 'adarl' else f'`{a}`'} {c}" for a, c in zip(arms, cells))
+        assert f"{label}, torso / foot: {said}" in text, said
+
+    def p(arm, key, sweep):
+        mine = [per[sweep, "adarl"][k][key] for k in sorted(per[sweep, "adarl"])]
+        theirs = [per[sweep, arm][k][key] for k in sorted(per[sweep, arm])]
+        return "{:.2f} [{:.2f}, {:.2f}]".format(*poi_estimate(mine, theirs))
+
+    for arm in ("sac_full", "parseval"):
+        want = (
+            f"P(AdaRL > `{arm}`) on the grid average: torso {p(arm, 'average', 'torso_length')}, foot "
+            f"{p(arm, 'average', 'foot_length')}; on the worst mean: torso {p(arm, 'worst_mean', 'torso_length')}, "
+            f"foot {p(arm, 'worst_mean', 'foot_length')}"
+        )
+        assert want in text, want
+
+
 def test_the_pilots_stated_rank_settling_is_its_reports():
     """docs/reproduction.md's Fig. 4 reading of the pilot (median final ranks, Eq. 10's candidates at the last
     event, seeds unchanged over it) is the committed rank_settling.csv's."""
