@@ -522,6 +522,35 @@ def test_the_pilots_fig8_reading_is_its_sweeps():
         assert want in text, want
 
 
+def test_walker2ds_fig4_verdict_is_stated_once_its_seeds_are_in_and_then_by_the_rule():
+    """Walker2d's Fig. 4 row: no verdict while fewer than its 5 seeds are in; then, per factorised layer, the rule
+    (unchanged over the last event in at least half the seeds, median final rank within 1 of 2·d_a+1 = 13):
+    "reproduced for" the layers that meet it, else "not reproduced (settle at ...)" with the median final ranks,
+    as the committed rank_settling.csv has them."""
+    folder = REPORTS / "rank_trajectory-laptop"
+    rows = (
+        list(csv.DictReader((folder / "rank_settling.csv").open())) if (folder / "rank_settling.csv").is_file() else []
+    )
+    seeds = {r["seed"] for r in rows}
+    _, p, said = _verdict_row("Fig. 4 on Walker2d:")
+    assert p == "–", p
+    if len(seeds) < 5:
+        assert said.startswith(f"running ({len(seeds)} of 5 runs in" if seeds else ("queued", "running (0 of 5")), said
+        return
+    layers = ("actor.layer0", "actor.layer1", "critic.layer0", "critic.layer1")
+    medians, met = [], []
+    for layer in layers:
+        mine = [r for r in rows if r["layer"] == layer]
+        assert len(mine) == 5, layer
+        median = statistics.median(int(r["final_rank"]) for r in mine)
+        settled = sum(int(r["events_after_last_change"]) >= 1 for r in mine)
+        medians.append(f"{median:g}")
+        if 2 * settled >= len(mine) and abs(median - 13) <= 1:
+            met.append(layer.replace(".layer", " layer "))
+    want = "reproduced for " + ", ".join(met) if met else f"not reproduced (settle at {', '.join(medians)})"
+    assert said.startswith(want), (said, want)
+
+
 def test_the_pilots_stated_rank_settling_is_its_reports():
     """docs/reproduction.md's Fig. 4 reading of the pilot (median final ranks, Eq. 10's candidates at the last
     event, seeds unchanged over it) is the committed rank_settling.csv's."""
