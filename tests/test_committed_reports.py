@@ -358,39 +358,25 @@ def test_fig1s_verdict_is_stated_once_every_rank_is_complete_and_then_by_the_rul
     fewer than its 10 seeds; once all have 10, P(rank 8 > 4) and P(rank 8 > 16) as pairs.csv has them and the
     pre-registered rule's verdict (reproduced when both lower ends are above 0.5; contradicted when either upper
     end is below it), here and in README.md."""
-    import re
-
     folder = REPORTS / "cartpole_rank_sweep-laptop_scored"
     counts = [int(r["n_seeds"]) for r in csv.DictReader((folder / "statistics.csv").open())]
     pairs = {(r["a"], r["b"]): r for r in csv.DictReader((folder / "pairs.csv").open())}
-    text = " ".join((REPORTS.parents[1] / "docs" / "reproduction.md").read_text().split())
-    readme = " ".join((REPORTS.parents[1] / "README.md").read_text().split())
-    row = re.search(
-        r"\| Fig\. 1: an interior optimum of the rank \(linear CartPole\) \| `laptop_scored` \| 8 ranks x 10 seeds \| "
-        r"(.+?) \| (.+?) \|",
-        text,
-    )
-    assert row, "Fig. 1's row is not in the verdict table"
+    arms, p, said = _verdict_row("Fig. 1: an interior optimum of the rank (linear CartPole)")
+    assert arms == "8 ranks x 10 seeds", arms
     if len(counts) < 8 or min(counts) < 10:
-        assert row.group(1) == "–" and row.group(2).startswith(f"running ({sum(counts)} of 80 runs in"), row[0]
+        assert p == "–" and said.startswith(f"running ({sum(counts)} of 80 runs in"), (p, said)
         return
-    said = [
+    want = "; ".join(
         f"P(8 > {b}) = {float(pairs['8', b]['poi']):.2f} [{float(pairs['8', b]['poi_lo']):.2f}, "
         f"{float(pairs['8', b]['poi_hi']):.2f}]"
         for b in ("4", "16")
-    ]
-    lows = [float(pairs["8", b]["poi_lo"]) for b in ("4", "16")]
-    highs = [float(pairs["8", b]["poi_hi"]) for b in ("4", "16")]
-    verdict = (
-        "reproduced"
-        if min(lows) > 0.5
-        else "contradicted"
-        if min(highs) < 0.5
-        else "not reproduced (no difference shown)"
     )
-    assert row.group(1) == "; ".join(said), row[0]
-    assert row.group(2).startswith(verdict), row[0]
-    assert f"Fig. 1 (linear CartPole, 10 seeds per rank): {'; '.join(said)}: {verdict}" in readme
+    verdict = _by_rule(
+        [float(pairs["8", b]["poi_lo"]) for b in ("4", "16")], [float(pairs["8", b]["poi_hi"]) for b in ("4", "16")]
+    )
+    assert p == want and said.startswith(verdict), (p, said)
+    readme = " ".join((REPORTS.parents[1] / "README.md").read_text().split())
+    assert f"Fig. 1 (linear CartPole, 10 seeds per rank): {want}: {verdict}" in readme
 
 
 def _verdict_row(claim: str) -> tuple[str, str, str]:
