@@ -197,6 +197,51 @@ def test_replay_buffer_round_trip_and_older_dumps_folders(tmp_path):
     assert run.load_replay_buffer(old, frames=60) and len(old) == 30
 
 
+def test_a_kill_between_a_rewrites_two_renames_resumes_from_that_checkpoint(tmp_path, monkeypatch):
+    """The run's end writes its checkpoint again at the same frames: the old buffer is renamed aside, then the new
+    one into place. A kill between the two used to leave the checkpoint without a buffer, and resume fell back one
+    checkpoint; the set-aside buffer is the one that checkpoint was written with, and is used."""
+    import warnings
+
+    from tensordict import TensorDict
+    from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+
+    from adarl.runtime import _run_checkpoints
+
+    def buffer(n=0):
+        rb = TensorDictReplayBuffer(storage=LazyTensorStorage(100), batch_size=4)
+        if n:
+            rb.extend(TensorDict({"obs": torch.arange(n, dtype=torch.float32)[:, None]}, [n]))
+        return rb
+
+    run = RunDir.create(tmp_path / "run")
+    run.save_checkpoint({"counters": {"frames": 10}, "tag": "earlier"}, frames=10, replay_buffer=buffer(10))
+    run.save_checkpoint({"counters": {"frames": 30}, "tag": "end"}, frames=30, replay_buffer=buffer(30))
+    real_replace = os.replace
+
+    def killed_at_the_second_rename(src, dst):
+        if str(src).endswith("rb-000000000030.tmp"):
+            raise SystemExit("killed")  # not an OSError: nothing of save_checkpoint's clean-up runs, as on SIGKILL
+        real_replace(src, dst)
+
+    monkeypatch.setattr(_run_checkpoints.os, "replace", killed_at_the_second_rename)
+    with pytest.raises(SystemExit):
+        run.save_checkpoint({"counters": {"frames": 30}, "tag": "end again"}, frames=30, replay_buffer=buffer(30))
+    monkeypatch.undo()
+    rb_dir = run.checkpoint_dir / "rb-000000000030"
+    assert not rb_dir.exists() and (run.checkpoint_dir / "rb-000000000030.old.tmp").is_dir()  # the window
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no fallback to the checkpoint at 10 frames
+        state = RunDir(run.path).load_latest_checkpoint(quarantine=True)
+    assert state["tag"] == "end"
+    back = buffer()
+    assert run.load_replay_buffer(back, frames=30) and len(back) == 30
+    assert torch.equal(back.storage[:]["obs"][:, 0], torch.arange(30, dtype=torch.float32))
+    run.save_checkpoint({"counters": {"frames": 30}, "tag": "resumed"}, frames=30, replay_buffer=buffer(30))
+    assert rb_dir.is_dir() and not (run.checkpoint_dir / "rb-000000000030.old.tmp").exists()
+    assert run.load_latest_checkpoint()["tag"] == "resumed"
+
+
 @pytest.mark.parametrize(
     "payload",
     [

@@ -133,7 +133,7 @@ class RunCheckpoints:
         path = self.checkpoint_dir / f"ckpt-{int(frames):012d}.pt"
         rb_dir = self.checkpoint_dir / f"rb-{int(frames):012d}"
         rb_tmp = rb_dir.with_name(rb_dir.name + ".tmp")
-        rb_old = rb_dir.with_name(rb_dir.name + ".old.tmp")
+        rb_old = _set_aside(rb_dir)
         writing = self.checkpoint_dir  # what the message names when a write fails
         try:
             self.checkpoint_dir.mkdir(parents=True, exist_ok=True)
@@ -149,8 +149,9 @@ class RunCheckpoints:
                 atomic_torch_save(replay_buffer.state_dict(), rb_tmp / REPLAY_BUFFER_FILE)
                 if rb_dir.exists():
                     # Written again at the same frames (the run's end): the old buffer is renamed aside, not emptied
-                    # in place, so that a kill meanwhile never leaves the checkpoint beside a half-deleted buffer (it
-                    # then has none, and resume falls back to the previous checkpoint, saying so).
+                    # in place, so that a kill meanwhile never leaves the checkpoint beside a half-deleted buffer.
+                    # Until the new checkpoint file replaces the old one, the set-aside folder is the old file's
+                    # buffer: a kill between the two renames leaves it where loading looks (_buffer_dir_on_disk).
                     shutil.rmtree(rb_old, ignore_errors=True)
                     os.replace(rb_dir, rb_old)
                 os.replace(rb_tmp, rb_dir)
@@ -175,6 +176,7 @@ class RunCheckpoints:
         for old in self.checkpoints()[:-keep_last]:
             old.unlink(missing_ok=True)
             shutil.rmtree(self._replay_buffer_dir(old), ignore_errors=True)
+            shutil.rmtree(_set_aside(self._replay_buffer_dir(old)), ignore_errors=True)
         return path
 
     def save_best(self, state: dict, *, frames: int, score: float, fingerprint: dict | None = None) -> Path | None:
@@ -241,7 +243,7 @@ class RunCheckpoints:
                     f"cannot be loaded into this run's networks"
                 )
         if replay_buffer and payload.get("replay_buffer"):
-            rb = self._replay_buffer_dir(path, frames)
+            rb = _buffer_dir_on_disk(self._replay_buffer_dir(path, frames))
             if not rb.is_dir():
                 raise refuse(f"has lost its replay buffer: the folder {rb.name} is missing beside it")
             buffer_file = rb / REPLAY_BUFFER_FILE
@@ -326,7 +328,7 @@ class RunCheckpoints:
         """Fill ``replay_buffer`` from ``rb-<frames>/`` beside ``checkpoint`` (default: in this run's checkpoints);
         False when there is none. Reads this version's ``buffer.pt`` or an older checkpoint's ``dumps()`` folder."""
         base = Path(checkpoint).parent if checkpoint is not None else self.checkpoint_dir
-        rb_dir = base / f"rb-{int(frames):012d}"
+        rb_dir = _buffer_dir_on_disk(base / f"rb-{int(frames):012d}")
         if not rb_dir.is_dir():
             return False
         cached, self._buffer_cache = self._buffer_cache, None
@@ -346,6 +348,20 @@ class RunCheckpoints:
         else:
             replay_buffer.loads(str(rb_dir))
         return True
+
+
+def _set_aside(rb_dir: Path) -> Path:
+    """Where :meth:`RunCheckpoints.save_checkpoint` moves ``rb-<frames>/`` while it writes the same frames again."""
+    return rb_dir.with_name(rb_dir.name + ".old.tmp")
+
+
+def _buffer_dir_on_disk(rb_dir: Path) -> Path:
+    """``rb-<frames>/``, or its set-aside copy when a kill fell between a rewrite's two renames (the old buffer
+    renamed aside, the new one not yet in place). The checkpoint file is then still the old one, and the set-aside
+    buffer is the one it was written with: loading it resumes from that checkpoint instead of one further back."""
+    if not rb_dir.is_dir() and _set_aside(rb_dir).is_dir():
+        return _set_aside(rb_dir)
+    return rb_dir
 
 
 def _frames_of(checkpoint: Path) -> int | None:
