@@ -236,6 +236,7 @@ def test_score_is_the_mean_of_the_last_evaluations_with_plateau_counts_and_verdi
     assert float(stats["adarl"]["mean"]) == pytest.approx(np.mean([1700, 1600, 1500]))
     assert stats["adarl"]["above_plateau"] == "3" and stats["sac"]["above_plateau"] == "1"  # best > 1500
     assert float(stats["sac"]["poi_ref"]) == 1.0 and "adarl beats sac" in md and "3/3" in md and "1/3" in md
+    assert stats["sac"]["verdict"] == "adarl beats sac" and stats["adarl"]["verdict"] == ""  # the rule's words too
     assert "the mean of its last 3 evaluations" in md and (out / "learning_curves_by_seed.png").is_file()
     assert verdict((0.5, 0.2, 0.8), "a", "b") == "no difference shown"
     assert verdict((0.1, 0.0, 0.45), "a", "b") == "b beats a"
@@ -301,7 +302,10 @@ def test_loose_run_folders_report_by_an_experiments_rule_given_on_the_command_li
     # verdict_seeds: the seeds a protocol planned; runs landing one by one give P as an interim estimate, no verdict
     waits = ["--set", "verdict_seeds=3", *pairs]
     assert main(["report", str(loose), "-o", str(tmp_path / "waits"), *rule, *waits]) == 0
-    assert stats(tmp_path / "waits") == stats(exp / "report")  # the same P and intervals
+    waiting, decided = stats(tmp_path / "waits"), stats(exp / "report")
+    assert waiting["sac"].pop("verdict") == "waits for 3 seeds each (has 2 and 2)"
+    assert decided["sac"].pop("verdict") == "adarl beats sac"
+    assert waiting == decided  # the same P and intervals
     (row,) = csv.DictReader((tmp_path / "waits" / "pairs.csv").open())
     assert row["verdict"] == "waits for 3 seeds each (has 2 and 2)"
     md = (tmp_path / "waits" / "report.md").read_text()

@@ -227,7 +227,7 @@ def _statistics_blocks(agg: Aggregate, out: Path) -> list[Block]:
         row = [g.label, str(len(f)), f"{g.mean:.1f} ± {g.std:.1f}" if f else "–", _ci(*m), _ci(*q)]
         if plateau is not None:
             row.append(f"{g.plateau_count(plateau)}/{len(f)}")
-        p = (math.nan,) * 3
+        p, said = (math.nan,) * 3, ""
         h = partner(g)
         if ref is not None:
             if h is not None and h.scores and f:
@@ -249,6 +249,7 @@ def _statistics_blocks(agg: Aggregate, out: Path) -> list[Block]:
                 g.plateau_count(plateau) if plateau is not None else "",
                 "" if plateau is None else plateau,
                 g.score_last,
+                said,
             ]
         )
     names = [
@@ -268,6 +269,7 @@ def _statistics_blocks(agg: Aggregate, out: Path) -> list[Block]:
         "above_plateau",
         "plateau",
         "score_last",
+        "verdict",  # the decision rule's words against the reference, as in the table ("" for the reference)
     ]
     (out / "statistics.csv").write_text(csv_text(csv_rows, names))
     blocks: list[Block] = [
