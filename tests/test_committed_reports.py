@@ -583,6 +583,36 @@ def test_the_pilots_stated_rank_settling_is_its_reports():
     assert f"medians {', '.join(candidates[:-1])} and {candidates[-1]}" in text
 
 
+def test_walker2ds_stated_rank_settling_is_its_report():
+    """docs/reproduction.md's Fig. 4 reading of Walker2d (seeds unchanged over the last event, median final ranks,
+    the actor's input layer per seed, Eq. 10's candidates at the last event) is the committed rank_settling.csv's."""
+    path = REPORTS / "rank_trajectory-laptop" / "rank_settling.csv"
+    rows = list(csv.DictReader(path.open())) if path.is_file() else []
+    if len({r["seed"] for r in rows}) < 5:
+        pytest.skip("Walker2d's Fig. 4 runs are not all in")
+    text = " ".join((REPORTS.parents[1] / "docs" / "reproduction.md").read_text().split())
+    finals, candidates, settled = [], [], []
+    for layer in ("actor.layer0", "actor.layer1", "critic.layer0", "critic.layer1"):
+        mine = sorted((r for r in rows if r["layer"] == layer), key=lambda r: int(r["seed"]))
+        assert len(mine) == 5, layer
+        finals.append(f"{statistics.median(int(r['final_rank']) for r in mine):g}")
+        candidates.append(f"{statistics.median(int(r['last_candidate']) for r in mine):g}")
+        settled.append(str(sum(int(r["events_after_last_change"]) >= 1 for r in mine)))
+        if layer == "actor.layer0":
+            first = ", ".join(r["final_rank"] for r in mine)
+    assert f"unchanged over the last event in {', '.join(settled[:-1])} and {settled[-1]} of 5 seeds" in text
+    where = ("actor layer 0, of 17", "actor layer 1, of 64", "critic layer 0, of 23", "critic layer 1, of 64")
+    assert "median final ranks are " + ", ".join(f"{f} ({w})" for f, w in zip(finals[:-1], where)) in text
+    assert f"and {finals[-1]} ({where[-1]})" in text and f"the actor's input layer ends at {first}," in text
+    assert f"medians {', '.join(candidates[:-1])} and {candidates[-1]}:" in text
+    row = _verdict_row("Fig. 4 on Walker2d:")[2]
+    others = ", ".join(finals[1:])
+    assert (
+        f"(median final rank {finals[0]} = 2·d_a+1, unchanged over the last event in {settled[0]} of 5 seeds; " in row
+    )
+    assert f"the other layers settle at {others}; Eq. 10's own candidate for actor layer 0 is {candidates[0]})" in row
+
+
 def test_every_protocol_report_is_made_by_its_rule():
     """commit_landed.sh commits each protocol experiment's runs into a report folder; make_report.sh must re-make
     every such folder from its own spec's report section (else a report lands without its verdicts), and Fig. 1's
