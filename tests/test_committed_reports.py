@@ -32,6 +32,9 @@ def test_the_laptop_reports_are_all_checked():
     """Every claim's laptop report is among the checked ones (a report committed without its runs would drop out)."""
     consistent = ["rank_trajectory", "table1", "table2", "warmstart_ablation", "parseval_lambda"]  # our physics
     assert {f"{name}-laptop_consistent" for name in consistent} | {"cartpole_rank_sweep-laptop"} <= set(DERIVABLE)
+    protocol = ["table1-pilot", "table1-decisive", "table2-laptop", "warmstart_ablation-laptop"]  # the paper's physics
+    protocol += ["rank_trajectory-laptop", "cartpole_rank_sweep-laptop_scored", "parseval_lambda-laptop"]
+    assert set(protocol) <= set(DERIVABLE), set(protocol) - set(DERIVABLE)
 
 
 @pytest.mark.parametrize("report", DERIVABLE)
@@ -611,6 +614,33 @@ def test_walker2ds_stated_rank_settling_is_its_report():
         f"(median final rank {finals[0]} = 2·d_a+1, unchanged over the last event in {settled[0]} of 5 seeds; " in row
     )
     assert f"the other layers settle at {others}; Eq. 10's own candidate for actor layer 0 is {candidates[0]})" in row
+
+
+def test_parsevals_lambda_at_the_papers_physics_is_stated_as_its_report_has_it():
+    """reproduction.md's Parseval-lambda bullet: the value with the highest mean score is 1e-5, the one the pilot's
+    and stage 2's Parseval arms run, and each stated mean (and per-seed score) is the committed report's."""
+    import yaml
+
+    folder = REPORTS / "parseval_lambda-laptop"
+    stats = {r["lam"]: r for r in csv.DictReader((folder / "statistics.csv").open())}
+    runs = list(csv.DictReader((folder / "runs.csv").open()))
+    assert {k: int(r["n_seeds"]) for k, r in stats.items()} == {"1.0e-3": 2, "1.0e-4": 2, "1.0e-5": 2}
+    assert all(r["score_last"] == "3" for r in runs)  # the protocol's score
+    best = max(stats, key=lambda k: float(stats[k]["mean"]))
+    spec = yaml.safe_load((REPORTS.parents[1] / "recipes" / "experiments" / "table1.yaml").read_text())
+    arms = {a["name"]: a for a in spec["axes"]["algorithm"] if isinstance(a, dict)}
+    assert f"algorithm.parseval.lam={best}" in arms["parseval"]["overrides"]  # the arm runs the selected value
+    text = " ".join((REPORTS.parent / "reproduction.md").read_text().split())
+
+    def seeds(lam):
+        return ", ".join(f"{float(r['score']):.0f}" for r in sorted(runs, key=lambda r: r["seed"]) if r["lam"] == lam)
+
+    said = "; ".join(
+        f"{lam.replace('1.0e', '1e')} {float(stats[lam]['mean']):.0f} ({seeds(lam)})" for lam in ("1.0e-5",)
+    )
+    assert "1e-5 is selected again**" in text and f"three evaluations): {said}" in text
+    for lam in ("1.0e-4", "1.0e-3"):
+        assert f"{lam.replace('1.0e', '1e')} {float(stats[lam]['mean']):.0f} ({seeds(lam)})" in text, lam
 
 
 def test_every_protocol_report_is_made_by_its_rule():
