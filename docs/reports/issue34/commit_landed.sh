@@ -6,7 +6,8 @@ cd /work/main || exit 1
 while true; do
   for pair in table1-pilot table1-pilot-controls:table1-pilot table1-pilot-eq10:table1-pilot \
               table1-pilot-factorised:table1-pilot table1-decisive table2-laptop warmstart_ablation-laptop \
-              rank_trajectory-laptop cartpole_rank_sweep-laptop_scored parseval_lambda-laptop; do
+              rank_trajectory-laptop cartpole_rank_sweep-laptop_scored parseval_lambda-laptop \
+              table2-laptop-dense:table2-laptop; do
     src=/work/exp/${pair%%:*}
     [ -d "$src" ] || continue
     dest=docs/reports/${pair##*:}

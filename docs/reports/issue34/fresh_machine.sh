@@ -21,7 +21,7 @@ if [ ! -x $EXP/wt-g/.venv/bin/adarl ]; then
   (cd $EXP/wt-g && .venv/bin/pip install -q -c constraints.txt .)
 fi
 cp -n $I/table1_decisive.yaml $I/table1_controls.yaml $I/table1_eq10.yaml $I/table1_factorised.yaml \
-  $I/protocol.py $I/strongest_control.json $EXP/
+  $I/protocol.py $I/strongest_control.json $I/table2_dense.yaml $EXP/
 # the experiments of `queue.sh rest` whose finished runs are committed (docs/reports/<folder>/runs)
 for name in table1-decisive table2-laptop warmstart_ablation-laptop rank_trajectory-laptop \
             cartpole_rank_sweep-laptop_scored parseval_lambda-laptop; do
@@ -29,7 +29,9 @@ for name in table1-decisive table2-laptop warmstart_ablation-laptop rank_traject
   [ -d "$src" ] || continue
   mkdir -p $EXP/$name
   for run in "$src"/*/; do
-    [ -e "$EXP/$name/$(basename "$run")" ] || cp -a "$run" "$EXP/$name/"
+    into=$EXP/$name
+    case "$(basename "$run")" in *scope=sac_full*) into=$EXP/table2-laptop-dense; mkdir -p "$into" ;; esac  # the follow-up's
+    [ -e "$into/$(basename "$run")" ] || cp -a "$run" "$into/"
   done
   echo "restored $(ls "$src" | wc -l) runs of $name"
 done

@@ -38,6 +38,8 @@ rest() {
   run $A experiment $SPECS/warmstart_ablation.yaml --budget laptop -o /work/exp/warmstart_ablation-laptop
   run $A experiment $SPECS/rank_trajectory.yaml --budget laptop -o /work/exp/rank_trajectory-laptop
   run $A experiment $SPECS/parseval_lambda.yaml --budget laptop -o /work/exp/parseval_lambda-laptop
+  # follow-up pre-registered 2026-11-27 06:52 UTC: full-rank SAC under Table 2's high box (joins Table 2's report)
+  run $A experiment /work/exp/table2_dense.yaml --budget laptop_dense -o /work/exp/table2-laptop-dense
   echo "=== $(date -u +%FT%TZ) queue done"
 }
 
