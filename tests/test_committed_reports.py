@@ -454,6 +454,24 @@ def test_the_schedule_reading_is_its_runs_and_they_differ_in_the_schedule_alone(
     assert f"{p8[0]:.2f} [{p8[1]:.2f}, {p8[2]:.2f}] against all eight pilot seeds)" in text
 
 
+def test_the_follow_ups_verdict_is_stated_once_its_runs_are_in_and_then_by_the_rule():
+    """The follow-up pre-registered 2026-11-27 06:52 UTC: "running (N of 5 runs in" with no P while full-rank SAC
+    under the high box has fewer than 5 seeds; then P(both > sac_full) as Table 2's statistics.csv has it and the
+    rule's verdict, here and in README.md."""
+    stats = {r["scope"]: r for r in csv.DictReader((REPORTS / "table2-laptop" / "statistics.csv").open())}
+    n = int(stats["sac_full"]["n_seeds"]) if "sac_full" in stats else 0
+    _, p, said = _verdict_row("Follow-up: AdaRL above full-rank SAC under Table 2's high box")
+    if n < 5:
+        assert p == "–" and said.startswith(f"running ({n} of 5 runs in"), (p, said)
+        return
+    sac = stats["sac_full"]
+    want = f"P(both > sac_full) = {float(sac['poi_ref']):.2f} [{float(sac['poi_lo']):.2f}, {float(sac['poi_hi']):.2f}]"
+    rule = _by_rule([float(sac["poi_lo"])], [float(sac["poi_hi"])])
+    assert p == want and said.startswith(rule), (p, said)
+    readme = " ".join((REPORTS.parents[1] / "README.md").read_text().split())
+    assert f"{want}: {rule}" in readme
+
+
 def test_fig9s_verdict_is_stated_once_both_arms_are_complete_and_then_by_the_rule():
     """Fig. 9's row: no P while an arm has fewer than 5 seeds; then P(refill dips less than reset), re-derived here
     from event_window.csv (each seed's mean change over its events, the seed counted once) with the report's own
