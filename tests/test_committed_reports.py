@@ -472,6 +472,31 @@ def test_the_follow_ups_verdict_is_stated_once_its_runs_are_in_and_then_by_the_r
     assert f"{want}: {rule}" in readme
 
 
+def test_the_follow_ups_reading_is_its_runs_and_sac_differs_from_the_pilots_in_the_schedule_alone():
+    """reproduction.md's follow-up bullet: the high-box SAC runs differ from the pilot's sac_full runs in the preset
+    alone; their per-seed scores, means and the described P(sac_full high > paper schedule) are the runs'."""
+    from adarl.experiments.stats import poi_estimate
+
+    table2, pilot = REPORTS / "table2-laptop", REPORTS / "table1-pilot"
+    high = {int(r["seed"]): r for r in csv.DictReader((table2 / "runs.csv").open()) if r["scope"] == "sac_full"}
+    if len(high) < 5:
+        pytest.skip("the follow-up's runs are not all in")
+    paper = {int(r["seed"]): r for r in csv.DictReader((pilot / "runs.csv").open()) if r["algorithm"] == "sac_full"}
+    for seed, row in high.items():
+        ours = (REPORTS.parents[1] / row["path"] / "recipe.yaml").read_text().splitlines()
+        theirs = (REPORTS.parents[1] / paper[seed]["path"] / "recipe.yaml").read_text().splitlines()
+        differ = [(a.strip(), b.strip()) for a, b in zip(ours, theirs) if a != b]
+        assert len(ours) == len(theirs) and differ == [("preset: high", "preset: paper")], (seed, differ)
+    h = [float(high[k]["score"]) for k in range(5)]
+    p = [float(paper[k]["score"]) for k in range(5)]
+    text = " ".join((REPORTS.parent / "reproduction.md").read_text().split())
+    poi = poi_estimate(h, p)
+    seeds = ", ".join(f"{v:.0f}" for v in h)
+    assert f"Full-rank SAC under the high box scores {seeds} (seeds 0-4; mean {statistics.mean(h):.0f}" in text
+    assert f"= {poi[0]:.2f} [{poi[1]:.2f}, {poi[2]:.2f}] (seeds 0-4: {seeds} against " in text
+    assert f"{', '.join(f'{v:.0f}' for v in p)}; means {statistics.mean(h):.0f} and {statistics.mean(p):.0f})" in text
+
+
 def test_fig9s_verdict_is_stated_once_both_arms_are_complete_and_then_by_the_rule():
     """Fig. 9's row: no P while an arm has fewer than 5 seeds; then P(refill dips less than reset), re-derived here
     from event_window.csv (each seed's mean change over its events, the seed counted once) with the report's own
