@@ -432,3 +432,18 @@ def test_a_budget_may_give_a_value_other_seeds():
     made = plan_runs(load_experiment(str(REPO / "docs/reports/issue34/table1_decisive.yaml")), "/x", "decisive")
     assert [(r.run_id, r.recipe, r.overrides) for r in decisive] == [(r.run_id, r.recipe, r.overrides) for r in made]
     assert sorted({r.axes["algorithm"] for r in decisive}) == ["adarl", "parseval"] and len(decisive) == 16
+
+
+def test_table2s_budgets_run_the_arms_they_name():
+    """A scope added to table2's axis (the follow-up's sac_full) must not join a budget that names no scope list:
+    each laptop budget runs exactly the arms its description gives."""
+    from adarl.experiments.spec import load_experiment, plan_runs
+
+    spec = load_experiment("table2")
+
+    def scopes(budget):
+        return sorted({dict(r.axes)["scope"] for r in plan_runs(spec, "/x", budget)})
+
+    assert scopes("laptop") == ["actor", "both", "critic"]
+    assert scopes("laptop_dense_critic") == ["actor", "actor_dense_critic", "both", "critic"]
+    assert scopes("laptop_dense") == ["sac_full"]
