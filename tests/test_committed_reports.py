@@ -426,6 +426,16 @@ def test_table2s_verdict_is_stated_once_every_scope_is_complete_and_then_by_the_
     assert f"Table 2 (Hopper, high uncertainty, 5 seeds per scope): {want}: {_by_rule(lows, highs)}" in readme
 
 
+def _assert_differ_in_the_preset_alone(high: dict[int, dict], paper: dict[int, dict]) -> None:
+    """Each seed's resolved recipe.yaml under the high box against the same seed's under the paper's schedule (runs.csv
+    rows by seed): the same lines but ``env.perturbation.preset``."""
+    for seed, row in high.items():
+        ours = (REPORTS.parents[1] / row["path"] / "recipe.yaml").read_text().splitlines()
+        theirs = (REPORTS.parents[1] / paper[seed]["path"] / "recipe.yaml").read_text().splitlines()
+        differ = [(a.strip(), b.strip()) for a, b in zip(ours, theirs) if a != b]
+        assert len(ours) == len(theirs) and differ == [("preset: high", "preset: paper")], (seed, differ)
+
+
 def test_the_schedule_reading_is_its_runs_and_they_differ_in_the_schedule_alone():
     """reproduction.md's post-hoc reading "the training schedule moves AdaRL's score": Table 2's `both` seeds and the
     pilot's AdaRL seeds differ in ``env.perturbation.preset`` alone (their recipes, line by line), and the scores and
@@ -436,11 +446,7 @@ def test_the_schedule_reading_is_its_runs_and_they_differ_in_the_schedule_alone(
     both = {int(r["seed"]): r for r in csv.DictReader((table2 / "runs.csv").open()) if r["scope"] == "both"}
     adarl = {int(r["seed"]): r for r in csv.DictReader((pilot / "runs.csv").open()) if r["algorithm"] == "adarl"}
     assert sorted(both) == [0, 1, 2, 3, 4] and sorted(adarl) == list(range(8))
-    for seed, row in both.items():
-        ours = (REPORTS.parents[1] / row["path"] / "recipe.yaml").read_text().splitlines()
-        theirs = (REPORTS.parents[1] / adarl[seed]["path"] / "recipe.yaml").read_text().splitlines()
-        differ = [(a.strip(), b.strip()) for a, b in zip(ours, theirs) if a != b]
-        assert len(ours) == len(theirs) and differ == [("preset: high", "preset: paper")], (seed, differ)
+    _assert_differ_in_the_preset_alone(both, adarl)
     text = " ".join((REPORTS.parent / "reproduction.md").read_text().split())
     high = [float(both[k]["score"]) for k in range(5)]
     paper5 = [float(adarl[k]["score"]) for k in range(5)]
@@ -482,11 +488,7 @@ def test_the_follow_ups_reading_is_its_runs_and_sac_differs_from_the_pilots_in_t
     if len(high) < 5:
         pytest.skip("the follow-up's runs are not all in")
     paper = {int(r["seed"]): r for r in csv.DictReader((pilot / "runs.csv").open()) if r["algorithm"] == "sac_full"}
-    for seed, row in high.items():
-        ours = (REPORTS.parents[1] / row["path"] / "recipe.yaml").read_text().splitlines()
-        theirs = (REPORTS.parents[1] / paper[seed]["path"] / "recipe.yaml").read_text().splitlines()
-        differ = [(a.strip(), b.strip()) for a, b in zip(ours, theirs) if a != b]
-        assert len(ours) == len(theirs) and differ == [("preset: high", "preset: paper")], (seed, differ)
+    _assert_differ_in_the_preset_alone(high, paper)
     h = [float(high[k]["score"]) for k in range(5)]
     p = [float(paper[k]["score"]) for k in range(5)]
     text = " ".join((REPORTS.parent / "reproduction.md").read_text().split())
