@@ -435,6 +435,38 @@ def test_direct_adam_step_is_bit_identical_to_fused_adam_and_falls_back():
     assert calls == [1]
 
 
+def test_direct_adam_step_with_a_scaled_factor_group_is_bit_identical_to_fused_adam():
+    """``algorithm.factor_lr_scale``: two parameter groups (their own rates), one kernel call each, as Adam does."""
+    from adarl.fast.adam import DirectAdamStep, make_adam
+
+    torch.manual_seed(1)
+    dense = [torch.nn.Parameter(torch.randn(4))]
+    factors = [torch.nn.Parameter(torch.randn(6, 2)), torch.nn.Parameter(torch.randn(2, 5))]
+    ref = [torch.nn.Parameter(p.detach().clone()) for p in dense + factors]
+    opt_ref = torch.optim.Adam([{"params": ref[:1]}, {"params": ref[1:], "lr": 1e-2 * 0.5}], lr=1e-2, fused=True)
+    opt_new = make_adam(dense, 1e-2, fused=True, scaled=factors, scale=0.5)
+    assert [g["lr"] for g in opt_new.param_groups] == [1e-2, 5e-3]
+    direct = DirectAdamStep(opt_new)
+    new = dense + factors
+    for k in range(6):
+        for p, q in zip(ref, new):
+            g = torch.randn_like(p)
+            p.grad, q.grad = g.clone(), g.clone()
+        if k == 2:  # a schedule moves each group's rate; a rank event pops a factor's state
+            for opt in (opt_ref, opt_new):
+                opt.param_groups[1]["lr"] = 1e-3
+            opt_ref.state.pop(ref[2])
+            opt_new.state.pop(new[2])
+        opt_ref.step()
+        opt_ref.zero_grad(set_to_none=True)
+        direct.step()
+        for p, q in zip(ref, new):
+            assert torch.equal(p, q), k
+    assert direct.fast_steps >= 3
+    # a scale of 1 keeps the single group the optimiser always had
+    assert len(make_adam(dense, 1e-2, fused=True, scaled=factors, scale=1.0).param_groups) == 1
+
+
 def test_backward_setting_is_validated(filled):
     from torch import nn
 

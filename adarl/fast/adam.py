@@ -15,11 +15,22 @@ from torch.optim import optimizer as optim_mod
 __all__ = ["DirectAdamStep", "make_adam"]
 
 
-def make_adam(params: Sequence[torch.Tensor], lr: float, *, fused: bool) -> torch.optim.Adam:
-    """Adam, fused into one kernel per step when ``fused`` (same maths as the for-loop Adam, fp tolerance)."""
+def make_adam(
+    params: Sequence[torch.Tensor], lr: float, *, fused: bool, scaled: Sequence[torch.Tensor] = (), scale: float = 1.0
+) -> torch.optim.Adam:
+    """Adam, fused into one kernel per step when ``fused`` (same maths as the for-loop Adam, fp tolerance).
+
+    ``scaled`` tensors (e.g. the low-rank factors, ``algorithm.factor_lr_scale``) form a second parameter group
+    whose learning rate is ``lr * scale``; the learning-rate schedules scale both groups alike (they multiply each
+    group's own base rate). Without them, or with ``scale == 1``, there is one group, as before."""
+    params, scaled = list(params), list(scaled)
+    if not scaled or scale == 1.0:
+        groups = [{"params": params + scaled}]
+    else:
+        groups = [g for g in ({"params": params}, {"params": scaled, "lr": lr * scale}) if g["params"]]
     if fused:
-        return torch.optim.Adam(list(params), lr=lr, fused=True)
-    return torch.optim.Adam(list(params), lr=lr)
+        return torch.optim.Adam(groups, lr=lr, fused=True)
+    return torch.optim.Adam(groups, lr=lr)
 
 
 class DirectAdamStep:
@@ -31,8 +42,10 @@ class DirectAdamStep:
     counters, then ``torch._fused_adam_``) on lists cached from ``opt.state``, with the group's current
     hyper-parameters, so the result is bit-identical (tested). It falls back to ``opt.step()`` whenever an
     assumption does not hold: state not created yet or replaced (first step, a rank event popping a factor's
-    state, ``load_state_dict``), a missing gradient, hooks, several parameter groups, or options other than
-    plain fused Adam (amsgrad, capturable, differentiable, decoupled weight decay).
+    state, ``load_state_dict``), a missing gradient, hooks, or options other than
+    plain fused Adam (amsgrad, capturable, differentiable, decoupled weight decay). Several parameter groups
+    (``algorithm.factor_lr_scale``) take one kernel call each, with each group's own learning rate, as
+    ``Adam(fused=True)`` does.
     """
 
     def __init__(self, opt: torch.optim.Optimizer) -> None:
@@ -51,49 +64,58 @@ class DirectAdamStep:
 
     def _supported(self) -> bool:
         o = self.opt
-        if not isinstance(o, torch.optim.Adam) or len(o.param_groups) != 1:
+        if not isinstance(o, torch.optim.Adam) or not o.param_groups:
             return False
-        g = o.param_groups[0]
-        return (
+        return all(
             bool(g.get("fused"))
             and not g.get("amsgrad")
             and not g.get("capturable")
             and not g.get("differentiable")
             and not g.get("decoupled_weight_decay")
+            for g in o.param_groups
         )
 
-    def _build_cache(self) -> tuple | None:
-        params = self.opt.param_groups[0]["params"]
-        states = [self.opt.state.get(p) for p in params]
-        if any(st is None or "exp_avg" not in st for st in states):
-            return None
-        if len({(p.device, p.dtype) for p in params}) != 1:
-            return None
-        return (
-            params,
-            list(params),
-            states,
-            [st["exp_avg"] for st in states],
-            [st["exp_avg_sq"] for st in states],
-            [st["step"] for st in states],
-        )
+    def _build_cache(self) -> list | None:
+        """Per parameter group: the group's ``params`` list, a copy of it, and its tensors' states."""
+        cache = []
+        for group in self.opt.param_groups:
+            params = group["params"]
+            states = [self.opt.state.get(p) for p in params]
+            if any(st is None or "exp_avg" not in st for st in states):
+                return None
+            if len({(p.device, p.dtype) for p in params}) != 1:
+                return None
+            cache.append(
+                (
+                    params,
+                    list(params),
+                    states,
+                    [st["exp_avg"] for st in states],
+                    [st["exp_avg_sq"] for st in states],
+                    [st["step"] for st in states],
+                )
+            )
+        return cache
 
     def _valid(self, cache) -> bool:
-        params, plist, states, avgs, sqs, steps = cache
-        state = self.opt.state
-        if self.opt.param_groups[0]["params"] is not params or len(params) != len(plist):
+        groups = self.opt.param_groups
+        if len(groups) != len(cache):
             return False
-        for p, q, st, a, b, c in zip(params, plist, states, avgs, sqs, steps):
-            if p is not q or p.grad is None:
+        state = self.opt.state
+        for group, (params, plist, states, avgs, sqs, steps) in zip(groups, cache):
+            if group["params"] is not params or len(params) != len(plist):
                 return False
-            got = state.get(p)
-            if (
-                got is not st
-                or got.get("exp_avg") is not a
-                or got.get("exp_avg_sq") is not b
-                or got.get("step") is not c
-            ):
-                return False
+            for p, q, st, a, b, c in zip(params, plist, states, avgs, sqs, steps):
+                if p is not q or p.grad is None:
+                    return False
+                got = state.get(p)
+                if (
+                    got is not st
+                    or got.get("exp_avg") is not a
+                    or got.get("exp_avg_sq") is not b
+                    or got.get("step") is not c
+                ):
+                    return False
         return True
 
     @torch.no_grad()
@@ -108,27 +130,26 @@ class DirectAdamStep:
                 self.opt.step()
                 self.opt.zero_grad(set_to_none=True)
                 return
-        _, plist, _, avgs, sqs, steps = cache
-        g = self.opt.param_groups[0]
-        beta1, beta2 = g["betas"]
-        torch._foreach_add_(steps, 1)
-        torch._fused_adam_(
-            plist,
-            [p.grad for p in plist],
-            avgs,
-            sqs,
-            [],
-            steps,
-            amsgrad=False,
-            lr=g["lr"],
-            beta1=float(beta1),
-            beta2=float(beta2),
-            weight_decay=g["weight_decay"],
-            eps=g["eps"],
-            maximize=g["maximize"],
-            grad_scale=None,
-            found_inf=None,
-        )
-        for p in plist:
-            p.grad = None
+        for g, (_, plist, _, avgs, sqs, steps) in zip(self.opt.param_groups, cache):
+            beta1, beta2 = g["betas"]
+            torch._foreach_add_(steps, 1)
+            torch._fused_adam_(
+                plist,
+                [p.grad for p in plist],
+                avgs,
+                sqs,
+                [],
+                steps,
+                amsgrad=False,
+                lr=g["lr"],
+                beta1=float(beta1),
+                beta2=float(beta2),
+                weight_decay=g["weight_decay"],
+                eps=g["eps"],
+                maximize=g["maximize"],
+                grad_scale=None,
+                found_inf=None,
+            )
+            for p in plist:
+                p.grad = None
         self.fast_steps += 1

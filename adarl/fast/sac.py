@@ -39,6 +39,7 @@ from torchrl.objectives import SACLoss
 from torchrl.objectives.value import TD0Estimator
 
 from adarl.core.lowrank import LowRankLinear
+from adarl.core.product_polyak import factor_keys, factor_pairs, product_polyak_
 from adarl.core.target_shift import TargetShiftSACLoss
 from adarl.errors import AdaRLValueError
 from adarl.fast.adam import DirectAdamStep
@@ -56,6 +57,9 @@ __all__ = [
     "supported_activation",
     "wants_fused",
 ]
+
+#: values of ``FusedSACUpdate(polyak=...)`` / ``algorithm.polyak``
+POLYAK_MODES = ("factors", "product")
 
 #: values of ``FusedSACUpdate(backward=...)`` / ``algorithm.backward``
 BACKWARDS = ("auto", "manual", "autograd")
@@ -355,8 +359,11 @@ class FusedSACUpdate:
         compile_backend: str = "inductor",
         backward: str = "auto",
         terms: Mapping[str, nn.Module] | None = None,
+        polyak: str = "factors",
     ) -> None:
         self.keys = check_fusable(loss)
+        if polyak not in POLYAK_MODES:
+            raise AdaRLValueError(f"polyak must be one of {POLYAK_MODES}, got {polyak!r}")
         self.terms = check_fusable_terms(terms)
         if not 0 < tau <= 1:
             raise AdaRLValueError(f"tau must be in (0, 1], got {tau}")
@@ -387,7 +394,13 @@ class FusedSACUpdate:
         self.q_params = dict(loss.qvalue_network_params.flatten_keys().items())
         self.target_q_params = dict(loss.target_qvalue_network_params.flatten_keys().items())
         self.q_net = _StackedMLP(loss.qvalue_network.module, self.q_params)
-        keys = list(self.q_params)
+        # 'product': the factorised layers' targets follow the averaged product (adarl.core.product_polyak)
+        self.polyak = polyak
+        products = factor_keys(self.q_params) if polyak == "product" else set()
+        self._product_pairs = factor_pairs(
+            {k: v for k, v in self.target_q_params.items() if k in products}, self.q_params
+        )
+        keys = [k for k in self.q_params if k not in products]
         self._q_sources = [self.q_params[k] for k in keys]
         self._q_targets = [self.target_q_params[k] for k in keys]
         self.compile = compile
@@ -521,6 +534,8 @@ class FusedSACUpdate:
             sched.step()
         with torch.no_grad():
             torch._foreach_lerp_(self._q_targets, self._q_sources, self.tau)
+        if self._product_pairs:
+            product_polyak_(self._product_pairs, self.tau)
         return {
             "loss_actor": loss_actor.detach(),
             "loss_qvalue": loss_q.detach(),

@@ -37,6 +37,7 @@ from torchrl.objectives import DiscreteSACLoss, SACLoss, SoftUpdate, ValueEstima
 from adarl import plugins
 from adarl.baselines import registry
 from adarl.core.ensemble import reinit_low_rank_ensemble
+from adarl.core.product_polyak import ProductSoftUpdate, factor_keys
 from adarl.errors import AdaRLValueError, AdaRLWarning
 from adarl.fast.adam import make_adam
 from adarl.fast.sac import FusedSACUpdate, fused_fallback_reason, wants_fused
@@ -235,7 +236,8 @@ def make_sac_modules(recipe, env: EnvBase) -> SACModules:
         init = registry.init_scheme(mlp.init.scheme)
         if init is not None:
             init.loss(loss, network, gain=mlp.init.gain, head_gain=mlp.init.head_gain)
-    updater = SoftUpdate(loss, tau=alg.tau)
+    # algorithm.polyak: 'product' averages the factorised layers' products (adarl.core.product_polyak)
+    updater = ProductSoftUpdate(loss, tau=alg.tau) if alg.polyak == "product" else SoftUpdate(loss, tau=alg.tau)
     return SACModules(actor=actor, critic=critic, loss=loss, target_updater=updater)
 
 
@@ -285,6 +287,7 @@ def _update_step(
                 compile=alg.compile,
                 backward=alg.backward,
                 terms=terms,
+                polyak=alg.polyak,
             )
         except AdaRLValueError:
             if alg.fused is True or alg.backward == "manual":  # asked for explicitly: say why not
@@ -303,6 +306,13 @@ def _update_step(
         max_grad_norm=alg.max_grad_norm,
         terms=terms,
     )
+
+
+def _split_factors(params) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+    """A network's parameters as (the rest, the low-rank factors ``w1``/``w2``), each in the loss's order."""
+    flat = dict(params.flatten_keys().items())
+    factors = factor_keys(flat)
+    return [v for k, v in flat.items() if k not in factors], [v for k, v in flat.items() if k in factors]
 
 
 def build_sac_components(
@@ -324,8 +334,9 @@ def build_sac_components(
     loss = modules.loss
     alg = recipe.algorithm
 
-    actor_params = list(loss.actor_network_params.flatten_keys().values())
-    critic_params = list(loss.qvalue_network_params.flatten_keys().values())
+    # algorithm.factor_lr_scale: the low-rank factors W1, W2 in a second Adam group at lr * scale
+    actor_params, actor_factors = _split_factors(loss.actor_network_params)
+    critic_params, critic_factors = _split_factors(loss.qvalue_network_params)
     terms = registry.loss_terms(loss, alg)
     fused = wants_fused(alg.fused, loss)
     reason = fused_fallback_reason(loss)
@@ -338,8 +349,8 @@ def build_sac_components(
             stacklevel=2,
         )
     optimizers = {
-        "actor": make_adam(actor_params, alg.lr, fused=fused),
-        "critic": make_adam(critic_params, alg.lr, fused=fused),
+        "actor": make_adam(actor_params, alg.lr, fused=fused, scaled=actor_factors, scale=alg.factor_lr_scale),
+        "critic": make_adam(critic_params, alg.lr, fused=fused, scaled=critic_factors, scale=alg.factor_lr_scale),
     }
     if not alg.fixed_alpha:
         optimizers["alpha"] = make_adam([loss.log_alpha], alg.alpha_lr, fused=fused)

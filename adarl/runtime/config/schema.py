@@ -486,6 +486,21 @@ class AlgorithmConfig(_Section):
     )
     gamma: Annotated[Float, Field(gt=0, le=1)] = Field(0.99, description="Discount factor.")
     tau: Annotated[Float, Field(gt=0, le=1)] = Field(0.005, description="Polyak rate of the target critics.")
+    polyak: Literal["factors", "product"] = Field(
+        "factors",
+        description="How the target critics' factorised layers follow the online ones (SAC): 'factors' averages "
+        "W1 and W2 each (TorchRL's SoftUpdate, per tensor: the target product is then not the average of the "
+        "online products); 'product' averages the product, (1 - tau) W1' W2' + tau W1 W2, and re-derives the "
+        "target factors from it (balanced, at the layer's rank: adarl.core.product_polyak). Dense layers and "
+        "biases are averaged per tensor either way.",
+    )
+    factor_lr_scale: PosFloat = Field(
+        1.0,
+        description="Multiplies the learning rate of the low-rank factors W1, W2 (SAC; a second Adam parameter "
+        "group, scheduled like the first): Adam on the balanced factors moves W = W1 W2 further than a dense "
+        "step would (docs/low-rank-linear.md); < 1 makes one factor step move W as a dense one does. 1 = the "
+        "rate of every other parameter.",
+    )
     lr: PosFloat = Field(3e-3, description="Adam learning rate of actor and critic (paper: 3e-3).")
     alpha_lr: PosFloat = Field(3e-4, description="Adam learning rate of the entropy temperature.")
     batch_size: PosInt = Field(256, description="Transitions per optimisation step.")
@@ -993,6 +1008,20 @@ class Recipe(_Section):
                             True,
                             f"is SAC's fast path (a fused SACLoss update, a TanhNormal actor); algorithm.name "
                             f"{alg.name!r} runs on the 'td3' loop, TorchRL's plain path; allowed: {allowed}",
+                        )
+                    )
+        if alg.base != "sac":
+            for key, value, default in (
+                ("algorithm.polyak", alg.polyak, "factors"),
+                ("algorithm.factor_lr_scale", alg.factor_lr_scale, 1.0),
+            ):
+                if value != default:
+                    p.append(
+                        (
+                            key,
+                            value,
+                            f"is implemented for SAC's factorised critics only; algorithm.name {alg.name!r} runs "
+                            f"on the {alg.base!r} loop; allowed there: {default!r}",
                         )
                     )
         if alg.name == "rnac_ds":
