@@ -1,0 +1,49 @@
+#!/usr/bin/env bash
+# Issue 45 at the start of a session: on a new machine (no /work/exp) or on the last session's (its /work/exp kept:
+# only what is missing is made, and the runs in flight resume from their checkpoints). Builds the worktree at 862724f
+# with its own non-editable install; puts the pilot's committed base runs (adarl, sac_restarts: the same resolved
+# recipes, issue 34's stage 1) and every committed finished run of issue 45 into the experiment folder (a run folder
+# with summary.json + recipe.yaml counts as finished: the driver skips it); starts queue.sh and the commit loop at
+# nice 10. Run from the main checkout after `make install`:
+#   bash docs/reports/issue45/fresh_machine.sh [--restore-only]
+set -eu
+MAIN=$(pwd)
+EXP=${ISSUE45_EXP:-/work/exp}
+I=$MAIN/docs/reports/issue45
+echo 0 > /proc/sys/kernel/sched_autogroup_enabled 2>/dev/null || echo "could not turn sched_autogroup off"
+mkdir -p $EXP
+[ -d $EXP/wt-m ] || git worktree add $EXP/wt-m 862724f
+if [ ! -x $EXP/wt-m/.venv/bin/adarl ]; then
+  python3 -m venv $EXP/wt-m/.venv
+  $EXP/wt-m/.venv/bin/pip install -q --upgrade pip
+  $EXP/wt-m/.venv/bin/pip install -q torch==2.13.0
+  (cd $EXP/wt-m && .venv/bin/pip install -q -c constraints.txt .)
+fi
+into=$EXP/mechanism-pilot
+mkdir -p $into
+for arm in adarl sac_restarts; do
+  for s in 0 1 2 3 4 5 6 7; do
+    run=env=hopper__algorithm=${arm}__seed=$s
+    [ -e "$into/$run" ] || cp -a "$MAIN/docs/reports/table1-pilot/runs/$run" "$into/"
+  done
+done
+if [ -d "$MAIN/docs/reports/mechanism-pilot/runs" ]; then
+  for run in "$MAIN"/docs/reports/mechanism-pilot/runs/*/; do
+    [ -e "$into/$(basename "$run")" ] || cp -a "$run" "$into/"
+  done
+fi
+echo "restored $(ls -d $into/env=* | wc -l) runs into $into"
+[ "${1:-}" = --restore-only ] && exit 0
+if pgrep -f "adarl experiment" >/dev/null || pgrep -f "queue[0-9]*.sh" >/dev/null; then
+  echo "an experiment driver or queue runs already: not starting another"
+else
+  cp $I/queue.sh $EXP/queue45.sh
+  cd $EXP && setsid nohup nice -n 10 bash ./queue45.sh >> queue45.log 2>&1 < /dev/null &
+  echo "queue started (log: $EXP/queue45.log)"
+fi
+if pgrep -f issue45/commit_landed.sh >/dev/null; then
+  echo "the commit loop runs already"
+else
+  cd $MAIN && setsid nohup nice -n 10 bash docs/reports/issue45/commit_landed.sh >> $EXP/commit_landed45.log 2>&1 < /dev/null &
+  echo "commit loop started (log: $EXP/commit_landed45.log)"
+fi
