@@ -4,7 +4,8 @@ Mirrors: ``torchrl.objectives.SACLoss`` (v2, TD(0) value estimator, ``reduction=
 the optimisers' steps and ``torchrl.objectives.SoftUpdate``.
 Equality: ``tests/test_fast_sac.py::test_losses_and_gradients_match_sacloss`` (losses and gradients, parametrised
 over activations, critic losses, action boxes and truncated ranks) and
-``tests/test_fast_sac.py::test_full_step_matches_plain_step`` (parameters after whole steps); what it does not
+``tests/test_fast_sac.py::test_full_step_matches_plain_step`` (parameters after whole steps),
+``tests/test_fast_path_whole_run.py`` (a whole run through rank events, beside TorchRL's path); what it does not
 implement is refused by name (``tests/test_fast_sac.py::test_fused_update_refuses_what_it_does_not_implement``).
 
 Why: at the paper's (64, 64) sizes most of a TorchRL SAC update is Python and TensorDict bookkeeping, not
