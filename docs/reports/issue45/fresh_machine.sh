@@ -27,6 +27,12 @@ for arm in adarl sac_restarts; do
     [ -e "$into/$run" ] || cp -a "$MAIN/docs/reports/table1-pilot/runs/$run" "$into/"
   done
 done
+# amendment (docs/reproduction.md, "Issue 45"): factorised_restarts seeds 2-4 are the pilot's (seeds 0 and 1 re-ran
+# identical over all 15 evaluations); seeds 0, 1 and 5-7 ran at 862724f
+for s in 2 3 4; do
+  run=env=hopper__algorithm=factorised_restarts__seed=$s
+  [ -e "$into/$run" ] || cp -a "$MAIN/docs/reports/table1-pilot/runs/$run" "$into/"
+done
 if [ -d "$MAIN/docs/reports/mechanism-pilot/runs" ]; then
   for run in "$MAIN"/docs/reports/mechanism-pilot/runs/*/; do
     [ -e "$into/$(basename "$run")" ] || cp -a "$run" "$into/"
