@@ -14,6 +14,7 @@ that ``adarl --help`` stays one light import; what each command does lives in it
 from __future__ import annotations
 
 import argparse
+import errno
 import os
 import signal
 import sys
@@ -28,13 +29,15 @@ from adarl.errors import (
     AdaRLValueError,
     AdaRLWarning,
     RecipeError,
+    command,
+    describe_name_too_long,
     describe_os_error,
     did_you_mean,
 )
 from adarl.experiments import tune_cli
 from adarl.experiments.bench import add_arguments as bench_arguments
 from adarl.experiments.launcher_args import add_launcher_arguments, launcher_options
-from adarl.runtime.signals import RunInterrupted, silence_stdout, stdout_reader_gone
+from adarl.runtime.signals import GracefulInterrupt, RunInterrupted, silence_stdout, stdout_reader_gone
 
 __all__ = ["main"]
 
@@ -118,6 +121,7 @@ def cmd_run(args) -> int:
 
 def _train(trainer) -> dict:
     """``trainer.train()``; a file-system failure (disk full, read-only) becomes one line saying how to go on."""
+    GracefulInterrupt.stopped_at_once = None  # set by a second signal during this training only
     try:
         return trainer.train()
     except BaseException as err:
@@ -125,13 +129,17 @@ def _train(trainer) -> dict:
             trainer.close()
         except Exception:  # noqa: BLE001
             pass
+        if GracefulInterrupt.stopped_at_once is not None and not isinstance(err, KeyboardInterrupt):
+            # a second signal stopped it at once, wherever it was: what broke under it (a library that wraps the
+            # KeyboardInterrupt in its own error) is that stop, said in one line, never a traceback
+            raise KeyboardInterrupt from None
         if not isinstance(err, OSError) or err.errno not in STORAGE_ERRNOS:
             raise
         path = trainer.run_dir.path
         what = describe_os_error(err) if err.filename else f"writing in {str(path)!r}: {describe_os_error(err)}"
         raise AdaRLError(
             f"{what}; the run stopped, its last checkpoint is intact: free space (or "
-            f"make {str(path)!r} writable) and `adarl resume {path}`"
+            f"make {str(path)!r} writable) and `{command('adarl', 'resume', path)}`"
         ) from None
 
 
@@ -316,6 +324,7 @@ def cmd_experiment(args) -> int:
             progress_interval=progress,
             scratch=args.scratch,
             live=live,
+            rerun_changed=args.rerun_changed,
         )
     except KeyboardInterrupt:  # stopped at once (a second signal, or a launcher that stops its runs so)
         _err(
@@ -572,6 +581,13 @@ def build_parser() -> argparse.ArgumentParser:
     ex.add_argument("--workers", "-j", type=int, default=None, help="runs at a time (default: the spec's workers)")
     ex.add_argument("--dry-run", action="store_true", help="list the runs and their status; run nothing")
     ex.add_argument("--no-report", action="store_true", help="do not write the aggregate report")
+    ex.add_argument(
+        "--rerun-changed",
+        action="store_true",
+        help="train again the runs whose folder was made from another recipe than the spec plans now (refused "
+        "otherwise, naming the keys that changed), into new folders beside the old ones (<run id>.rerun1; the old "
+        "folders are kept)",
+    )
     add_launcher_arguments(ex)
     ex.add_argument(
         "--progress",
@@ -615,6 +631,8 @@ def _line_buffered_stdout() -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    if argv is None:  # the process's own command line: it ends once a stop was asked (never a caller's process)
+        GracefulInterrupt.process_ends_after_a_stop = True
     _restore_sigint()
     _line_buffered_stdout()
     args = build_parser().parse_args(argv)
@@ -639,6 +657,9 @@ def main(argv: list[str] | None = None) -> int:
         _err(str(err))
         return 2 if isinstance(err, ValueError) else 1
     except OSError as err:  # disk full, read-only, no permission: one line, not a traceback
+        if err.errno == errno.ENAMETOOLONG:  # a name given that is too long: bad input, not the disk failing
+            _err(describe_name_too_long(err))
+            return 2
         if err.errno not in STORAGE_ERRNOS:
             raise
         _err(describe_os_error(err))

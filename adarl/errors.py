@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import difflib
 import errno
+import os
+import shlex
 from collections.abc import Iterable
 from typing import Any
 
@@ -13,10 +15,14 @@ __all__ = [
     "RecipeError",
     "MissingExtraError",
     "CheckpointError",
+    "ExportFileError",
     "AdaRLWarning",
     "CheckpointFallbackWarning",
     "STORAGE_ERRNOS",
     "describe_os_error",
+    "describe_name_too_long",
+    "is_storage_failure",
+    "command",
     "NO_VALUE",
     "one_of",
     "did_you_mean",
@@ -50,6 +56,17 @@ class CheckpointError(AdaRLError):
         self.path, self.reason = path, reason
 
 
+class ExportFileError(AdaRLValueError):
+    """An exported policy file (``adarl export``) that is not one, or is empty, truncated, corrupt, changed since it
+    was exported, or holds something that loading would run; nothing in a refused file was run.
+
+    ``path`` is the refused file and ``reason`` the short why."""
+
+    def __init__(self, message: str, *, path=None, reason: str | None = None) -> None:
+        super().__init__(message)
+        self.path, self.reason = path, reason
+
+
 class AdaRLWarning(UserWarning):
     """Base class of adarl's warnings; the ``adarl`` command prints each as one ``adarl: warning:`` line."""
 
@@ -76,6 +93,64 @@ def describe_os_error(err: OSError) -> str:
     if hint and hint.lower() != why.lower():
         why += f" ({hint})"
     return f"{str(err.filename)!r}: {why}" if err.filename else why
+
+
+def is_storage_failure(message: str) -> bool:
+    """Whether a failure's message (a run's last line, an error's text) says the file system failed, not the work:
+    a full disk, a quota, a read-only or failing disk, no permission (:data:`STORAGE_ERRNOS`, as
+    :func:`describe_os_error` and ``OSError`` word them). Such a failure is worth retrying once it is fixed."""
+    text = message.lower()
+    return any(
+        os.strerror(code).lower() in text or hint in text or f"[errno {code}]" in text
+        for code, hint in STORAGE_ERRNOS.items()
+    )
+
+
+def command(*words) -> str:
+    """A command to paste into a shell, each word quoted as the shell needs (``shlex.join``): a suggested command
+    never runs more than it says, whatever a folder is named (``'a b;rm -rf x'`` stays one argument).
+
+    >>> command("adarl", "resume", "runs/a b;rm -rf x")
+    "adarl resume 'runs/a b;rm -rf x'"
+    """
+    return shlex.join(os.fspath(w) if isinstance(w, os.PathLike) else str(w) for w in words)
+
+
+def _limit(path: str, name: str, default: int) -> int:
+    """The file system's ``pathconf`` limit ``name`` where ``path`` (or its nearest existing parent) lives."""
+    here = os.path.abspath(path or ".")
+    while True:
+        try:
+            return int(os.pathconf(here, name))
+        except (OSError, ValueError, AttributeError):
+            parent = os.path.dirname(here)
+            if parent == here:
+                return default
+            here = parent
+
+
+def describe_name_too_long(err: OSError) -> str:
+    """One line for ``ENAMETOOLONG`` (errno 36): a name given that the file system cannot hold, which is bad input,
+    not a failing disk. Names the offending file or folder name and the limit (255 bytes a name, 4096 a path, on
+    Linux's file systems)."""
+    path = os.fsdecode(err.filename) if err.filename is not None else ""
+    name_max = _limit(path, "PC_NAME_MAX", 255)
+    long_names = [part for part in path.split(os.sep) if len(os.fsencode(part)) > name_max]
+    if long_names:
+        part = long_names[0]
+        shown = part if len(part) <= 40 else f"{part[:40]}..."
+        return (
+            f"a name in the path {path.replace(part, shown)!r} is too long: {shown!r} is {len(os.fsencode(part))} "
+            f"bytes, and a file or "
+            f"folder name may have at most {name_max} bytes on this file system; choose a shorter name"
+        )
+    path_max = _limit(path, "PC_PATH_MAX", 4096)
+    return (
+        f"the path {path if len(path) <= 100 else path[:60] + '...' + path[-40:]!r} is too long "
+        f"({len(os.fsencode(path))} bytes; at most {path_max} bytes on this file system); choose a shorter path"
+        if path
+        else f"a file name is too long (at most {name_max} bytes a name on this file system): {err.strerror or err}"
+    )
 
 
 #: The value of a problem about a key that has none (a required key that is missing): messages show no value.

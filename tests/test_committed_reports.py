@@ -884,3 +884,38 @@ def test_issue45s_landed_runs_are_made_into_a_report_by_their_rule():
     assert landed == set(specs)
     for spec in specs.values():
         assert (REPORTS.parents[1] / "recipes" / "experiments" / f"{spec}.yaml").is_file(), spec
+
+
+def test_copies_of_the_committed_pilot_runs_are_finished_runs_of_its_spec_and_an_edited_one_is_named(tmp_path):
+    """Issue 46: an experiment reuses a finished run only while its recipe is what the spec plans now. The committed
+    runs (made before run folders recorded a fingerprint, by an adarl without algorithm.polyak and
+    algorithm.factor_lr_scale) are copied into experiment folders to be reused (issue45/fresh_machine.sh,
+    issue34/fresh_machine.sh): their recipe.yaml, validated by today's schema, must still be the plan's, so a dry run
+    over copies reports them finished; a copy whose recipe says another rank.beta is named with the key."""
+    import shutil
+
+    import yaml
+
+    from adarl.experiments.orchestrate import run_experiment
+
+    picked = [f"env=hopper__algorithm={arm}__seed={s}" for arm, s in (("adarl", 0), ("adarl", 1), ("sac_restarts", 0))]
+    picked.append("env=hopper__algorithm=parseval__seed=0")
+    out = tmp_path / "table1-pilot"
+    for name in picked:
+        shutil.copytree(REPORTS / "table1-pilot" / "runs" / name, out / name)
+        assert not (out / name / "fingerprint.json").exists()  # made before the fingerprint
+    assert "polyak" not in (out / picked[0] / "recipe.yaml").read_text()  # and before the key
+    spec = REPORTS.parents[1] / "recipes" / "experiments" / "table1.yaml"
+    said: list[str] = []
+    runs = {r.run_id: r for r in run_experiment(spec, budget="pilot", output=out, dry_run=True, log=said.append)}
+    assert [runs[name].status for name in picked] == ["skipped-finished"] * 4, said
+    assert {r.status for n, r in runs.items() if n not in picked} == {"pending"}
+    edited = out / picked[1] / "recipe.yaml"
+    recipe = yaml.safe_load(edited.read_text())
+    recipe["rank"]["beta"] = 0.9
+    edited.write_text(yaml.safe_dump(recipe, sort_keys=False))
+    said.clear()
+    runs = {r.run_id: r for r in run_experiment(spec, budget="pilot", output=out, dry_run=True, log=said.append)}
+    expected = ["skipped-finished", "changed", "skipped-finished", "skipped-finished"]
+    assert [runs[name].status for name in picked] == expected, said
+    assert any(picked[1] in line and "rank.beta: 0.9 in the run, 0.98 in the spec" in line for line in said), said

@@ -166,8 +166,10 @@ def test_shipped_experiment_specs_validate_and_are_not_recipes():
     for p in specs:
         spec = load_experiment(p)
         assert "small" in spec.budgets and spec.budgets["small"].description
-        # the 2-core reproduction: `laptop`; table1's is issue 34's two stages, `pilot` and `decisive`
-        for name in ["pilot", "decisive"] if p.stem == "table1" else ["laptop"]:
+        # the 2-core reproduction: `laptop`; table1's is issue 34's two stages, `pilot` and `decisive`; issue 45's
+        # mechanism arms run at the pilot's budget (`pilot`)
+        budgets = {"table1": ["pilot", "decisive"], "mechanism": ["pilot"]}
+        for name in budgets.get(p.stem, ["laptop"]):
             assert name in spec.budgets and spec.budgets[name].description, (p.stem, name)
         for run in (r for budget in spec.budgets for r in plan_runs(spec, "/nonexistent", budget)):
             try:

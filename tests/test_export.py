@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import pickle
 import subprocess
 import sys
 import textwrap
@@ -478,3 +479,267 @@ def test_import_adarl_stays_light_and_names_the_export_api():
     first, second = proc.stdout.strip().splitlines()
     assert first == "[] adarl.runtime.exported adarl.runtime.export"
     assert second == "['tensordict', 'torchrl']"  # export_policy itself needs TorchRL (load_policy); the loader not
+
+
+# --- loading never executes (issue 46, points 1 and 7) ---------------------------------------------------------
+# An export is a zip archive; ExportedPolicy checks it before torch reads a byte of it: CRCs, the sha256 of every
+# member recorded at export, and (a .pt2) that nothing in it is code in disguise (torch.export.load would otherwise
+# unpickle its sample inputs with weights_only=False, eval its shape expressions with sympy and exec its guards).
+
+
+class _Evil:
+    """A pickle that runs a command when unpickled: it would create ``marker``."""
+
+    def __init__(self, marker: Path) -> None:
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return (os.system, (f"touch '{self.marker}'",))
+
+
+@pytest.fixture(scope="module")
+def small_exports(tmp_path_factory) -> dict[str, Path]:
+    """A .pt2 and a .pt of quickstart's actor (low-rank layers, TanhNormal), written by adarl's exporter."""
+    from adarl.runtime.export import export_actor
+
+    actor = _recipe_actor(
+        "quickstart",
+        {"observation_dim": 11, "action_kind": "box", "action_low": -torch.ones(3), "action_high": torch.ones(3)},
+    )
+    folder = tmp_path_factory.mktemp("small_exports")
+    return {
+        "export": export_actor(actor, folder / "policy.pt2", format="export").path,
+        "torchscript": export_actor(actor, folder / "policy.pt").path,
+    }
+
+
+def _members(path: Path) -> tuple[str, dict[str, bytes]]:
+    """The archive's root folder and its members (names relative to it), in order."""
+    with zipfile.ZipFile(path) as z:
+        root = z.namelist()[0].split("/")[0]
+        return root, {n.split("/", 1)[1]: z.read(n) for n in z.namelist()}
+
+
+def _write_members(path: Path, root: str, members: dict[str, bytes]) -> Path:
+    with zipfile.ZipFile(path, "w") as z:
+        for name, data in members.items():
+            z.writestr(f"{root}/{name}", data)
+    return path
+
+
+def _tampered(src: Path, dst: Path, change, *, reseal: bool) -> Path:
+    """``src`` with ``change(members)`` applied (members: name -> bytes, edited in place); ``reseal``: the sha256
+    manifest recomputed as an attacker who knows the format would (so only the content checks stand)."""
+    import hashlib
+
+    root, members = _members(src)
+    change(members)
+    if reseal:
+        meta = json.loads(members["extra/adarl.json"])
+        meta["sha256"] = {n: hashlib.sha256(d).hexdigest() for n, d in members.items() if n != "extra/adarl.json"}
+        members["extra/adarl.json"] = json.dumps(meta).encode()
+    return _write_members(dst, root, members)
+
+
+def _program_json(members: dict[str, bytes], edit) -> None:
+    program = json.loads(members["models/model.json"])
+    edit(program)
+    members["models/model.json"] = json.dumps(program).encode()
+
+
+def _refused(path: Path, *words: str):
+    """ExportedPolicy and read_export_metadata refuse ``path`` with one ExportFileError naming it and ``words``."""
+    from adarl.errors import ExportFileError
+    from adarl.runtime.exported import ExportedPolicy
+
+    with pytest.raises(ExportFileError) as info:
+        ExportedPolicy(path)
+    message = str(info.value)
+    assert str(path) in message and info.value.path is not None, message
+    for word in words:
+        assert word in message, (word, message)
+    assert "weights_only" not in message and "Traceback" not in message
+    return info.value
+
+
+def _sample_inputs_payload(marker):
+    return lambda m: m.__setitem__("data/sample_inputs/model.pt", pickle.dumps(_Evil(marker)))
+
+
+@pytest.mark.parametrize("reseal", [False, True], ids=["as-tampered", "manifest-recomputed"])
+def test_a_pickle_payload_in_a_pt2_export_runs_nothing_and_is_refused_by_name(small_exports, tmp_path, reseal):
+    """The attack of issue 46, point 1: torch.export.load retries the sample inputs with weights_only=False."""
+    marker = tmp_path / "pwned"
+    evil = _tampered(small_exports["export"], tmp_path / "evil.pt2", _sample_inputs_payload(marker), reseal=reseal)
+    err = _refused(evil, "data/sample_inputs/model.pt", *(["Python object", "posix.system"] if reseal else ["sha256"]))
+    assert "nothing in it ran" in str(err) or not reseal
+    assert not marker.exists(), "the pickle in the export ran"
+
+
+@pytest.mark.parametrize(
+    "attack", ["guards", "shape expression", "operation", "parameter name", "aoti library", "object constant"]
+)
+def test_nothing_else_in_a_pt2_export_runs_at_load_either(small_exports, tmp_path, attack):
+    """What torch's deserialiser would execute besides pickles, each in a resealed file (the sha256 manifest is an
+    integrity check, not a signature: whoever can rewrite the file can rewrite it), each refused by name."""
+    marker = tmp_path / "pwned"
+    run = f"__import__('os').system('touch {marker}')"
+
+    def guards(p):  # exec'd by ExportedProgram.module() into a _guards_fn
+        p["guards_code"] = [f"{run} == 0"]
+
+    def shape_expression(p):  # sympy.sympify (eval) of every symbolic size
+        text = json.dumps(p).replace("Symbol('s", f"0*{run} + Symbol('s", 1)
+        p.clear(), p.update(json.loads(text))
+
+    def operation(p):  # any callable under torch becomes a node of the program
+        p["graph_module"]["graph"]["nodes"][0]["target"] = "torch.serialization.os.system"
+
+    def parameter_name(p):  # an attribute name is pasted into the GraphModule's generated code
+        spec = next(s for s in p["graph_module"]["signature"]["input_specs"] if "parameter" in s)
+        spec["parameter"]["parameter_name"] = f'x"), {run}, getattr(self, "y'
+
+    def object_constant(m):  # a constant torch.export.load gives to pickle.loads
+        m["data/constants/opaque_obj_0"] = pickle.dumps(_Evil(marker))
+        config = json.loads(m["data/constants/model_constants_config.json"])
+        config["config"]["c"] = {
+            "path_name": "opaque_obj_0",
+            "is_param": False,
+            "use_pickle": True,
+            "tensor_meta": None,
+        }
+        m["data/constants/model_constants_config.json"] = json.dumps(config).encode()
+
+    changes = {
+        "guards": lambda m: _program_json(m, guards),
+        "shape expression": lambda m: _program_json(m, shape_expression),
+        "operation": lambda m: _program_json(m, operation),
+        "parameter name": lambda m: _program_json(m, parameter_name),
+        "aoti library": lambda m: m.__setitem__("data/aotinductor/model/model.so", b"\x7fELF not really"),
+        "object constant": object_constant,
+    }
+    words = {
+        "guards": ["guards_code"],
+        "shape expression": ["symbolic expression", "__import__"],
+        "operation": ["torch.serialization.os.system"],
+        "parameter name": ['x"), __import__'],
+        "aoti library": ["data/aotinductor/model/model.so"],
+        "object constant": ["data/constants/opaque_obj_0"],
+    }[attack]
+    evil = _tampered(small_exports["export"], tmp_path / "evil.pt2", changes[attack], reseal=True)
+    _refused(evil, *words)
+    assert not marker.exists()
+
+
+@pytest.mark.parametrize("fmt, weights", [("export", "data/weights/weight_0"), ("torchscript", "data/0")])
+def test_a_flipped_byte_in_the_weights_is_refused(small_exports, tmp_path, fmt, weights):
+    """Issue 46, point 7: bit flips in the weights loaded silently (actions differed on 479 of 1000 observations)."""
+    src = small_exports[fmt]
+    root, members = _members(src)
+    flipped = bytearray(members[weights])
+    flipped[5] ^= 0x10
+    # in place, as a disk or a copy damages it: the zip's CRC no longer matches
+    raw = bytearray(src.read_bytes())
+    at = raw.index(members[weights])
+    raw[at + 5] ^= 0x10
+    (tmp_path / "crc").mkdir()
+    damaged = tmp_path / "crc" / src.name
+    damaged.write_bytes(bytes(raw))
+    _refused(damaged, weights, "CRC")
+    # rewritten with a consistent CRC (a tool that re-zips, or on purpose): the sha256 recorded at export refuses it
+    members[weights] = bytes(flipped)
+    edited = _write_members(tmp_path / src.name, root, members)
+    _refused(edited, weights, "sha256", "modified or corrupted after export")
+
+
+@pytest.mark.parametrize("fmt", ["export", "torchscript"])
+def test_truncated_and_empty_exports_are_refused_with_an_adarl_error(small_exports, tmp_path, fmt):
+    from adarl.errors import ExportFileError
+    from adarl.runtime.exported import read_export_metadata
+
+    data = small_exports[fmt].read_bytes()
+    empty = tmp_path / f"empty{small_exports[fmt].suffix}"
+    empty.write_bytes(b"")
+    _refused(empty, "empty")
+    for n, keep in enumerate((len(data) - 10, len(data) // 2, 100, 4)):
+        cut = tmp_path / f"cut{n}{small_exports[fmt].suffix}"
+        cut.write_bytes(data[:keep])
+        _refused(cut, "truncated")
+        with pytest.raises(ExportFileError, match="truncated"):
+            read_export_metadata(cut)
+
+
+@pytest.mark.parametrize("fmt", ["export", "torchscript"])
+def test_exports_name_their_sha256_and_load_with_torch_alone(small_exports, fmt):
+    import hashlib
+
+    from adarl.runtime.exported import ExportedPolicy, read_export_metadata
+
+    root, members = _members(small_exports[fmt])
+    meta = read_export_metadata(small_exports[fmt])
+    assert meta["sha256"] == {n: hashlib.sha256(d).hexdigest() for n, d in members.items() if n != "extra/adarl.json"}
+    with zipfile.ZipFile(small_exports[fmt]) as z:
+        assert z.testzip() is None
+    obs = _observations(50, 11, seed=9)
+    if fmt == "export":  # torch alone still reads it, metadata included
+        extra = {"adarl.json": ""}
+        program = torch.export.load(small_exports[fmt], extra_files=extra).module()
+    else:
+        extra = {"adarl.json": ""}
+        program = torch.jit.load(str(small_exports[fmt]), _extra_files=extra)
+    assert json.loads(extra["adarl.json"]) == meta
+    with torch.no_grad():
+        assert torch.equal(program(obs), ExportedPolicy(small_exports[fmt])(obs))
+
+
+def test_a_pickle_payload_in_a_torchscript_export_runs_nothing(small_exports, tmp_path):
+    marker = tmp_path / "pwned"
+
+    def payload(m):
+        m["data.pkl"] = pickle.dumps(_Evil(marker))
+
+    for reseal in (False, True):
+        evil = _tampered(small_exports["torchscript"], tmp_path / f"evil{reseal}.pt", payload, reseal=reseal)
+        _refused(evil, "sha256" if not reseal else "cannot be loaded")
+    assert not marker.exists()
+
+
+def test_an_export_from_before_the_sha256_still_loads_with_a_warning(small_exports, tmp_path):
+    from adarl.errors import AdaRLWarning
+    from adarl.runtime.exported import ExportedPolicy
+
+    def strip(m):
+        meta = json.loads(m["extra/adarl.json"])
+        del meta["sha256"]
+        m["extra/adarl.json"] = json.dumps(meta).encode()
+
+    obs = _observations(50, 11, seed=10)
+    marker = tmp_path / "pwned"
+    for fmt, path in small_exports.items():
+        old = _tampered(path, tmp_path / f"old{path.suffix}", strip, reseal=False)
+        with pytest.warns(AdaRLWarning, match="sha256") as record:
+            policy = ExportedPolicy(old)
+        assert str(old) in str(record[0].message)
+        assert torch.equal(policy(obs), ExportedPolicy(path)(obs))
+        if fmt == "export":  # still through the safe path: a payload in an unsealed file is refused as well
+            evil = _tampered(old, tmp_path / "old-evil.pt2", _sample_inputs_payload(marker), reseal=False)
+            with pytest.warns(AdaRLWarning, match="sha256"):
+                _refused(evil, "data/sample_inputs/model.pt", "Python object")
+    assert not marker.exists()
+
+
+def test_the_cli_names_a_bad_export_in_one_line(small_exports, tmp_path, capsys):
+    """eval, play and export take a run folder or a checkpoint: an export given to them is named as one, in one line,
+    and a tampered one runs nothing there either."""
+    marker = tmp_path / "pwned"
+    evil = _tampered(small_exports["export"], tmp_path / "evil.pt2", _sample_inputs_payload(marker), reseal=True)
+    cut = tmp_path / "cut.pt2"
+    cut.write_bytes(small_exports["export"].read_bytes()[:500])
+    for path in (small_exports["export"], small_exports["torchscript"], evil, cut):
+        for command in (["play", str(path), "--episodes", "1"], ["export", str(path), "-o", str(tmp_path / "x.pt")]):
+            code = cli_main(command)
+            err = capsys.readouterr().err
+            assert code != 0 and err.startswith("adarl: error: ") and len(err.strip().splitlines()) == 1, err
+            assert str(path) in err and "Traceback" not in err
+        assert "exported policy" in err or path == cut
+    assert not marker.exists()

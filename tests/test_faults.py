@@ -14,11 +14,13 @@ import hashlib
 import json
 import os
 import re
+import shlex
 import shutil
 import signal
 import stat
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -426,6 +428,90 @@ def test_resumed_run_times_every_process(tmp_path):
     assert f"wall time: {summary['wall_time_s']:.0f} s ({summary['updates_per_s']:.1f} updates/s)" in report
 
 
+class _Stderr:
+    """A background process's stderr, read as it comes (the progress bar, adarl's notices): what a test waits on."""
+
+    def __init__(self, proc: subprocess.Popen) -> None:
+        self.chunks: list[str] = []
+        self._thread = threading.Thread(target=self._read, args=(proc,), daemon=True)
+        self._thread.start()
+
+    def _read(self, proc: subprocess.Popen) -> None:
+        while chunk := proc.stderr.read(1):  # returns as soon as something is there
+            self.chunks.append(chunk)
+
+    @property
+    def text(self) -> str:
+        return "".join(self.chunks)
+
+    def done(self) -> str:
+        self._thread.join(timeout=60)
+        return self.text
+
+
+def _error_lines(text: str) -> list[str]:
+    return [line.strip() for line in text.splitlines() if line.strip().startswith("adarl: error:")]
+
+
+@pytest.mark.parametrize("when", ["while its batch runs", "once the stop has begun"])
+def test_a_second_sigint_never_gives_a_traceback_and_the_run_resumes_exactly(finished, tmp_path, when):
+    """Issue 46.8: SIGINT twice 0.5 s apart ended about one try in four with a traceback (a tensordict RuntimeError,
+    a KeyboardInterrupt in an exit handler) or killed by the signal (exit -2). A second signal while the batch runs
+    stops at once (its previous checkpoint kept); once the stop has begun (its checkpoint being written) it is
+    ignored. Either way: exit 130, one line, and the run resumes to the very run never stopped."""
+    run = tmp_path / "run"
+    proc = _start("run", "quickstart", *FAST, "-o", str(run))  # not --quiet: its notices are the events waited on
+    err = _Stderr(proc)
+    try:
+        first = run / "checkpoints" / "ckpt-000000000100.pt"
+        assert _wait_for(first.is_file, proc), err.text[-3000:]
+        proc.send_signal(signal.SIGSTOP)  # the first signal lands in training, 100 frames in (the run has 300)
+        proc.send_signal(signal.SIGINT)
+        proc.send_signal(signal.SIGCONT)
+        event = "SIGINT received" if when == "while its batch runs" else "adarl: stopping:"
+        assert _wait_for(lambda: event in err.text, proc), err.text[-3000:]
+        proc.send_signal(signal.SIGINT)  # at once: in the batch, or as the checkpoint is written and the run closes
+        proc.wait(timeout=300)
+    finally:
+        proc.kill()
+    text = err.done()
+    assert proc.returncode == 130, (proc.returncode, text[-3000:])
+    assert "Traceback" not in text and "Exception ignored" not in text, text[-3000:]
+    [line] = _error_lines(text)
+    if when == "once the stop has begun":
+        assert re.search(r"stopped on SIGINT at \d+ frames; checkpoint ckpt-\d+\.pt saved", line), line
+    else:
+        assert "stopped on SIGINT at" in line or "interrupted (stopped at once" in line, line
+    done = adarl("resume", str(run), "--quiet")
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert _results(run) == _results(finished)  # the same run, bit for bit, as one never stopped
+
+
+def test_sighup_checkpoints_and_stops_as_sigterm_does(finished, tmp_path):
+    """Issue 46.8: SIGHUP (the terminal or SSH session closed) killed the run like kill -9, without a checkpoint; it
+    checkpoints after its batch and exits 129 (128 + SIGHUP), and the run resumes exactly."""
+    run = tmp_path / "run"
+    proc = _start("run", "quickstart", *FAST, "-o", str(run), "--quiet")
+    try:
+        first = run / "checkpoints" / "ckpt-000000000100.pt"
+        assert _wait_for(first.is_file, proc), proc.communicate()[1][-3000:]
+        proc.send_signal(signal.SIGSTOP)  # delivered in training, 100 frames in (the run has 300)
+        proc.send_signal(signal.SIGHUP)
+        proc.send_signal(signal.SIGCONT)
+        out, err = proc.communicate(timeout=300)
+    finally:
+        proc.kill()
+    assert proc.returncode == 128 + signal.SIGHUP, (proc.returncode, err[-3000:])
+    assert "Traceback" not in err, err[-3000:]
+    [line] = _error_lines(err)
+    stopped = re.search(r"stopped on SIGHUP at (\d+) frames; checkpoint (ckpt-\d+\.pt) saved", line)
+    assert stopped and int(stopped.group(1)) >= 100, line  # after its batch (the one at 100 had just checkpointed)
+    assert (run / "checkpoints" / stopped.group(2)).is_file()
+    done = adarl("resume", str(run), "--quiet")
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert _results(run) == _results(finished)
+
+
 # ------------------------------------------------------------------------------------------ someone else's folder
 
 
@@ -640,6 +726,86 @@ def test_physically_impossible_value_is_refused_before_a_run_folder(tmp_path, va
         (line,) = [line for line in proc.stderr.splitlines() if line.startswith("adarl: error:")]
         assert all(word in line for word in (name, value, allowed, "env.perturbation.schedule")), line
     assert not (tmp_path / "r").exists()
+
+
+# ------------------------------------------------------------------------------------------ names, commands, budget
+
+
+def test_an_output_folder_name_over_255_bytes_is_one_line_naming_the_limit(tmp_path):
+    """Issue 46.9: an output folder named with 300 characters gave an OSError traceback (errno 36, ENAMETOOLONG, is
+    a name the file system cannot hold, not a failing disk): one line naming the limit, exit 2, nothing written."""
+    spec = tmp_path / "exp.yaml"
+    spec.write_text("kind: experiment\nname: x\nrecipe: quickstart\nseeds: [0]\n")
+    long = tmp_path / ("a" * 300)
+    for args in (
+        ["run", "quickstart", *FAST, "-o", str(long), "--quiet"],
+        ["resume", str(long), "--quiet"],
+        ["eval", str(long)],
+        ["experiment", str(spec), "-o", str(long), "--no-live"],
+    ):
+        proc = adarl(*args)
+        assert proc.returncode == 2 and "Traceback" not in proc.stderr, (args, proc.stderr[-3000:])
+        [line] = _error_lines(proc.stderr)
+        assert "too long" in line and "300 bytes" in line and "at most 255 bytes" in line, line
+    assert [p.name for p in tmp_path.iterdir()] == ["exp.yaml"]
+
+
+def _commands(text: str) -> list[list[str]]:
+    """Every command a message suggests (between backticks), as the shell would split it."""
+    return [shlex.split(c) for c in re.findall(r"`(adarl [^`]*)`", text)]
+
+
+def test_suggested_commands_are_quoted_for_the_shell(finished, tmp_path):
+    """Issue 46.9: a folder named `a b;rm -rf x` gave `adarl resume .../a b;rm -rf x`, which a shell runs as
+    `adarl resume .../a b` then `rm -rf x`. Every command adarl suggests is quoted (shlex): pasted, it runs what it
+    says, with the folder as one argument."""
+    run = _copy(finished, tmp_path / "a b;rm -rf x")
+    exists = _one_error_line(adarl("run", "quickstart", *FAST, "-o", str(run), "--quiet"), "already exists")
+    assert _commands(exists) == [["adarl", "resume", str(run)]]
+    changed = adarl("resume", str(run), "rank.beta=0.5", "--quiet")
+    assert changed.returncode == 2, changed.stderr[-3000:]
+    assert _commands(changed.stderr) == [["adarl", "run", str(run / "recipe.yaml"), "rank.beta=0.5", "-o", "NEW_DIR"]]
+    complete = adarl("resume", str(run), "--quiet")
+    assert complete.returncode == 0 and "already complete" in complete.stdout, complete.stderr[-3000:]
+    assert _commands(complete.stdout) == [["adarl", "resume", str(run), "collector.total_frames=N"]]
+
+
+# The only rank event at update 500, in the last batch (updates start at 200 frames, 100 per 100-frame batch).
+LAST_BATCH_EVENT = [
+    "collector.total_frames=600",
+    "collector.init_random_frames=200",
+    "collector.frames_per_batch=100",
+    "algorithm.batch_size=32",
+    "rank.interval=500",
+    "replay.size=2000",
+    "replay.warm_start.frames=100",
+    "lr_schedule.warmup_steps=20",
+    "eval.interval=600",
+    "eval.episodes=1",
+    "eval.max_steps=20",
+    "checkpoint.interval=600",
+]
+
+
+@pytest.mark.parametrize("counted", ["true", "false"])
+def test_a_warm_start_never_runs_past_the_frame_budget(tmp_path, counted):
+    """Issue 46.9: a rank event in the last batch warm-started after it, past the budget: total_frames=600 ended at
+    700 frames, and resume then reported 700. Counted warm-start frames stop at the budget; uncounted ones
+    (``count_frames=false``, every committed experiment's setting) run exactly as before: the numbers below are the
+    code's before the fix."""
+    run = tmp_path / "run"
+    proc = adarl(
+        "run", "quickstart", *LAST_BATCH_EVENT, f"replay.warm_start.count_frames={counted}", "-o", str(run), "--quiet"
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    summary = json.loads((run / "summary.json").read_text())
+    got = {k: summary[k] for k in ("frames", "env_frames", "warm_start_frames", "updates", "rank_events")}
+    if counted == "true":  # the event's warm start has no budget left: it collects nothing
+        assert got == {"frames": 600, "env_frames": 600, "warm_start_frames": 0, "updates": 500, "rank_events": 1}
+    else:  # as before the fix: 100 warm-start frames beside the 600 the budget counts
+        assert got == {"frames": 600, "env_frames": 700, "warm_start_frames": 100, "updates": 500, "rank_events": 1}
+    proc = adarl("resume", str(run), "--quiet")
+    assert proc.returncode == 0 and "already complete: 600 frames of collector.total_frames=600" in proc.stdout
 
 
 # ------------------------------------------------------------------------------------------ the documented table

@@ -130,7 +130,8 @@ def test_progress_board_lines_and_bar(tmp_path, local_reference):
     runs[0].status = "finished"
     lines = ProgressBoard(runs).render()
     assert len(lines) == 5
-    assert lines[0].split()[0] == "finished" and "frames 650/600" in lines[0] and "return" in lines[0]
+    # 600/600: a warm start in the last batch no longer runs past the budget (it ended at 650, issue 46.9)
+    assert lines[0].split()[0] == "finished" and "frames 600/600" in lines[0] and "return" in lines[0]
     assert lines[-1].startswith("[") and "1/4 runs done" in lines[-1]
 
 
@@ -505,13 +506,14 @@ def test_a_run_stopped_by_sigterm_from_outside_is_interrupted_not_failed_and_res
     ]
 
 
-def test_an_exit_status_names_the_interrupting_signal_only_for_sigint_and_sigterm():
+def test_an_exit_status_names_the_interrupting_signal_only_for_the_stop_signals():
     from adarl.experiments.execute import interrupting_signal
 
     assert interrupting_signal(128 + signal.SIGTERM) == signal.SIGTERM
     assert interrupting_signal(-signal.SIGTERM) == signal.SIGTERM
     assert interrupting_signal(128 + signal.SIGINT) == signal.SIGINT
     assert interrupting_signal(-signal.SIGINT) == signal.SIGINT
+    assert interrupting_signal(128 + signal.SIGHUP) == signal.SIGHUP  # a closed session: checkpointed (issue 46.8)
     for other in (0, 1, 2, -signal.SIGKILL, 128 + signal.SIGKILL, None):  # SIGKILL: the OOM killer's, a failure
         assert interrupting_signal(other) is None
 
@@ -685,3 +687,101 @@ def test_an_output_folder_deleted_mid_experiment_stops_it_in_one_line_and_is_not
     assert proc.returncode == 1, err[-3000:]
     assert "was deleted or moved while the experiment ran" in err and "Traceback" not in err, err[-3000:]
     assert not out.exists() and _training_pids(str(out)) == []
+
+
+# ------------------------------------------------------------------------------------------ launchers that cannot start
+
+
+def _one_line(proc: subprocess.CompletedProcess, status: int, *words: str) -> str:
+    assert proc.returncode == status and "Traceback" not in proc.stderr, (proc.returncode, proc.stderr[-3000:])
+    [line] = [line for line in proc.stderr.splitlines() if line.startswith("adarl: error:")]
+    assert all(w in line for w in words), line
+    return line
+
+
+def test_a_ray_address_nothing_answers_at_is_one_line_within_seconds(tmp_path):
+    """Issue 46.8: `--launcher ray --ray-address 127.0.0.1:1` retried for minutes with no end (Ray's own retries):
+    refused in one line naming the address, within the launcher's connect timeout."""
+    pytest.importorskip("ray")
+    start = time.monotonic()
+    proc = subprocess.run(
+        _experiment_cli(_spec(tmp_path), tmp_path / "out", "--launcher", "ray", "--ray-address", "127.0.0.1:1"),
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    _one_line(proc, 1, "cannot reach the Ray cluster at '127.0.0.1:1'")
+    assert time.monotonic() - start < 120  # Ray's import and start-up on a loaded machine, not its retries
+
+
+def test_a_ray_address_that_never_answers_is_refused_after_the_connect_timeout(monkeypatch):
+    """The same for an address that never answers (a dropped packet, a firewall): bounded by ``connect_timeout_s``."""
+    pytest.importorskip("ray")
+    import socket
+
+    from adarl.experiments.launchers import RayLauncher
+
+    def no_answer(address, timeout=None):
+        time.sleep(timeout)  # as a connect that hangs until its timeout
+        raise TimeoutError("timed out")
+
+    monkeypatch.setattr(socket, "create_connection", no_answer)
+    start = time.monotonic()
+    with pytest.raises(
+        AdaRLError, match=r"cannot reach the Ray cluster at '127.0.0.1:6379': no answer \(within 0.5 s\)"
+    ):
+        with RayLauncher("127.0.0.1:6379", connect_timeout_s=0.5).session():
+            pass
+    assert time.monotonic() - start < 10
+
+
+def test_a_ray_client_address_without_ray_client_is_one_line_and_writes_nothing(tmp_path, monkeypatch):
+    """Issue 46.8: a `ray://` address without `ray[client]` gave Ray's ValueError as a traceback: bad input, one line
+    naming the missing extra, before the experiment writes anything."""
+    pytest.importorskip("ray")
+    import importlib.util
+
+    from adarl.errors import MissingExtraError
+    from adarl.experiments.launchers import RayLauncher
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "grpc" else real(name, *a))
+    with pytest.raises(
+        MissingExtraError, match=r"'ray://127.0.0.1:1' is a Ray Client address .* pip install 'ray\[client\]'"
+    ):
+        RayLauncher("ray://127.0.0.1:1")
+    monkeypatch.undo()
+    if importlib.util.find_spec("grpc") is None:  # this machine lacks it too: the command says so
+        out = tmp_path / "out"
+        proc = subprocess.run(
+            _experiment_cli(_spec(tmp_path), out, "--launcher", "ray", "--ray-address", "ray://127.0.0.1:1"),
+            cwd=REPO,
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
+        _one_line(proc, 2, "ray://127.0.0.1:1", "pip install 'ray[client]'")
+        assert not out.exists()
+
+
+@pytest.mark.parametrize("present", [["sbatch"], []], ids=["sbatch without srun", "neither"])
+def test_submitit_on_slurm_without_its_executables_is_one_line_naming_them(tmp_path, present):
+    """Issue 46.8: `--launcher submitit --submitit-cluster slurm` on a machine without `srun` gave submitit's
+    RuntimeError as a traceback (without `sbatch`: a FileNotFoundError at the first submission)."""
+    pytest.importorskip("submitit")
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    for exe in present:  # a PATH with only these of SLURM's executables
+        (bin_dir / exe).write_text("#!/bin/sh\nexit 1\n")
+        (bin_dir / exe).chmod(0o755)
+    proc = subprocess.run(
+        _experiment_cli(_spec(tmp_path), tmp_path / "out", "--launcher", "submitit", "--submitit-cluster", "slurm"),
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**os.environ, "PATH": str(bin_dir)},
+    )
+    missing = "srun" if present else "sbatch and srun"
+    _one_line(proc, 1, f"slurm cluster needs {missing}", "--submitit-cluster local")

@@ -94,3 +94,87 @@ def test_a_file_beside_the_recipe_never_shadows_a_module_imported_later(recipe, 
     (tmp_path / "json.py").write_text("VALUE = 1\n")
     with pytest.raises(RecipeError, match=r"plugins: .*json.py.*'json'"):
         load_recipe(recipe, [f"plugins=[{tmp_path / 'json.py'}]"])
+
+
+HELPED = '''
+"""A SAC whose loss takes a constant from a helper module beside it."""
+from torchrl.objectives import SACLoss
+
+from adarl import register_algorithm
+from helper_of_algo import SCALE
+
+
+@register_algorithm("helped_sac", description="SACLoss with a helper beside it")
+class HelpedSACLoss(SACLoss):
+    scale = SCALE
+'''
+
+
+def test_a_helper_module_the_plugin_imports_is_fingerprinted_and_a_change_refused_by_resume_eval_and_report(
+    tmp_path, monkeypatch
+):
+    """Issue 46.6: a helper module the plugin imports could change between run and resume unhashed; and
+    `adarl report` did not refuse a run whose plugin changed, though the docs said it did."""
+    import json
+
+    from adarl.experiments.aggregate import collect_runs
+    from adarl.runtime.fingerprint import differences
+    from adarl.runtime.report import write_report
+    from adarl.runtime.run_dir import RunDir
+
+    monkeypatch.delitem(sys.modules, "helper_of_algo", raising=False)
+    monkeypatch.delitem(sys.modules, "helped_algo", raising=False)
+    (tmp_path / "helped_algo.py").write_text(HELPED)
+    (tmp_path / "helper_of_algo.py").write_text("SCALE = 1.0\n")
+    (tmp_path / "r.yaml").write_text("extends: quickstart\nplugins: [helped_algo]\nalgorithm: {name: helped_sac}\n")
+    loaded = load_recipe(tmp_path / "r.yaml", ["collector.total_frames=500", "collector.init_random_frames=100"])
+    [recorded] = local_plugins.record(loaded.plugins)
+    assert list(recorded["imports"]) == ["helper_of_algo.py"]
+    run = RunDir.create(tmp_path / "run")
+    try:
+        run.save_recipe(loaded)
+    finally:
+        run.unlock()
+    (run.path / "summary.json").write_text(json.dumps({"frames": 500}))
+    [module] = json.loads((run.path / "fingerprint.json").read_text())["plugins"]
+    assert module["module"] == "helped_algo" and list(module["imports"]) == ["helper_of_algo.py"]
+    assert differences(run.path, loaded) == []
+    RunDir(run.path).load_recipe()  # unchanged: resumes, evaluates
+
+    (tmp_path / "helper_of_algo.py").write_text("SCALE = 2.0\n")
+    with pytest.raises(RecipeError, match=r"'helped_algo', which imports helper_of_algo.py .* changed since"):
+        RunDir(run.path).load_recipe()  # what resume and eval read the run with
+    with pytest.raises(RecipeError, match=r"helper_of_algo.py .* changed since"):
+        write_report(run.path)
+    with pytest.raises(RecipeError, match=r"helper_of_algo.py .* changed since"):
+        collect_runs([run.path])  # the aggregate report
+    assert not (run.path / "report.md").exists()
+
+
+def test_a_module_plugin_found_on_the_path_is_checked_where_python_finds_it_now(tmp_path, monkeypatch):
+    """Issue 46.6: a module plugin found on PYTHONPATH was shadowed at resume by another of the same name (the
+    recorded path was hashed, not the one imported)."""
+    from adarl.runtime.run_dir import RunDir
+
+    name = "shadowed_sac_plugin"
+    monkeypatch.delitem(sys.modules, name, raising=False)
+    first, second = tmp_path / "first", tmp_path / "second"
+    for folder in (first, second):
+        folder.mkdir()
+        (folder / f"{name}.py").write_text(MODULE.replace("local_sac", "shadowed_sac") + f"\nWHERE = {folder.name!r}\n")
+    monkeypatch.syspath_prepend(str(first))
+    (tmp_path / "r.yaml").write_text(f"extends: quickstart\nplugins: [{name}]\nalgorithm: {{name: shadowed_sac}}\n")
+    loaded = load_recipe(tmp_path / "r.yaml")
+    run = RunDir.create(tmp_path / "run")
+    try:
+        run.save_recipe(loaded)
+    finally:
+        run.unlock()
+    RunDir(run.path).load_recipe()
+    # a later process: another module of that name comes first on the path
+    sys.modules.pop(name, None)
+    monkeypatch.setattr(local_plugins, "_IMPORTED", {})
+    monkeypatch.syspath_prepend(str(second))
+    with pytest.raises(RecipeError, match=rf"{name}.* from {first}.*now imports '{name}' from {second}"):
+        RunDir(run.path).load_recipe()
+    sys.modules.pop(name, None)

@@ -271,6 +271,22 @@ def test_guard_names_the_bad_gradient_and_parameter():
         g.check_params(6)
 
 
+def test_a_finite_parameter_is_never_called_non_finite_and_a_bad_one_is_named():
+    """Issue 46.9: "non-finite parameter ...: ?": the fused check took the 2-norm, which overflows to inf for a
+    finite float32 tensor above ~1.8e19, and then no tensor was found non-finite. The check is exact now, and a
+    message always names a tensor."""
+    w = torch.nn.Parameter(torch.full((3,), 1e20))
+    b = torch.nn.Parameter(torch.zeros(2))
+    g = NonFiniteGuard({"actor.w": w, "actor.b": b})
+    g.check_params(7)  # large, finite: not a divergence the guard stops on
+    w.grad = torch.full((3,), 1e20)
+    g.check_grads(7)
+    with torch.no_grad():
+        w[2] = float("-inf")
+    with pytest.raises(NonFiniteError, match=r"parameter at update 8: actor.w \(inf\)$"):
+        g.check_params(8)
+
+
 def test_dead_layer_check():
     check_live_layers({"a.w1": torch.randn(4, 2), "q.w2": torch.randn(2, 2, 3)}, event_step=10)
     with pytest.raises(DeadLayerError, match="all zero"):
@@ -299,6 +315,37 @@ def test_first_signal_is_recorded_second_stops_now():
         with pytest.raises(KeyboardInterrupt):
             os.kill(os.getpid(), signal.SIGINT)
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    GracefulInterrupt.stopped_at_once = None
+
+
+def test_a_signal_once_the_stop_has_begun_is_ignored_and_sighup_stops_as_sigterm(capfd):
+    """Issue 46.8: once the stop has begun (its checkpoint being written) a second signal no longer interrupts it;
+    SIGHUP asks for the same stop as SIGTERM."""
+    with GracefulInterrupt() as interrupt:
+        os.kill(os.getpid(), signal.SIGHUP)
+        assert interrupt.requested == signal.SIGHUP
+        interrupt.stopping("saving the checkpoint at 100 frames, then exiting")
+        os.kill(os.getpid(), signal.SIGINT)  # no KeyboardInterrupt: noted and ignored
+        os.kill(os.getpid(), signal.SIGHUP)
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored: this process goes on
+    assert signal.getsignal(signal.SIGHUP) is signal.SIG_DFL
+    err = capfd.readouterr().err
+    assert "SIGHUP received: saving a checkpoint after this batch" in err
+    assert "adarl: stopping: saving the checkpoint at 100 frames, then exiting" in err
+    assert "SIGINT received again: already stopping" in err
+
+
+def test_sighup_ignored_when_the_run_starts_stays_ignored():
+    """``nohup adarl run ...``: a hang-up was meant not to stop the run, and does not."""
+    previous = signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    try:
+        with GracefulInterrupt(quiet=True) as interrupt:
+            assert signal.getsignal(signal.SIGHUP) is signal.SIG_IGN
+            os.kill(os.getpid(), signal.SIGHUP)
+            assert interrupt.requested is None
+        assert signal.getsignal(signal.SIGHUP) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGHUP, previous)
 
 
 # ------------------------------------------------------------------------------------------ recipes run no code

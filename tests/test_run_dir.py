@@ -307,3 +307,79 @@ def test_a_deleted_run_folder_is_not_recreated(tmp_path):
     (tmp_path / "moved" / LOCK_FILE).write_text("")  # another folder took its name: not the one this process holds
     with pytest.raises(RunFolderGone):
         moved.ensure_present()
+
+
+class _Payload:
+    """A pickle that runs a command when unpickled: it would create ``marker``."""
+
+    def __init__(self, marker) -> None:
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return (os.system, (f"touch '{self.marker}'",))
+
+
+@pytest.mark.parametrize(
+    "attack",
+    [
+        "checkpoint",
+        "checkpoint as plain pickle",
+        "buffer.pt",
+        "prefetch.pkl",
+        "transform.t",
+        "meta.json class",
+        "extra file",
+        "symlink",
+    ],
+)
+def test_loading_a_checkpoint_or_its_replay_buffer_runs_nothing(tmp_path, attack):
+    """Issue 46: every file a resume reads goes through a weights-only or data-only path. The replay buffer of a
+    checkpoint from before buffer.pt is TorchRL's dumps() folder, which TorchRL reads with pickle.load (its
+    prefetch.pkl), torch.load (transform.t) and tensordict's load_memmap (pickled non-tensor leaves, classes
+    imported by the name in meta.json): such a folder is checked first, and anything but tensors and JSON refused."""
+    import pickle
+    import shutil
+
+    from tensordict import TensorDict
+    from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+
+    def buffer():
+        return TensorDictReplayBuffer(storage=LazyTensorStorage(100), batch_size=4)
+
+    marker = tmp_path / "pwned"
+    rb = buffer()
+    rb.extend(TensorDict({"obs": torch.randn(30, 3)}, [30]))
+    run = RunDir.create(tmp_path / "run")
+    ckpt = run.save_checkpoint({"counters": {"frames": 30}}, frames=30, replay_buffer=rb)
+    folder = run.checkpoint_dir / "rb-000000000030"
+    if attack in ("checkpoint", "buffer.pt"):
+        target = ckpt if attack == "checkpoint" else folder / "buffer.pt"
+        torch.save({"format": "adarl.checkpoint", "version": 1, "frames": 30, "state": _Payload(marker)}, target)
+    elif attack == "checkpoint as plain pickle":
+        ckpt.write_bytes(pickle.dumps(_Payload(marker)))
+    else:  # the layout checkpoints had before buffer.pt (still read), with something that would run
+        shutil.rmtree(folder)
+        rb.dumps(str(folder))
+        if attack == "prefetch.pkl":
+            (folder / "prefetch.pkl").write_bytes(pickle.dumps({"version": 1, "queue": (_Payload(marker),)}))
+        elif attack == "transform.t":
+            torch.save({"t": _Payload(marker)}, folder / "transform.t")
+        elif attack == "meta.json class":
+            meta = folder / "storage" / "meta.json"
+            meta.write_text(meta.read_text().replace("<class 'tensordict._td.TensorDict'>", "antigravity.Fly"))
+        elif attack == "extra file":
+            (folder / "storage" / "obs.pickle").write_bytes(pickle.dumps(_Payload(marker)))
+        else:
+            (folder / "storage" / "obs.memmap").unlink()
+            (folder / "storage" / "obs.memmap").symlink_to("/dev/zero")
+    with pytest.raises(CheckpointError) as info:
+        run.load_checkpoint(ckpt)
+    assert ckpt.name in str(info.value) and "weights_only" not in str(info.value)
+    if attack.startswith("checkpoint"):
+        assert "cannot be loaded safely" in str(info.value)
+    else:
+        assert "has lost its replay buffer" in str(info.value) and "rb-000000000030" in str(info.value)
+    if attack not in ("checkpoint", "checkpoint as plain pickle", "buffer.pt"):
+        with pytest.raises(CheckpointError, match="rb-000000000030"):
+            run.load_replay_buffer(buffer(), frames=30, checkpoint=ckpt)
+    assert not marker.exists(), "a file of the checkpoint ran code"

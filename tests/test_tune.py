@@ -88,6 +88,18 @@ BAD = {
         {"sampler": {"name": "grid"}},
         ["grid sampler needs a finite grid", "rank.beta"],
     ),
+    # issue 46.4: each trial sets its own seed (and output) after the space's point: a space or override setting
+    # them was recorded as the trial's parameter while the run trained with the trial's seed
+    "seed in the space": (
+        {"space": {"seed": {"type": "int", "low": 0, "high": 100}}},
+        ["space 'seed'", "each trial sets it itself", "seeds"],
+    ),
+    "seed in the overrides": ({"overrides": [*TINY, "seed=3"]}, ["override 'seed=3'", "each trial sets it itself"]),
+    "an output key in the space": (
+        {"space": {"output.dir": {"type": "categorical", "choices": ["a", "b"]}}},
+        ["space 'output.dir'", "each trial sets it itself"],
+    ),
+    "a name that is no folder name": ({"name": ".."}, ["name", "'..'"]),  # issue 46.5: it wrote into runs/
 }
 
 
@@ -545,3 +557,120 @@ def test_a_study_whose_output_closes_leaves_its_trial_to_resume_never_failed(tmp
         run_tune(_spec(tmp_path), output=out, log=closed_after_the_first_line)
     trials = optuna.load_study(study_name="tiny", storage=f"sqlite:///{out / 'study.db'}").trials
     assert [(t.number, t.state.name) for t in trials] == [(0, "RUNNING")]
+
+
+def _snapshot(root: Path) -> dict[str, bytes]:
+    """Every file's bytes but the driver's lock (it names the process that holds it)."""
+    return {
+        str(p.relative_to(root)): p.read_bytes()
+        for p in sorted(root.rglob("*"))
+        if p.is_file() and p.name != ".tune.lock"
+    }
+
+
+@pytest.mark.slow
+def test_a_lost_or_emptied_study_db_is_rebuilt_from_the_trial_records_and_a_corrupt_one_refused(
+    tmp_path, monkeypatch, capsys
+):
+    """Issue 46.3: with study.db deleted or emptied and the trial folders left, a rerun with another sampler seed
+    "completed" each trial in 0.1 s by reusing the old run under other parameters (tune_trial.json, trials.csv and
+    best_recipe.yaml said rank.beta=0.8145 while the run trained with 0.9043); a corrupt study.db gave a sqlalchemy
+    traceback. Now the study is rebuilt from the records each trial keeps beside its run, and a corrupt one is
+    refused by name."""
+    from adarl.cli import main
+    from adarl.experiments.tune import run_tune
+
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    out = tmp_path / "out"
+    said: list[str] = []
+    assert run_tune(_spec(tmp_path, n_trials=1), output=out, log=said.append).states == {"COMPLETE": 1}, said
+    params = json.loads((out / "trials" / "trial-0000" / "tune_trial.json").read_text())["params"]
+    trained = yaml.safe_load((out / "trials" / "trial-0000" / "recipe.yaml").read_text())
+    assert trained["rank"]["beta"] == params["rank.beta"]
+    before = _snapshot(out / "trials")
+    db = out / "study.db"
+    for how in ("deleted", "emptied"):
+        db.unlink() if how == "deleted" else db.write_bytes(b"")
+        other = _spec(tmp_path, n_trials=1, sampler={"name": "random", "seed": 7})
+        said.clear()
+        result = run_tune(other, output=out, log=said.append)
+        assert result.states == {"COMPLETE": 1}, (how, said)
+        assert result.best_number == 0 and result.best_params == params, (how, said)
+        assert any("rebuilt" in line and "1 trial" in line for line in said), said
+        with (out / "trials.csv").open() as fh:
+            [row] = list(csv.DictReader(fh))
+        assert float(row["rank.beta"]) == params["rank.beta"] and row["state"] == "COMPLETE"
+        best = yaml.safe_load((out / "best_recipe.yaml").read_text())
+        assert best["rank"]["beta"] == trained["rank"]["beta"]
+        assert _snapshot(out / "trials") == before, how  # nothing trained again, no record rewritten
+    # a second trial after the rebuild is trial 1, in a folder of its own
+    db.write_bytes(b"this is not a database, " * 200)
+    kept = _snapshot(out)
+    assert main(["tune", str(_spec(tmp_path, n_trials=2)), "-o", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert "study.db" in err and "is not a readable" in err and "trials/" in err, err
+    assert "Traceback" not in err and err.count("\n") == 1, err
+    assert _snapshot(out) == kept
+
+
+@pytest.mark.slow
+def test_the_base_recipe_is_pinned_by_content_and_read_from_the_specs_folder(tmp_path, monkeypatch, capsys):
+    """Issue 46.5: a relative `recipe:` was read from the working folder, not the spec's; and an edit of the recipe
+    the spec names went unnoticed (raise n_trials, rerun: exit 0, trial 3 trained [16, 16] beside trials 0-2 at
+    [64, 64]). Now the study records its base recipe's content and refuses another by name, listing the keys."""
+    from adarl.cli import main
+
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    specs = tmp_path / "specs"
+    specs.mkdir()
+    recipe = specs / "mine.yaml"
+    recipe.write_text("extends: linear_cartpole_sac\n")
+    spec = _spec(tmp_path, recipe="mine.yaml", n_trials=1)
+    spec = spec.rename(specs / "tune.yaml")
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)  # the recipe is beside the spec, not here
+    out = tmp_path / "out"
+    assert main(["tune", str(spec), "-o", str(out)]) == 0, capsys.readouterr().err
+    capsys.readouterr()
+    recipe.write_text("extends: linear_cartpole_sac\nnetwork: {actor: {num_cells: [16, 16]}}\n")
+    data = yaml.safe_load(spec.read_text())
+    data["n_trials"] = 2
+    spec.write_text(yaml.safe_dump(data))
+    kept = _snapshot(out)
+    assert main(["tune", str(spec), "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert (
+        "another base recipe" in err and "network.actor.num_cells: [64, 64] in the study, [16, 16] in the spec" in err
+    ), err
+    assert not (out / "trials" / "trial-0001").exists()
+    assert _snapshot(out) == kept
+
+
+@pytest.mark.slow
+def test_a_trial_stopped_by_a_full_disk_is_left_to_resume_and_the_command_fails(tmp_path, monkeypatch, capsys):
+    """Issue 46.9: a trial whose run stopped on a full disk was told FAIL for good (a rerun never retried it) while
+    `adarl tune` exited 0. Now the trial is left to resume, never FAIL, the command exits 1 in one line, and the next
+    `adarl tune` resumes the trial from its checkpoint to its end."""
+    import adarl.experiments.execute as execute
+    from adarl.cli import main
+
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    spec, out = _spec(tmp_path, n_trials=1), tmp_path / "out"
+    faults, metrics = REPO / "tests" / "faultfs.py", out / "trials" / "trial-0000" / "metrics"
+    real = execute._cli  # the trial's `adarl run` with its metric files on a full disk (tests/faultfs.py)
+    monkeypatch.setattr(execute, "_cli", lambda *a: [sys.executable, str(faults), str(metrics), "full", "0", "--", *a])
+    assert main(["tune", str(spec), "-o", str(out)]) == 1
+    captured = capsys.readouterr()
+    [line] = [line for line in captured.err.splitlines() if line.startswith("adarl: error:")]
+    assert "trial 0 stopped on a storage failure" in line and "run the same command again" in line, captured.err
+    assert "Traceback" not in captured.err
+    [said] = [s for s in captured.out.splitlines() if s.startswith("[trial 0] stopped, to resume:")]
+    assert "No space left on device" in said, captured.out
+    trials = optuna.load_study(study_name="tiny", storage=f"sqlite:///{out / 'study.db'}").trials
+    assert [(t.number, t.state.name) for t in trials] == [(0, "RUNNING")]  # not FAIL: resumable
+    monkeypatch.setattr(execute, "_cli", real)  # space freed
+    assert main(["tune", str(spec), "-o", str(out)]) == 0, capsys.readouterr().err
+    assert "0 of 1 trials done, 1 interrupted to resume" in capsys.readouterr().out
+    trials = optuna.load_study(study_name="tiny", storage=f"sqlite:///{out / 'study.db'}").trials
+    assert [(t.number, t.state.name) for t in trials] == [(0, "COMPLETE")]

@@ -16,17 +16,74 @@ documented in ``docs/baselines/sparsification.md``:
 Why k-WTA rather than an L1 penalty: it guarantees the sparsity level (no coefficient to tune per env), keeps the
 loss untouched (so it composes with any TorchRL loss), and ties the one free number, ``k``, to the quantity the
 paper derives.
+
+Two computations of the same function and gradients (``SparsificationLayer(form=...)``, :func:`set_form`):
+
+* ``"dense"``: the three modules in turn (``Linear``, activation, ``x * (x >= kth)`` on all ``width`` units). Its
+  backward runs the wide layer's two dense matmuls (the weight's and the input's gradient, ``batch x width x in``
+  each) and elementwise passes over ``batch x width`` tensors, although only ``k`` units per input carry a
+  gradient.
+* ``"sparse"`` (the default, for ``Linear -> ReLU -> k-WTA``, the recipes' layer): one
+  ``torch.autograd.Function`` (:class:`_SparseReLULinear`). Its forward computes the wide pre-activation (the
+  winners must be found among all units), picks the winners with one ``topk`` on it (ReLU keeps the order of the
+  positive units) and writes their ReLU into that buffer, zeroed: the ``width``-wide output the next layer reads,
+  unchanged. Its backward gathers the output's gradient at the winners and reaches ``x``, the weight and the bias
+  through the winners' rows alone (``index_select`` / ``index_add_``: ``batch x k x in`` instead of two
+  ``batch x width x in`` matmuls). Its outputs are the dense form's values (the same matmul; under ``vmap`` one
+  ``baddbmm`` where the dense form adds the bias apart, equal in the tests, in general up to rounding), its
+  gradients the dense form's up to summation order, every exact zero included (``tests/test_sparse_fast.py``).
+
+  Ties: the dense form keeps every unit ``>= kth``, so a tie at the ``k``-th value keeps more than ``k`` units.
+  :func:`winners` checks for one (``topk(k + 1)``) and then takes as many units as the widest row keeps, each row's
+  surplus masked, so the forms agree on ties too. A unit at exactly 0 after ReLU has output 0 and gradient 0 in
+  either form and is not counted (fewer than ``k`` positive units is not a tie). The check reads one boolean per
+  forward (a device sync on a GPU).
+
+  Under ``torch.vmap`` (TorchRL's ``SACLoss`` runs its stacked critic ensemble so) the function runs one level
+  below the vmap on the stacked tensors (:func:`_under_transform`). Other functorch transforms, another
+  activation, a :class:`~adarl.baselines.parseval.DiagonalScale` inside the layer, ``k >= width``, fewer than 32
+  input rows (acting one observation at a time), TorchScript, ``torch.compile`` and ``torch.export`` (an exported
+  policy) run the dense form.
+
+Speed (``benchmarks/sparse_speed.py``, docs/baselines/sparsification.md): the sparse form saves the backward's wide
+matmuls; the forward's (the wide matmul and the ``topk``, which every form needs to find the winners) and TorchRL's
+per-update overhead remain, so a SAC update of the Hopper recipe gains about a sixth, not a factor.
 """
 
 from __future__ import annotations
 
+import math
+from collections.abc import Iterable
+
 import torch
 from torch import nn
+from torch.nn import functional as F
 
 from adarl.baselines.registry import register_network_variant
 from adarl.errors import AdaRLValueError
 
-__all__ = ["intrinsic_rank", "KWinnersTakeAll", "SparsificationLayer"]
+try:  # functorch's interpreter stack, read to step below a vmap level (_under_transform); private, so guarded
+    from torch._C._functorch import _add_batch_dim
+    from torch._C._functorch import get_unwrapped as _unwrapped
+    from torch._C._functorch import is_batchedtensor as _is_batched
+    from torch._C._functorch import maybe_get_bdim as _bdim_of
+    from torch._C._functorch import maybe_get_level as _level_of
+    from torch._functorch.pyfunctorch import TransformType
+    from torch._functorch.pyfunctorch import retrieve_current_functorch_interpreter as _current_interpreter
+
+    _VMAP = TransformType.Vmap
+except ImportError:  # pragma: no cover - another torch: the dense form under transforms
+    _current_interpreter = None
+
+__all__ = ["FORMS", "intrinsic_rank", "KWinnersTakeAll", "SparsificationLayer", "set_form", "winners"]
+
+#: the two computations of :class:`SparsificationLayer` (the same function; the module docstring says how)
+FORMS = ("sparse", "dense")
+
+#: below this many input rows the sparse form runs the dense one: one observation at a time (collection,
+#: evaluation), its fixed cost of a few dozen small operations outweighs the backward it saves (measured on CPU:
+#: about 0.1 ms dense vs 0.25 ms sparse per actor call at 1 row, equal at 100 rows)
+_MIN_ROWS = 32
 
 
 def intrinsic_rank(action_dim: int) -> int:
@@ -57,20 +114,159 @@ class KWinnersTakeAll(nn.Module):
         return f"k={self.k}"
 
 
+def winners(
+    scores: torch.Tensor, k: int, zeros_dead: bool = False
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """The units :class:`KWinnersTakeAll` keeps (``scores >= kth``, ``kth`` the ``k``-th largest score of the row),
+    as ``(index, values, keep)`` along the last dimension: ``index`` holds ``k`` units per row (``values`` their
+    scores, largest first), or, where some row ties at its ``k``-th score, as many as the widest row keeps, ``keep``
+    masking each row's surplus (None where there is none). ``zeros_dead``: a unit scoring 0 or less is inert (ReLU:
+    output 0, gradient 0) and not counted, so fewer than ``k`` positive scores is not a tie."""
+    vals, idx = scores.topk(k + 1, dim=-1)
+    kth, nxt = vals[..., k - 1], vals[..., k]
+    tie = nxt == kth
+    if zeros_dead:
+        tie &= nxt > 0
+    if not bool(tie.any()):
+        return idx[..., :k], vals[..., :k], None
+    kth = kth.unsqueeze(-1)
+    kept = scores >= kth
+    if zeros_dead:
+        kept &= scores > 0
+    vals, idx = scores.topk(int(kept.sum(-1).max()), dim=-1)
+    keep = vals >= kth
+    if zeros_dead:
+        keep &= vals > 0
+    return idx, vals, keep
+
+
+def _stacked_linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None) -> torch.Tensor:
+    """``F.linear`` where ``weight`` may carry leading stacked dimensions ``S`` (``[*S, out, in]``, ``bias``
+    ``[*S, out]``) that ``x`` (``[*S, *B, in]``) leads with too: one ``baddbmm`` for the ensemble."""
+    if weight.dim() == 2:
+        return F.linear(x, weight, bias)
+    lead, (out_f, in_f) = weight.shape[:-2], weight.shape[-2:]
+    w = weight.reshape(-1, out_f, in_f).transpose(-1, -2)
+    x3 = x.reshape(w.shape[0], -1, in_f)
+    y = torch.bmm(x3, w) if bias is None else torch.baddbmm(bias.reshape(-1, 1, out_f), x3, w)
+    return y.view(*lead, *x.shape[len(lead) : -1], out_f)
+
+
+class _SparseReLULinear(torch.autograd.Function):
+    """``KWinnersTakeAll(k)(relu(F.linear(x, weight, bias)))``, its gradients through the winners alone.
+
+    Shapes: ``weight`` ``[*S, out, in]`` (``S`` empty, or the ensemble dimension(s) :func:`_under_transform`
+    stacks), ``bias`` ``[*S, out]`` or None, ``x`` ``[*S, *B, in]``. A ``forward(ctx, ...)`` Function (no
+    ``setup_context``): ``apply`` then costs no signature binding per call; under ``vmap`` it is reached through
+    :func:`_under_transform`, not functorch's autograd.Function rules."""
+
+    @staticmethod
+    def forward(ctx, x, weight, bias, k):
+        pre = _stacked_linear(x, weight, bias)
+        index, pre_k, keep = winners(pre, k, zeros_dead=True)
+        gate = pre_k > 0  # ReLU's gradient mask at the winners
+        value = pre_k.clamp_min(0)
+        if keep is not None:
+            gate &= keep
+            value = value * keep
+        ctx.save_for_backward(x, weight, index, gate)
+        # written into the pre-activation's own buffer: no second batch x width allocation
+        return pre.zero_().scatter_(-1, index, value)
+
+    @staticmethod
+    def backward(ctx, grad_out):
+        x, weight, index, gate = ctx.saved_tensors
+        out_f, in_f = weight.shape[-2:]
+        lead = weight.shape[:-2]
+        s, k = math.prod(lead), index.shape[-1]
+        g = (grad_out.gather(-1, index) * gate).reshape(-1, k)  # [s * n, k]
+        flat = index.reshape(s, -1)
+        if s > 1:  # rows of the [s * out, in] stack of the ensemble's weights
+            flat = flat + torch.arange(0, s * out_f, out_f, device=index.device).unsqueeze(-1)
+        flat = flat.reshape(-1)
+        grad_x = grad_w = grad_b = None
+        if ctx.needs_input_grad[0]:
+            rows = weight.reshape(-1, in_f).index_select(0, flat).view(-1, k, in_f)
+            grad_x = torch.bmm(g.unsqueeze(1), rows).view(x.shape)
+        if ctx.needs_input_grad[1]:
+            outer = (g.unsqueeze(-1) * x.reshape(-1, 1, in_f)).view(-1, in_f)
+            grad_w = weight.new_zeros(s * out_f, in_f).index_add_(0, flat, outer).view(weight.shape)
+        if ctx.needs_input_grad[2]:
+            grad_b = weight.new_zeros(s * out_f).index_add_(0, flat, g.reshape(-1)).view(*lead, out_f)
+        return grad_x, grad_w, grad_b, None
+
+
+def _dense_relu_kwta(x, weight, bias, k):
+    """The dense form on plain (possibly stacked) tensors: what the three modules compute."""
+    h = _stacked_linear(x, weight, bias).relu()
+    return h * (h >= h.topk(k, dim=-1).values[..., -1:])
+
+
+def _sparse_relu_linear(x, weight, bias, k):
+    """:class:`_SparseReLULinear` wherever it is called from: directly, or under functorch transforms."""
+    if not torch._C._are_functorch_transforms_active():
+        return _SparseReLULinear.apply(x, weight, bias, k)
+    return _under_transform(x, weight, bias, k)
+
+
+def _under_transform(x, weight, bias, k):
+    """Under ``torch.vmap`` (TorchRL's critic ensemble): step below the vmap level, as functorch's own rules for
+    an autograd.Function do, but without their per-call cost (pytree, signature binding: about as much as the
+    sparse backward saves). The vmapped dimension becomes the leading dimension of every tensor (the stacked
+    critics' weights, or one more batch dimension of ``x`` where the parameters are shared), the function runs
+    there and its output is wrapped back. Another transform (``grad``, ``jvp``, ...), or a torch without these
+    functorch internals, gets the dense form, which every transform handles."""
+    interpreter = _current_interpreter() if _current_interpreter is not None else None
+    if interpreter is None or interpreter.key() != _VMAP:
+        return _dense_relu_kwta(x, weight, bias, k)
+    level, n = interpreter.level(), interpreter.batch_size()
+
+    def unwrap(t):
+        if t is not None and _is_batched(t) and _level_of(t) == level:
+            return _unwrapped(t), _bdim_of(t)
+        return t, None
+
+    (x, dx), (weight, dw), (bias, db) = unwrap(x), unwrap(weight), unwrap(bias)
+
+    def front(t, dim):
+        return t.movedim(dim, 0) if dim is not None else t.expand(n, *t.shape)
+
+    with interpreter.lower():
+        if dx is None and dw is None and db is None:  # nothing batched at this level
+            return _sparse_relu_linear(x, weight, bias, k)
+        if dw is None and db is None and weight.dim() == 2:  # shared parameters: one more batch dimension of x
+            out = _sparse_relu_linear(front(x, dx), weight, bias, k)
+        else:  # stacked parameters (the critic ensemble): one more leading (stacked) dimension on each
+            b = None if bias is None else front(bias, db)
+            out = _sparse_relu_linear(front(x, dx), front(weight, dw), b, k)
+    return _add_batch_dim(out, 0, level)
+
+
 class SparsificationLayer(nn.Sequential):
     """``Linear(in, width)`` -> activation -> k-winners-take-all: a wide layer with exactly ``k`` active units.
 
     Its ``nn.Linear`` is a plain hidden layer to everything else (Parseval regularisation and the optimiser see
-    it as such); only ``k`` of its ``width`` outputs are non-zero for any input."""
+    it as such); only ``k`` of its ``width`` outputs are non-zero for any input. ``form`` (:data:`FORMS`) picks
+    the computation, ``"sparse"`` (the default) or ``"dense"``: the same function and gradients (the module
+    docstring says where each runs); :func:`set_form` switches the layers of a built network."""
 
     def __init__(
-        self, in_features: int, width: int = 1024, k: int = 32, activation: type[nn.Module] = nn.ReLU, device=None
+        self,
+        in_features: int,
+        width: int = 1024,
+        k: int = 32,
+        activation: type[nn.Module] = nn.ReLU,
+        device=None,
+        form: str = "sparse",
     ) -> None:
         if isinstance(width, bool) or not isinstance(width, int) or width < 1:
             raise AdaRLValueError(f"width must be an integer >= 1, got {width!r}")
         if isinstance(k, int) and not isinstance(k, bool) and k > width:
             raise AdaRLValueError(f"k must be <= width ({width}), got {k!r}")
+        if form not in FORMS:
+            raise AdaRLValueError(f"form must be one of {FORMS}, got {form!r}")
         super().__init__(nn.Linear(in_features, width, device=device), activation(), KWinnersTakeAll(k))
+        self.form = form
 
     @property
     def width(self) -> int:
@@ -78,7 +274,50 @@ class SparsificationLayer(nn.Sequential):
 
     @property
     def k(self) -> int:
-        return self[2].k
+        return self[-1].k
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if torch.jit.is_scripting():  # an exported policy: plain modules
+            for module in self:
+                x = module(x)
+            return x
+        if (
+            self.form == "dense"
+            or torch.compiler.is_compiling()  # first: a batch-size test would specialise an export's batch dimension
+            or x.numel() < _MIN_ROWS * x.shape[-1]  # acting in the environment: bookkeeping outweighs the saving
+            or not self._sparse_form_applies()
+        ):
+            for module in self:
+                x = module(x)
+            return x
+        return _sparse_relu_linear(x, self[0].weight, self[0].bias, self[-1].k)
+
+    @torch.jit.unused
+    def _sparse_form_applies(self) -> bool:
+        """The layout the sparse form computes: ``Linear -> ReLU -> KWinnersTakeAll`` with ``k < width``."""
+        return (
+            len(self) == 3
+            and type(self[0]) is nn.Linear
+            and type(self[1]) is nn.ReLU
+            and isinstance(self[2], KWinnersTakeAll)
+            and self[2].k < self[0].out_features
+        )
+
+    def extra_repr(self) -> str:
+        return f"form={self.form!r}"
+
+
+def set_form(modules: nn.Module | Iterable[nn.Module], form: str) -> int:
+    """Set ``form`` (:data:`FORMS`) on every :class:`SparsificationLayer` inside ``modules`` (a module or several,
+    e.g. ``(loss.actor_network, loss.qvalue_network)``: a ``SACLoss`` does not list its networks in
+    ``loss.modules()``); returns how many layers it set."""
+    if form not in FORMS:
+        raise AdaRLValueError(f"form must be one of {FORMS}, got {form!r}")
+    roots = [modules] if isinstance(modules, nn.Module) else list(modules)
+    layers = {id(m): m for root in roots for m in root.modules() if isinstance(m, SparsificationLayer)}
+    for layer in layers.values():
+        layer.form = form
+    return len(layers)
 
 
 def _sparse_variant(mlp_config, algorithm_config, action_dim: int) -> dict:

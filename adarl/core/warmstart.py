@@ -128,7 +128,9 @@ class ReplayWarmStart:
         self.exploration_type = exploration_type
         self.records: list[WarmStartRecord] = []
 
-    def __call__(self, event: Any = None) -> WarmStartRecord:
+    def __call__(self, event: Any = None, *, limit: int | None = None) -> WarmStartRecord:
+        """Warm-start the buffer after ``event``. ``limit``: at most this many frames (a run's frame budget left,
+        when its warm-start frames count towards the budget): 0 collects nothing and leaves the buffer as it is."""
         rb = self.replay_buffer
         before = len(rb)
         step = getattr(event, "step", None)
@@ -139,14 +141,19 @@ class ReplayWarmStart:
             self.records.append(record)
             return record
         self.check_event(event)
+        frames = self.frames if limit is None else max(0, min(self.frames, int(limit)))
+        if frames == 0:  # no budget left: the run ends with this batch, nothing is collected past its budget
+            record = WarmStartRecord(step, self.mode, 0, before, before, False)
+            self.records.append(record)
+            return record
         emptied = self.mode == "refill"
         if emptied:
             self._empty()
         start = self._writes()
         if isinstance(self.source, tuple):
-            self._from_env(*self.source)
+            self._from_env(*self.source, frames)
         else:
-            self._from_collector(self.source)
+            self._from_collector(self.source, frames)
         record = WarmStartRecord(step, self.mode, self._frames(self._writes() - start), before, len(rb), emptied)
         self.records.append(record)
         return record
@@ -218,15 +225,15 @@ class ReplayWarmStart:
         self.replay_buffer.extend(data)
         return data.numel()
 
-    def _from_env(self, env, policy) -> None:
+    def _from_env(self, env, policy, frames: int) -> None:
         n_envs = max(1, int(torch.Size(env.batch_size).numel()))
-        steps = math.ceil(self.frames / n_envs)
+        steps = math.ceil(frames / n_envs)
         exploration = self.exploration_type if self.exploration_type is not None else ExplorationType.RANDOM
         with torch.no_grad(), set_exploration_type(exploration):
             data = env.rollout(steps, policy=policy, auto_reset=True, break_when_any_done=False)
-        self._extend(data, self.frames)
+        self._extend(data, frames)
 
-    def _from_collector(self, collector) -> None:
+    def _from_collector(self, collector, frames: int) -> None:
         collector.reset()  # new episodes: a perturbation transform draws fresh dynamics at reset
         # The collector's random-action phase (gated on its frame count, or on the buffer's write_count when it holds
         # the buffer): switched off while it collects here, so the frames come from the current policy.
@@ -244,7 +251,7 @@ class ReplayWarmStart:
         holds_buffer = own is self.replay_buffer  # then its iterator fixes the buffer's layout
         added = 0
         try:
-            while added < self.frames:
+            while added < frames:
                 before = self._writes()
                 out = collector.rollout()
                 if out is not None and not writes_itself:
@@ -254,7 +261,7 @@ class ReplayWarmStart:
                         post = getattr(collector, "postproc", None)
                         self.replay_buffer.extend(post(out) if callable(post) else out)
                     else:
-                        self._extend(out, self.frames - added)
+                        self._extend(out, frames - added)
                 grew = self._frames(self._writes() - before)
                 if grew <= 0:
                     raise AdaRLValueError("ReplayWarmStart: a collector rollout added no frame to the replay buffer")

@@ -12,7 +12,18 @@ import html
 import io
 from dataclasses import dataclass, field
 
-__all__ = ["Heading", "Paragraph", "Code", "Table", "Image", "Block", "render_markdown", "render_html", "csv_text"]
+__all__ = [
+    "Heading",
+    "Paragraph",
+    "Code",
+    "Table",
+    "Image",
+    "Bold",
+    "Block",
+    "render_markdown",
+    "render_html",
+    "csv_text",
+]
 
 
 @dataclass(frozen=True)
@@ -33,10 +44,24 @@ class Code:
 
 
 @dataclass(frozen=True)
+class Bold:
+    """A part of a table cell set in bold: a cell may be a list of parts (``["ours: ", Bold("1.0"), " · paper"]``)."""
+
+    text: str
+
+
+@dataclass(frozen=True)
 class Table:
     header: list[str]
-    rows: list[list]
+    rows: list[list]  # a cell: a value, or a list of parts (str or Bold) to bold a part of it
     bold: list[tuple[int, int]] = field(default_factory=list)  # (row, column) cells to set in bold
+
+
+def _parts(cell, bold, plain) -> str:
+    """A cell's text, its Bold parts through ``bold`` and the rest through ``plain``."""
+    if isinstance(cell, list):
+        return "".join(bold(p.text) if isinstance(p, Bold) else plain(str(p)) for p in cell)
+    return plain(str(cell))
 
 
 @dataclass(frozen=True)
@@ -49,7 +74,7 @@ Block = Heading | Paragraph | Code | Table | Image
 
 
 def _md_table(t: Table) -> list[str]:
-    rows = [[str(c) for c in r] for r in t.rows]
+    rows = [[_parts(c, lambda x: f"**{x}**", str) for c in r] for r in t.rows]
     for i, j in t.bold:
         rows[i][j] = f"**{rows[i][j]}**"
     out = ["| " + " | ".join(t.header) + " |", "|" + "|".join(["---"] + ["---:"] * (len(t.header) - 1)) + "|"]
@@ -92,9 +117,8 @@ def render_html(blocks: list[Block]) -> str:
             bold = set(b.bold)
             parts.append("<table><tr>" + "".join(f"<th>{html.escape(h)}</th>" for h in b.header) + "</tr>")
             for i, r in enumerate(b.rows):
-                cells = [
-                    f"<b>{html.escape(str(c))}</b>" if (i, j) in bold else html.escape(str(c)) for j, c in enumerate(r)
-                ]
+                cells = [_parts(c, lambda x: f"<b>{html.escape(x)}</b>", html.escape) for c in r]
+                cells = [f"<b>{c}</b>" if (i, j) in bold else c for j, c in enumerate(cells)]
                 parts.append("<tr>" + "".join(f"<td>{c}</td>" for c in cells) + "</tr>")
             parts.append("</table>")
         elif isinstance(b, Image):

@@ -339,3 +339,58 @@ def plot_rliable(agg: Aggregate, out: Path, ref: str | None, col_axis: str | Non
     plt.close(fig)
     (out / "rliable.csv").write_text(csv_text(rows, ["setting", "statistic", "value", "low", "high"]))
     return out / "rliable.png"
+
+
+def plot_normalised_aggregate(
+    estimates: dict[str, dict[str, tuple[float, float, float]]],
+    taus,
+    profiles: dict[str, tuple],
+    out: Path,
+    *,
+    what: str = "normalised score",
+) -> Path | None:
+    """rliable's aggregate figures across tasks on normalised scores: per method (``estimates``: label -> {"mean",
+    "iqm", "optimality_gap"} -> (point, low, high)) the three interval estimates, and the performance profile
+    (``profiles``: label -> (share, low, high) at each of ``taus``) with its 95% band; dashed at 1 (the reference).
+    Data: normalised_profile.csv (the interval estimates are the section's CSV)."""
+    if not estimates:
+        return None
+    plt = pyplot()
+    names = list(estimates)
+    fig, axs = plt.subplots(
+        1, 4, figsize=(17, 0.4 * len(names) + 2.8), squeeze=False, gridspec_kw={"width_ratios": [1, 1, 1, 1.7]}
+    )
+    axs = axs[0]
+    cmap = plt.get_cmap("tab10")
+    y = list(range(len(names)))[::-1]
+    for ax, (stat, title) in zip(axs, (("mean", "mean"), ("iqm", "IQM"), ("optimality_gap", "optimality gap"))):
+        for k, (name, yy) in enumerate(zip(names, y)):
+            pt, lo, hi = estimates[name][stat]
+            if math.isnan(pt):
+                continue
+            err = [[0.0], [0.0]] if math.isnan(lo) else [[pt - lo], [hi - pt]]
+            ax.errorbar([pt], [yy], xerr=err, fmt="o", color=cmap(k % 10), capsize=3)
+        ax.axvline(0.0 if stat == "optimality_gap" else 1.0, color="grey", ls="--", lw=1)
+        ax.set_yticks(y, names if stat == "mean" else [""] * len(names), fontsize=7)
+        ax.set_ylim(-0.5, len(names) - 0.5)
+        ax.set_title(f"{title} (95% CI)", fontsize=9)
+        ax.set_xlabel(what)
+        ax.grid(alpha=0.3)
+    rows = []
+    for k, name in enumerate(names):
+        share, lo, hi = profiles[name]
+        line = axs[3].plot(taus, share, color=cmap(k % 10), label=name)[0]
+        if not all(math.isnan(v) for v in lo):
+            axs[3].fill_between(taus, lo, hi, color=line.get_color(), alpha=0.15)
+        rows += [[name, t, s, a, b] for t, s, a, b in zip(taus, share, lo, hi)]
+    axs[3].axvline(1.0, color="grey", ls="--", lw=1)
+    axs[3].set_xlabel(f"{what} threshold tau")
+    axs[3].set_ylabel("share of runs with score > tau")
+    axs[3].set_title("performance profile (95% band)", fontsize=9)
+    axs[3].legend(fontsize=7)
+    axs[3].grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(out / "normalised_aggregate.png", dpi=110)
+    plt.close(fig)
+    (out / "normalised_profile.csv").write_text(csv_text(rows, ["method", "tau", "share", "low", "high"]))
+    return out / "normalised_aggregate.png"

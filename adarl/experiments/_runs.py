@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import statistics
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,6 +22,7 @@ from adarl.errors import AdaRLError
 from adarl.experiments.execute import run_is_finished
 from adarl.experiments.sweep import read_sweep
 from adarl.runtime import metrics
+from adarl.runtime.config import local_plugins
 from adarl.runtime.report import layer_label, rank_axis
 from adarl.runtime.results import exists, is_url, join
 from adarl.runtime.run_dir import RunDir
@@ -147,6 +149,7 @@ def _load_run(path: Path, axes: dict[str, str] | None) -> RunRecord | None:
     if not is_single_run(path):
         return None
     run = RunDir(path)
+    local_plugins.check_recorded(run.recorded_plugins().get("modules") or [], str(path))  # a changed one: refused
     recipe = yaml.safe_load((path / "recipe.yaml").read_text()) or {}
     rows = run.read_eval()
     evals = [(int(r["frames"]), float(r["mean"])) for r in rows]
@@ -178,9 +181,10 @@ def _load_run(path: Path, axes: dict[str, str] | None) -> RunRecord | None:
 
 
 def axes_from_run_id(name: str, seed) -> dict[str, str] | None:
-    """The axes an experiment's run id names (``env=hopper__algorithm=adarl__seed=3``), for a run folder copied out
-    of its experiment (so ``adarl report`` on the copies groups them as the experiment did); None for any other name,
-    or when the id's seed is not the recipe's."""
+    """The axes an experiment's run id names (``env=hopper__algorithm=adarl__seed=3``, or a rerun's folder
+    ``...__seed=3.rerun1``), for a run folder copied out of its experiment (so ``adarl report`` on the copies groups
+    them as the experiment did); None for any other name, or when the id's seed is not the recipe's."""
+    name = re.sub(r"\.rerun\d+$", "", name)
     parts = [part.partition("=") for part in name.split("__")]
     if len(parts) < 2 or any(not sep or not key for key, sep, _ in parts) or parts[-1][0] != "seed":
         return None

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import csv
 import math
+import shlex
 from pathlib import Path
 
 import optuna
@@ -81,7 +82,7 @@ def _write_best_recipe(study, spec: TuneSpec, path: Path) -> optuna.trial.Frozen
             if len(spec.trial_seeds) > 1
             else ""
         )
-        + f"# run it: adarl run {path} (more frames: collector.total_frames=N)\n"
+        + f"# run it: {shlex.join(['adarl', 'run', str(path)])} (more frames: collector.total_frames=N)\n"
     )
     path.write_text(head + recipe_to_yaml(recipe))
     return best

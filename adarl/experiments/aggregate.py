@@ -13,7 +13,8 @@ folders to records and groups), :mod:`~adarl.experiments._sections` (tables, sta
 
 Outputs in the report folder: ``report.md``, ``report.html``, ``table.csv``, ``runs.csv``, ``statistics.csv``, and
 per figure a PNG with the CSV it was drawn from: ``learning_curves``, ``learning_curves_by_seed``, ``ranks``,
-``return_vs_<axis>`` (Fig. 1), ``sweep_<name>`` (Fig. 8).
+``return_vs_<axis>`` (Fig. 1), ``sweep_<name>`` (Fig. 8); with ``report.paper_table``
+(:mod:`~adarl.experiments._paper_table`), ``paper_table.csv`` and the normalised aggregate (``normalised_*``).
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ from adarl.experiments._figures import (
     plot_sweeps,
     rank_x_label,
 )
+from adarl.experiments._paper_table import paper_table_blocks
 from adarl.experiments._runs import (
     Aggregate,
     Group,
@@ -129,7 +131,7 @@ def write_aggregate_report(
     if commands:
         blocks += [Paragraph("Produced by:"), Code("\n".join(commands))]
     if report:
-        given = ", ".join(f"{k}={json.dumps(v)}" for k, v in report.items())
+        given = ", ".join(f"{k}={_option_text(k, v)}" for k, v in report.items())
         blocks.append(
             Paragraph(f"Report options given to `adarl report` (--spec, --set; over the experiments' own): {given}.")
         )
@@ -189,6 +191,7 @@ def write_aggregate_report(
     )
 
     blocks += _statistics_blocks(agg, out)
+    blocks += paper_table_blocks(agg, out)
 
     col_axis = agg.report.get("columns") or ("algorithm" if "algorithm" in agg.axes else None)
     p = plot_rliable(agg, out, agg.report.get("reference"), col_axis)
@@ -262,6 +265,14 @@ def write_aggregate_report(
     (out / "report.md").write_text(render_markdown(blocks))
     (out / "report.html").write_text(render_html(blocks))
     return out / "report.md"
+
+
+def _option_text(key: str, value) -> str:
+    """A report option as the report names it; ``paper_table`` by its title and size (its values: its section)."""
+    if key == "paper_table" and isinstance(value, dict):
+        rows = value.get("values") or {}
+        return f"{json.dumps(value.get('title'))} ({len(rows)} rows x {len(value.get('columns') or [])} columns)"
+    return json.dumps(value)
 
 
 def _check_pair_values(agg, allowed: dict[str, set[str]]) -> None:

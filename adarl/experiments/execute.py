@@ -314,7 +314,7 @@ def execute_run(run: PlannedRun, threads: int | None, watch: Callable[[], bool] 
 
 #: The signals a training checkpoints and stops on (:mod:`adarl.runtime.signals`): a run ended by one was
 #: interrupted from outside (a session's end, a scheduler, Ctrl-C), not broken; it resumes exactly when asked.
-INTERRUPTING_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+INTERRUPTING_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 
 def interrupting_signal(returncode: int | None) -> signal.Signals | None:

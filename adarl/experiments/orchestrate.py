@@ -3,6 +3,13 @@ does not exist (yet), hands the rest to a launcher (one after another, ``workers
 their progress, sweeps each finished run if the spec asks, and writes the aggregate report
 (:mod:`adarl.experiments.aggregate`). ``experiment.json`` in the output folder records what ran.
 
+A finished (or resumable) run folder is reused only while it is what the spec plans now: its recipe, re-validated with
+today's schema, equal to the planned one in every training key, and its plugin modules the same
+(:func:`adarl.runtime.fingerprint.differences`). Otherwise the experiment is refused by name before anything is
+written, listing the keys that changed; with ``rerun_changed`` those runs train again into new folders beside the old
+ones (``<run id>.rerun1``, ``.rerun2``...), which are kept, and ``experiment.json`` points to the new ones. A later
+call reuses whichever folder of a run matches the spec (the original first).
+
 The output may be an fsspec URL (``s3://bucket/exp``): runs then train in a local scratch folder and are copied to
 ``<URL>/<run id>`` after each checkpoint (:mod:`adarl.runtime.results`); the finished-run check, ``experiment.json``,
 the attempt records, the progress board and the report read and write the URL.
@@ -11,8 +18,11 @@ the attempt records, the progress board and the report read and write the URL.
 from __future__ import annotations
 
 import contextlib
+import glob
 import json
 import os
+import re
+import shlex
 import signal
 import tempfile
 import time
@@ -35,7 +45,9 @@ from adarl.experiments.spec import (
 )
 from adarl.experiments.sweep import parse_sweep, sweep_run
 from adarl.runtime.config import load_recipe
+from adarl.runtime.fingerprint import differences
 from adarl.runtime.results import (
+    LATEST,
     RunMirror,
     exists,
     filesystem,
@@ -67,12 +79,14 @@ def _busy(out: Path):
     return refused
 
 
-def _check_recipes(runs: list[PlannedRun]) -> None:
-    """Validate every run's recipe before anything runs: a missing recipe flags its runs, a bad one stops all."""
-    problems = []
+def _check_recipes(runs: list[PlannedRun]) -> dict[str, Any]:
+    """Validate every run's recipe before anything runs: a missing recipe flags its runs, a bad one stops all.
+    Returns each validated recipe by run id."""
+    problems, recipes = [], {}
     for run in runs:
         try:
-            run.total_frames = load_recipe(run.recipe, run.overrides).collector.total_frames
+            recipes[run.run_id] = load_recipe(run.recipe, run.overrides)
+            run.total_frames = recipes[run.run_id].collector.total_frames
         except RecipeError as err:
             if str(err).startswith(f"no recipe named {run.recipe!r}") or "not found" in str(err).split("\n")[0]:
                 run.status, run.message = "missing-recipe", str(err).split(";")[0]
@@ -80,6 +94,92 @@ def _check_recipes(runs: list[PlannedRun]) -> None:
                 problems.append(f"{run.run_id}: {err}")
     if problems:
         raise RecipeError("experiment runs do not validate (nothing was run):\n" + "\n".join(problems[:10]))
+    return recipes
+
+
+RERUN_SUFFIX = ".rerun"  # <run id>.rerun<N>: a run trained again after its spec changed (--rerun-changed)
+
+
+def _folders(run: PlannedRun) -> list[str]:
+    """The run's folders: the planned one, then its reruns (``<run id>.rerun1``...) in order, those that exist."""
+    pattern = re.compile(re.escape(run.run_id + RERUN_SUFFIX) + r"(\d+)$")
+    if is_url(run.path):
+        fs, root = filesystem(run.path.rsplit("/", 1)[0])
+        try:
+            names = [n.rstrip("/").rsplit("/", 1)[-1] for n in fs.ls(root, detail=False)]
+        except FileNotFoundError:
+            names = []
+        parent = run.path.rsplit("/", 1)[0]
+        found = [(int(m.group(1)), f"{parent}/{n}") for n in names if (m := pattern.match(n))]
+    else:
+        parent = Path(run.path).parent
+        found = [
+            (int(m.group(1)), str(f))
+            for f in parent.glob(glob.escape(run.run_id + RERUN_SUFFIX) + "*")
+            if (m := pattern.match(f.name))
+        ]
+    return [run.path] + [f for _, f in sorted(found)]
+
+
+def _rerun_number(folder: str, run: PlannedRun) -> int:
+    """N of a folder ``<run id>.rerun<N>`` (0: the planned folder)."""
+    tail = folder.rstrip("/").rsplit("/", 1)[-1][len(run.run_id + RERUN_SUFFIX) :]
+    return int(tail) if tail.isdigit() else 0
+
+
+def _holds_training(path: str) -> bool:
+    """Whether a run folder holds training to reuse, made from a recipe it records: finished, or a checkpoint to
+    resume from beside its recipe.yaml. (A folder without either is a start that never checkpointed: nothing to
+    keep, it starts afresh; one without a recipe.yaml cannot be resumed, and its attempt says so.)"""
+    if run_is_finished(path):
+        return True
+    if is_url(path):
+        return exists(join(path, "recipe.yaml")) and exists(join(path, "checkpoints", LATEST))
+    return (Path(path) / "recipe.yaml").is_file() and RunDir(path).latest_checkpoint_frames() is not None
+
+
+def _place(runs: list[PlannedRun], recipes: dict, rerun_changed: bool) -> list[tuple[PlannedRun, str, list[str]]]:
+    """Point each run at its folder that holds the training the spec plans now (the planned one, else a rerun),
+    or at one to train in. A run whose folders hold only other training is returned with the folder and what
+    differs (its status ``changed``); with ``rerun_changed`` it gets a new folder beside them instead."""
+    changed = []
+    for run in runs:
+        if run.status == "missing-recipe":
+            continue
+        folders = _folders(run)
+        held = [f for f in folders if _holds_training(f)]
+        first: tuple[str, list[str]] | None = None
+        for folder in held:
+            diff = differences(folder, recipes[run.run_id])
+            if not diff:
+                run.path = folder
+                break
+            first = first or (folder, diff)
+        else:
+            if first is None:
+                continue  # nothing trained yet (or a start that never checkpointed): the planned folder
+            free = [f for f in folders if f not in held]
+            if rerun_changed:
+                run.path = free[0] if free else f"{run.path}{RERUN_SUFFIX}{_rerun_number(folders[-1], run) + 1}"
+            else:
+                run.status, run.message = "changed", f"made from another recipe ({first[0]}): " + "; ".join(first[1])
+                changed.append((run, *first))
+    return changed
+
+
+def _refuse_changed(spec: ExperimentSpec, out, changed: list[tuple[PlannedRun, str, list[str]]]) -> AdaRLError:
+    lines = [
+        f"  {run.run_id} ({folder}): " + "; ".join(diff[:6]) + (f"; and {len(diff) - 6} more" if len(diff) > 6 else "")
+        for run, folder, diff in changed[:20]
+    ]
+    more = [f"  and {len(changed) - 20} more runs"] if len(changed) > 20 else []
+    return AdaRLError(
+        f"experiment {spec.name}: {len(changed)} run(s) in {out} were made from another recipe than the spec plans "
+        f"now (nothing was run, no folder changed):\n"
+        + "\n".join(lines + more)
+        + "\nRestore the spec to reuse them, give another output folder (-o), or pass --rerun-changed to train them "
+        f"again into new folders beside the old ones (<run id>{RERUN_SUFFIX}1; the old folders are kept)"
+    )
 
 
 def _sweep(run: PlannedRun, sweeps: list[SweepSpec]) -> None:
@@ -150,6 +250,7 @@ def run_experiment(
     scratch: str | os.PathLike | None = None,
     live: bool = False,
     console=None,
+    rerun_changed: bool = False,
 ) -> list[PlannedRun]:
     """Run (or continue) the experiment in ``spec_path``; returns the runs with their status.
 
@@ -159,7 +260,11 @@ def run_experiment(
     (see :mod:`adarl.experiments.launchers`; ``launcher_options`` go to
     :func:`~adarl.experiments.launchers.make_launcher`) or a :class:`~adarl.experiments.launchers.Launcher`.
     ``progress_interval`` > 0 logs one line per run and an aggregate bar that
-    often (seconds); with ``live`` a table redrawn in place instead (rich, on ``console``: default stdout)."""
+    often (seconds); with ``live`` a table redrawn in place instead (rich, on ``console``: default stdout).
+
+    A finished or resumable run folder made from another recipe than the spec plans now is refused by name
+    (:class:`~adarl.errors.AdaRLError` listing the keys that changed, before anything is written; a dry run shows
+    it as ``changed``); ``rerun_changed`` trains such runs again into new folders beside the old ones."""
     spec = load_experiment(spec_path)
     budget, _ = resolve_budget(spec, budget)
     out = output if output is not None else default_output(spec, budget)
@@ -173,11 +278,15 @@ def run_experiment(
                 r.scratch = str(scratch)
         else:
             log(f"note: --scratch is ignored: results at a local path ({out}) are written in place")
-    _check_recipes(runs)
+    changed = _place(runs, _check_recipes(runs), rerun_changed)
+    if changed and not dry_run:
+        raise _refuse_changed(spec, out, changed)
     todo = []
     for r in runs:
         if r.status == "missing-recipe":
             log(f"[skip] {r.run_id}: {r.message}")
+        elif r.status == "changed":
+            continue
         elif run_is_finished(r.path):
             r.status, r.message = "skipped-finished", "already finished"
         else:
@@ -194,14 +303,20 @@ def run_experiment(
     n_done = sum(r.status == "skipped-finished" for r in runs)
     log(
         f"experiment {spec.name} (budget {budget or 'default'}): {len(runs)} runs, {n_done} already finished, "
-        f"{len(todo)} to run, {sum(r.status == 'missing-recipe' for r in runs)} with a missing recipe -> {out}"
+        f"{len(todo)} to run, {sum(r.status == 'missing-recipe' for r in runs)} with a missing recipe"
+        + (f", {len(changed)} made from another recipe (refused)" if changed else "")
+        + f" -> {out}"
     )
     if dry_run:
         for r in runs:
             frames = RunDir(r.path).latest_checkpoint_frames() if r in todo and not is_url(r.path) else None
             state = r.status if frames is None else "resumable"
             resumes = "" if frames is None else f"  (resumes from its checkpoint at {frames} frames)"
-            log(f"  {state:<16} {r.run_id}: {r.recipe} {' '.join(r.overrides)}{resumes}")
+            if r.status == "changed":
+                log(f"  {state:<16} {r.run_id}: {r.message}")
+                continue
+            where = "" if Path(str(r.path)).name == r.run_id else f"  (in {Path(str(r.path)).name})"
+            log(f"  {state:<16} {r.run_id}: {r.recipe} {' '.join(r.overrides)}{resumes}{where}")
         return runs
     if not isinstance(launcher, Launcher):  # first: a launcher whose extra is missing leaves no folder behind
         launcher = make_launcher(
@@ -217,7 +332,9 @@ def run_experiment(
     else:
         out.mkdir(parents=True, exist_ok=True)
     with contextlib.nullcontext() if is_url(out) else exclusive_lock(out / EXPERIMENT_LOCK, _busy(out)):
-        command = f"adarl experiment {spec_path}" + (f" --budget {budget}" if budget else "") + f" -o {out}"
+        # quoted as a shell reads it: a folder named `a b;rm -rf x` stays one argument of the command it suggests
+        budget_args = ["--budget", str(budget)] if budget else []
+        command = shlex.join(["adarl", "experiment", str(spec_path), *budget_args, "-o", str(out)])
         _write_state(out, spec, budget, runs, command)
         board, last_tick = ProgressBoard(runs), [time.monotonic()]
         screen = LiveBoard(board, console=console) if live and progress_interval > 0 else None

@@ -34,6 +34,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from adarl.errors import AdaRLWarning, RecipeError, did_you_mean, one_of
+from adarl.experiments._paper_spec import PaperTable
 from adarl.runtime.config import EXPERIMENTS_DIR, recipes_dir
 from adarl.runtime.results import is_url
 
@@ -172,6 +173,14 @@ class ReportSpec(_Model):
         "per value of the column axis (`{adarl: 8, fixed_final: 5}`: every arm of the runs must be named).",
     )
 
+    paper_table: PaperTable | None = Field(
+        None,
+        description="A table the paper prints (e.g. Table 1: per env and method its mean and std), shown beside ours "
+        "with both bold rules and P(reference > each method) per row; with `normalise`, the aggregate across its rows "
+        "(normalised scores, IQM, optimality gap, performance profile). Keys: title, source, rows, columns, labels, "
+        "extra_columns, values, normalise {random, random_from, reference}.",
+    )
+
     @field_validator("pairs")
     @classmethod
     def _pairs_compare_two_values(cls, pairs: list[tuple[str, str]]) -> list[tuple[str, str]]:
@@ -237,8 +246,11 @@ class ExperimentSpec(_Model):
 
     @model_validator(mode="after")
     def _check(self) -> ExperimentSpec:
-        if not self.name or not set(self.name) <= _NAME_CHARS:
-            raise ValueError(f"name may use letters, digits and . _ - + only, got {self.name!r}")
+        if not self.name or not set(self.name) <= _NAME_CHARS or set(self.name) == {"."}:
+            raise ValueError(  # it names the default output folder: `..` would be the folder above
+                f"name may use letters, digits and . _ - + only and must be a folder name (not . or ..), "
+                f"got {self.name!r}"
+            )
         for axis, values in self.axes.items():
             if not axis.isidentifier() or axis == "seed":
                 raise ValueError(f"axis name {axis!r} must be an identifier other than 'seed'")
@@ -296,6 +308,8 @@ class ExperimentSpec(_Model):
                 f"report.verdict_seeds per arm must name each value of the column axis {col!r} once: {known} "
                 f"(it names {list(need)}); or give one count for all"
             )
+        if self.report.paper_table is not None:
+            self.report.paper_table.check_axes({a: [v.name for v in vals] for a, vals in self.axes.items()}, col)
         return self
 
 
@@ -309,7 +323,9 @@ class PlannedRun:
     recipe: str
     overrides: list[str]
     path: str
-    status: str = "pending"  # pending | finished | skipped-finished | missing-recipe | failed | interrupted | stopped
+    # pending | finished | skipped-finished | missing-recipe | failed | interrupted | stopped | changed (a dry run's:
+    # its folder was made from another recipe, adarl.experiments.orchestrate)
+    status: str = "pending"
     message: str = ""
     total_frames: int | None = None  # the recipe's frame budget, known once it validated (progress before it starts)
     wall_time_s: float = 0.0
@@ -384,7 +400,12 @@ def report_options(pairs: list[str]) -> dict:
     except ValidationError as err:
         detail = _format_validation(err, "").split("\n", 1)[1]
         raise RecipeError(f"report options (adarl report --set) are invalid:\n{detail}") from None
-    return {k: getattr(checked, k) for k in options}
+    return {k: _plain(getattr(checked, k)) for k in options}
+
+
+def _plain(v: Any) -> Any:
+    """A checked option as the report reads it: a nested section (``paper_table``) as its mapping."""
+    return v.model_dump() if isinstance(v, BaseModel) else v
 
 
 def shipped_experiments() -> list[str]:

@@ -18,11 +18,13 @@ counted twice. The budget counts every trial the study holds (complete, pruned, 
 
 from __future__ import annotations
 
-import csv
+import hashlib
 import json
 import math
 import os
+import shlex
 import threading
+import time
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -33,8 +35,21 @@ import yaml
 from optuna.distributions import CategoricalDistribution, FloatDistribution, IntDistribution
 from optuna.trial import TrialState
 
-from adarl.errors import AdaRLError, AdaRLValueError, RecipeError
+from adarl.errors import AdaRLError, AdaRLValueError, RecipeError, is_storage_failure
 from adarl.experiments._tune_outputs import write_outputs
+from adarl.experiments._tune_records import (
+    TRIAL_FILE,
+    check_trial,
+    mean_scores,
+    read_records,
+    rebuild,
+    rebuild_plan,
+    trial_dir,
+    trial_run_dir,
+    write_record,
+)
+from adarl.experiments._tune_records import scores as _scores
+from adarl.experiments._tune_records import write_trial_file as _write_trial_file
 from adarl.experiments.execute import clear_stop, run_is_finished
 from adarl.experiments.launchers import Launcher, LocalLauncher, make_launcher
 from adarl.experiments.spec import PlannedRun
@@ -47,12 +62,22 @@ from adarl.experiments.tune_spec import (
     load_tune_spec,
     trial_overrides,
 )
+from adarl.runtime.config import load_recipe
+from adarl.runtime.fingerprint import recipe_values, revalidated
 from adarl.runtime.run_dir import exclusive_lock
 
-__all__ = ["run_tune", "TuneResult", "STUDY_FILE", "TRIAL_FILE", "trial_dir", "distributions"]
+__all__ = [
+    "run_tune",
+    "TuneResult",
+    "STUDY_FILE",
+    "TRIAL_FILE",
+    "trial_dir",
+    "trial_run_dir",
+    "distributions",
+    "mean_scores",
+]
 
 STUDY_FILE = "study.db"
-TRIAL_FILE = "tune_trial.json"  # in each trial's run folder: its number, parameters, state and value
 _LOCK_FILE = ".tune.lock"
 _FINISHED = (TrialState.COMPLETE, TrialState.PRUNED, TrialState.FAIL)
 
@@ -67,18 +92,6 @@ class TuneResult:
     best_value: float | None = None
     best_params: dict = field(default_factory=dict)
     resumed: list[int] = field(default_factory=list)
-
-
-def trial_dir(output: str | os.PathLike, number: int) -> Path:
-    """Trial ``number``'s folder: its run folder with one seed, the folder of its runs (``seed=S``) with more."""
-    return Path(output) / "trials" / f"trial-{number:04d}"
-
-
-def trial_run_dir(output: str | os.PathLike, number: int, seed: int, seeds: list[int]) -> Path:
-    """The run folder of one seed of a trial: ``trial-NNNN`` with one seed (as studies made before ``seeds``
-    existed), ``trial-NNNN/seed=S`` with more."""
-    folder = trial_dir(output, number)
-    return folder if len(seeds) == 1 else folder / f"seed={seed}"
 
 
 def distributions(spec: TuneSpec) -> dict:
@@ -123,53 +136,6 @@ def _pruner(spec: TuneSpec):
     return optuna.pruners.MedianPruner(n_startup_trials=p.n_startup_trials, n_warmup_steps=p.n_warmup_steps)
 
 
-def _scores(run: Path, last: int) -> list[tuple[int, float]]:
-    """``(frames, score)`` after each complete line of the run's ``eval.csv``: the mean of the last ``last``
-    evaluations' means so far (the experiment reports' score of a run that stopped there)."""
-    path = run / "eval.csv"
-    try:
-        text = path.read_text()
-    except (FileNotFoundError, OSError):
-        return []
-    lines = text.splitlines(keepends=True)
-    complete = "".join(line for line in lines if line.endswith("\n"))
-    means, out = [], []
-    for row in csv.DictReader(complete.splitlines()):
-        try:
-            frames, mean = int(row["frames"]), float(row["mean"])
-        except (KeyError, TypeError, ValueError):
-            continue
-        means.append(mean)
-        out.append((frames, sum(means[-last:]) / len(means[-last:])))
-    return out
-
-
-def mean_scores(per_seed: list[list[tuple[int, float]]]) -> list[tuple[int, float]]:
-    """What the pruner sees of a trial with several seeds: ``(frames, score)`` at each frame count F that some seed
-    evaluated at and every seed reached (evaluated at F or later), the mean over seeds of each one's score at its
-    last evaluation at or before F (a seed not evaluated by F yet leaves F out). With one seed: its own scores."""
-    if len(per_seed) == 1:
-        return list(per_seed[0])
-    if not per_seed or not all(per_seed):
-        return []
-    reached = min(s[-1][0] for s in per_seed)
-    out = []
-    for frames in sorted({f for s in per_seed for f, _ in s if f <= reached}):
-        at = [[v for f, v in s if f <= frames] for s in per_seed]
-        if all(at):
-            out.append((frames, sum(v[-1] for v in at) / len(at)))
-    return out
-
-
-def _write_trial_file(path: Path, number: int, params: dict, state: str, value=None, **extra) -> None:
-    if not path.is_dir():
-        return
-    payload = {"trial": number, "state": state, "value": value, "params": params, **extra}
-    tmp = path / f".{TRIAL_FILE}.tmp"
-    tmp.write_text(json.dumps(payload, indent=2) + "\n")
-    os.replace(tmp, path / TRIAL_FILE)
-
-
 class _Study:
     """The driver: asks (or re-attaches) trials, runs each as a run folder, reports, prunes and tells."""
 
@@ -181,12 +147,25 @@ class _Study:
         optuna.logging.set_verbosity(optuna.logging.WARNING)  # adarl prints one line per trial itself
         self.mutex = threading.RLock()  # ask, tell and the budget count happen one thread at a time
         self.stopping = threading.Event()
-        storage = optuna.storages.RDBStorage(
-            f"sqlite:///{(out / STUDY_FILE).resolve()}", engine_kwargs={"connect_args": {"timeout": 60}}
-        )
+        self.base = self._base_values()
+        self.made = self._settings()
+        storage, n_before = self._open_storage()
         self.storage = storage
+        self.rebuilt = 0
+        if n_before == 0 and any(read_records(out)):  # study.db lost or emptied, the trial folders left
+            trials = rebuild_plan(spec, out, self.dists, self.made)  # checked before anything is written
+            if spec.name not in optuna.study.get_all_study_names(storage):
+                optuna.create_study(study_name=spec.name, storage=storage, direction=spec.direction)
+            empty = optuna.load_study(study_name=spec.name, storage=storage)
+            for key, value in self._attrs().items():
+                empty.set_user_attr(key, value)
+            self.rebuilt = rebuild(empty, trials)
+            n_before = len(trials)
+            log(
+                f"note: the study was not in {out / STUDY_FILE} (lost or emptied): rebuilt the study from the "
+                f"records of {self.rebuilt} trial(s) in {out / 'trials'}"
+            )
         if spec.name in optuna.study.get_all_study_names(storage):
-            n_before = len(storage.get_all_trials(storage.get_study_id_from_name(spec.name), deepcopy=False))
             # a restarted study draws from seed + trials so far: a random sampler does not repeat its first points
             sampler = _sampler(spec, spec.sampler.seed + n_before)
             self.study = optuna.load_study(study_name=spec.name, storage=storage, sampler=sampler, pruner=_pruner(spec))
@@ -209,20 +188,87 @@ class _Study:
             else:
                 self.orphans.append(t)
         self.resumed: list[int] = []
+        self.storage_failed: list[int] = []  # trials the disk failed (full, read-only): left to resume, exit 1
 
-    def _check_same_space(self) -> None:
+    def _open_storage(self):
+        """The study's storage and how many trials it holds; a study.db that is no readable Optuna study (corrupt,
+        another program's file) is refused by name, never a database traceback."""
+        db = self.out / STUDY_FILE
+        try:
+            storage = optuna.storages.RDBStorage(
+                f"sqlite:///{db.resolve()}", engine_kwargs={"connect_args": {"timeout": 60}}
+            )
+            if self.spec.name not in optuna.study.get_all_study_names(storage):
+                return storage, 0
+            return storage, len(storage.get_all_trials(storage.get_study_id_from_name(self.spec.name), deepcopy=False))
+        except Exception as err:  # noqa: BLE001 - sqlalchemy's and sqlite's errors, whatever the damage
+            why = str(err).splitlines()[0] if str(err) else type(err).__name__
+            aside = shlex.join(["mv", str(db), f"{db}.bad"])
+            raise AdaRLError(
+                f"{db} is not a readable Optuna study ({why}); nothing was run. Move it aside ({aside}) "
+                f"and run the same command again: the study is rebuilt from the records of its trials in "
+                f"{self.out / 'trials'}/"
+            ) from None
+
+    def _base_values(self) -> dict:
+        """The base recipe's fingerprinted keys (:func:`~adarl.runtime.fingerprint.recipe_values`), without the
+        keys every trial sets itself (its point of the space, its seed): what pins the study's recipe by content."""
+        base = load_recipe(self.spec.recipe, [*self.spec.overrides, f"seed={self.spec.trial_seeds[0]}"])
+        return {
+            k: v
+            for k, v in recipe_values(base).items()
+            if k != "seed" and not any(k == key or k.startswith(key + ".") for key in self.spec.space)
+        }
+
+    def _settings(self) -> dict:
+        """What a study is made with and every later ``adarl tune`` on its folder must give again (and the base
+        recipe's content, :meth:`_check_base`: its name or path may change)."""
         made = {
             "space": {k: p.model_dump() for k, p in self.spec.space.items()},
-            "recipe": self.spec.recipe,
             "overrides": list(self.spec.overrides),
             "seeds": self.spec.trial_seeds,
             "objective": self.spec.objective.model_dump(),
             "direction": self.spec.direction,
         }
-        made = json.loads(json.dumps(made))
+        return json.loads(json.dumps(made))
+
+    def _attrs(self) -> dict:
+        """The study's user attributes as a new study records them."""
+        sha = hashlib.sha256(json.dumps(self.base, sort_keys=True).encode()).hexdigest()
+        return {**self.made, "recipe": self.spec.recipe, "base_recipe": {"sha256": sha, "values": self.base}}
+
+    def _check_base(self, recorded) -> None:
+        """Refuse a base recipe whose content differs from the study's (its values validated again by today's
+        schema, so a key added since at its default is no change), naming the keys."""
+        values = recorded.get("values") if isinstance(recorded, dict) else None
+        then = revalidated(values) if isinstance(values, dict) else None
+        if then is not None:
+            then = {k: v for k, v in then.items() if k in self.base or k in values}
+        if then == self.base:
+            return
+        then = then or {}
+        keys = sorted(k for k in set(then) | set(self.base) if then.get(k, "?") != self.base.get(k, "?"))
+        shown = "; ".join(
+            f"{k}: {json.dumps(then.get(k))} in the study, {json.dumps(self.base.get(k))} in the spec" for k in keys[:6]
+        )
+        raise RecipeError(
+            f"the study in {self.out} was made with another base recipe (by content: {self.spec.recipe} now makes "
+            f"other runs): {shown or 'it no longer validates'}; restore the recipe to continue it, or give another "
+            "output folder (-o)"
+        )
+
+    def _check_old_trials_base(self) -> None:
+        """A study made before its base recipe was pinned by content: each trial's run (finished or resumable) must
+        be what its parameters make from the recipe now (:func:`~adarl.experiments._tune_records.check_trial`)."""
+        for t in self.study.get_trials(deepcopy=False):
+            if set(t.params) == set(self.dists):
+                check_trial(self.spec, self.out, t.number, dict(t.params))
+
+    def _check_same_space(self) -> None:
+        made = self.made
         attrs = dict(self.study.user_attrs)
         if "space" not in attrs:
-            for key, value in made.items():
+            for key, value in self._attrs().items():
                 self.study.set_user_attr(key, value)
             return
         if "seeds" not in attrs and "seed" in attrs:  # a study made before `seeds` existed: one seed per trial
@@ -237,6 +283,11 @@ class _Study:
                 f"the study in {self.out} was made with another {', '.join(named)}; continue it with the same "
                 "spec, or give another output folder (-o)"
             )
+        if "base_recipe" not in attrs:  # made before the recipe was pinned by content: its trials' runs say
+            self._check_old_trials_base()
+            self.study.set_user_attr("base_recipe", self._attrs()["base_recipe"])
+            return
+        self._check_base(attrs["base_recipe"])
 
     # ------------------------------------------------------------------ scheduling
     def _next(self):
@@ -302,8 +353,19 @@ class _Study:
         folder = trial_dir(self.out, number)
         runs = self._planned(number, params)
         paths = [Path(r.path) for r in runs]
+        check_trial(self.spec, self.out, number, params)  # its folder holds this trial, or nothing yet
         with self.mutex:
             trial.set_user_attr("run_dir", folder.relative_to(self.out).as_posix())  # in the output folder
+            system_attrs = dict(self.storage.get_trial(trial._trial_id).system_attrs)
+        write_record(
+            self.out,
+            number,
+            state="RUNNING",
+            params=params,
+            system_attrs=json.loads(json.dumps(system_attrs, default=str)),
+            study=self.made,
+            **({} if number in self.resumed else {"started": time.time()}),
+        )
         shown = ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in params.items())
         again = " (resumed)" if number in self.resumed else ""
         seeds = self.spec.trial_seeds
@@ -375,6 +437,7 @@ class _Study:
         number = trial.number
         if pruned_at is not None:
             _write_trial_file(folder, number, params, "PRUNED", pruned_at_frames=pruned_at)
+            write_record(self.out, number, state="PRUNED", pruned_at_frames=pruned_at, completed=time.time())
             with self.mutex:
                 self.study.tell(number, state=TrialState.PRUNED)
             self.log(f"[trial {number}] pruned at {pruned_at} frames")
@@ -397,6 +460,7 @@ class _Study:
                 with self.mutex:
                     trial.set_user_attr("seed_values", extra["seed_values"])
             _write_trial_file(folder, number, params, "COMPLETE", value, **extra)
+            write_record(self.out, number, state="COMPLETE", value=value, completed=time.time(), **extra)
             with self.mutex:
                 self.study.tell(number, value)
             per_seed = ", ".join(f"seed {s}: {v:.4g}" for s, v in values.items())
@@ -405,7 +469,14 @@ class _Study:
         message = "; ".join(
             (f"seed {r.seed}: " if len(runs) > 1 else "") + r.message for r in failed if r.status == "failed"
         ) or "; ".join(r.message for r in failed)
+        if is_storage_failure(message):  # the disk failed, not the trial: never FAIL, resumed by the next `adarl tune`
+            with self.mutex:
+                self.storage_failed.append(number)
+            self.stopping.set()  # no other trial starts on that disk; running ones checkpoint, left to resume
+            self.log(f"[trial {number}] stopped, to resume: {message}")
+            return
         _write_trial_file(folder, number, params, "FAIL", message=message)
+        write_record(self.out, number, state="FAIL", message=message, completed=time.time())
         with self.mutex:
             trial.set_user_attr("message", message[:500])
             self.study.tell(number, state=TrialState.FAIL)
@@ -468,10 +539,10 @@ def run_tune(
         )
 
     with exclusive_lock(out / _LOCK_FILE, refused):
+        driver = _Study(spec, out, n_trials, workers, log, launcher)  # refuses another study's folder first
         dumped = spec.model_dump(mode="json")
         dumped.pop("seed" if spec.seeds is not None else "seeds")  # the file is a spec `adarl tune` accepts
         (out / "tune_spec.yaml").write_text(yaml.safe_dump(dumped, sort_keys=False))
-        driver = _Study(spec, out, n_trials, workers, log, launcher)
         finished = sum(t.state in _FINISHED for t in driver.study.trials)
         where = "" if launcher.name == "local" else f" (runs on {launcher.name})"
         log(
@@ -489,4 +560,10 @@ def run_tune(
         if complete:
             best = study.best_trial
             result.best_number, result.best_value, result.best_params = best.number, best.value, dict(best.params)
+        if driver.storage_failed:  # before: told FAIL for good, and `adarl tune` exited 0
+            raise AdaRLError(
+                f"tune {spec.name}: trial {', '.join(map(str, sorted(driver.storage_failed)))} stopped on a storage "
+                f"failure (see its line above); free space (or make {str(out)!r} writable) and run the same command "
+                "again: it resumes from its last checkpoint"
+            )
         return result

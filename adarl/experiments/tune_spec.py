@@ -165,13 +165,25 @@ class PrunerSpec(_Model):
     )
 
 
+_TRIAL_SETS = (
+    "each trial sets it itself (its seed from the spec's `seed` or `seeds`, its run folder under the output folder), "
+    "after the space's point, so a value given here would be recorded but never trained with; give the trials' seeds "
+    "with `seeds: [...]` (the trial's value is the mean over them)"
+)
+
+
+def _set_by_the_trial(key: str) -> bool:
+    """Whether a recipe key is one each trial sets itself (:func:`trial_overrides`, the run's ``-o``)."""
+    return key == "seed" or key == "output" or key.startswith("output.")
+
+
 class TuneSpec(_Model):
     """A hyperparameter search: ``n_trials`` runs of ``recipe`` + ``overrides`` + a point of ``space``."""
 
     kind: Literal["tune"] = Field(description="Marks the file as a tune spec.")
     name: str
     description: str = ""
-    recipe: str = Field(description="Base recipe (name or path).")
+    recipe: str = Field(description="Base recipe (a name, or a .yaml path relative to the spec's folder).")
     overrides: list[str] = Field(default_factory=list, description="Overrides for every trial (e.g. a small budget).")
     seed: int = Field(0, description="The seed of every trial (one run per trial).")
     seeds: list[int] | None = Field(
@@ -190,8 +202,11 @@ class TuneSpec(_Model):
 
     @model_validator(mode="after")
     def _check(self) -> TuneSpec:
-        if not self.name or not set(self.name) <= _NAME_CHARS:
-            raise ValueError(f"name may use letters, digits and . _ - + only, got {self.name!r}")
+        if not self.name or not set(self.name) <= _NAME_CHARS or set(self.name) == {"."}:
+            raise ValueError(  # it names the default output folder: `..` would be the folder above
+                f"name may use letters, digits and . _ - + only and must be a folder name (not . or ..), "
+                f"got {self.name!r}"
+            )
         if self.seeds is not None:
             if "seed" in self.model_fields_set:
                 raise ValueError("give `seed` (one run per trial) or `seeds` (one run per seed), not both")
@@ -199,6 +214,12 @@ class TuneSpec(_Model):
                 raise ValueError("`seeds` needs at least one seed")
             if len(set(self.seeds)) != len(self.seeds):
                 raise ValueError(f"seeds must be distinct, got {self.seeds}")
+        for key in self.space:
+            if _set_by_the_trial(key):
+                raise ValueError(f"space {key!r}: {_TRIAL_SETS}")
+        for override in self.overrides:
+            if _set_by_the_trial(override.partition("=")[0].strip()):
+                raise ValueError(f"override {override!r}: {_TRIAL_SETS}")
         if self.sampler.name == "grid":
             bad = [k for k, p in self.space.items() if p.type == "float" and p.step is None]
             if bad:
@@ -273,9 +294,19 @@ def load_tune_spec(path: str | os.PathLike) -> TuneSpec:
     if data.get("kind") != "tune":
         raise RecipeError(f"{str(p)!r} is not a tune spec (it needs `kind: tune`)")
     try:
-        return TuneSpec.model_validate(data)
+        spec = TuneSpec.model_validate(data)
     except ValidationError as err:
         raise RecipeError(_format_validation(err, repr(str(p)))) from None
+    recipe = Path(spec.recipe).expanduser()
+    if spec.recipe.endswith((".yaml", ".yml")) and not recipe.is_absolute():  # read from the spec's folder
+        beside = (p.parent / recipe).resolve()
+        if not beside.is_file():
+            raise RecipeError(
+                f"tune spec {str(p)!r}: recipe {spec.recipe!r} not found: no file {str(beside)!r} (a relative recipe "
+                f"path is read from the spec's folder)"
+            )
+        spec = spec.model_copy(update={"recipe": str(beside)})
+    return spec
 
 
 def override_value(value: Choice) -> str:

@@ -3,16 +3,20 @@
 Behind :mod:`adarl.runtime.run_dir` (its only user). Writes go to a temporary file, are fsync'ed and renamed, so a
 crash or a full disk mid-write leaves the previous file intact; a write that cannot fit is refused before it starts;
 an ``OSError`` without a file name gets one. Loads accept regular files of tensors and plain containers only
-(``torch.load(weights_only=True)``), and say in our words why a file was refused.
+(``torch.load(weights_only=True)``), and say in our words why a file was refused. An older checkpoint's replay
+buffer (TorchRL's ``dumps()`` folder, which TorchRL reads with ``pickle.load`` and tensordict with imports by name)
+is checked first to hold raw tensors and JSON only (:func:`check_dumps_folder`).
 """
 
 from __future__ import annotations
 
 import contextlib
 import errno
+import json
 import math
 import os
 import pickle
+import pickletools
 import re
 import shutil
 import stat
@@ -25,9 +29,11 @@ from adarl.errors import describe_os_error
 
 __all__ = [
     "NotAFile",
+    "UnsafeFile",
     "atomic_torch_save",
     "atomic_write_text",
     "buffer_nbytes",
+    "check_dumps_folder",
     "check_free_space",
     "fsync_dir",
     "naming",
@@ -89,6 +95,74 @@ def safe_load(path: Path):
     with fh, warnings.catch_warnings():  # torch's pickle-protocol chatter about files it then refuses anyway
         warnings.simplefilter("ignore")
         return torch.load(fh, map_location="cpu", weights_only=True)
+
+
+class UnsafeFile(Exception):
+    """A file that loading would run code from, or that its format never holds: refused unread (the message says
+    which, relative to the folder checked)."""
+
+
+# pickle opcodes that call or import something; a pickle without them is plain values and containers
+_CALLING_OPCODES = {
+    "GLOBAL", "STACK_GLOBAL", "REDUCE", "BUILD", "INST", "OBJ", "NEWOBJ", "NEWOBJ_EX", "EXT1", "EXT2", "EXT4",
+    "PERSID", "BINPERSID",
+}  # fmt: skip
+# the classes a replay-buffer dump's meta.json may name (tensordict imports or unpickles anything else)
+_DUMP_TYPES = {"<class 'tensordict._td.TensorDict'>", "<class 'tensordict.tensordict.TensorDict'>"}
+
+
+def _check_plain_pickle(data: bytes, name: str) -> None:
+    strings: list[str] = []
+    try:
+        for op, arg, _ in pickletools.genops(data):
+            if op.name in _CALLING_OPCODES:
+                called = str(arg).replace(" ", ".") if op.name == "GLOBAL" else ".".join(strings[-2:])
+                what = f"a Python object ({called})" if called else "a Python object"
+                raise UnsafeFile(f"{name} holds {what}, not plain values; refused unread, nothing in it ran")
+            if isinstance(arg, str):
+                strings.append(arg)
+    except UnsafeFile:
+        raise
+    except Exception:  # noqa: BLE001 - not a pickle, or cut short
+        raise UnsafeFile(f"{name} is corrupt or truncated (not a pickle of plain values)") from None
+
+
+def _check_dump_meta(data: bytes, name: str) -> None:
+    try:
+        meta = json.loads(data)
+    except ValueError:
+        raise UnsafeFile(f"{name} is corrupt (not JSON)") from None
+    if not isinstance(meta, dict) or meta.get("_type") not in _DUMP_TYPES:
+        kind = meta.get("_type") if isinstance(meta, dict) else None
+        raise UnsafeFile(f"{name} names the class {kind!r}, not a TensorDict (tensordict would import or unpickle it)")
+    for key, entry in meta.items():
+        if isinstance(entry, dict) and entry.get("type") not in (None, "TensorDict"):
+            raise UnsafeFile(f"{name} holds {key!r} as {entry.get('type')!r}, not a tensor or a TensorDict")
+
+
+def check_dumps_folder(folder: Path) -> None:
+    """Refuse (:class:`UnsafeFile`) a TorchRL ``dumps()`` folder (an older checkpoint's replay buffer) that holds
+    anything but what TorchRL reads as data: raw ``*.memmap`` tensors, JSON whose ``meta.json`` name TensorDicts
+    only, and a top-level ``prefetch.pkl`` of plain values. TorchRL would ``pickle.load`` that file, ``torch.load``
+    a ``transform.t``, and tensordict unpickle non-tensor leaves or import the class a ``meta.json`` names. Links,
+    FIFOs and devices are refused too (a link could point anywhere, a FIFO block the reader). Nothing is run."""
+    for path in sorted(folder.rglob("*")):
+        name = path.relative_to(folder).as_posix()
+        mode = path.lstat().st_mode
+        if stat.S_ISDIR(mode):
+            continue
+        if not stat.S_ISREG(mode):
+            raise UnsafeFile(f"{name} is not a regular file (a link, FIFO or device); refused unread")
+        if path.suffix == ".memmap":
+            continue
+        if name == "prefetch.pkl":
+            _check_plain_pickle(path.read_bytes(), name)
+        elif path.name == "meta.json":
+            _check_dump_meta(path.read_bytes(), name)
+        elif path.suffix != ".json":
+            raise UnsafeFile(
+                f"{name} is not part of a replay buffer adarl wrote (raw tensors and JSON only); refused unread"
+            )
 
 
 def why_unloadable(err: Exception) -> str:

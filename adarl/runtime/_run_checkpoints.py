@@ -18,12 +18,15 @@ from adarl import __version__
 from adarl.errors import (
     CheckpointError,
     CheckpointFallbackWarning,
+    command,
     describe_os_error,
 )
 from adarl.runtime._file_safety import (
     NotAFile,
+    UnsafeFile,
     atomic_torch_save,
     buffer_nbytes,
+    check_dumps_folder,
     check_free_space,
     fsync_dir,
     nbytes,
@@ -169,7 +172,7 @@ class RunCheckpoints:
             raise CheckpointError(
                 f"could not write checkpoint {path.name}{' (disk full)' if full else ''}: {str(writing)!r}: "
                 f"{err.strerror or err}; the run stopped. The previous checkpoint {prev[-1] if prev else '(none)'} "
-                f"is intact: {remedy} and `adarl resume {self.path}`",
+                f"is intact: {remedy} and `{command('adarl', 'resume', self.path)}`",
                 path=path,
                 reason=err.strerror or str(err),
             ) from None
@@ -264,6 +267,11 @@ class RunCheckpoints:
                         f"has lost its replay buffer: {rb.name}/{REPLAY_BUFFER_FILE} cannot be loaded safely: "
                         f"{why_unloadable(err)}"
                     ) from None
+            else:  # an older checkpoint's TorchRL dumps() folder: read by pickle and imports, so checked first
+                try:
+                    check_dumps_folder(rb)
+                except (UnsafeFile, OSError) as err:
+                    raise refuse(f"has lost its replay buffer: {rb.name}/{err}") from None
         state["checkpoint_file"] = str(path)
         return state
 
@@ -315,13 +323,13 @@ class RunCheckpoints:
             return state
         if errors:
             raise CheckpointError(
-                "no loadable checkpoint in run folder: " + "; ".join(errors) + f"; `adarl run RECIPE -o {self.path} "
-                "--overwrite` trains it again from the start"
+                "no loadable checkpoint in run folder: " + "; ".join(errors) + "; `adarl run RECIPE -o "
+                f"{command(self.path)} --overwrite` trains it again from the start"
             )
         raise CheckpointError(
             f"no checkpoint in {str(self.checkpoint_dir)!r} to resume from, though the run folder holds training "
-            f"records (were its checkpoints deleted?); `adarl run RECIPE -o {self.path} --overwrite` trains it "
-            f"again from the start"
+            f"records (were its checkpoints deleted?); `adarl run RECIPE -o {command(self.path)} --overwrite` trains "
+            f"it again from the start"
         )
 
     def load_replay_buffer(self, replay_buffer, *, frames: int, checkpoint: str | os.PathLike | None = None) -> bool:
@@ -345,7 +353,13 @@ class RunCheckpoints:
                     reason=why_unloadable(err),
                 ) from None
             replay_buffer.load_state_dict(sd)
-        else:
+        else:  # an older checkpoint's TorchRL dumps() folder: only raw tensors and JSON are read from it
+            try:
+                check_dumps_folder(rb_dir)
+            except (UnsafeFile, OSError) as err:
+                raise CheckpointError(
+                    f"replay buffer {str(rb_dir)!r} cannot be loaded safely: {err}", path=rb_dir, reason=str(err)
+                ) from None
             replay_buffer.loads(str(rb_dir))
         return True
 

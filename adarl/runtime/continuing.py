@@ -23,7 +23,7 @@ import os
 from collections.abc import Sequence
 from pathlib import Path
 
-from adarl.errors import RecipeError, did_you_mean, one_of
+from adarl.errors import RecipeError, command, did_you_mean, one_of
 from adarl.runtime.config import load_recipe
 from adarl.runtime.run_dir import RunDir, recipe_fingerprint
 
@@ -53,7 +53,7 @@ def continued_recipe(run_dir: RunDir, recipe, overrides: Sequence[str]):
         raise RecipeError(
             f"adarl resume cannot change {key!r}{did_you_mean(key, RESUMABLE_KEYS)}: a resumed run keeps its recipe "
             f"(exact resume); allowed: {one_of(RESUMABLE_KEYS)}. To change it, start a new run: "
-            f"`adarl run {run_dir.recipe_path} {' '.join(refused)} -o NEW_DIR`"
+            f"`{command('adarl', 'run', run_dir.recipe_path, *refused)} -o NEW_DIR`"
         )
     new = load_recipe(str(run_dir.recipe_path), list(overrides))
     old_total, new_total = recipe.collector.total_frames, new.collector.total_frames
@@ -82,7 +82,7 @@ def already_complete(path: str | os.PathLike, frames: int, total: int) -> str | 
     return (
         f"run {str(path)!r} is already complete: {frames} frames of collector.total_frames={total} "
         f"(its report: {Path(path) / 'report.md'}); to train it further, raise the budget: "
-        f"`adarl resume {path} collector.total_frames=N` with N > {frames}"
+        f"`{command('adarl', 'resume', path)} collector.total_frames=N` with N > {frames}"
     )
 
 

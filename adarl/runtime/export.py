@@ -18,9 +18,12 @@ adarl, TorchRL or tensordict):
 
 Every export is checked before it is written: the program's actions on 256 observations must equal the TorchRL
 actor's to fp tolerance (merged layers round differently from factored ones; factored layers run the same
-operations), else nothing is written. Formats (``format=``): ``torchscript`` (default; ``.pt``, ``torch.jit.load``),
-``export`` (``.pt2``, ``torch.export.load(path).module()``) and ``onnx`` (needs the ``onnx`` and ``onnxscript``
-packages). docs/performance.md, "Deploying a policy", says why TorchScript is the default and measures them.
+operations), else nothing is written. The file is sealed: its ``adarl.json`` records the sha256 of every other member
+of the archive, which :class:`~adarl.runtime.exported.ExportedPolicy` checks (and loads it without running anything
+from it: :mod:`adarl.runtime._export_archive`). Formats (``format=``): ``torchscript`` (default; ``.pt``,
+``torch.jit.load``), ``export`` (``.pt2``, ``torch.export.load(path).module()``) and ``onnx`` (needs the ``onnx``
+and ``onnxscript`` packages). docs/performance.md, "Deploying a policy", says why TorchScript is the default and
+measures them.
 """
 
 from __future__ import annotations
@@ -40,7 +43,8 @@ from torch import nn
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 import adarl
-from adarl.errors import AdaRLError, AdaRLValueError, one_of
+from adarl.errors import AdaRLError, AdaRLValueError, ExportFileError, one_of
+from adarl.runtime._export_archive import load_program, read_export, seal
 from adarl.runtime._export_program import (  # noqa: F401  (CALL_COST_MACS: part of this module's interface)
     CALL_COST_MACS,
     LAYER_FORMS,
@@ -48,7 +52,6 @@ from adarl.runtime._export_program import (  # noqa: F401  (CALL_COST_MACS: part
     _ObsNorm,
     deterministic_program,
 )
-from adarl.runtime.exported import METADATA_FILE
 from adarl.runtime.policy import load_policy_with_info
 
 __all__ = [
@@ -179,6 +182,18 @@ def _write_atomic(path: Path, write) -> None:
             os.unlink(tmp)
 
 
+def _write_sealed(tmp: str, archive: bytes, metadata: dict) -> None:
+    """The archive torch wrote, sealed (adarl.json with the sha256 of every member), written to ``tmp``, then read
+    back as :class:`~adarl.runtime.exported.ExportedPolicy` reads it: what is written is known to load."""
+    Path(tmp).write_bytes(seal(archive, metadata))
+    try:
+        load_program(read_export(tmp))
+    except ExportFileError as err:  # a program adarl's own loader would refuse: a bug here, said as one
+        raise AdaRLError(
+            f"the export does not load back through adarl's checks ({err.reason}); nothing written"
+        ) from None
+
+
 def _torchscript(program: Program, actor, meta_for) -> tuple[object, float]:
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", category=DeprecationWarning, message=r".*torch\.jit.*")
@@ -193,9 +208,11 @@ def _torchscript(program: Program, actor, meta_for) -> tuple[object, float]:
     diff = _check(scripted, program, actor, "the TorchScript program")
 
     def write(tmp: str) -> None:
+        buffer = io.BytesIO()
         with warnings.catch_warnings():
             warnings.filterwarnings("ignore", category=DeprecationWarning, message=r".*torch\.jit.*")
-            torch.jit.save(scripted, tmp, _extra_files={METADATA_FILE: json.dumps(meta_for(diff), indent=1)})
+            torch.jit.save(scripted, buffer)
+        _write_sealed(tmp, buffer.getvalue(), meta_for(diff))
 
     return write, diff
 
@@ -218,8 +235,8 @@ def _torch_export(program: Program, actor, meta_for) -> tuple[object, float]:
 
     def write(tmp: str) -> None:
         buffer = io.BytesIO()  # torch.export.save wants a buffer or a name ending in .pt2; -o may name any file
-        torch.export.save(ep, buffer, extra_files={METADATA_FILE: json.dumps(meta_for(diff), indent=1)})
-        Path(tmp).write_bytes(buffer.getvalue())
+        torch.export.save(ep, buffer)
+        _write_sealed(tmp, buffer.getvalue(), meta_for(diff))
 
     return write, diff
 

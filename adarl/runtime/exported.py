@@ -1,63 +1,39 @@
 """An exported policy (``adarl export``) in your own code: :class:`ExportedPolicy`, with SB3's ``predict``.
 
-This module imports torch, numpy and the standard library only (not TorchRL, tensordict, gymnasium or the rest of
-adarl), so a deployment that installs adarl just for it stays light; without adarl at all, load the file with
-torch alone (docs/quickstart.md, "Deploy a policy" shows both).
+This module imports torch, numpy, the standard library and adarl's errors and file checks only (not TorchRL,
+tensordict, gymnasium or the rest of adarl), so a deployment that installs adarl just for it stays light; without
+adarl at all, load the file with torch alone (docs/quickstart.md, "Deploy a policy" shows both).
 
 What a file holds: the deterministic actor as one program (observation in, action out, the action scaled to the
 env's bounds) and ``adarl.json``, the metadata :func:`adarl.export_policy` wrote next to it inside the archive
 (shapes, bounds, ranks, which layers were merged, the run it came from). A TorchScript file (``.pt``) and a
 ``torch.export`` archive (``.pt2``) are both zip files, so the metadata is read without loading the program.
+
+Loading runs nothing from the file: it is checked first (zip CRCs, the sha256 of each member recorded at export, and
+for a ``.pt2`` everything ``torch.export.load`` would otherwise unpickle, evaluate or execute), and a file that is
+empty, truncated, corrupt, changed since export or holding code is refused by name
+(:class:`~adarl.errors.ExportFileError`); :mod:`adarl.runtime._export_archive` says how.
 """
 
 from __future__ import annotations
 
-import io
-import json
 import os
-import warnings
-import zipfile
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from adarl.errors import ExportFileError
+from adarl.runtime._export_archive import METADATA_FILE, load_program, read_export
+
 __all__ = ["ExportedPolicy", "read_export_metadata", "METADATA_FILE"]
-
-#: the metadata file inside an exported archive (``torch.jit.save``'s / ``torch.export.save``'s extra files)
-METADATA_FILE = "adarl.json"
-
-
-def _archive_kind(path: Path) -> str:
-    """``'torchscript'``, ``'export'`` or ``'onnx'`` from the file's contents (not its name)."""
-    if zipfile.is_zipfile(path):
-        with zipfile.ZipFile(path) as z:
-            names = z.namelist()
-        if any(n.endswith("/archive_format") for n in names):
-            return "export"
-        if any(n.endswith("/constants.pkl") for n in names) or any("/code/" in n for n in names):
-            return "torchscript"
-        raise ValueError(f"{str(path)!r} is a zip file but neither a TorchScript nor a torch.export archive")
-    with open(path, "rb") as f:
-        head = f.read(64)
-    if head[:1] == b"\x08":  # an ONNX ModelProto starts with field 1 (ir_version, a varint)
-        return "onnx"
-    raise ValueError(f"{str(path)!r} is not an exported policy (a TorchScript .pt, torch.export .pt2 or .onnx file)")
 
 
 def read_export_metadata(path: str | os.PathLike) -> dict:
-    """The ``adarl.json`` metadata of an exported TorchScript or ``torch.export`` file, without loading its program."""
-    p = Path(path)
-    if not p.is_file():
-        raise FileNotFoundError(f"{str(p)!r}: no such file")
-    kind = _archive_kind(p)
-    if kind == "onnx":
-        raise ValueError(f"{str(p)!r} is an ONNX file: its metadata is the model's metadata_props['adarl'] (onnx)")
-    with zipfile.ZipFile(p) as z:
-        name = next((n for n in z.namelist() if n.endswith(f"/extra/{METADATA_FILE}")), None)
-        if name is None:
-            raise ValueError(f"{str(p)!r} holds no {METADATA_FILE}: it was not written by adarl export")
-        return json.loads(z.read(name).decode("utf-8"))
+    """The ``adarl.json`` metadata of an exported TorchScript or ``torch.export`` file, without loading its program
+    (the file is checked first: an empty, truncated, corrupt or changed one is refused, :class:`ExportFileError`)."""
+    archive = read_export(path)
+    return archive.metadata
 
 
 class ExportedPolicy:
@@ -73,33 +49,35 @@ class ExportedPolicy:
     Calling the object on a tensor runs the program itself (``policy(obs_tensor) -> action_tensor``).
 
     Only TorchScript (``.pt``) and ``torch.export`` (``.pt2``) files load here; an ``.onnx`` file is for an ONNX
-    runtime (``onnxruntime.InferenceSession(path).run(None, {"observation": obs})``).
+    runtime (``onnxruntime.InferenceSession(path).run(None, {"observation": obs})``). Nothing in the file runs while
+    it loads; one that is empty, truncated, corrupt, changed since export or holding code is refused by name
+    (:class:`~adarl.errors.ExportFileError`, a ``ValueError``).
     """
 
     def __init__(self, path: str | os.PathLike) -> None:
         p = Path(path)
-        if not p.is_file():
-            raise FileNotFoundError(f"{str(p)!r}: no such file")
-        self.path = p
-        self.format = _archive_kind(p)
-        if self.format == "onnx":
-            raise ValueError(
+        archive = read_export(p, onnx_ok=True)  # read once, checked; the program is loaded from these bytes
+        if archive is None:
+            raise ExportFileError(
                 f"{str(p)!r} is an ONNX file: run it with an ONNX runtime, e.g. "
-                "onnxruntime.InferenceSession(path).run(None, {'observation': obs}); ExportedPolicy loads .pt and .pt2"
+                "onnxruntime.InferenceSession(path).run(None, {'observation': obs}); ExportedPolicy loads .pt and .pt2",
+                path=p,
+                reason="is an ONNX file",
             )
-        self.metadata = read_export_metadata(p)
-        if self.format == "torchscript":
-            with warnings.catch_warnings():  # torch.jit is deprecated in torch 2.x but works (docs/performance.md)
-                warnings.filterwarnings("ignore", category=DeprecationWarning, message=r".*torch\.jit.*")
-                self.program = torch.jit.load(str(p), map_location="cpu")
-        else:
-            # a buffer: torch.export.load wants one, or a file name ending in .pt2 (-o may name any file)
-            self.program = torch.export.load(io.BytesIO(p.read_bytes())).module()
+        self.path, self.format, self.metadata = p, archive.kind, archive.metadata
+        try:
+            self.observation_shape = tuple(int(n) for n in self.metadata["observation_shape"])
+            self.action_shape = tuple(int(n) for n in self.metadata["action_shape"])
+            self.action_kind = str(self.metadata["action_kind"])
+        except (KeyError, TypeError, ValueError):
+            raise ExportFileError(
+                f"exported policy {str(p)!r} has incomplete metadata (observation_shape, action_shape, action_kind)",
+                path=p,
+                reason="incomplete metadata",
+            ) from None
+        self.program = load_program(archive)
         for t in self.program.parameters():  # torch.export's module gives them back requiring grad
             t.requires_grad_(False)
-        self.observation_shape = tuple(self.metadata["observation_shape"])
-        self.action_shape = tuple(self.metadata["action_shape"])
-        self.action_kind = self.metadata["action_kind"]
         self._batched_only = self.format == "export"  # the .pt2 program's input is (batch, *observation_shape)
 
     def __call__(self, observation: torch.Tensor) -> torch.Tensor:

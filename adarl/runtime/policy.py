@@ -19,6 +19,7 @@ from adarl.core.lowrank import LowRankLinear
 from adarl.envs.linear_cartpole import LINEAR_CARTPOLE_ID, LinearCartPoleEnv
 from adarl.envs.registry import quiet_mujoco
 from adarl.errors import AdaRLValueError, CheckpointError
+from adarl.runtime._export_archive import is_export_file
 from adarl.runtime.builders.common import check_device, policy_specs, spec_env
 from adarl.runtime.builders.ppo import make_ppo_modules
 from adarl.runtime.builders.sac import make_recipe_actor
@@ -88,6 +89,11 @@ def _checkpoint(path: str | os.PathLike, which: str):
         ckpt = next((c for c in reversed(ckpts) if c.name == f"ckpt-{frames:012d}.pt"), ckpts[-1])
         return run, ckpt, state
     if p.is_file():
+        if is_export_file(p):  # a zip holding adarl.json: named as what it is (nothing in it is loaded here)
+            raise AdaRLValueError(
+                f"{str(p)!r} is an exported policy (adarl export), not a checkpoint or run folder: load it with "
+                f"adarl.ExportedPolicy({str(p)!r}).predict(obs)"
+            )
         folder = p.parent.parent if p.parent.name == "checkpoints" else p.parent
         if not (folder / "recipe.yaml").is_file():
             raise CheckpointError(

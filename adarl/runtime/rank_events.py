@@ -12,9 +12,10 @@ after an event that changed a rank (``on_truncate``):
 2. a lean collector finishes and drops the batch it is prefetching: nothing may step the env under the warm start;
 3. every low-rank factor is checked alive: finite, non-zero, of rank >= 1
    (:func:`~adarl.runtime.guards.check_live_layers`);
-4. the warm start refills (or empties) the replay buffer with the truncated policy, then each ``after_warm_start``
-   hook gets its :class:`~adarl.core.warmstart.WarmStartRecord` (``None`` without a warm start): the trainer counts
-   the frames and logs them (:meth:`RunRecords.count_warm_start`);
+4. the warm start refills (or empties) the replay buffer with the truncated policy (when its frames count towards
+   the frame budget, at most what the budget has left: :attr:`RankEventEffects.frames_left`), then each
+   ``after_warm_start`` hook gets its :class:`~adarl.core.warmstart.WarmStartRecord` (``None`` without a warm start):
+   the trainer counts the frames and logs them (:meth:`RunRecords.count_warm_start`);
 5. the lean collector starts a fresh episode (the warm start stepped the env);
 
 after every event, changed or not (``on_event``): each ``after_event`` hook (the trainer's rank records and logs: a
@@ -54,6 +55,8 @@ class RankEventEffects:
         self._reset = collector.reset if isinstance(collector, LeanCollector) else None
         self.after_warm_start: list[Callable[[WarmStartRecord | None], None]] = []
         self.after_event: list[Callable[[object], None]] = []
+        #: the frames the warm start may still collect (a run's budget left, when they count towards it); None: all
+        self.frames_left: Callable[[], int] | None = None
 
     def register(self, adapter) -> None:
         """Put the effects on ``adapter``: this object as an ``on_truncate`` callback (its :meth:`check_event` runs
@@ -72,7 +75,10 @@ class RankEventEffects:
         if self._reset is not None:  # nothing may step the env under the warm start (a prefetched batch is dropped)
             self._reset()
         check_live_layers(self.factors, event_step=getattr(event, "step", None))
-        record = self.warm_start(event) if self.warm_start is not None else None
+        record = None
+        if self.warm_start is not None:
+            limited = {} if self.frames_left is None else {"limit": self.frames_left()}
+            record = self.warm_start(event, **limited)
         for hook in self.after_warm_start:
             hook(record)
         if self._reset is not None:  # the warm start stepped the env under it
@@ -87,6 +93,8 @@ class RankEventEffects:
     def record_run(self, trainer) -> RunRecords:
         """Add a trainer's records of every event (:class:`RunRecords`) to the effects; returns them."""
         records = RunRecords(trainer)
+        if trainer.recipe.replay.warm_start.count_frames:  # counted: it never collects past the frame budget
+            self.frames_left = records.frames_left
         self.after_warm_start.append(records.count_warm_start)
         self.after_event.append(records.record_event)
         return records
@@ -110,6 +118,13 @@ class RunRecords:
         if t.recipe.replay.warm_start.count_frames:
             t.frames += added
         t.logger.log_scalar(metrics.WARM_START_FRAMES, added, step=t.frames)
+
+    def frames_left(self) -> int:
+        """The frames the budget has left (``collector.total_frames`` less the frames counted so far): what a warm
+        start whose frames count may collect. Before, one in the run's last batch collected past the budget
+        (``total_frames=1500`` ended at 1750)."""
+        t = self.trainer
+        return max(0, int(t.recipe.collector.total_frames) - int(t.frames))
 
     def record_event(self, event) -> None:
         """After every rank event, changed or not (a refused candidate is a result too): ranks and history."""

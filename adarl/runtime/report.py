@@ -19,6 +19,7 @@ from pathlib import Path
 import yaml
 
 from adarl.runtime import metrics
+from adarl.runtime.config import local_plugins
 from adarl.runtime.results import download_results, is_url, join, upload_tree, write_atomic
 from adarl.runtime.run_dir import RunDir
 
@@ -234,6 +235,7 @@ def write_report(path: str | os.PathLike) -> Path | str:
             write_atomic(join(str(path), "report.md"), md.read_bytes())
         return join(str(path), "report.md")
     run = RunDir(path)
+    local_plugins.check_recorded(run.recorded_plugins().get("modules") or [], str(run.path))  # changed: refused
     plots = run.path / "plots"
     plots.mkdir(exist_ok=True)
     ret = plot_returns(run, plots / "return.png")

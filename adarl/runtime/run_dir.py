@@ -3,6 +3,8 @@
 ::
 
     <run>/recipe.yaml            resolved recipe (what ran; `adarl resume` rebuilds from it)
+    <run>/fingerprint.json       sha256 of the recipe's training keys and of its plugin modules (what made the run:
+                                 adarl.runtime.fingerprint); plugins.json: where its algorithm, env, rule came from
     <run>/.adarl.lock            claimed when the folder is created; locked while a process trains in it
     <run>/metrics/scalars/       TorchRL CSVLogger scalars, one file per metric (header "step,value", step =
                                  frames), SB3's names: rollout/ep_rew_mean.csv, eval/mean_reward.csv,
@@ -46,6 +48,7 @@ from adarl.errors import (
     AdaRLError,
     AdaRLWarning,
     RecipeError,
+    command,
     describe_os_error,
 )
 from adarl.runtime import metrics
@@ -63,6 +66,7 @@ from adarl.runtime._run_checkpoints import (
 from adarl.runtime._run_loggers import logging_backends, null_logger
 from adarl.runtime._run_records import RunRecords
 from adarl.runtime.config import load_recipe, local_plugins, save_resolved
+from adarl.runtime.fingerprint import write_fingerprint
 
 __all__ = [
     "RunDir",
@@ -83,6 +87,7 @@ LOCK_FILE = ".adarl.lock"
 TRAINING_RECORDS = (
     "recipe.yaml",
     "plugins.json",
+    "fingerprint.json",
     LOCK_FILE,
     "metrics/",
     "eval.csv",
@@ -140,7 +145,7 @@ class RunDir(RunRecords, RunCheckpoints):
             if not overwrite and is_run:
                 raise AdaRLError(
                     f"run folder {str(p)!r} already exists and is not empty; choose another output.dir, "
-                    f"resume it with `adarl resume {p}`, or pass --overwrite to replace it"
+                    f"resume it with `{command('adarl', 'resume', p)}`, or pass --overwrite to replace it"
                 )
             if not is_run:
                 what = (
@@ -207,7 +212,7 @@ class RunDir(RunRecords, RunCheckpoints):
             if p.is_dir() and (p / LOCK_FILE).exists() and all(_claim_leftover(e.name) for e in p.iterdir()):
                 raise AdaRLError(
                     f"{str(p)!r} holds no recipe.yaml: `adarl run` was stopped before it wrote one, so nothing ran "
-                    f"there; start the run again with `adarl run RECIPE -o {p}`"
+                    f"there; start the run again with `adarl run RECIPE -o {command(p)}`"
                 )
             raise AdaRLError(f"{str(p)!r} is not an adarl run folder (no recipe.yaml in it)")
         return cls(p)
@@ -303,7 +308,8 @@ class RunDir(RunRecords, RunCheckpoints):
 
     def save_recipe(self, recipe) -> None:
         """Write the resolved recipe.yaml and plugins.json (what :meth:`load_recipe` needs to rebuild the run, or
-        to name the package it is missing)."""
+        to name the package it is missing), and fingerprint.json (what made the run:
+        :mod:`adarl.runtime.fingerprint`)."""
         save_resolved(recipe, self.recipe_path)
         record = {
             "algorithm": plugins.algorithm(recipe.algorithm.name).provenance(),
@@ -315,6 +321,7 @@ class RunDir(RunRecords, RunCheckpoints):
             atomic_write_text(self.plugins_path, json.dumps(record, indent=2) + "\n")
         except OSError as err:
             raise AdaRLError(f"cannot write {str(self.plugins_path)!r}: {describe_os_error(err)}") from None
+        write_fingerprint(self.path, recipe)
 
     def load_recipe(self):
         """The run's recipe.yaml, validated. A run whose algorithm, env or rank rule is no longer registered (its

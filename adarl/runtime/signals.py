@@ -1,10 +1,15 @@
-"""Graceful interruption: the first SIGINT/SIGTERM asks the run to checkpoint and stop at the next safe point.
+"""Graceful interruption: the first SIGINT/SIGTERM/SIGHUP asks the run to checkpoint and stop at the next safe point.
 
 Safe points are between collector batches (after that batch's updates), where a checkpoint resumes exactly.
-A second signal stops at once (``KeyboardInterrupt``); the previous checkpoint is still there. A signal after the
-last batch lets the run end as it would have (final evaluation, checkpoint, summary.json, report.md), then stops it
-with the same exit status (:func:`stopped_after_the_end`): the report is never cut short by a signal's default
-action.
+A second signal while the batch still runs stops at once (``KeyboardInterrupt``); the previous checkpoint is still
+there. Once the stop itself has begun (:meth:`GracefulInterrupt.stopping`: the checkpoint is being written, the run
+closed) further signals are noted and ignored: the stop is moments away, and a checkpoint cut short would lose the
+work since the previous one. A signal after the last batch lets the run end as it would have (final evaluation,
+checkpoint, summary.json, report.md), then stops it with the same exit status (:func:`stopped_after_the_end`): the
+report is never cut short by a signal's default action.
+
+SIGHUP (the terminal or the SSH session closed) is handled as SIGTERM, unless it was ignored when the run started
+(``nohup``): then it stays ignored.
 """
 
 from __future__ import annotations
@@ -24,9 +29,13 @@ __all__ = [
     "stop_as_on_a_signal",
     "stdout_reader_gone",
     "silence_stdout",
+    "STOP_SIGNALS",
     "CHECKPOINTING",
     "FINISHING",
 ]
+
+#: the signals that ask for a stop after a checkpoint: Ctrl-C, ``kill``/a scheduler, a closed terminal or SSH session
+STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
 
 #: what the first signal's notice says is done before stopping, in training and once training has ended
 CHECKPOINTING = "saving a checkpoint after this batch"
@@ -43,48 +52,91 @@ class RunInterrupted(AdaRLError):
 
 
 class GracefulInterrupt:
-    """Context manager: record the first SIGINT/SIGTERM in ``requested``; raise KeyboardInterrupt on the second.
+    """Context manager: record the first SIGINT/SIGTERM/SIGHUP in ``requested``; raise KeyboardInterrupt on the
+    second, unless the stop has begun (:meth:`stopping`): from then on further signals are noted and ignored.
 
     Outside the main thread (where Python cannot install handlers) it does nothing and ``requested`` stays None.
-    :func:`stop_as_on_a_signal` asks the innermost one entered for the same stop without a signal (e.g. stdout's
-    reader went away: SIGPIPE is never handled, so that a dropped socket elsewhere cannot stop anything).
+    A signal that was ignored when it was entered (SIGHUP under ``nohup``) stays ignored. :func:`stop_as_on_a_signal`
+    asks the innermost one entered for the same stop without a signal (e.g. stdout's reader went away: SIGPIPE is
+    never handled, so that a dropped socket elsewhere cannot stop anything).
+
+    On leaving it the previous handlers come back, except in a process that ends after a stop
+    (:attr:`process_ends_after_a_stop`, set by the ``adarl`` command): there the signals stay ignored once a stop was
+    asked, so that a second signal cannot interrupt the process's exit (before: killed by it, exit -2, or a traceback
+    from an exit handler).
     """
 
     _entered: list[GracefulInterrupt] = []  # main thread only, innermost last
+    #: the ``adarl`` command sets it for its own process, which ends once a stop was asked (never in-process callers)
+    process_ends_after_a_stop = False
+    #: the signal that stopped a run at once (a second one), if any: whatever error follows is that stop's
+    stopped_at_once: int | None = None
 
-    def __init__(self, signals=(signal.SIGINT, signal.SIGTERM), *, quiet: bool = False) -> None:
+    def __init__(self, signals=STOP_SIGNALS, *, quiet: bool = False) -> None:
         self.signals = tuple(signals)
         self.quiet = quiet
         self.notice = CHECKPOINTING  # the loop sets FINISHING once training has ended
         self.requested: int | None = None
+        self.stopping_since: str | None = None  # what the stop does, once it has begun (:meth:`stopping`)
         self._previous: dict[int, object] = {}
 
     def _handler(self, signum, frame) -> None:
+        name = signal.Signals(signum).name
+        if self.stopping_since is not None:  # the stop has begun: never cut it short
+            self._say(f"{name} received again: already stopping ({self.stopping_since}); it ends in a moment")
+            return
         if self.requested is not None:
-            self._restore()
+            GracefulInterrupt.stopped_at_once = signum
+            self._restore(after_a_stop=True)
             raise KeyboardInterrupt
-        self._request(signum, f"{signal.Signals(signum).name} received: {self.notice} (send it again to stop now)")
+        self._request(signum, f"{name} received: {self.notice} (send it again to stop now)")
 
     def _request(self, signum: int, said: str) -> None:
         self.requested = signum
-        if not self.quiet:
-            print(f"\nadarl: {said}", file=sys.stderr, flush=True)
+        self._say(said)
+
+    def _say(self, said: str) -> None:
+        """One notice on stderr, written straight to its file descriptor: a signal handler that printed through
+        ``sys.stderr`` while the progress bar was writing to it raised "reentrant call" (a RuntimeError)."""
+        if self.quiet:
+            return
+        text = f"\nadarl: {said}\n"
+        try:
+            fd = sys.stderr.fileno()
+        except (AttributeError, OSError, ValueError):  # a replaced stderr (captured): no reentrancy to fear there
+            print(text, end="", file=sys.stderr, flush=True)
+            return
+        try:
+            os.write(fd, text.encode(errors="replace"))
+        except OSError:  # stderr gone: nothing to tell
+            pass
+
+    def stopping(self, what: str) -> None:
+        """The stop asked has begun (``what`` it does: "writing the checkpoint at N frames"); from now on a signal
+        is noted and ignored instead of stopping at once. Says so, so that one waiting for it can tell."""
+        self.stopping_since = what
+        if self.requested is not None:
+            self._say(f"stopping: {what}; a signal now is ignored until the run has stopped")
 
     def __enter__(self) -> GracefulInterrupt:
         if threading.current_thread() is threading.main_thread():
             for s in self.signals:
-                self._previous[s] = signal.getsignal(s)
+                previous = signal.getsignal(s)
+                if s == getattr(signal, "SIGHUP", None) and previous is signal.SIG_IGN:
+                    continue  # nohup: a hang-up was meant not to stop it
+                self._previous[s] = previous
                 signal.signal(s, self._handler)
             GracefulInterrupt._entered.append(self)
         return self
 
-    def _restore(self) -> None:
+    def _restore(self, *, after_a_stop: bool = False) -> None:
+        ignore = after_a_stop and GracefulInterrupt.process_ends_after_a_stop
         for s, h in self._previous.items():
-            signal.signal(s, h)
+            signal.signal(s, signal.SIG_IGN if ignore else h)
         self._previous.clear()
 
     def __exit__(self, *exc) -> None:
-        self._restore()
+        self._restore(after_a_stop=self.requested is not None)
         if self in GracefulInterrupt._entered:
             GracefulInterrupt._entered.remove(self)
 

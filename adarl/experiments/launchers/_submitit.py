@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import contextlib
 import os
+import shutil
 import time
 from pathlib import Path
 
-from adarl.errors import MissingExtraError
+from adarl.errors import AdaRLError, MissingExtraError
 from adarl.experiments.execute import (
     WATCH_POLL_S,
     StopAsked,
@@ -55,7 +56,11 @@ class SubmititLauncher(Launcher):
             import submitit
         except ImportError:
             raise MissingExtraError("the submitit launcher needs submitit: pip install 'adarl[slurm]'") from None
-        ex = submitit.AutoExecutor(folder=self.folder, cluster=self.cluster)
+        cluster = _slurm_or_refused(self.cluster)
+        try:
+            ex = submitit.AutoExecutor(folder=self.folder, cluster=cluster)
+        except (RuntimeError, ValueError) as err:  # submitit found no executor it can use here
+            raise AdaRLError(f"the submitit launcher cannot start: {str(err).splitlines()[0]}") from None
         params = dict(timeout_min=self.timeout_min, cpus_per_task=self.cpus_per_run, nodes=1, tasks_per_node=1)
         if self.gpus_per_run:
             params["gpus_per_node"] = self.gpus_per_run
@@ -89,11 +94,11 @@ class SubmititLauncher(Launcher):
 
     def run_watched(self, run, watch):
         job_fn, asked = _CheckpointableRun(), [False]
-        job, tries = self._ex.submit(job_fn, run, self.threads, StopAsked(run.path)), 0
+        job, tries = _submit(self._ex, job_fn, run, self.threads), 0
         while True:
             if job.done():
                 if not self._settled(job, run, tries):
-                    job, tries = self._ex.submit(job_fn, run, self.threads, StopAsked(run.path)), tries + 1
+                    job, tries = _submit(self._ex, job_fn, run, self.threads), tries + 1
                     continue
                 break
             try:
@@ -114,7 +119,7 @@ class SubmititLauncher(Launcher):
         job_fn = _CheckpointableRun()
 
         def submit(run):
-            return ex.submit(job_fn, run, self.threads, StopAsked(run.path))
+            return _submit(ex, job_fn, run, self.threads)
 
         stop = _RemoteStop(runs)
         with stop:
@@ -158,6 +163,33 @@ class SubmititLauncher(Launcher):
                     if stop.ended(run, "killed at once by its launcher (a second signal)").status != "pending":
                         on_done(run)
         stop.raise_if_asked()
+
+
+def _slurm_or_refused(cluster: str | None) -> str | None:
+    """The cluster to give submitit: ``slurm`` needs both ``sbatch`` (to submit) and ``srun`` (to start the job);
+    without them it is refused in one line naming what is missing (before: submitit's RuntimeError, or sbatch's
+    FileNotFoundError at the first submission, as tracebacks). ``None`` with neither: submitit's local executor."""
+    if cluster not in (None, "slurm"):
+        return cluster
+    missing = [exe for exe in ("sbatch", "srun") if shutil.which(exe) is None]
+    if not missing:
+        return "slurm"
+    if cluster is None and len(missing) == 2:
+        return None  # no SLURM here: submitit picks its local executor
+    raise AdaRLError(
+        f"the submitit launcher's slurm cluster needs {' and '.join(missing)}, which "
+        f"{'is' if len(missing) == 1 else 'are'} not on this machine's PATH: run it on a SLURM login node, or "
+        f"use --submitit-cluster local"
+    )
+
+
+def _submit(ex, job_fn, run, threads):
+    """Submit ``run``'s job; a submission the scheduler refuses (sbatch's error) is one line naming it."""
+    try:
+        return ex.submit(job_fn, run, threads, StopAsked(run.path))
+    except Exception as err:  # noqa: BLE001 - sbatch's errors come back as submitit's FailedJobError, OSError, ...
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise AdaRLError(f"the submitit launcher could not submit run {run.run_id}: {first}") from None
 
 
 def _job_state(job) -> str:

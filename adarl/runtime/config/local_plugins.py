@@ -12,17 +12,25 @@ Each entry is resolved where the recipe file that names it is (so ``extends`` ke
 on ``PYTHONPATH``. The file's folder goes last on ``sys.path`` (process workers, which inherit it, import it by name
 when they unpickle its classes): another file beside the recipe never shadows a module imported later, and a plugin
 whose name an installed or standard module already has is refused by name. A run folder's plugins.json records each
-module's file and sha256 (:func:`record`): ``adarl resume``, ``eval`` and ``report`` of a run whose module is missing
-or changed are refused by name (:func:`check_recorded`), as a run whose plugin package is gone is.
+module's file and sha256 (:func:`record`), and those of the modules it imports from its own folder (``helper.py``
+beside it, a package there; :func:`helper_modules`: read from its ``import`` statements, so a module imported by a
+computed name is not among them): ``adarl resume``, ``eval`` and ``report`` of a run whose module or helper is
+missing or changed are refused by name (:func:`check_recorded`), as a run whose plugin package is gone is; a module
+found by name on ``PYTHONPATH`` is checked where Python finds it now (another module of that name earlier on the path
+would be the one imported).
 """
 
 from __future__ import annotations
 
+import ast
 import hashlib
 import importlib
 import importlib.util
+import os
 import re
+import site
 import sys
+import sysconfig
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
@@ -30,7 +38,7 @@ from typing import Any
 from adarl import plugins
 from adarl.errors import RecipeError
 
-__all__ = ["resolve_entry", "entry_form_error", "import_plugins", "record", "check_recorded"]
+__all__ = ["resolve_entry", "entry_form_error", "import_plugins", "record", "check_recorded", "helper_modules"]
 
 _MODULE_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*$")
 # entry (as resolved) -> what plugins.json records of it, for the modules this process imported
@@ -105,6 +113,65 @@ def _sha256(path: Path) -> str:
     return digest.hexdigest()
 
 
+def _imported_names(files: Iterable[Path]) -> set[str]:
+    """The top-level names the files import absolutely (``import helper``, ``from helper import x``)."""
+    names: set[str] = set()
+    for f in files:
+        try:
+            tree = ast.parse(f.read_bytes(), filename=str(f))
+        except (SyntaxError, ValueError, OSError):
+            continue  # its import fails and says so; nothing to follow here
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                names.update(alias.name.split(".")[0] for alias in node.names)
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                names.add(node.module.split(".")[0])
+    return names
+
+
+def _py_files(path: Path) -> list[Path]:
+    if path.is_file():
+        return [path]
+    return sorted(p for p in path.rglob("*.py") if "__pycache__" not in p.parts)
+
+
+def _installed_folders() -> set[Path]:
+    """The standard library's and the installed packages' folders."""
+    paths = sysconfig.get_paths()
+    folders = [paths.get(k) for k in ("stdlib", "platstdlib", "purelib", "platlib")]
+    folders += [*getattr(site, "getsitepackages", list)(), site.getusersitepackages()]
+    return {Path(f).resolve() for f in folders if f}
+
+
+def helper_modules(path: str | os.PathLike) -> dict[str, str]:
+    """The modules a plugin (a ``.py`` file or a package folder) imports from its own folder, and those they import
+    from it in turn: ``{"helper.py": sha256, "pkg/": sha256 of the package}``, by path relative to that folder. Read
+    from the ``import`` statements (a module imported by a computed name, ``importlib.import_module(name)``, is not
+    found); a name that is no file there (an installed or standard module) is not one."""
+    plugin = Path(path)
+    root = plugin.parent
+    if root.resolve() in _installed_folders():  # a module on the path beside installed packages: those are versioned
+        return {}
+    out: dict[str, str] = {}
+    todo, seen = _py_files(plugin), {plugin.resolve()}
+    while todo:
+        names = _imported_names(todo)
+        todo = []
+        for name in sorted(names):
+            for candidate, key in ((root / f"{name}.py", f"{name}.py"), (root / name, f"{name}/")):
+                if candidate.resolve() in seen or not (
+                    candidate.is_file() if key.endswith(".py") else (candidate / "__init__.py").is_file()
+                ):
+                    continue
+                if any(root.glob(f"{name}-*.dist-info")) or any(root.glob(f"{name}-*.egg-info")):
+                    break  # a package pip installed there (`pip install --target`): versioned, not a helper
+                seen.add(candidate.resolve())
+                out[key] = _sha256(candidate)
+                todo += _py_files(candidate)
+                break
+    return dict(sorted(out.items()))
+
+
 def import_plugins(entries: Iterable[str]) -> None:
     """Import each resolved entry (once per process); registrations record the module name as their provider. A
     module that fails to import, or whose name another module already took, is a :class:`RecipeError` naming it."""
@@ -137,7 +204,13 @@ def import_plugins(entries: Iterable[str]) -> None:
                 f"plugins: {entry!r}: the module name {name!r} is taken by {found or 'a built-in module'}, which "
                 f"Python finds first; rename the file"
             )
-        _IMPORTED[entry] = {"entry": entry, "module": name, "path": str(path), "sha256": _sha256(path)}
+        _IMPORTED[entry] = {
+            "entry": entry,
+            "module": name,
+            "path": str(path),
+            "sha256": _sha256(path),
+            "imports": helper_modules(path),
+        }
 
 
 def record(entries: Iterable[str]) -> list[dict]:
@@ -150,11 +223,39 @@ def record(entries: Iterable[str]) -> list[dict]:
     return out
 
 
+def _found_now(rec: Mapping) -> Path:
+    """Where the recorded module is now: its recorded file for a path entry; for a module found by name on
+    ``PYTHONPATH``, the file Python imports under that name now (imported already, or found first on the path)."""
+    recorded = Path(str(rec.get("path")))
+    entry, name = str(rec.get("entry") or ""), rec.get("module")
+    if not entry or Path(entry).is_absolute() or not isinstance(name, str):
+        return recorded
+    loaded = getattr(sys.modules.get(name), "__file__", None)
+    if loaded is None:
+        try:
+            spec = importlib.util.find_spec(name)
+        except (ImportError, ValueError):
+            spec = None
+        loaded = spec.origin if spec is not None and spec.origin else None
+    if loaded is None:
+        return recorded
+    found = Path(loaded)
+    return found.parent if found.name == "__init__.py" else found
+
+
 def check_recorded(recorded: Iterable[Mapping], run: str) -> None:
-    """Refuse a run whose local plugin module (recorded by :func:`record`) is missing or changed, by name."""
+    """Refuse a run whose local plugin module (recorded by :func:`record`), or a module it imports from its folder,
+    is missing or changed, by name; a module found by name is checked at the file Python imports now."""
     for rec in recorded:
         name, path = rec.get("module"), Path(str(rec.get("path")))
         how = "restore it (e.g. from version control) to resume, evaluate or report this run, or start a new run"
+        now_at = _found_now(rec)
+        if now_at.resolve() != path.resolve() and path.exists():
+            raise RecipeError(
+                f"run folder {run!r} was trained with the local plugin module {name!r} from {path}, but Python now "
+                f"imports {name!r} from {now_at} (another module of that name comes first on sys.path): remove it "
+                f"from the path or rename it, to resume, evaluate or report this run"
+            )
         if not path.exists():
             raise RecipeError(
                 f"run folder {run!r} was trained with the local plugin module {name!r} ({path}), which is missing: "
@@ -166,3 +267,19 @@ def check_recorded(recorded: Iterable[Mapping], run: str) -> None:
                 f"run folder {run!r} was trained with the local plugin module {name!r} ({path}), which has changed "
                 f"since (sha256 {str(rec.get('sha256'))[:12]}... then, {now[:12]}... now): {how}"
             )
+        helpers = rec.get("imports")
+        if not isinstance(helpers, Mapping):  # recorded before helpers were: the module itself only
+            continue
+        for rel, sha in helpers.items():
+            helper = path.parent / rel.rstrip("/")
+            if not helper.exists():
+                raise RecipeError(
+                    f"run folder {run!r} was trained with the local plugin module {name!r}, which imports {rel} "
+                    f"({helper}), now missing: {how}"
+                )
+            now = _sha256(helper)
+            if now != sha:
+                raise RecipeError(
+                    f"run folder {run!r} was trained with the local plugin module {name!r}, which imports {rel} "
+                    f"({helper}), changed since (sha256 {str(sha)[:12]}... then, {now[:12]}... now): {how}"
+                )

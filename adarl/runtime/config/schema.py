@@ -735,9 +735,10 @@ class WarmStartConfig(_Section):
     frames: NonNegInt = Field(10_000, description="Frames collected before optimisation resumes after a rank event.")
     count_frames: bool = Field(
         True,
-        description="Warm-start frames count towards collector.total_frames (true), or not (false: every arm of a "
-        "comparison then trains on the same frames and takes the same optimisation steps; summary.json reports the "
-        "warm-start frames either way).",
+        description="Warm-start frames count towards collector.total_frames (true: never past it; a warm start "
+        "with less of the budget left collects only what is left), or not (false: every arm of a comparison then "
+        "trains on the same frames and takes the same optimisation steps; summary.json reports the warm-start frames "
+        "either way).",
     )
 
 

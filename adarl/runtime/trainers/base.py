@@ -2,7 +2,7 @@
 
 It owns the run folder (its lock, resolved recipe, logger, checkpoints, records and report), the progress bar, the
 logging of episodes, losses and throughput, the evaluation and checkpoint cadence, the divergence guards (stop, or roll
-back to the last checkpoint with a lower learning rate), the first SIGINT/SIGTERM (a checkpoint, then
+back to the last checkpoint with a lower learning rate), the first SIGINT/SIGTERM/SIGHUP (a checkpoint, then
 :class:`~adarl.runtime.signals.RunInterrupted`), and exact resume (counters, RNGs, the live episode and the
 collector's state in every checkpoint). A subclass builds its components and consumes one collected batch:
 
@@ -33,7 +33,7 @@ import torch
 from tensordict import TensorDictBase
 from tqdm import auto as tqdm_auto
 
-from adarl.errors import AdaRLError, AdaRLValueError, CheckpointError
+from adarl.errors import AdaRLError, AdaRLValueError, CheckpointError, command
 from adarl.runtime import metrics
 from adarl.runtime.builders.common import RunComponents
 from adarl.runtime.continuing import continued_recipe, retarget_schedules, schedule_totals
@@ -227,8 +227,9 @@ class BaseTrainer:
     def train(self) -> dict:
         """Collect, update, evaluate and checkpoint until the frame budget is spent; write the summary and report.
 
-        The first SIGINT/SIGTERM checkpoints after the current batch and raises :class:`RunInterrupted`; NaN/inf
-        in training raises :class:`~adarl.runtime.guards.NonFiniteError` (or rolls back, per ``recipe.guards``).
+        The first SIGINT/SIGTERM/SIGHUP checkpoints after the current batch and raises :class:`RunInterrupted`;
+        NaN/inf in training raises :class:`~adarl.runtime.guards.NonFiniteError` (or rolls back, per
+        ``recipe.guards``).
         """
         rc = self.recipe
         total = rc.collector.total_frames
@@ -280,6 +281,8 @@ class BaseTrainer:
                 saved = self.save_checkpoint()
             bar.set_postfix(refresh=False, **self._postfix())
             if interrupt.requested is not None and self.frames < total:
+                # from here on a second signal is ignored: the stop is moments away and must not be cut short
+                interrupt.stopping(f"saving the checkpoint at {self.frames} frames, then exiting")
                 # this batch's checkpoint when one was just written (the same state: writing it again would only
                 # open a window in which a kill leaves it half-replaced)
                 path = saved or self.save_checkpoint(scheduled=False)
@@ -287,7 +290,7 @@ class BaseTrainer:
                 name = signal.Signals(interrupt.requested).name
                 raise RunInterrupted(
                     f"stopped on {name} at {self.frames} frames; checkpoint {path.name} saved, continue with "
-                    f"`adarl resume {self.run_dir.path}`",
+                    f"`{command('adarl', 'resume', self.run_dir.path)}`",
                     signum=interrupt.requested,
                     checkpoint=path,
                 )
@@ -318,8 +321,8 @@ class BaseTrainer:
         )
         raise NonFiniteError(
             f"training diverged: {err} at {self.frames} frames; stopped {why} without writing a checkpoint. The last "
-            f"good checkpoint is {last}; continue it with `adarl resume {self.run_dir.path}`, or lower algorithm.lr, "
-            f"or set guards.on_nonfinite=rollback",
+            f"good checkpoint is {last}; continue it with `{command('adarl', 'resume', self.run_dir.path)}`, or lower "
+            f"algorithm.lr, or set guards.on_nonfinite=rollback",
             stage=err.stage,
             what=err.what,
             update=err.update,
