@@ -328,7 +328,9 @@ def test_a_td3_plugin_runs_from_a_recipe_through_rank_events_kill_9_resume_and_a
     assert reference.returncode == 0, err[-3000:]
 
     summary = json.loads((ref / "summary.json").read_text())
-    assert summary["rank_events"] == 3 and summary["warm_start_frames"] == 150, summary
+    # 50 warm-start frames at each of the first two events; the third falls at the end of the 600-frame budget, where
+    # a counted warm start collects nothing (issue 46: it never runs past the budget)
+    assert summary["rank_events"] == 3 and summary["warm_start_frames"] == 100, summary
     assert json.loads((ref / "plugins.json").read_text())["algorithm"]["package"] == "adarl-l2-td3"
     assert all(v > 0 for v in _metric(ref, "actor_sq_norm")) and _metric(ref, "loss_actor_l2")
     # the trained deterministic actor loads without the training stack, acts in the action box, and exports
