@@ -110,7 +110,8 @@ def load_entry_points() -> None:
                 obj = ep.load()
                 if callable(obj) and not isinstance(obj, type):
                     obj()
-        except Exception as err:  # noqa: BLE001 - any failure of third-party code, named with its plugin
+        except (Exception, SystemExit) as err:  # noqa: BLE001 - any failure of third-party code, named with it;
+            # SystemExit too: a plugin calling sys.exit() at import would otherwise end the run with status 0, silently
             raise AdaRLValueError(
                 f"the adarl plugin {ep.name!r} ({ep.value}, package {dist or '?'}) failed to load: "
                 f"{type(err).__name__}: {err}"

@@ -170,6 +170,18 @@ def test_a_run_made_from_another_recipe_is_named_with_the_keys_that_differ(tmp_p
     runs = run_experiment(spec, output=out, dry_run=True, log=lines.append)
     assert [r.status for r in runs] == ["skipped-finished", "changed"], lines
 
+    # what every launcher's worker executes checks again, before it skips or resumes (a worker's files may not be
+    # the driver's): the planned run of the edited spec, pointed at the old folder, is refused and left untouched
+    from adarl.experiments.execute import execute_run
+    from adarl.experiments.spec import load_experiment, plan_runs
+
+    planned = {r.run_id: r for r in plan_runs(load_experiment(spec), out)}
+    before = _snapshot(out)
+    done = execute_run(planned["algo=ok2__seed=0"], 1)
+    assert done.status == "changed" and "rank.beta: 0.9 in the run, 0.95 in the spec" in done.message
+    assert execute_run(planned["algo=ok__seed=0"], 1).status == "skipped-finished"
+    assert _snapshot(out) == before
+
 
 @pytest.mark.parametrize("name", ["..", ".", "..."])
 def test_spec_names_must_be_folder_names(tmp_path, name):
@@ -182,4 +194,29 @@ def test_spec_names_must_be_folder_names(tmp_path, name):
     data["name"] = name
     spec.write_text(yaml.safe_dump(data))
     with pytest.raises(RecipeError, match="name"):
+        load_experiment(spec)
+
+
+@pytest.mark.parametrize(
+    "where",
+    ["overrides", "value", "budget"],
+)
+@pytest.mark.parametrize("override", ["seed=5", " seed = 5", "+seed=5", "output=elsewhere", "output.dir=x"])
+def test_an_experiment_override_of_a_key_each_run_sets_itself_is_refused_by_name(tmp_path, where, override):
+    """Issue 46: an experiment override `seed=5` was recorded in the spec and silently overridden by each run's own
+    seed (appended last), as tune's search space did; it is refused by name, wherever the spec holds overrides."""
+    from adarl.errors import RecipeError
+    from adarl.experiments.spec import load_experiment
+
+    spec = _spec(tmp_path / "s.yaml", 0.9, 600)
+    data = yaml.safe_load(spec.read_text())
+    if where == "overrides":
+        data["overrides"] = [*data.get("overrides", []), override]
+    elif where == "value":
+        axis = next(iter(data["axes"]))
+        data["axes"][axis][0] = {"name": "with_seed", "overrides": [override]}
+    else:
+        data["budgets"] = {"small": {"overrides": [override]}}
+    spec.write_text(yaml.safe_dump(data))
+    with pytest.raises(RecipeError, match=r"sets '(seed|output(\.dir)?)', which each run sets itself"):
         load_experiment(spec)

@@ -150,6 +150,21 @@ def test_a_helper_module_the_plugin_imports_is_fingerprinted_and_a_change_refuse
         collect_runs([run.path])  # the aggregate report
     assert not (run.path / "report.md").exists()
 
+    # with plugins.json deleted, eval imported the changed code silently: fingerprint.json still records the modules,
+    # and with both records gone a recipe that names plugins is refused (its code cannot be checked)
+    (run.path / "plugins.json").unlink()
+    with pytest.raises(RecipeError, match=r"helper_of_algo.py .* changed since"):
+        RunDir(run.path).load_recipe()
+    (run.path / "fingerprint.json").write_text("{not json")
+    for reader in (
+        lambda: RunDir(run.path).load_recipe(),
+        lambda: write_report(run.path),
+        lambda: collect_runs([run.path]),
+    ):
+        with pytest.raises(RecipeError, match=r"local plugin modules \[.*helped_algo.py'\] but holds no record"):
+            reader()
+    assert not (run.path / "report.md").exists()
+
 
 def test_a_module_plugin_found_on_the_path_is_checked_where_python_finds_it_now(tmp_path, monkeypatch):
     """Issue 46.6: a module plugin found on PYTHONPATH was shadowed at resume by another of the same name (the
@@ -178,3 +193,41 @@ def test_a_module_plugin_found_on_the_path_is_checked_where_python_finds_it_now(
     with pytest.raises(RecipeError, match=rf"{name}.* from {first}.*now imports '{name}' from {second}"):
         RunDir(run.path).load_recipe()
     sys.modules.pop(name, None)
+
+
+def test_a_plugin_calling_sys_exit_at_import_is_an_error_naming_it_with_no_folder(recipe, tmp_path, monkeypatch):
+    """Issue 46.6: a module plugin calling ``sys.exit(0)`` at import made run, experiment and tune end with status 0,
+    no output and no folder. It is an error naming the module (in process), and the CLI exits non-zero with one line
+    and writes nothing; an entry-point plugin that exits while loading is named the same way."""
+    import subprocess
+    from importlib.metadata import EntryPoint
+
+    (tmp_path / "quitter.py").write_text("import sys\nsys.exit(0)\n")
+    with pytest.raises(RecipeError, match=r"plugins: .*quitter.py.*failed: SystemExit: 0"):
+        load_recipe(recipe, [f"plugins=[{tmp_path / 'quitter.py'}]"])
+    assert "quitter" not in sys.modules  # a retry imports it again rather than finding a half-run module
+    out = tmp_path / "out"
+    cli = [
+        sys.executable,
+        "-m",
+        "adarl.cli",
+        "run",
+        str(recipe),
+        f"plugins=[{tmp_path / 'quitter.py'}]",
+        "-o",
+        str(out),
+    ]
+    done = subprocess.run(cli, capture_output=True, text=True, timeout=300)
+    assert done.returncode != 0 and "SystemExit" in done.stderr and "quitter" in done.stderr, done.stderr[-2000:]
+    assert "Traceback" not in done.stderr and not out.exists()
+
+    (tmp_path / "quitter_ep.py").write_text("import sys\nsys.exit(3)\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    quitter = EntryPoint("quitter", "quitter_ep", plugins.ENTRY_POINT_GROUP)
+    monkeypatch.setattr(plugins, "entry_points", lambda group: [quitter])
+    monkeypatch.setattr(plugins, "_loaded", set())
+    try:
+        with pytest.raises(RecipeError, match=r"plugin 'quitter' \(quitter_ep.*SystemExit: 3"):
+            load_recipe("quickstart", ["algorithm.name=anything"])
+    finally:
+        sys.modules.pop("quitter_ep", None)

@@ -149,7 +149,7 @@ def _load_run(path: Path, axes: dict[str, str] | None) -> RunRecord | None:
     if not is_single_run(path):
         return None
     run = RunDir(path)
-    local_plugins.check_recorded(run.recorded_plugins().get("modules") or [], str(path))  # a changed one: refused
+    local_plugins.check_recorded(run.plugin_modules(), str(path))  # a changed one: refused
     recipe = yaml.safe_load((path / "recipe.yaml").read_text()) or {}
     rows = run.read_eval()
     evals = [(int(r["frames"]), float(r["mean"])) for r in rows]

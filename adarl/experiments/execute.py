@@ -29,9 +29,13 @@ import yaml
 
 from adarl.errors import AdaRLError
 from adarl.experiments.spec import PlannedRun
+from adarl.runtime.config import load_recipe
+from adarl.runtime.fingerprint import differences
 from adarl.runtime.results import (
+    LATEST,
     SYNC_INTERVAL_S,
     RunMirror,
+    exists,
     filesystem,
     is_url,
     join,
@@ -44,6 +48,7 @@ from adarl.runtime.run_dir import RunDir
 __all__ = [
     "execute_run",
     "run_is_finished",
+    "holds_training",
     "read_attempts",
     "ATTEMPTS_DIR",
     "stop_file",
@@ -242,6 +247,17 @@ def read_attempts(output: str | os.PathLike, run_id: str) -> list[dict]:
     return [json.loads(line) for line in f.read_text().splitlines() if line.strip()]
 
 
+def holds_training(path: str) -> bool:
+    """Whether a run folder holds training to reuse, made from a recipe it records: finished, or a checkpoint to
+    resume from beside its recipe.yaml. (A folder without either is a start that never checkpointed: nothing to
+    keep, it starts afresh; one without a recipe.yaml cannot be resumed, and its attempt says so.)"""
+    if run_is_finished(path):
+        return True
+    if is_url(path):
+        return exists(join(path, "recipe.yaml")) and exists(join(path, "checkpoints", LATEST))
+    return (Path(path) / "recipe.yaml").is_file() and RunDir(path).latest_checkpoint_frames() is not None
+
+
 def execute_run(run: PlannedRun, threads: int | None, watch: Callable[[], bool] | None = None) -> PlannedRun:
     """Run (or resume, when its folder has a checkpoint) one run with the ``adarl`` command; sets its status.
 
@@ -252,6 +268,11 @@ def execute_run(run: PlannedRun, threads: int | None, watch: Callable[[], bool] 
     SIGTERM (it checkpoints and stops, resumable) and its status is ``stopped`` (``adarl tune`` prunes a trial so, on
     the evaluations the run has written; a launcher stops its runs so on a signal). A run whose ``watch`` is already
     true when it would start is not started: its status stays ``pending``."""
+    if holds_training(run.path):  # the driver placed it so; a worker checks again (its files may be another's)
+        diff = differences(run.path, load_recipe(run.recipe, run.overrides))
+        if diff:
+            run.status, run.message = "changed", f"made from another recipe ({run.path}): " + "; ".join(diff)
+            return run
     if run_is_finished(run.path):  # e.g. a retried task whose first try finished before its worker was lost
         run.status, run.message = "skipped-finished", "already finished"
         return run

@@ -31,7 +31,7 @@ from typing import Any
 
 from adarl.errors import AdaRLError, AdaRLValueError, RecipeError
 from adarl.experiments.aggregate import write_aggregate_report
-from adarl.experiments.execute import OutputFolderGone, run_is_finished
+from adarl.experiments.execute import OutputFolderGone, holds_training, run_is_finished
 from adarl.experiments.launchers import ExperimentInterrupted, Launcher, make_launcher
 from adarl.experiments.progress import LiveBoard, ProgressBoard
 from adarl.experiments.spec import (
@@ -47,7 +47,6 @@ from adarl.experiments.sweep import parse_sweep, sweep_run
 from adarl.runtime.config import load_recipe
 from adarl.runtime.fingerprint import differences
 from adarl.runtime.results import (
-    LATEST,
     RunMirror,
     exists,
     filesystem,
@@ -127,17 +126,6 @@ def _rerun_number(folder: str, run: PlannedRun) -> int:
     return int(tail) if tail.isdigit() else 0
 
 
-def _holds_training(path: str) -> bool:
-    """Whether a run folder holds training to reuse, made from a recipe it records: finished, or a checkpoint to
-    resume from beside its recipe.yaml. (A folder without either is a start that never checkpointed: nothing to
-    keep, it starts afresh; one without a recipe.yaml cannot be resumed, and its attempt says so.)"""
-    if run_is_finished(path):
-        return True
-    if is_url(path):
-        return exists(join(path, "recipe.yaml")) and exists(join(path, "checkpoints", LATEST))
-    return (Path(path) / "recipe.yaml").is_file() and RunDir(path).latest_checkpoint_frames() is not None
-
-
 def _place(runs: list[PlannedRun], recipes: dict, rerun_changed: bool) -> list[tuple[PlannedRun, str, list[str]]]:
     """Point each run at its folder that holds the training the spec plans now (the planned one, else a rerun),
     or at one to train in. A run whose folders hold only other training is returned with the folder and what
@@ -147,7 +135,7 @@ def _place(runs: list[PlannedRun], recipes: dict, rerun_changed: bool) -> list[t
         if run.status == "missing-recipe":
             continue
         folders = _folders(run)
-        held = [f for f in folders if _holds_training(f)]
+        held = [f for f in folders if holds_training(f)]
         first: tuple[str, list[str]] | None = None
         for folder in held:
             diff = differences(folder, recipes[run.run_id])

@@ -204,6 +204,27 @@ class ResourcesSpec(_Model):
     )
 
 
+def _refuse_run_own_keys(spec: ExperimentSpec) -> None:
+    """An override of a key each run sets itself (``seed`` from ``seeds``, ``output`` from the run's folder) would be
+    recorded in the spec yet overridden by the run's own, appended last: refused by name (issue 46)."""
+    places = [("overrides", o) for o in spec.overrides]
+    places += [
+        (f"axis {a!r} value {v.name!r} overrides", o)
+        for a, vals in spec.axes.items()
+        for v in vals
+        for o in v.overrides
+    ]
+    places += [(f"budget {b!r} overrides", o) for b, budget in spec.budgets.items() for o in budget.overrides]
+    for where, override in places:
+        key = override.split("=", 1)[0].strip().lstrip("+~")
+        if key in ("seed", "output") or key.startswith("output."):
+            raise ValueError(
+                f"{where}: {override!r} sets {key!r}, which each run sets itself (its seed from the spec's `seeds`, "
+                f"a budget's `seeds` or a value's `seeds`; its folder under the experiment's output), after these "
+                f"overrides: give the seeds with `seeds: [...]` instead"
+            )
+
+
 class ExperimentSpec(_Model):
     """A multi-run experiment: ``recipe`` x ``axes`` x ``seeds``."""
 
@@ -251,6 +272,7 @@ class ExperimentSpec(_Model):
                 f"name may use letters, digits and . _ - + only and must be a folder name (not . or ..), "
                 f"got {self.name!r}"
             )
+        _refuse_run_own_keys(self)
         for axis, values in self.axes.items():
             if not axis.isidentifier() or axis == "seed":
                 raise ValueError(f"axis name {axis!r} must be an identifier other than 'seed'")

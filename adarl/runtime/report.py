@@ -235,7 +235,7 @@ def write_report(path: str | os.PathLike) -> Path | str:
             write_atomic(join(str(path), "report.md"), md.read_bytes())
         return join(str(path), "report.md")
     run = RunDir(path)
-    local_plugins.check_recorded(run.recorded_plugins().get("modules") or [], str(run.path))  # changed: refused
+    local_plugins.check_recorded(run.plugin_modules(), str(run.path))  # changed: refused
     plots = run.path / "plots"
     plots.mkdir(exist_ok=True)
     ret = plot_returns(run, plots / "return.png")

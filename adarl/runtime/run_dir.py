@@ -42,6 +42,8 @@ import uuid
 import warnings
 from pathlib import Path
 
+import yaml
+
 from adarl import plugins
 from adarl.envs.registry import ENV_IDS, supported_envs
 from adarl.errors import (
@@ -66,7 +68,7 @@ from adarl.runtime._run_checkpoints import (
 from adarl.runtime._run_loggers import logging_backends, null_logger
 from adarl.runtime._run_records import RunRecords
 from adarl.runtime.config import load_recipe, local_plugins, save_resolved
-from adarl.runtime.fingerprint import write_fingerprint
+from adarl.runtime.fingerprint import read_fingerprint, write_fingerprint
 
 __all__ = [
     "RunDir",
@@ -328,7 +330,7 @@ class RunDir(RunRecords, RunCheckpoints):
         plugin package is not installed here) is refused, naming the package and version plugins.json recorded; a
         run whose local plugin module (the recipe's ``plugins``) is missing or changed, naming the module."""
         recorded = self.recorded_plugins()
-        local_plugins.check_recorded(recorded.get("modules") or [], str(self.path))
+        local_plugins.check_recorded(self.plugin_modules(recorded), str(self.path))
         try:
             return load_recipe(str(self.recipe_path))
         except RecipeError as err:
@@ -348,6 +350,28 @@ class RunDir(RunRecords, RunCheckpoints):
                     f"{used['package']} to resume, evaluate or report it. ({err})"
                 ) from None
             raise
+
+    def plugin_modules(self, recorded: dict | None = None) -> list:
+        """The local plugin modules the run recorded (plugins.json, else fingerprint.json). A recipe.yaml that names
+        ``plugins`` with neither record is refused: its code could have changed unseen (issue 46.6)."""
+        modules = (self.recorded_plugins() if recorded is None else recorded).get("modules")
+        if isinstance(modules, list):
+            return modules
+        try:
+            named = (yaml.safe_load(self.recipe_path.read_text()) or {}).get("plugins")
+        except (OSError, yaml.YAMLError, AttributeError):
+            named = None  # an unreadable recipe.yaml is load_recipe's to name
+        fp = read_fingerprint(self.path)
+        if fp is not None and isinstance(fp.get("plugins"), list):  # the content, and recipe.yaml's entries: where
+            return local_plugins.located(named if isinstance(named, list) else [], fp["plugins"])
+        if named:
+            raise RecipeError(
+                f"run folder {str(self.path)!r} was trained with the local plugin modules {named} but holds no record "
+                f"of their content (plugins.json and fingerprint.json are missing or unreadable): adarl cannot check "
+                f"that the code it would import is the code that trained the run; restore plugins.json (e.g. from a "
+                f"copy of the folder) to resume, evaluate or report it"
+            )
+        return []
 
     def recorded_plugins(self) -> dict:
         """plugins.json as a dict ({} for runs made before it existed, or when it is unreadable)."""

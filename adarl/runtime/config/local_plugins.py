@@ -38,7 +38,15 @@ from typing import Any
 from adarl import plugins
 from adarl.errors import RecipeError
 
-__all__ = ["resolve_entry", "entry_form_error", "import_plugins", "record", "check_recorded", "helper_modules"]
+__all__ = [
+    "resolve_entry",
+    "entry_form_error",
+    "import_plugins",
+    "record",
+    "located",
+    "check_recorded",
+    "helper_modules",
+]
 
 _MODULE_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*$")
 # entry (as resolved) -> what plugins.json records of it, for the modules this process imported
@@ -194,7 +202,9 @@ def import_plugins(entries: Iterable[str]) -> None:
                 module = importlib.import_module(name)
         except RecipeError:
             raise
-        except Exception as err:  # noqa: BLE001 - any failure of the user's module, named with it
+        except (Exception, SystemExit) as err:  # noqa: BLE001 - any failure of the user's module, named with it
+            # (SystemExit too: a module calling sys.exit() at import would end the run with its status, silently)
+            sys.modules.pop(name, None)
             raise RecipeError(
                 f"plugins: {entry!r}: importing {name!r} ({path}) failed: {type(err).__name__}: {err}"
             ) from err
@@ -220,6 +230,33 @@ def record(entries: Iterable[str]) -> list[dict]:
         if entry not in _IMPORTED:
             import_plugins([entry])
         out.append(dict(_IMPORTED[entry]))
+    return out
+
+
+def located(entries: Iterable[str], modules: Iterable[Mapping]) -> list[dict]:
+    """Records :func:`check_recorded` takes, from a run's resolved ``plugins`` entries (where the modules are) and a
+    fingerprint's modules (their content, no path): what a run folder whose plugins.json was lost still proves."""
+    by_name = {m.get("module"): m for m in modules if isinstance(m, Mapping)}
+    out = []
+    for entry in entries:
+        name, path = _locate(str(entry))
+        rec = by_name.pop(name, None)
+        if rec is None:
+            raise RecipeError(f"plugins: {entry!r}: the run's fingerprint.json records no module {name!r}")
+        out.append(
+            {
+                "entry": str(entry),
+                "module": name,
+                "path": str(path),
+                "sha256": rec.get("sha256"),
+                "imports": rec.get("imports"),
+            }
+        )
+    if by_name:
+        raise RecipeError(
+            "the run's fingerprint.json records plugin modules its recipe.yaml does not name: "
+            f"{sorted(map(str, by_name))}"
+        )
     return out
 
 
