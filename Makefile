@@ -1,7 +1,8 @@
 # The README's two commands: `make run` (train + evaluate + report the default recipe) and `make test` (ruff's
-# format check and lint, then the test suite, one pytest-xdist worker per core up to 4, each test file on one
-# worker so that its module fixtures are built once; .ci/run runs it). Both create .venv on first use and install the
-# project with the exact versions in constraints.txt. `make format` applies ruff's formatting and safe fixes.
+# format check and lint, then the test suite on one pytest-xdist worker per core, up to 4, `--dist worksteal`: the
+# tests are shared out and an idle worker takes queued ones from a busy worker, so a file's module fixtures may be
+# built on more than one; .ci/run runs it). Both create .venv on first use and install the project with the exact
+# versions in constraints.txt. `make format` applies ruff's formatting and safe fixes.
 PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin

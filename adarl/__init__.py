@@ -13,8 +13,8 @@ The public components, importable from here:
 - :class:`CollectorRebuild`: a collector rebuilt after each rank event (process collectors, policy copies).
 - :class:`PerturbedDynamicsEnvTransform` / :func:`make_env`: per-episode MuJoCo dynamics, a TorchRL ``Transform``.
 - :func:`register_env` / :func:`register_parameter`: env ids and perturbation parameters from your own package.
-- :func:`load_recipe`, :func:`build_sac_components`, :class:`SACTrainer`: recipes and the AdaRL-SAC loop
-  (``build_components``, ``Components`` and ``Trainer`` are aliases: their names before the PPO loop had its own).
+- :func:`load_recipe`, :func:`build_sac_components` / :class:`SACComponents`, :class:`OffPolicyTrainer`: recipes,
+  AdaRL-SAC's components, and the loop every off-policy family (SAC, TD3, DDPG) runs on.
 - :func:`load_policy`: a trained run's policy as a TorchRL actor, without its env, buffer or collector.
 - :func:`export_policy` / :class:`ExportedPolicy`: a run's policy as one file torch alone loads (``adarl export``),
   and SB3's ``predict(obs)`` on numpy for it.
@@ -79,10 +79,8 @@ _EXPORTS: dict[str, str] = {
         "adarl.envs",
     ),
     **dict.fromkeys(["load_recipe", "list_recipes"], "adarl.runtime.config"),
-    **dict.fromkeys(
-        ["build_sac_components", "SACComponents", "build_components", "Components"], "adarl.runtime.builders.sac"
-    ),
-    **dict.fromkeys(["SACTrainer", "Trainer"], "adarl.runtime.trainers.sac"),
+    **dict.fromkeys(["build_sac_components", "SACComponents"], "adarl.runtime.builders.sac"),
+    "OffPolicyTrainer": "adarl.runtime.trainers.off_policy",
     "load_policy": "adarl.runtime.policy",
     "export_policy": "adarl.runtime.export",
     **dict.fromkeys(["ExportedPolicy", "read_export_metadata"], "adarl.runtime.exported"),

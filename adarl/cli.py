@@ -34,7 +34,7 @@ from adarl.errors import (
     describe_os_error,
     did_you_mean,
 )
-from adarl.experiments import tune_cli
+from adarl.experiments import tune
 from adarl.experiments.bench import add_arguments as bench_arguments
 from adarl.experiments.launcher_args import add_launcher_arguments, launcher_options
 from adarl.runtime.signals import GracefulInterrupt, RunInterrupted, silence_stdout, stdout_reader_gone
@@ -203,7 +203,7 @@ def cmd_eval(args) -> int:
         print(result.describe())
         return 0
 
-    from adarl.runtime.evaluation import evaluate_policy
+    from adarl.runtime.evaluation import describe_returns, evaluate_policy
     from adarl.runtime.trainers import BaseTrainer
 
     # read-only: the training records (metrics, ranks, checkpoints, summary) are left exactly as training wrote them
@@ -216,10 +216,8 @@ def cmd_eval(args) -> int:
     trainer.close()
     out = Path(args.run_dir) / "eval_nominal.json"
     trainer.run_dir.write_json(out.name, {"frames": trainer.frames, "episodes": episodes, **result.as_dict()})
-    print(
-        f"nominal-dynamics evaluation at {trainer.frames} frames: {result.mean:.1f} ± {result.std:.1f} "
-        f"(95% CI ± {result.ci95:.1f}) over {episodes} episodes -> {out}"
-    )
+    said = describe_returns(result.mean, result.std, result.ci95, episodes)
+    print(f"nominal-dynamics evaluation at {trainer.frames} frames: {said} -> {out}")
     return 0
 
 
@@ -267,17 +265,13 @@ def _size(text: str) -> tuple[int, int]:
 
 
 def cmd_bench(args) -> int:
-    if args.whole_run:
-        from adarl.experiments.bench_whole_run import cli as whole_run_cli
-
-        return whole_run_cli(args)
     from adarl.experiments.bench import cli
 
     return cli(args)
 
 
 def cmd_report(args) -> int:
-    from adarl.experiments.aggregate import is_single_run, write_aggregate_report
+    from adarl.experiments.report import is_single_run, write_aggregate_report
     from adarl.experiments.spec import load_experiment, report_options
     from adarl.runtime.report import write_report
 
@@ -604,9 +598,9 @@ def build_parser() -> argparse.ArgumentParser:
         "terminal and CI is not set)",
     )
     ex.set_defaults(func=cmd_experiment)
-    tu = sub.add_parser("tune", help=tune_cli.HELP, description=tune_cli.DESCRIPTION)
-    tune_cli.add_arguments(tu)
-    tu.set_defaults(func=tune_cli.cli)
+    tu = sub.add_parser("tune", help=tune.HELP, description=tune.DESCRIPTION)
+    tune.add_arguments(tu)
+    tu.set_defaults(func=tune.cli)
     return p
 
 

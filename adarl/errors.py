@@ -13,11 +13,13 @@ __all__ = [
     "AdaRLError",
     "AdaRLValueError",
     "RecipeError",
+    "UnknownNameError",
     "MissingExtraError",
     "CheckpointError",
     "ExportFileError",
     "AdaRLWarning",
     "CheckpointFallbackWarning",
+    "TorchFallbackWarning",
     "STORAGE_ERRNOS",
     "describe_os_error",
     "describe_name_too_long",
@@ -39,6 +41,18 @@ class AdaRLValueError(AdaRLError, ValueError):
 
 class RecipeError(AdaRLValueError):
     """A recipe (file or overrides) that does not validate; the message names the key, value and allowed values."""
+
+
+class UnknownNameError(AdaRLValueError):
+    """A name no registry entry has (an algorithm, a rank rule, an env id, ...); the message lists the allowed names.
+
+    ``kind`` is what a name is called (``"algorithm.name"``), ``name`` the unknown one, ``allowed`` the registered
+    names and ``hint`` how to register one (as the message ends it, or ``""``): a caller rewords the message from
+    these, never by parsing it."""
+
+    def __init__(self, message: str, *, kind: str, name: Any, allowed: Iterable[str], hint: str = "") -> None:
+        super().__init__(message)
+        self.kind, self.name, self.allowed, self.hint = kind, name, tuple(allowed), hint
 
 
 class MissingExtraError(AdaRLValueError):
@@ -73,6 +87,10 @@ class AdaRLWarning(UserWarning):
 
 class CheckpointFallbackWarning(AdaRLWarning):
     """A checkpoint was skipped (damaged, or written for another recipe) and an older one is used instead."""
+
+
+class TorchFallbackWarning(AdaRLWarning):
+    """The installed torch is not one :mod:`adarl.fast`'s private kernels were tested on: its public paths are used."""
 
 
 # Failures of the file system rather than of adarl: the CLI reports these in one line instead of a traceback.
@@ -171,9 +189,13 @@ def did_you_mean(word: str, options: Iterable[Any]) -> str:
 
     >>> did_you_mean("unifrom", ["sinusoid", "uniform"])
     "; did you mean 'uniform'?"
+    >>> did_you_mean("torso", ["foot_length", "torso_length"])
+    "; did you mean 'torso_length'?"
     """
     opts = [str(o) for o in options]
     match = difflib.get_close_matches(str(word), opts, n=1, cutoff=0.6)
     if not match:  # case-only typos ('hopper-v5') score low in difflib
         match = [o for o in opts if o.lower() == str(word).lower()][:1]
+    if not match and len(str(word)) >= 3:  # a name's start ('torso' for 'torso_length') scores low too
+        match = sorted((o for o in opts if o.lower().startswith(str(word).lower())), key=len)[:1]
     return f"; did you mean {match[0]!r}?" if match else ""

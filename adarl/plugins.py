@@ -10,9 +10,9 @@ that registered an entry: a run folder's plugins.json). adarl's own entries regi
 A recipe's ``algorithm.name`` is looked up here. Each name is *declared* with :func:`register_algorithm`: the
 training loop it runs on (``base``: ``"sac"``, ``"ppo"`` or ``"td3"``), its TorchRL loss class (a class, or a lazy
 ``"module:Class"`` path), and a pydantic model of its own options (the recipe's ``algorithm.options``,
-validated like every other key, written into the run's recipe.yaml). adarl's own algorithms (``sac``, ``ppo`` and
-the RNAC baselines ``rnac_ipm`` and ``rnac_ds``, PPO with a hook each) are declared with the same call at the end of
-their section.
+validated like every other key, written into the run's recipe.yaml). adarl's own algorithms (``sac``, ``td3``,
+``ddpg``, ``ppo`` and the RNAC baselines ``rnac_ipm`` and ``rnac_ds``, PPO with a hook each) are declared with the
+same call at the end of their section.
 
 A package adds names by declaring an entry point in the group ``adarl.plugins`` (pip's and pytest's habit), e.g.
 in its pyproject.toml::
@@ -24,10 +24,6 @@ Entry points are loaded lazily, only when a recipe names an algorithm that is no
 registered names are listed): a recipe never imports code that is not installed, and a run whose algorithm is
 no longer installed is refused by name (``adarl resume`` included) instead of being rebuilt as another one.
 
-Long because: the generic registry, the two registries recipes validate against (their models, the bases and the
-loss classes each base trains) and adarl's own declarations are one import that loads no torch; split, each part
-would re-import the others.
-
 >>> sorted(algorithm_names(load=False))
 ['ddpg', 'ppo', 'rnac_ds', 'rnac_ipm', 'sac', 'td3']
 >>> algorithm("sac").base, algorithm("sac").loss_path
@@ -35,10 +31,10 @@ would re-import the others.
 >>> algorithm("sca")
 Traceback (most recent call last):
     ...
-adarl.errors.AdaRLValueError: unknown algorithm.name 'sca'; allowed: ...; did you mean 'sac'? (no installed plugin ...
+adarl.errors.UnknownNameError: unknown algorithm.name 'sca'; allowed: ...; did you mean 'sac'? (no installed plugin ...
 
-Long because: the generic registry, how plugins load and are recorded, and the two registries recipes validate
-against, each with adarl's own entries declared through it, are one extension API a plugin author reads in one place.
+Long because: one extension API, read in one place and imported without torch: the registry, plugin loading, and
+the two registries recipes validate against with adarl's own entries.
 """
 
 from __future__ import annotations
@@ -53,7 +49,7 @@ from typing import Any, Generic, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from adarl.errors import AdaRLValueError, did_you_mean, one_of
+from adarl.errors import AdaRLValueError, UnknownNameError, did_you_mean, one_of
 
 __all__ = [
     "ENTRY_POINT_GROUP",
@@ -207,20 +203,25 @@ class Registry(Generic[T]):
 
     def get(self, name: str) -> T:
         """The entry registered as ``name``; installed plugins are loaded when it is not known yet, and an unknown
-        name is an :class:`~adarl.errors.AdaRLValueError` listing the registered ones (:meth:`unknown`)."""
+        name is an :class:`~adarl.errors.UnknownNameError` listing the registered ones (:meth:`unknown`)."""
         if name not in self.entries:
             self.load()
         if name not in self.entries:
             raise self.unknown(name)
         return self.entries[name]
 
-    def unknown(self, name: Any) -> AdaRLValueError:
-        """The error for a name nobody registered: the allowed names, a close one, and how to register."""
+    def unknown(self, name: Any) -> UnknownNameError:
+        """The error for a name nobody registered: the allowed names, a close one, and how to register (typed:
+        ``kind``, ``name`` and ``allowed`` are attributes too)."""
         names = list(self.order(self.entries))
         plugin = "no installed plugin registers it; " if self.plugins else ""
         where = "" if self.how is None else f" ({plugin}{self.how})"
-        return AdaRLValueError(
-            f"unknown {self.key} {name!r}; allowed: {one_of(names)}{did_you_mean(str(name), names)}{where}"
+        return UnknownNameError(
+            f"unknown {self.key} {name!r}; allowed: {one_of(names)}{did_you_mean(str(name), names)}{where}",
+            kind=self.key,
+            name=name,
+            allowed=names,
+            hint=where,
         )
 
     def check_free(self, name: str, entry: T | None = None, *, replace: bool = False) -> None:
@@ -670,7 +671,7 @@ def rank_rule(name: str) -> RankRuleSpec:
     >>> rank_rule("enrgy")
     Traceback (most recent call last):
         ...
-    adarl.errors.AdaRLValueError: unknown rank.rule 'enrgy'; allowed: 'energy', ...; did you mean 'energy'? ...
+    adarl.errors.UnknownNameError: unknown rank.rule 'enrgy'; allowed: 'energy', ...; did you mean 'energy'? ...
     """
     return RANK_RULES.get(name)
 

@@ -31,7 +31,7 @@ from adarl.core.acceptance import recent_transitions
 from adarl.core.adapter import _NetworkProbe, _padded_factors, find_low_rank_layers
 from adarl.core.lowrank import factor_svd
 from adarl.runtime.evaluation import evaluate_policy
-from adarl.runtime.trainers import Trainer
+from adarl.runtime.trainers import OffPolicyTrainer
 
 
 def _grid(width: int) -> list[int]:
@@ -45,7 +45,7 @@ def calibrate(run: Path, episodes: int, rows: list[dict]) -> None:
     with tempfile.TemporaryDirectory(prefix="adarl-calib-") as tmp:
         copy = Path(tmp) / run.name
         shutil.copytree(run, copy, ignore=shutil.ignore_patterns("*.corrupt", "report.md", "plots"))
-        trainer = Trainer.resume(copy, quiet=True, truncate_metrics=False)
+        trainer = OffPolicyTrainer.resume(copy, quiet=True, truncate_metrics=False)
         c = trainer.c
         loss = c.modules.loss
         batch = recent_transitions(c.replay_buffer, 2048)

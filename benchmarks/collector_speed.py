@@ -13,7 +13,7 @@ import time
 import torch
 
 from adarl.fast.collector import LeanCollector
-from adarl.runtime.builders.sac import build_components
+from adarl.runtime.builders.sac import build_sac_components
 from adarl.runtime.config import load_recipe
 
 p = argparse.ArgumentParser()
@@ -27,12 +27,12 @@ overrides = [f"collector.frames_per_batch={a.frames_per_batch}"]
 variants = {}
 if not a.skip_torchrl:
     variants["torchrl Collector"] = iter(
-        build_components(
+        build_sac_components(
             load_recipe("quickstart", overrides + ["collector.lean=false"]), init_random_frames=0
         ).collector
     )
 for direct in (False, True):
-    c = build_components(load_recipe("quickstart", overrides), init_random_frames=0)
+    c = build_sac_components(load_recipe("quickstart", overrides), init_random_frames=0)
     lean = LeanCollector(c.env, c.modules.actor, frames_per_batch=a.frames_per_batch, direct=direct)
     variants[f"LeanCollector(direct={direct})"] = iter(lean)
 for it in variants.values():  # warm-up: the first batch builds TorchRL's caches

@@ -12,7 +12,7 @@ import time
 
 import torch
 
-from adarl.runtime.builders.sac import build_components
+from adarl.runtime.builders.sac import build_sac_components
 from adarl.runtime.config import load_recipe
 from adarl.runtime.update import FusedStep, LossStep
 
@@ -25,7 +25,7 @@ torch.set_num_threads(1)
 OVR = ["collector.total_frames=20000", "collector.init_random_frames=1000", "replay.size=5000"]
 paths = {}
 for name, fused in (("torchrl", "false"), ("fused", "auto")):
-    c = build_components(load_recipe("baselines/hopper_parseval", [*OVR, f"algorithm.fused={fused}"]))
+    c = build_sac_components(load_recipe("baselines/hopper_parseval", [*OVR, f"algorithm.fused={fused}"]))
     c.replay_buffer.extend(c.env.rollout(2000, break_when_any_done=False).reshape(-1))
     assert isinstance(c.update, LossStep if fused == "false" else FusedStep), type(c.update)
     paths[name] = c

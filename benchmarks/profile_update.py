@@ -17,7 +17,7 @@ import time
 import torch
 
 from adarl.fast import adam, manual_backward
-from adarl.runtime.builders.sac import build_components
+from adarl.runtime.builders.sac import build_sac_components
 from adarl.runtime.config import load_recipe
 
 p = argparse.ArgumentParser()
@@ -28,7 +28,7 @@ p.add_argument("--torch-profiler", action="store_true")
 a = p.parse_args()
 torch.set_num_threads(1)
 w = a.width
-c = build_components(
+c = build_sac_components(
     load_recipe(
         "quickstart",
         [

@@ -5,7 +5,7 @@
         --eval-interval 4000 --eval-episodes 3 --rank-events 3 --markdown profile.md
 
 It runs the same commands as ``adarl bench --whole-run`` (the same options and overrides, built by its own
-functions: :func:`adarl.experiments.bench_whole_run.adarl_command` and ``sb3_command``), once each, under
+functions: :func:`adarl.experiments.bench.adarl_command` and ``sb3_command``), once each, under
 ``py-spy record`` (100 samples a second; idle samples and background threads dropped), and files every sample under the
 first phase whose marker is on its stack: rank events (SVD and re-factorisation), their warm starts, evaluation,
 checkpoints, the report, updates, collection, building, imports. Why py-spy and not cProfile: cProfile's per-call
@@ -28,7 +28,7 @@ import time
 from pathlib import Path
 
 from adarl.experiments import bench
-from adarl.experiments.bench_whole_run import DEFAULTS, adarl_command, event_threads, sb3_command
+from adarl.experiments.bench import DEFAULTS, adarl_command, event_threads, sb3_command
 
 RATE = 100  # samples a second
 

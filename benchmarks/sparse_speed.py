@@ -19,7 +19,7 @@ import warnings
 import torch
 
 from adarl.baselines.sparse import set_form
-from adarl.runtime.builders.sac import build_components
+from adarl.runtime.builders.sac import build_sac_components
 from adarl.runtime.config import load_recipe
 from adarl.runtime.update import LossStep
 
@@ -31,7 +31,7 @@ a = p.parse_args()
 
 warnings.filterwarnings("ignore")  # TorchRL's notices (the target updater, collectors): not what is measured
 OVR = ["collector.total_frames=20000", "collector.init_random_frames=1000", "replay.size=5000"]
-c = build_components(load_recipe(a.recipe, OVR))
+c = build_sac_components(load_recipe(a.recipe, OVR))
 torch.manual_seed(0)
 c.replay_buffer.extend(c.env.rollout(2000, break_when_any_done=False).reshape(-1))
 assert isinstance(c.update, LossStep), type(c.update)

@@ -13,7 +13,7 @@ import torch
 
 from adarl.fast.adam import make_adam
 from adarl.fast.sac import FusedSACUpdate
-from adarl.runtime.builders.sac import build_components
+from adarl.runtime.builders.sac import build_sac_components
 from adarl.runtime.config import load_recipe
 
 p = argparse.ArgumentParser()
@@ -24,7 +24,7 @@ p.add_argument("--no-compile", action="store_true")
 a = p.parse_args()
 torch.set_num_threads(1)
 w = a.width
-c = build_components(
+c = build_sac_components(
     load_recipe(
         "quickstart",
         ["algorithm.fused=false", f"network.actor.num_cells=[{w},{w}]", f"network.critic.num_cells=[{w},{w}]"],

@@ -13,9 +13,9 @@ from adarl import plugins
 from adarl.core.target_shift import TargetShiftSACLoss
 from adarl.errors import AdaRLValueError, RecipeError
 from adarl.fast.sac import FusedSACUpdate, fused_fallback_reason, wants_fused
-from adarl.runtime.builders.sac import FusedFallbackWarning, build_components
+from adarl.runtime.builders.sac import FusedFallbackWarning, build_sac_components
 from adarl.runtime.config import load_recipe, recipe_to_yaml
-from adarl.runtime.trainers import Trainer, trainer_class
+from adarl.runtime.trainers import OffPolicyTrainer, trainer_class
 from adarl.runtime.update import FusedStep, LossStep
 
 OVR = ["collector.total_frames=2000", "collector.init_random_frames=500", "replay.size=2000", "algorithm.batch_size=64"]
@@ -67,7 +67,7 @@ def test_options_are_validated_recipe_keys_recorded_in_full(registered):
     recipe = load_recipe("quickstart", [*OVR, "algorithm.name=shifted_sac"])
     assert recipe.algorithm.options == {"kappa": 0.5}  # the default, spelled out
     assert "kappa: 0.5" in recipe_to_yaml(recipe)
-    assert trainer_class(recipe) is Trainer
+    assert trainer_class(recipe) is OffPolicyTrainer
     for bad, words in (
         ("algorithm.options.kapa=1", r"algorithm.options.kapa.*allowed: 'kappa'"),
         ("algorithm.options.kappa=-1", r"algorithm.options.kappa = -1.*greater than or equal to 0"),
@@ -79,7 +79,7 @@ def test_options_are_validated_recipe_keys_recorded_in_full(registered):
 
 def test_a_target_shift_keeps_the_fused_update_and_computes_what_the_loss_computes(registered):
     recipe = load_recipe("quickstart", [*OVR, "algorithm.name=shifted_sac", "algorithm.options.kappa=0.3"])
-    c = build_components(recipe)
+    c = build_sac_components(recipe)
     assert isinstance(c.update, FusedStep) and type(c.modules.loss) is ShiftedSAC and c.modules.loss.kappa == 0.3
     torch.manual_seed(3)
     c.replay_buffer.extend(c.env.rollout(200, break_when_any_done=False).reshape(-1))
@@ -101,11 +101,11 @@ def test_a_target_shift_keeps_the_fused_update_and_computes_what_the_loss_comput
     c.close()
 
 
-def test_another_override_falls_back_in_one_line_and_its_metrics_are_returned(registered):
+def test_another_override_falls_back_in_one_line_and_its_metrics_are_returned(registered, tmp_path):
     recipe = load_recipe("quickstart", [*OVR, "algorithm.name=own_forward_sac"])
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        c = build_components(recipe)
+        c = build_sac_components(recipe)
     msgs = [str(w.message) for w in caught if issubclass(w.category, FusedFallbackWarning)]
     assert len(msgs) == 1 and "OwnForward overrides ['forward']" in msgs[0] and "3x" in msgs[0]
     assert "\n" not in msgs[0]
@@ -117,6 +117,14 @@ def test_another_override_falls_back_in_one_line_and_its_metrics_are_returned(re
     out = c.update()
     assert {"loss_actor", "loss_qvalue", "loss_alpha", "alpha", "entropy", "target_shift", "my_metric"} <= set(out)
     c.close()
+    # loaded to evaluate (`adarl eval`, `adarl play`: read-only, no update runs): not said (issue 48.6)
+    from adarl.runtime.run_dir import RunDir
+    from adarl.runtime.trainers import OffPolicyTrainer
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        OffPolicyTrainer(recipe, RunDir(tmp_path / "run"), quiet=True, _read_only=True).close()
+    assert not [w for w in caught if issubclass(w.category, FusedFallbackWarning)]
 
 
 def test_a_plugin_that_fails_to_load_is_named(monkeypatch):

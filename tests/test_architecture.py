@@ -45,8 +45,10 @@ CORE_THIRD_PARTY = {"torch", "torchrl", "tensordict"}
 #: modules that import adarl modules inside functions, and why (every other adarl import is at module top)
 LAZY_ADARL_IMPORTS = {
     "adarl.cli": "each command imports the wing it runs: `adarl --help` answers without torch",
-    "adarl.experiments.bench": "the benchmark driver never imports torch; each measurement's worker process does",
-    "adarl.experiments.tune_cli": "`adarl tune`'s arguments, in the parser: Optuna and torch load when it runs",
+    "adarl.experiments.bench": "the bench hub: `--whole-run`'s driver (the recipe runtime) loads when it runs",
+    "adarl.experiments.bench._update": "the benchmark driver never imports torch; each measurement's worker does",
+    "adarl.experiments.tune": "the tune hub, in the parser: the spec, the study (Optuna, torch) load on first use",
+    "adarl.experiments.tune._cli": "`adarl tune`'s arguments, in the parser: Optuna and torch load when it runs",
 }
 #: third-party packages a module may import inside a function: optional extras (ray, submitit, stable-baselines3,
 #: tensorboard), MuJoCo (the env registry validates recipes without it), matplotlib (its backend is chosen first),
@@ -220,15 +222,7 @@ def test_imports_are_at_module_top():
 
 
 @pytest.mark.parametrize(
-    "module",
-    [
-        "adarl.fast.sac",
-        "adarl.fast.manual_backward",
-        "adarl.fast.replay",
-        "adarl.fast.collector",
-        "adarl.fast.direct_env",
-        "adarl.fast.adam",
-    ],
+    "module", sorted(f"adarl.fast.{p.stem}" for p in (ROOT / "fast").glob("*.py") if p.stem != "__init__")
 )
 def test_each_fast_module_names_what_it_mirrors_and_the_test_that_proves_it(module):
     doc = ast.get_docstring(ast.parse(MODULES[module].read_text())) or ""

@@ -4,48 +4,23 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+from _helpers import adarl, tiny, tiny_ppo
 
 REPO = Path(__file__).resolve().parents[1]
 
 
-def adarl(*args: str) -> subprocess.CompletedProcess:
-    env = {
-        **os.environ,
-        "PYTHONPATH": str(REPO),
-        "OMP_NUM_THREADS": "1",
-        "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"),
-    }
-    return subprocess.run(
-        [sys.executable, "-m", "adarl.cli", *args], cwd=REPO, env=env, capture_output=True, text=True, timeout=600
-    )
-
-
-SAC_TINY = [
+SAC_TINY = tiny(
     "collector.total_frames=300",
-    "collector.init_random_frames=200",
-    "collector.frames_per_batch=100",
-    "algorithm.batch_size=32",
     "replay.size=1000",
-    "eval.interval=300",
     "eval.episodes=1",
     "eval.max_steps=30",
-    "checkpoint.interval=300",
     "algorithm.update_after=null",
-]
-PPO_TINY = [
-    "collector.total_frames=256",
-    "collector.frames_per_batch=128",
-    "algorithm.ppo.epochs=1",
-    "eval.interval=256",
-    "eval.episodes=1",
-    "eval.max_steps=30",
-    "checkpoint.interval=256",
-]
+    drop=("rank.interval", "replay.warm_start.frames", "lr_schedule.warmup_steps"),
+)
+PPO_TINY = tiny_ppo()
 
 
 def _run(recipe: str, overrides: list[str], out: Path) -> dict:
@@ -99,7 +74,7 @@ def test_rnac_resume_from_a_mid_episode_checkpoint_is_exact(mode, tmp_path):
 
     from adarl.runtime.config import load_recipe, save_resolved
     from adarl.runtime.run_dir import RunDir
-    from adarl.runtime.trainers import PPOTrainer, Trainer
+    from adarl.runtime.trainers import OffPolicyTrainer, PPOTrainer
 
     recipe = load_recipe(
         f"baselines/hopper_rnac_{mode}",
@@ -125,7 +100,7 @@ def test_rnac_resume_from_a_mid_episode_checkpoint_is_exact(mode, tmp_path):
     for p in later:
         p.unlink()
     (resumed.path / "summary.json").unlink()
-    Trainer.resume(resumed.path, quiet=True).train()
+    OffPolicyTrainer.resume(resumed.path, quiet=True).train()
     a, b = full.load_checkpoint(full.checkpoints()[-1]), resumed.load_checkpoint(resumed.checkpoints()[-1])
     assert a["counters"]["frames"] == b["counters"]["frames"] == 384
     for net in ("actor", "critic"):
@@ -211,7 +186,6 @@ def test_ppo_divergence_guard_stops_or_rolls_back(tmp_path, on_nonfinite):
 
 
 def test_ppo_first_sigint_checkpoints_and_the_run_resumes(tmp_path):
-    import os
     import signal
 
     from adarl.runtime.signals import RunInterrupted

@@ -35,7 +35,7 @@ def test_overrides_apply_to_our_loops_only():
         overrides=("network.actor.rank=3", "network.critic.rank=2"),
     )
     assert out["updates_per_s"] > 0
-    from adarl.experiments.bench import _recipe
+    from adarl.experiments.bench._update import _recipe
 
     r = _recipe("Hopper-v5", 16, "adarl", 10, 100, 30, 8, ("network.actor.rank=3",))
     assert r.network.actor.rank == 3

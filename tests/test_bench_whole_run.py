@@ -12,7 +12,7 @@ from types import SimpleNamespace
 import pytest
 
 from adarl.cli import main
-from adarl.experiments import bench_whole_run as wr
+from adarl.experiments.bench import _whole_run as wr
 
 TINY = [
     "bench",
@@ -116,7 +116,7 @@ def test_overrides_give_every_variant_the_same_budget():
 
 def test_the_driver_imports_neither_torch_nor_torchrl():
     code = (
-        "import sys; import adarl.cli, adarl.experiments.bench_whole_run; "
+        "import sys; import adarl.cli, adarl.experiments.bench._whole_run; "
         "print(sorted(m for m in ('torch', 'torchrl', 'stable_baselines3') if m in sys.modules))"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)

@@ -3,48 +3,16 @@
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import torch
+from _helpers import RANK_EVENTS, adarl, tiny
 
 REPO = Path(__file__).resolve().parents[1]
 
 # A few thousand frames, with the rank interval shrunk so that at least two rank events happen.
-TINY = [
-    "collector.total_frames=1600",
-    "collector.init_random_frames=300",
-    "collector.frames_per_batch=100",
-    "algorithm.batch_size=64",
-    "rank.interval=400",
-    "replay.size=5000",
-    "replay.warm_start.frames=100",
-    "lr_schedule.warmup_steps=50",
-    "eval.interval=800",
-    "eval.episodes=2",
-    "eval.max_steps=60",
-    "checkpoint.interval=500",
-]
-
-
-def adarl(*args: str, cwd: Path | None = None, timeout: int = 600) -> subprocess.CompletedProcess:
-    env = {
-        **os.environ,
-        "PYTHONPATH": str(REPO),
-        "OMP_NUM_THREADS": "1",
-        "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"),
-    }
-    return subprocess.run(
-        [sys.executable, "-m", "adarl.cli", *args],
-        cwd=cwd or REPO,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-    )
+TINY = tiny(*RANK_EVENTS)
 
 
 def _steps(csv_path: Path) -> list[int]:

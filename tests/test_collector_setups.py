@@ -323,7 +323,7 @@ def test_lean_collector_of_a_run():
     actor, and the buffer gets what an ``(env, actor)`` pair's ``env.rollout`` gives, bit for bit, from the same
     seeds (the random phase off while it collects)."""
     from adarl.fast.collector import LeanCollector
-    from adarl.runtime.builders.sac import build_components
+    from adarl.runtime.builders.sac import build_sac_components
     from adarl.runtime.config import load_recipe
 
     overrides = [
@@ -336,7 +336,7 @@ def test_lean_collector_of_a_run():
 
     def run(pair: bool):
         torch.manual_seed(0)
-        c = build_components(load_recipe("quickstart", overrides))
+        c = build_sac_components(load_recipe("quickstart", overrides))
         assert isinstance(c.collector, LeanCollector) and c.warm_start.source is c.collector
         if pair:
             c.warm_start.source = (c.env, c.modules.actor)  # the path the lean collector's rollout() replaced

@@ -11,8 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from adarl.experiments.aggregate import collect_runs
-from adarl.experiments.stats import iqm, probability_of_improvement
+from adarl.experiments.report import collect_runs
+from adarl.experiments.report.stats import iqm, probability_of_improvement
 
 REPORTS = Path(__file__).resolve().parents[1] / "docs" / "reports"
 DERIVABLE = sorted(
@@ -442,7 +442,7 @@ def test_the_schedule_reading_is_its_runs_and_they_differ_in_the_schedule_alone(
     """reproduction.md's post-hoc reading "the training schedule moves AdaRL's score": Table 2's `both` seeds and the
     pilot's AdaRL seeds differ in ``env.perturbation.preset`` alone (their recipes, line by line), and the scores and
     post-hoc P stated are those of the committed runs, by the reports' estimator."""
-    from adarl.experiments.stats import poi_estimate
+    from adarl.experiments.report.stats import poi_estimate
 
     table2, pilot = REPORTS / "table2-laptop", REPORTS / "table1-pilot"
     both = {int(r["seed"]): r for r in csv.DictReader((table2 / "runs.csv").open()) if r["scope"] == "both"}
@@ -483,7 +483,7 @@ def test_the_follow_ups_verdict_is_stated_once_its_runs_are_in_and_then_by_the_r
 def test_the_follow_ups_reading_is_its_runs_and_sac_differs_from_the_pilots_in_the_schedule_alone():
     """reproduction.md's follow-up bullet: the high-box SAC runs differ from the pilot's sac_full runs in the preset
     alone; their per-seed scores, means and the described P(sac_full high > paper schedule) are the runs'."""
-    from adarl.experiments.stats import poi_estimate
+    from adarl.experiments.report.stats import poi_estimate
 
     table2, pilot = REPORTS / "table2-laptop", REPORTS / "table1-pilot"
     high = {int(r["seed"]): r for r in csv.DictReader((table2 / "runs.csv").open()) if r["scope"] == "sac_full"}
@@ -505,7 +505,7 @@ def test_fig9s_verdict_is_stated_once_both_arms_are_complete_and_then_by_the_rul
     """Fig. 9's row: no P while an arm has fewer than 5 seeds; then P(refill dips less than reset), re-derived here
     from event_window.csv (each seed's mean change over its events, the seed counted once) with the report's own
     estimator, and the rule's verdict, here and in README.md."""
-    from adarl.experiments.stats import poi_estimate
+    from adarl.experiments.report.stats import poi_estimate
 
     folder = REPORTS / "warmstart_ablation-laptop"
     seeds: dict[str, dict[str, list[float]]] = {}
@@ -541,7 +541,7 @@ def test_the_pilots_fig8_reading_is_its_sweeps():
     import json
     import re
 
-    from adarl.experiments.stats import poi_estimate
+    from adarl.experiments.report.stats import poi_estimate
 
     runs = REPORTS / "table1-pilot" / "runs"
     per: dict[tuple[str, str], dict[int, dict]] = {}
@@ -720,7 +720,7 @@ def test_the_stated_multiplicity_is_the_reports():
     seeds (as P(AdaRL > fixed_final)'s)."""
     from scipy.stats import mannwhitneyu
 
-    from adarl.experiments.stats import poi_estimate
+    from adarl.experiments.report.stats import poi_estimate
 
     def rows(folder: str, name: str) -> list[dict]:
         return list(csv.DictReader((REPORTS / folder / name).open()))
@@ -871,6 +871,30 @@ def test_issue45s_mechanism_status_claims_no_more_than_its_report():
         assert "counts (the lower end above 0.5)" not in text
     else:  # complete: the status line gives way to the verdicts (written by the session that sees them in)
         assert not said or int(said.group(1)) == 40
+
+
+def test_issue45s_factorisation_pair_is_stated_as_its_report_decides_it():
+    """The one mechanism pair decided so far (8 seeds a side): reproduction.md and the README state its P and
+    interval as pairs.csv has them, with the pre-registered word ("supported" only when the report's verdict is
+    sac_restarts beats factorised_restarts), and the Mann-Whitney p recomputed from runs.csv."""
+    from scipy.stats import mannwhitneyu
+
+    pairs = {(r["a"], r["b"]): r for r in csv.DictReader((REPORTS / "mechanism-pilot" / "pairs.csv").open())}
+    pair = pairs[("factorised_restarts", "sac_restarts")]
+    if int(pair["n_a"]) < 8 or int(pair["n_b"]) < 8:
+        return
+    said = f"= {float(pair['poi']):.2f} [{float(pair['poi_lo']):.2f}, {float(pair['poi_hi']):.2f}]"
+    scores: dict[str, list[float]] = {}
+    for r in csv.DictReader((REPORTS / "mechanism-pilot" / "runs.csv").open()):
+        scores.setdefault(r["algorithm"], []).append(float(r["score"]))
+    p = mannwhitneyu(scores["factorised_restarts"], scores["sac_restarts"], method="exact").pvalue
+    supported = pair["verdict"] == "sac_restarts beats factorised_restarts"
+    for doc in (REPORTS.parent / "reproduction.md", REPORTS.parents[1] / "README.md"):
+        text = " ".join(doc.read_text().split())
+        at = text.index("> `sac_restarts`) " + said) if doc.name == "reproduction.md" else text.index(said)
+        window = text[max(0, at - 400) : at + 400]
+        assert f"Mann-Whitney p = {p:.3f}" in window, (doc.name, p)
+        assert ("**supported**" in window or "**supports**" in window) == supported, doc.name
 
 
 def test_issue45s_landed_runs_are_made_into_a_report_by_their_rule():

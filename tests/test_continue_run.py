@@ -10,25 +10,12 @@ from pathlib import Path
 
 import pytest
 import yaml
+from _helpers import INTERVALS_1200, tiny
 
 from adarl.cli import main
 
 # N = 1200 frames: a multiple of the batch (100), the evaluation (600), logging (200) and checkpoint (400) intervals
-TINY = [
-    "collector.total_frames=1200",
-    "collector.init_random_frames=300",
-    "collector.frames_per_batch=100",
-    "algorithm.batch_size=64",
-    "rank.interval=300",
-    "replay.size=5000",
-    "replay.warm_start.frames=100",
-    "lr_schedule.warmup_steps=50",
-    "eval.interval=600",
-    "eval.episodes=1",
-    "eval.max_steps=40",
-    "checkpoint.interval=400",
-    "logging.log_interval=200",
-]
+TINY = tiny(*INTERVALS_1200)
 
 
 def _results(run: Path) -> dict[str, str]:
@@ -63,7 +50,11 @@ def runs(tmp_path_factory):
 
 def test_a_finished_run_is_already_complete(runs, capsys):
     capsys.readouterr()
+    files = sorted(p.relative_to(runs["short"]) for p in runs["short"].rglob("*"))
     assert main(["resume", str(runs["short"]), "--quiet"]) == 0
+    assert main(["resume", str(runs["short"]), "--quiet"]) == 0
+    # not one file more: each resume of a complete run added a TensorBoard event file (issue 48.6)
+    assert sorted(p.relative_to(runs["short"]) for p in runs["short"].rglob("*")) == files
     out = capsys.readouterr().out
     assert "already complete: 1200 frames of collector.total_frames=1200" in out, out
     assert "run finished" not in out

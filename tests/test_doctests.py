@@ -40,7 +40,7 @@ EXAMPLES = [
     ("adarl.envs.factory", "make_env"),
     ("adarl.runtime.config", None),
     ("adarl.runtime.builders.sac", None),
-    ("adarl.runtime.trainers.sac", "Trainer"),
+    ("adarl.runtime.trainers.off_policy", "OffPolicyTrainer"),
     ("adarl.fast.sac", "FusedSACUpdate"),
     ("adarl.baselines.parseval", "ParsevalRegularizer"),
     ("adarl.baselines.registry", None),

@@ -30,11 +30,12 @@ from adarl.envs import (
     preset_names,
     register_env,
     register_parameter,
+    registration,
+    registry,
     supported_envs,
     validate_values,
 )
-from adarl.envs import parameters as P
-from adarl.envs.parameters import check_env_id, default_xml_path
+from adarl.envs.registry import check_env_id, default_xml_path
 from adarl.errors import AdaRLValueError, RecipeError
 from adarl.runtime.config import load_recipe
 
@@ -52,10 +53,10 @@ def thigh_length(editor, value, defaults):
 @pytest.fixture(autouse=True)
 def registries():
     """Every registration made by a test is undone (adarl's registries and gymnasium's)."""
-    state = P._registry_state()
+    state = registration._registry_state()
     gym_ids = set(gymnasium.registry)
     yield
-    P._restore_registry(state)
+    registration._restore_registry(state)
     for env_id in set(gymnasium.registry) - gym_ids:
         del gymnasium.registry[env_id]
 
@@ -292,7 +293,7 @@ def test_registering_a_name_twice_is_an_error_unless_replace(tmp_path):
     wider = ParameterInfo("thigh_length", 0.225, low=0.1, high=0.5)
     register_parameter("Hopper-v5", wider, thigh_length, replace=True)
     assert env_parameters("Hopper-v5")["thigh_length"] == wider
-    assert [p.name for p in P._SPECIFIC["Hopper-v5"]].count("thigh_length") == 1
+    assert [p.name for p in registry._SPECIFIC["Hopper-v5"]].count("thigh_length") == 1
     _raises(
         ["torso_length", "already registered (from adarl)"],
         register_parameter,
@@ -321,7 +322,11 @@ def test_bad_registrations_are_refused_and_leave_nothing_behind(tmp_path):
     _raises(
         ["preset 'low'", "unknown parameter 'thigh_length'"], register_env, "X-v0", xml="hopper.xml", presets=bad_preset
     )
-    assert "X-v0" not in supported_envs(load=False) and "X-v0" not in P._MUJOCO_XML and "X-v0" not in P._PRESET_TABLE
+    assert (
+        "X-v0" not in supported_envs(load=False)
+        and "X-v0" not in registry._MUJOCO_XML
+        and "X-v0" not in registry._PRESET_TABLE
+    )
     assert "thigh_length" not in env_parameters("Hopper-v5")
 
 
@@ -351,7 +356,7 @@ def test_a_run_whose_env_or_rank_rule_package_is_gone_is_refused_by_package(tmp_
     from adarl.runtime.run_dir import RunDir
 
     monkeypatch.setattr(plugins, "_rank_rules", dict(plugins._rank_rules))
-    state = P._registry_state()
+    state = registration._registry_state()
     with plugins.providing("adarl-gone-plugin"):
         gymnasium.register(PLUGIN_HOPPER, entry_point="gymnasium.envs.mujoco.hopper_v5:HopperEnv")
         register_env(PLUGIN_HOPPER, xml="hopper.xml")
@@ -366,7 +371,7 @@ def test_a_run_whose_env_or_rank_rule_package_is_gone_is_refused_by_package(tmp_
     assert record["rank_rule"] == {"name": "gone_rule", "package": "adarl-gone-plugin", "version": None}
     assert record["algorithm"]["package"] == "adarl" and record["modules"] == []
     if kind == "env":
-        P._restore_registry(state)  # the package is uninstalled: its env is gone
+        registration._restore_registry(state)  # the package is uninstalled: its env is gone
     else:
         del plugins._rank_rules["gone_rule"]
     with pytest.raises(RecipeError) as err:

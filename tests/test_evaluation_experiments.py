@@ -7,13 +7,12 @@ import json
 import math
 import shutil
 import statistics
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import torch
 import yaml
+from _helpers import adarl, tiny
 
 from adarl.errors import AdaRLValueError, RecipeError
 
@@ -142,7 +141,7 @@ def test_plan_runs_product_budget_and_templates(tmp_path):
     small = plan_runs(spec, tmp_path / "out", "small")
     assert [r.run_id for r in small] == ["algo=b__seed=5"]
     assert small[0].overrides[-2:] == ["collector.total_frames=100", "seed=5"]
-    bad = load_experiment(_spec(tmp_path, overrides=["seed={sede}"]))
+    bad = load_experiment(_spec(tmp_path, overrides=["name=run_{sede}"]))
     with pytest.raises(RecipeError, match="sede"):
         plan_runs(bad, tmp_path / "out")
     with pytest.raises(RecipeError, match="no budget"):
@@ -202,7 +201,7 @@ def _fake_run(root: Path, name: str, seed: int, rank: int, evals: list[tuple[int
 
 
 def test_aggregate_table_matches_runs(tmp_path):
-    from adarl.experiments.aggregate import aggregate_runs, write_aggregate_report
+    from adarl.experiments.report import aggregate_runs, write_aggregate_report
 
     exp = tmp_path / "exp"
     runs = []
@@ -254,29 +253,7 @@ def test_aggregate_table_matches_runs(tmp_path):
 
 
 # ------------------------------------------------------------------------------------------- end to end
-TINY = [
-    "collector.total_frames=600",
-    "collector.init_random_frames=200",
-    "collector.frames_per_batch=100",
-    "algorithm.batch_size=32",
-    "rank.interval=150",
-    "replay.size=2000",
-    "replay.warm_start.frames=100",
-    "lr_schedule.warmup_steps=20",
-    "eval.interval=300",
-    "eval.episodes=2",
-    "eval.max_steps=50",
-    "checkpoint.interval=300",
-]
-
-
-def adarl(*args: str, timeout: int = 900) -> subprocess.CompletedProcess:
-    import os
-
-    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
-    return subprocess.run(
-        [sys.executable, "-m", "adarl.cli", *args], cwd=REPO, env=env, capture_output=True, text=True, timeout=timeout
-    )
+TINY = tiny()
 
 
 @pytest.mark.slow
@@ -303,7 +280,7 @@ def test_experiment_end_to_end_two_seeds_two_algorithms(tmp_path):
     path = tmp_path / "tiny.yaml"
     path.write_text(yaml.safe_dump(spec))
     out = tmp_path / "exp"
-    proc = adarl("experiment", str(path), "-o", str(out))
+    proc = adarl("experiment", str(path), "-o", str(out), timeout=900)
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
     assert "4 finished" in proc.stdout and "2 missing-recipe" in proc.stdout
     state = json.loads((out / "experiment.json").read_text())
@@ -329,8 +306,8 @@ def test_experiment_end_to_end_two_seeds_two_algorithms(tmp_path):
     for png in ("learning_curves.png", "ranks.png", "sweep_pole.png"):
         assert (out / "report" / png).is_file()
     # Resumable: a second call runs nothing new (in-process: it only plans, validates and skips).
-    from adarl.experiments.aggregate import write_aggregate_report
     from adarl.experiments.orchestrate import run_experiment
+    from adarl.experiments.report import write_aggregate_report
 
     said: list[str] = []
     again = run_experiment(path, output=out, report=False, log=said.append)
@@ -355,14 +332,14 @@ def test_hopper_sweep_writes_fig8_plot_and_worst_case(tmp_path):
     from adarl.experiments.sweep import parse_sweep, sweep_run
     from adarl.runtime.config import load_recipe, save_resolved
     from adarl.runtime.run_dir import RunDir
-    from adarl.runtime.trainers import Trainer
+    from adarl.runtime.trainers import OffPolicyTrainer
 
     run = tmp_path / "hopper"
     hopper_tiny = [o for o in TINY if not o.startswith("eval.max_steps")] + ["eval.max_steps=40"]
     recipe = load_recipe("quickstart", hopper_tiny)
     run_dir = RunDir.create(run)
     save_resolved(recipe, run_dir.recipe_path)
-    Trainer(recipe, run_dir, quiet=True).train()
+    OffPolicyTrainer(recipe, run_dir, quiet=True).train()
     result = sweep_run(run, [parse_sweep("torso_length=0.25:0.55:3")], episodes=2)
     assert "worst episode" in result.describe()
     rows = list(csv.DictReader((run / "sweeps" / "torso_length.csv").open()))
@@ -373,7 +350,7 @@ def test_hopper_sweep_writes_fig8_plot_and_worst_case(tmp_path):
     assert summary["average"] == pytest.approx(statistics.fmean(float(r["mean"]) for r in rows))
     assert summary["nominal"] == {"foot_length": pytest.approx(0.39)}  # the other parameter at the schedule centre
     assert (run / "sweeps" / "torso_length.png").read_bytes()[:4] == b"\x89PNG"
-    bad = adarl("eval", str(run), "--sweep", "pole_length=0.1:0.2:2")
+    bad = adarl("eval", str(run), "--sweep", "pole_length=0.1:0.2:2", timeout=900)
     assert bad.returncode == 2 and "unknown sweep parameter 'pole_length'" in bad.stderr
     assert not math.isnan(summary["worst_mean"])
 

@@ -6,14 +6,27 @@ import os
 
 import pytest
 import torch
+from _helpers import tiny
 
-from adarl import build_components, load_recipe
+from adarl import build_sac_components, load_recipe
 from adarl.errors import AdaRLValueError
 from adarl.runtime.builders import build_ppo_components
 from adarl.runtime.builders.sac import event_threads
 
-TINY = ["collector.total_frames=600", "collector.init_random_frames=100", "collector.frames_per_batch=50"]
-TINY += ["replay.size=600", "replay.warm_start.frames=50", "algorithm.batch_size=32"]
+TINY = tiny(
+    "collector.init_random_frames=100",
+    "collector.frames_per_batch=50",
+    "replay.size=600",
+    "replay.warm_start.frames=50",
+    drop=(
+        "rank.interval",
+        "lr_schedule.warmup_steps",
+        "eval.interval",
+        "eval.episodes",
+        "eval.max_steps",
+        "checkpoint.interval",
+    ),
+)
 
 
 def test_auto_is_the_launchers_share_or_every_core():
@@ -33,13 +46,13 @@ def test_the_recipe_default_reaches_the_adapter(monkeypatch, omp, expected):
         monkeypatch.setenv("OMP_NUM_THREADS", omp)
     recipe = load_recipe("quickstart", TINY)
     assert recipe.rank.num_threads == "auto"
-    c = build_components(recipe)
+    c = build_sac_components(recipe)
     try:
         want = len(os.sched_getaffinity(0)) if expected == "cores" else expected
         assert c.adapter.num_threads == want
     finally:
         c.close()
-    c = build_components(load_recipe("quickstart", [*TINY, "rank.num_threads=null"]))
+    c = build_sac_components(load_recipe("quickstart", [*TINY, "rank.num_threads=null"]))
     try:
         assert c.adapter.num_threads is None
     finally:
@@ -47,7 +60,7 @@ def test_the_recipe_default_reaches_the_adapter(monkeypatch, omp, expected):
 
 
 @pytest.mark.parametrize(
-    "name, build", [("quickstart", build_components), ("baselines/hopper_rnac_ipm", build_ppo_components)]
+    "name, build", [("quickstart", build_sac_components), ("baselines/hopper_rnac_ipm", build_ppo_components)]
 )
 def test_algorithm_num_threads_is_applied_by_every_builder(name, build):
     """algorithm.num_threads (base.yaml: 1) is the training loop's torch thread count for SAC and the PPO loop alike
@@ -64,4 +77,4 @@ def test_algorithm_num_threads_is_applied_by_every_builder(name, build):
 def test_build_components_refuses_a_ppo_recipe_by_name():
     """The SAC builder on an RNAC recipe names the builder to use (it once failed deep inside, on a missing critic)."""
     with pytest.raises(AdaRLValueError, match="rnac_ipm.*'ppo' loop.*build_ppo_components"):
-        build_components(load_recipe("baselines/hopper_rnac_ipm"))
+        build_sac_components(load_recipe("baselines/hopper_rnac_ipm"))

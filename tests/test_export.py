@@ -19,34 +19,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from _helpers import RANK_EVENTS, tiny, tiny_ppo
 from tensordict import TensorDict
 
 from adarl.cli import main as cli_main
 
 REPO = Path(__file__).resolve().parents[1]
-TINY = [  # tests/test_policy.py's tiny run: rank events truncate the actor's second layer
-    "collector.total_frames=1600",
-    "collector.init_random_frames=300",
-    "collector.frames_per_batch=100",
-    "algorithm.batch_size=64",
-    "rank.interval=400",
-    "replay.size=5000",
-    "replay.warm_start.frames=100",
-    "lr_schedule.warmup_steps=50",
-    "eval.interval=800",
-    "eval.episodes=2",
-    "eval.max_steps=60",
-    "checkpoint.interval=500",
-]
-TINY_PPO = [
-    "collector.total_frames=256",
-    "collector.frames_per_batch=128",
-    "algorithm.ppo.epochs=1",
-    "eval.interval=256",
-    "eval.episodes=1",
-    "eval.max_steps=20",
-    "checkpoint.interval=256",
-]
+# tests/test_policy.py's tiny run: rank events truncate the actor's second layer
+TINY = tiny(*RANK_EVENTS)
+TINY_PPO = tiny_ppo("eval.max_steps=20")
 ATOL = 1e-5
 HEAVY = ("adarl", "torchrl", "tensordict", "gymnasium", "mujoco")
 
@@ -675,6 +656,9 @@ def test_exports_name_their_sha256_and_load_with_torch_alone(small_exports, fmt)
 
     from adarl.runtime.exported import ExportedPolicy, read_export_metadata
 
+    umask = os.umask(0o022)
+    os.umask(umask)
+    assert small_exports[fmt].stat().st_mode & 0o777 == 0o666 & ~umask  # was 0600 (mkstemp): issue 48.6
     root, members = _members(small_exports[fmt])
     meta = read_export_metadata(small_exports[fmt])
     assert meta["sha256"] == {n: hashlib.sha256(d).hexdigest() for n, d in members.items() if n != "extra/adarl.json"}
@@ -688,8 +672,17 @@ def test_exports_name_their_sha256_and_load_with_torch_alone(small_exports, fmt)
         extra = {"adarl.json": ""}
         program = torch.jit.load(str(small_exports[fmt]), _extra_files=extra)
     assert json.loads(extra["adarl.json"]) == meta
+    policy = ExportedPolicy(small_exports[fmt])
     with torch.no_grad():
-        assert torch.equal(program(obs), ExportedPolicy(small_exports[fmt])(obs))
+        assert torch.equal(program(obs), policy(obs))
+    # one observation gives one action, other leading dimensions theirs (a .pt2 raised IndexError on one: issue 48.6)
+    assert torch.allclose(policy(obs[0]), policy(obs)[0], atol=1e-6) and policy(obs.reshape(5, 10, 11)).shape == (
+        5,
+        10,
+        3,
+    )
+    with pytest.raises(ValueError, match=r"observation of shape \(4,\): this policy takes \(\.\.\., 11\)"):
+        policy(torch.zeros(4))
 
 
 def test_a_pickle_payload_in_a_torchscript_export_runs_nothing(small_exports, tmp_path):

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from _helpers import tiny
 from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
@@ -15,23 +16,17 @@ from adarl.errors import AdaRLValueError
 from adarl.runtime.builders.sac import planned_updates, update_after
 from adarl.runtime.config import load_recipe, save_resolved
 from adarl.runtime.run_dir import RunDir
-from adarl.runtime.trainers import Trainer
+from adarl.runtime.trainers import OffPolicyTrainer
 
-SMALL = [
-    "collector.total_frames=600",
+SMALL = tiny(
     "collector.init_random_frames=100",
     "collector.frames_per_batch=50",
-    "algorithm.batch_size=32",
-    "rank.interval=150",
-    "rank.accept.mode=always",  # every event changes the ranks, so every event warm-starts
-    "replay.size=2000",
-    "replay.warm_start.frames=100",
-    "lr_schedule.warmup_steps=20",
+    "rank.accept.mode=always",
     "eval.interval=600",
     "eval.episodes=1",
     "eval.max_steps=20",
     "checkpoint.interval=600",
-]
+)
 
 
 @pytest.fixture(autouse=True)
@@ -42,11 +37,11 @@ def one_thread():
     torch.set_num_threads(n)
 
 
-def _run(path: Path, *extra: str) -> tuple[Trainer, dict]:
+def _run(path: Path, *extra: str) -> tuple[OffPolicyTrainer, dict]:
     recipe = load_recipe("quickstart", [*SMALL, *extra])
     run = RunDir.create(path)
     save_resolved(recipe, run.recipe_path)
-    trainer = Trainer(recipe, run, quiet=True)
+    trainer = OffPolicyTrainer(recipe, run, quiet=True)
     return trainer, trainer.train()
 
 
@@ -156,7 +151,7 @@ def test_reproduction_specs_compare_what_the_paper_compares():
 # Issue 34's control arms: one factor each
 
 
-def _lr_restart_steps(trainer: Trainer) -> list[int]:
+def _lr_restart_steps(trainer: OffPolicyTrainer) -> list[int]:
     """Steps at which the actor's learning-rate schedule restarted (its WarmupCosine's restart points)."""
     (fn,) = trainer.c.schedulers["actor"].lr_lambdas[:1]
     return [fn.last_restart] if fn.restarts else []

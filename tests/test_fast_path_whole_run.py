@@ -10,10 +10,11 @@ backward (``manual``, the default, and ``autograd``: :class:`~adarl.runtime.upda
 recipe: Hopper's (64, 64) factorised actor and critics, ``rank.scope: both``, the energy rule with the projection
 acceptance step, fixed alpha 0.2, lr 3e-3, warm-up + cosine LR restarted at each event, the warm start's refill; only
 the budget is small (:data:`OVERRIDES`: an event every 120 updates, a 50-update warm-up over a 400-update cosine).
-Each is driven as :meth:`SACTrainer._update <adarl.runtime.trainers.sac.SACTrainer._update>` drives it,
-``components.update(guard, update=n)`` then ``components.adapter.step()``, so an event runs the real wiring: the rule
-and the acceptance step on the recent transitions, the in-place surgery, the Adam state of the resized factors
-dropped, the targets synced (or projected), the LR schedules restarted, the update step re-bound, the warm start.
+Each is driven as :meth:`OffPolicyTrainer._update
+<adarl.runtime.trainers.off_policy.OffPolicyTrainer._update>` drives it, ``components.update(guard, update=n)`` then
+``components.adapter.step()``, so an event runs the real wiring: the rule and the acceptance step on the recent
+transitions, the in-place surgery, the Adam state of the resized factors dropped, the targets synced (or projected),
+the LR schedules restarted, the update step re-bound, the warm start.
 
 One fixed replay stream feeds all three: the same 1000 transitions in every buffer, sampled with the same generator
 (its state is compared), and the warm start refills from the same fixed 500 (its source is the one component

@@ -13,7 +13,7 @@ from adarl.baselines.parseval import ParsevalRegularizer
 from adarl.errors import AdaRLValueError
 from adarl.fast.adam import make_adam
 from adarl.fast.sac import FusedSACUpdate, wants_fused
-from adarl.runtime.builders.sac import build_components
+from adarl.runtime.builders.sac import build_sac_components
 from adarl.runtime.config import load_recipe
 from adarl.runtime.update import FusedStep, LossStep
 
@@ -23,7 +23,7 @@ OVR = ["collector.total_frames=2000", "collector.init_random_frames=500", "repla
 @pytest.fixture(scope="module")
 def filled():
     recipe = load_recipe("quickstart", OVR + ["algorithm.fused=false", "algorithm.max_grad_norm=1.0"])
-    c = build_components(recipe)
+    c = build_sac_components(recipe)
     torch.manual_seed(3)
     c.replay_buffer.extend(c.env.rollout(200, break_when_any_done=False).reshape(-1))
     with torch.no_grad():
@@ -83,7 +83,7 @@ def test_losses_and_gradients_match_sacloss(config):
     """Both backwards (hand-written and autograd) give SACLoss's five outputs and its gradients on the same batch
     and RNG state, over activations, critic losses, action boxes and truncated ranks."""
     overrides = CONFIGS[config]
-    c = build_components(load_recipe("quickstart", OVR + ["algorithm.fused=false"] + overrides))
+    c = build_sac_components(load_recipe("quickstart", OVR + ["algorithm.fused=false"] + overrides))
     torch.manual_seed(3)
     c.replay_buffer.extend(c.env.rollout(120, break_when_any_done=False).reshape(-1))
     loss = c.modules.loss
@@ -245,7 +245,7 @@ def test_fused_update_refuses_a_loss_term_that_reads_the_batch(filled):
 def test_a_parseval_recipe_keeps_the_fused_update():
     """algorithm.parseval on the quickstart networks: the update is the fused step and logs loss_parseval."""
     recipe = load_recipe("quickstart", OVR + ["algorithm.parseval.enabled=true"])
-    c = build_components(recipe)
+    c = build_sac_components(recipe)
     assert isinstance(c.update, FusedStep)
     c.replay_buffer.extend(c.env.rollout(100, break_when_any_done=False).reshape(-1))
     out = c.update()
@@ -305,7 +305,7 @@ def test_fused_setting_resolution(filled):
 
 def test_discrete_sac_auto_uses_plain_path_and_true_is_an_error():
     recipe = load_recipe("cartpole_adarl", ["collector.total_frames=1000", "collector.init_random_frames=250"])
-    c = build_components(recipe)
+    c = build_sac_components(recipe)
     assert isinstance(c.update, LossStep)
     with pytest.raises(AdaRLValueError, match="algorithm.fused"):
         wants_fused(True, c.modules.loss)
@@ -320,7 +320,7 @@ def test_memmap_storage_and_threads(tmp_path):
     recipe = load_recipe("quickstart", OVR + ["replay.storage=memmap", "algorithm.num_threads=1"])
     before = torch.get_num_threads()
     try:
-        c = build_components(recipe, scratch_dir=tmp_path / "rb")
+        c = build_sac_components(recipe, scratch_dir=tmp_path / "rb")
         assert torch.get_num_threads() == 1
         c.replay_buffer.extend(c.env.rollout(20, break_when_any_done=False).reshape(-1))
         assert type(c.replay_buffer.storage).__name__ == "LazyMemmapStorage"

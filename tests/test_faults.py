@@ -21,33 +21,29 @@ import stat
 import subprocess
 import sys
 import threading
-import time
 from pathlib import Path
 
 import pytest
 import torch
+from _helpers import REPO, adarl, start_adarl, tiny, wait_for
 from faultfs import FaultFS, adarl_under_faults, readonly_fs, remount, small_fs
-from test_cli_e2e import REPO, adarl
 from test_kill_resume import _results
 
 from adarl.errors import AdaRLWarning, CheckpointError
 from adarl.runtime.run_dir import TRAINING_RECORDS, RunDir
 
 # A few hundred frames: checkpoints at 100, 200 and the end, two rank events, best.pt before the second one.
-FAST = [
+FAST = tiny(
     "collector.total_frames=300",
     "collector.init_random_frames=100",
     "collector.frames_per_batch=50",
-    "algorithm.batch_size=32",
     "rank.interval=100",
     "replay.size=1000",
     "replay.warm_start.frames=50",
-    "lr_schedule.warmup_steps=20",
     "eval.interval=150",
-    "eval.episodes=2",
     "eval.max_steps=20",
     "checkpoint.interval=100",
-]
+)
 
 pytestmark = pytest.mark.slow
 
@@ -74,36 +70,6 @@ def _one_error_line(proc: subprocess.CompletedProcess, *words: str) -> str:
     for word in words:
         assert word in errors[0], (word, errors[0])
     return errors[0]
-
-
-def _start(*args: str) -> subprocess.Popen:
-    """``adarl ARGS`` in the background, to be stopped, killed or signalled at a moment a test waits for."""
-    env = {
-        **os.environ,
-        "PYTHONPATH": str(REPO),
-        "OMP_NUM_THREADS": "1",
-        "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"),
-    }
-    return subprocess.Popen(
-        [sys.executable, "-m", "adarl.cli", *args],
-        cwd=REPO,
-        env=env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-
-
-def _wait_for(seen, proc: subprocess.Popen, timeout: float = 300) -> bool:
-    """Poll ``seen()`` (a file appearing) until it holds, the process ends or ``timeout`` (generous: CI is loaded)."""
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if seen():
-            return True
-        if proc.poll() is not None:
-            return seen()
-        time.sleep(0.002)
-    return False
 
 
 def _warnings(proc: subprocess.CompletedProcess) -> list[str]:
@@ -218,12 +184,12 @@ def test_fifo_in_place_of_the_newest_checkpoint_is_refused_unread(finished, tmp_
 def _foreign_checkpoint(tmp_path: Path, *, fingerprint: bool = True) -> Path:
     """A checkpoint of the same recipe with other widths (32 instead of 64): what a copy from another run is."""
     from adarl.runtime.config import load_recipe, save_resolved
-    from adarl.runtime.trainers import Trainer
+    from adarl.runtime.trainers import OffPolicyTrainer
 
     recipe = load_recipe("quickstart", [*FAST, "network.actor.num_cells=[32,32]", "network.critic.num_cells=[32,32]"])
     other = RunDir.create(tmp_path / "other")
     save_resolved(recipe, other.recipe_path)
-    trainer = Trainer(recipe, other, quiet=True)
+    trainer = OffPolicyTrainer(recipe, other, quiet=True)
     path = trainer.save_checkpoint()
     trainer.close()
     if not fingerprint:  # as written before checkpoints named their recipe
@@ -340,9 +306,9 @@ def test_resume_refuses_a_folder_another_process_trains_in(finished, tmp_path):
 
 def test_kill_9_before_the_first_checkpoint_resumes_from_frame_0(finished, tmp_path):
     run = tmp_path / "run"
-    proc = _start("run", "quickstart", *FAST, "-o", str(run), "--quiet")
+    proc = start_adarl("run", "quickstart", *FAST, "-o", str(run), "--quiet")
     try:
-        assert _wait_for(lambda: (run / "recipe.yaml").is_file(), proc), proc.communicate()[1][-3000:]
+        assert wait_for(lambda: (run / "recipe.yaml").is_file(), proc, poll=0.002), proc.communicate()[1][-3000:]
         proc.send_signal(signal.SIGSTOP)  # its first moments: the recipe written, the networks being built
         assert not list(run.glob("checkpoints/ckpt-*")), "the frame-0 checkpoint came first: nothing to test"
     finally:
@@ -374,9 +340,9 @@ def test_kill_9_before_the_recipe_is_written_leaves_a_folder_adarl_run_takes(tmp
 
 def test_run_folder_deleted_mid_run_stops_and_recreates_nothing(tmp_path):
     run = tmp_path / "run"
-    proc = _start("run", "quickstart", *FAST, "-o", str(run), "--quiet")
+    proc = start_adarl("run", "quickstart", *FAST, "-o", str(run), "--quiet")
     try:
-        assert _wait_for(lambda: bool(RunDir(run).checkpoints()), proc), proc.communicate()[1][-3000:]
+        assert wait_for(lambda: bool(RunDir(run).checkpoints()), proc, poll=0.002), proc.communicate()[1][-3000:]
         proc.send_signal(signal.SIGSTOP)  # training: the frame-0 checkpoint is written
         shutil.rmtree(run)  # `rm -rf RUN_DIR` in another terminal
         proc.send_signal(signal.SIGCONT)
@@ -391,9 +357,9 @@ def test_run_folder_deleted_mid_run_stops_and_recreates_nothing(tmp_path):
 
 def test_sigterm_while_the_report_is_written_finishes_it_and_stops_cleanly(tmp_path):
     run = tmp_path / "run"
-    proc = _start("run", "quickstart", *FAST, "-o", str(run), "--quiet")
+    proc = start_adarl("run", "quickstart", *FAST, "-o", str(run), "--quiet")
     try:
-        assert _wait_for(lambda: (run / "summary.json").is_file(), proc), proc.communicate()[1][-3000:]
+        assert wait_for(lambda: (run / "summary.json").is_file(), proc, poll=0.002), proc.communicate()[1][-3000:]
         proc.send_signal(signal.SIGSTOP)  # summary.json is written first, then the plots and report.md
         assert not (run / "report.md").exists(), "the report was already written: nothing to test"
         proc.send_signal(signal.SIGTERM)  # delivered as it goes on writing the report
@@ -411,9 +377,9 @@ def test_sigterm_while_the_report_is_written_finishes_it_and_stops_cleanly(tmp_p
 
 def test_resumed_run_times_every_process(tmp_path):
     run = tmp_path / "run"
-    proc = _start("run", "quickstart", *FAST, "-o", str(run), "--quiet")
+    proc = start_adarl("run", "quickstart", *FAST, "-o", str(run), "--quiet")
     first = run / "checkpoints" / "ckpt-000000000100.pt"
-    assert _wait_for(first.is_file, proc), proc.communicate()[1][-3000:]
+    assert wait_for(first.is_file, proc, poll=0.002), proc.communicate()[1][-3000:]
     assert proc.poll() is None, "the run ended before it could be killed"
     proc.kill()
     proc.wait()
@@ -460,16 +426,16 @@ def test_a_second_sigint_never_gives_a_traceback_and_the_run_resumes_exactly(fin
     stops at once (its previous checkpoint kept); once the stop has begun (its checkpoint being written) it is
     ignored. Either way: exit 130, one line, and the run resumes to the very run never stopped."""
     run = tmp_path / "run"
-    proc = _start("run", "quickstart", *FAST, "-o", str(run))  # not --quiet: its notices are the events waited on
+    proc = start_adarl("run", "quickstart", *FAST, "-o", str(run))  # not --quiet: its notices are the events waited on
     err = _Stderr(proc)
     try:
         first = run / "checkpoints" / "ckpt-000000000100.pt"
-        assert _wait_for(first.is_file, proc), err.text[-3000:]
+        assert wait_for(first.is_file, proc, poll=0.002), err.text[-3000:]
         proc.send_signal(signal.SIGSTOP)  # the first signal lands in training, 100 frames in (the run has 300)
         proc.send_signal(signal.SIGINT)
         proc.send_signal(signal.SIGCONT)
         event = "SIGINT received" if when == "while its batch runs" else "adarl: stopping:"
-        assert _wait_for(lambda: event in err.text, proc), err.text[-3000:]
+        assert wait_for(lambda: event in err.text, proc, poll=0.002), err.text[-3000:]
         proc.send_signal(signal.SIGINT)  # at once: in the batch, or as the checkpoint is written and the run closes
         proc.wait(timeout=300)
     finally:
@@ -491,10 +457,10 @@ def test_sighup_checkpoints_and_stops_as_sigterm_does(finished, tmp_path):
     """Issue 46.8: SIGHUP (the terminal or SSH session closed) killed the run like kill -9, without a checkpoint; it
     checkpoints after its batch and exits 129 (128 + SIGHUP), and the run resumes exactly."""
     run = tmp_path / "run"
-    proc = _start("run", "quickstart", *FAST, "-o", str(run), "--quiet")
+    proc = start_adarl("run", "quickstart", *FAST, "-o", str(run), "--quiet")
     try:
         first = run / "checkpoints" / "ckpt-000000000100.pt"
-        assert _wait_for(first.is_file, proc), proc.communicate()[1][-3000:]
+        assert wait_for(first.is_file, proc, poll=0.002), proc.communicate()[1][-3000:]
         proc.send_signal(signal.SIGSTOP)  # delivered in training, 100 frames in (the run has 300)
         proc.send_signal(signal.SIGHUP)
         proc.send_signal(signal.SIGCONT)
@@ -563,9 +529,9 @@ def test_disk_full_tmpfs_stops_with_one_line_and_resumes(tmp_path):
 def test_disk_full_names_the_file_it_could_not_write(tmp_path):
     with small_fs("8m", tmp=tmp_path) as fs:
         run = fs / "run"
-        proc = _start("run", "quickstart", *FAST, "-o", str(run), "--quiet")
+        proc = start_adarl("run", "quickstart", *FAST, "-o", str(run), "--quiet")
         try:
-            assert _wait_for(lambda: bool(RunDir(run).checkpoints()), proc), proc.communicate()[1][-3000:]
+            assert wait_for(lambda: bool(RunDir(run).checkpoints()), proc, poll=0.002), proc.communicate()[1][-3000:]
             proc.send_signal(signal.SIGSTOP)
             with (fs / "filler").open("wb") as fh, pytest.raises(OSError):  # the disk fills up while it trains
                 while True:
@@ -771,20 +737,9 @@ def test_suggested_commands_are_quoted_for_the_shell(finished, tmp_path):
 
 
 # The only rank event at update 500, in the last batch (updates start at 200 frames, 100 per 100-frame batch).
-LAST_BATCH_EVENT = [
-    "collector.total_frames=600",
-    "collector.init_random_frames=200",
-    "collector.frames_per_batch=100",
-    "algorithm.batch_size=32",
-    "rank.interval=500",
-    "replay.size=2000",
-    "replay.warm_start.frames=100",
-    "lr_schedule.warmup_steps=20",
-    "eval.interval=600",
-    "eval.episodes=1",
-    "eval.max_steps=20",
-    "checkpoint.interval=600",
-]
+LAST_BATCH_EVENT = tiny(
+    "rank.interval=500", "eval.interval=600", "eval.episodes=1", "eval.max_steps=20", "checkpoint.interval=600"
+)
 
 
 @pytest.mark.parametrize("counted", ["true", "false"])

@@ -12,36 +12,14 @@ from __future__ import annotations
 
 import csv
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import yaml
+from _helpers import adarl, tiny
 
 REPO = Path(__file__).resolve().parents[1]
-TINY = [
-    "collector.total_frames=600",
-    "collector.init_random_frames=200",
-    "collector.frames_per_batch=100",
-    "algorithm.batch_size=32",
-    "rank.interval=150",
-    "replay.size=2000",
-    "replay.warm_start.frames=100",
-    "lr_schedule.warmup_steps=20",
-    "eval.interval=300",
-    "eval.episodes=2",
-    "eval.max_steps=50",
-    "checkpoint.interval=300",
-]
-
-
-def _adarl(*args: str, cwd: Path = REPO, timeout: int = 900) -> subprocess.CompletedProcess:
-    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
-    return subprocess.run(
-        [sys.executable, "-m", "adarl.cli", *args], cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout
-    )
+TINY = tiny()
 
 
 def _snapshot(root: Path) -> dict[str, bytes]:
@@ -79,12 +57,12 @@ def test_an_edited_spec_refuses_its_finished_runs_by_name_and_reruns_them_into_n
     next `adarl experiment` used to skip both as finished and report the old runs as the new arms."""
     spec = _spec(tmp_path / "edits.yaml", 0.9, 600)
     out = tmp_path / "exp"
-    first = _adarl("experiment", str(spec), "-o", str(out), "--no-report")
+    first = adarl("experiment", str(spec), "-o", str(out), "--no-report", timeout=900)
     assert first.returncode == 0, first.stdout[-2000:] + first.stderr[-3000:]
     before = _snapshot(out)
 
     _spec(spec, 0.95, 700)
-    again = _adarl("experiment", str(spec), "-o", str(out))
+    again = adarl("experiment", str(spec), "-o", str(out), timeout=900)
     said = again.stderr
     assert again.returncode == 1, again.stdout[-2000:] + said
     assert "Traceback" not in said
@@ -94,11 +72,11 @@ def test_an_edited_spec_refuses_its_finished_runs_by_name_and_reruns_them_into_n
     assert "--rerun-changed" in said
     assert _snapshot(out) == before  # refused before anything was written: no report, experiment.json as it was
 
-    dry = _adarl("experiment", str(spec), "-o", str(out), "--dry-run")
+    dry = adarl("experiment", str(spec), "-o", str(out), "--dry-run", timeout=900)
     assert dry.returncode == 0, dry.stderr
     assert dry.stdout.count("changed") >= 2 and "rank.beta: 0.9 in the run, 0.95 in the spec" in dry.stdout
 
-    rerun = _adarl("experiment", str(spec), "-o", str(out), "--rerun-changed")
+    rerun = adarl("experiment", str(spec), "-o", str(out), "--rerun-changed", timeout=900)
     assert rerun.returncode == 0, rerun.stdout[-2000:] + rerun.stderr[-3000:]
     for rel, data in before.items():  # the old runs are kept byte for byte
         if not rel.startswith(("experiment.json", "attempts", ".adarl-experiment.lock")):

@@ -13,57 +13,34 @@ import os
 import random
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import pytest
+from _helpers import checkpoints, start_adarl, tiny, tiny_ppo, wait_for
 
 REPO = Path(__file__).resolve().parents[1]
 
-RUN = [
+RUN = tiny(
     "collector.total_frames=2000",
     "collector.init_random_frames=100",
     "collector.frames_per_batch=50",
-    "algorithm.batch_size=32",
-    "rank.interval=150",
-    "replay.size=2000",
     "replay.warm_start.frames=50",
-    "lr_schedule.warmup_steps=20",
     "eval.interval=200",
     "eval.episodes=1",
     "eval.max_steps=30",
     "checkpoint.interval=50",
     "checkpoint.keep_last=2",
-]
+)
 # RNAC-IPM's PPO loop: a checkpoint after every 128-frame batch (2 epochs of 2 minibatches each)
-PPO_RUN = [
+PPO_RUN = tiny_ppo(
     "collector.total_frames=2560",
-    "collector.frames_per_batch=128",
     "algorithm.ppo.epochs=2",
     "eval.interval=512",
-    "eval.episodes=1",
-    "eval.max_steps=30",
     "checkpoint.interval=128",
     "checkpoint.keep_last=2",
     "logging.log_interval=256",
-]
-
-
-def _env() -> dict:
-    # one torch thread: fastest for (64, 64) nets, and the exactness guarantee is per thread count
-    return {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1", "MUJOCO_GL": "egl"}
-
-
-def _start(*args: str) -> subprocess.Popen:
-    return subprocess.Popen(
-        [sys.executable, "-m", "adarl.cli", *args],
-        cwd=REPO,
-        env=_env(),
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+)
 
 
 def _finish(proc: subprocess.Popen, timeout: float = 300) -> tuple[int, str]:
@@ -78,16 +55,9 @@ def _wait_for_checkpoint(
     timeout: float = 120,
     min_frames: int = 0,
 ) -> bool:
-    """Wait for a checkpoint not in `newer_than` at `min_frames` or later (False if the process ends first)."""
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        names = {p.name for p in (path / "checkpoints").glob("ckpt-*.pt")} if (path / "checkpoints").is_dir() else set()
-        if any(int(n[5:-3]) >= min_frames for n in names - set(newer_than)):
-            return True
-        if proc.poll() is not None:
-            return False
-        time.sleep(0.05)
-    return False
+    """Wait for a checkpoint not in `newer_than` at `min_frames` or later."""
+    new = lambda: any(int(n[5:-3]) >= min_frames for n in checkpoints(path) - set(newer_than))  # noqa: E731
+    return wait_for(new, proc, timeout)
 
 
 def _results(run: Path) -> dict[str, str]:
@@ -128,7 +98,7 @@ def test_kill_9_at_random_moments_then_resume_matches_an_uninterrupted_run(tmp_p
     rng = random.Random(seed)
     ref, killed = tmp_path / "reference", tmp_path / "killed"
     run = [*base, *extra]
-    reference = _start("run", recipe, *base, *ref_extra, "-o", str(ref), "--quiet")  # beside the killed one
+    reference = start_adarl("run", recipe, *base, *ref_extra, "-o", str(ref), "--quiet")  # beside the killed one
 
     # One kill in each fifth of the run's first three quarters, at a random frame: the kill waits for the first new
     # checkpoint at or past that frame (the process is past start-up, training), then a random delay lands it
@@ -139,7 +109,7 @@ def test_kill_9_at_random_moments_then_resume_matches_an_uninterrupted_run(tmp_p
     lo, hi = total // 20, total * 3 // 4
     targets = [rng.randrange(lo + i * (hi - lo) // 5, lo + (i + 1) * (hi - lo) // 5) for i in range(5)]
     kills = []
-    proc = _start("run", recipe, *run, "-o", str(killed), "--quiet")
+    proc = start_adarl("run", recipe, *run, "-o", str(killed), "--quiet")
     for target in targets:
         seen = (
             {p.name for p in (killed / "checkpoints").glob("ckpt-*.pt")} if (killed / "checkpoints").is_dir() else set()
@@ -153,7 +123,7 @@ def test_kill_9_at_random_moments_then_resume_matches_an_uninterrupted_run(tmp_p
         proc.send_signal(signal.SIGKILL)
         proc.wait()
         kills.append(sorted(p.name for p in (killed / "checkpoints").glob("ckpt-*.pt"))[-1])
-        proc = _start("resume", str(killed), "--quiet")
+        proc = start_adarl("resume", str(killed), "--quiet")
     rc, err = _finish(proc)
     assert rc == 0, f"seed {seed}: {err[-3000:]}"
     assert len(kills) == 5, f"seed {seed}: {kills}"
@@ -169,7 +139,7 @@ def test_kill_9_at_random_moments_then_resume_matches_an_uninterrupted_run(tmp_p
 @pytest.mark.slow
 def test_sigterm_saves_a_checkpoint_and_exits_cleanly(tmp_path):
     run = tmp_path / "run"
-    proc = _start("run", "quickstart", *RUN, "checkpoint.interval=10000", "-o", str(run), "--quiet")
+    proc = start_adarl("run", "quickstart", *RUN, "checkpoint.interval=10000", "-o", str(run), "--quiet")
     assert _wait_for_checkpoint(run, proc), proc.communicate()[1][-3000:]  # the frame-0 checkpoint: training began
     updates = run / "metrics" / "scalars" / "train" / "n_updates.csv"
     end = time.monotonic() + 120  # an event, not a clock: the first logged update (past the random frames)
@@ -183,6 +153,6 @@ def test_sigterm_saves_a_checkpoint_and_exits_cleanly(tmp_path):
     ckpts = sorted((run / "checkpoints").glob("ckpt-*.pt"))
     frames = int(ckpts[-1].stem.split("-")[1])
     assert frames > 0, "SIGTERM saved no new checkpoint"
-    rc, err = _finish(_start("resume", str(run), "--quiet"))
+    rc, err = _finish(start_adarl("resume", str(run), "--quiet"))
     assert rc == 0, err[-3000:]
     assert json.loads((run / "summary.json").read_text())["frames"] >= 2000

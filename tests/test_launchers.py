@@ -16,6 +16,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+from _helpers import tiny, wait_for
 
 from adarl.errors import AdaRLError, AdaRLValueError
 from adarl.experiments.execute import read_attempts
@@ -26,22 +27,17 @@ from adarl.experiments.spec import load_experiment, plan_runs
 
 REPO = Path(__file__).resolve().parents[1]
 # ~8 s per run on one core; a checkpoint every 50 frames so a killed run resumes from mid-run.
-TINY = [
+TINY = tiny(
     "collector.lean=false",
-    "collector.total_frames=600",
     "collector.init_random_frames=100",
     "collector.frames_per_batch=50",
-    "algorithm.batch_size=32",
-    "rank.interval=150",
-    "replay.size=2000",
     "replay.warm_start.frames=50",
-    "lr_schedule.warmup_steps=20",
     "eval.interval=200",
     "eval.episodes=1",
     "eval.max_steps=30",
     "checkpoint.interval=50",
     "checkpoint.keep_last=2",
-]
+)
 
 
 def _spec(tmp_path: Path) -> Path:
@@ -142,11 +138,9 @@ def _experiment_cli(spec: Path, out: Path, *args: str) -> list[str]:
 def _wait_for(condition, what: str, proc: subprocess.Popen, limit_s: float = 600) -> None:
     """Poll ``condition`` until it holds (a generous limit: a loaded machine starts Ray slowly); fail at once if
     ``proc`` ends first."""
-    end = time.monotonic() + limit_s
-    while not condition():
+    if not wait_for(condition, proc, limit_s):
         assert proc.poll() is None, f"the experiment ended before its {what}: {proc.communicate()[1][-2000:]}"
-        assert time.monotonic() < end, f"no {what} in {limit_s} s"
-        time.sleep(0.05)
+        raise AssertionError(f"no {what} in {limit_s} s")
 
 
 def _events(out: Path, run_id: str) -> list[dict]:

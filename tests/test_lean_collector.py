@@ -8,7 +8,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from adarl.errors import AdaRLValueError
 from adarl.fast.collector import LeanCollector, _layer_chain, wants_lean
-from adarl.runtime.builders.sac import build_components
+from adarl.runtime.builders.sac import build_sac_components
 from adarl.runtime.config import load_recipe
 
 OVR = [
@@ -21,7 +21,7 @@ OVR = [
 
 @pytest.fixture(scope="module")
 def comps():
-    return build_components(load_recipe("quickstart", OVR))
+    return build_sac_components(load_recipe("quickstart", OVR))
 
 
 def test_auto_picks_lean_for_one_box_env(comps):
@@ -109,9 +109,9 @@ def test_batches_are_consistent_transitions(comps):
 
 
 def test_trainer_wiring_and_fallbacks():
-    comps = build_components(load_recipe("quickstart", OVR + ["collector.lean=false"]))
+    comps = build_sac_components(load_recipe("quickstart", OVR + ["collector.lean=false"]))
     assert not isinstance(comps.collector, LeanCollector)
-    disc = build_components(
+    disc = build_sac_components(
         load_recipe("cartpole_adarl", ["collector.total_frames=1000", "collector.init_random_frames=250"])
     )
     assert not isinstance(disc.collector, LeanCollector)
@@ -120,7 +120,7 @@ def test_trainer_wiring_and_fallbacks():
 
 
 def _env_and_actor(seed):
-    c = build_components(load_recipe("quickstart", OVR + [f"seed={seed}"]))
+    c = build_sac_components(load_recipe("quickstart", OVR + [f"seed={seed}"]))
     return c.env, c.modules.actor
 
 
@@ -175,7 +175,7 @@ def test_overlap_state_dict_keeps_the_prefetched_batch():
 
 def test_overlap_needs_the_lean_collector():
     with pytest.raises(AdaRLValueError, match="collector.overlap"):
-        build_components(load_recipe("quickstart", OVR + ["collector.overlap=true", "collector.lean=false"]))
+        build_sac_components(load_recipe("quickstart", OVR + ["collector.overlap=true", "collector.lean=false"]))
 
 
 # ---------------------------------------------------------------------------------------- overlap: "process"
@@ -183,7 +183,7 @@ def _parts(seed):
     from adarl.runtime.builders.common import train_env_factory
 
     recipe = load_recipe("quickstart", OVR + [f"seed={seed}"])
-    c = build_components(recipe)
+    c = build_sac_components(recipe)
     return c.env, c.modules.actor, train_env_factory(recipe)
 
 
@@ -310,10 +310,10 @@ def test_a_failing_worker_raises_with_its_traceback(comps):
 _ORPHAN = """
 import os, sys, time
 from adarl.runtime.config import load_recipe
-from adarl.runtime.builders.sac import build_components
+from adarl.runtime.builders.sac import build_sac_components
 
 if __name__ == "__main__":
-    c = build_components(load_recipe("quickstart", sys.argv[1:] + ["collector.overlap=process",
+    c = build_sac_components(load_recipe("quickstart", sys.argv[1:] + ["collector.overlap=process",
                                                                    "collector.init_random_frames=0"]))
     it = iter(c.collector)
     next(it)

@@ -117,7 +117,7 @@ def test_a_helper_module_the_plugin_imports_is_fingerprinted_and_a_change_refuse
     `adarl report` did not refuse a run whose plugin changed, though the docs said it did."""
     import json
 
-    from adarl.experiments.aggregate import collect_runs
+    from adarl.experiments.report import collect_runs
     from adarl.runtime.fingerprint import differences
     from adarl.runtime.report import write_report
     from adarl.runtime.run_dir import RunDir
@@ -222,7 +222,7 @@ def test_a_plugin_calling_sys_exit_at_import_is_an_error_naming_it_with_no_folde
     assert "Traceback" not in done.stderr and not out.exists()
 
     (tmp_path / "quitter_ep.py").write_text("import sys\nsys.exit(3)\n")
-    monkeypatch.syspath_prepend(str(tmp_path))
+    sys.path.insert(0, str(tmp_path))  # (into the fixture's copy of sys.path: monkeypatch's own restore would keep it)
     quitter = EntryPoint("quitter", "quitter_ep", plugins.ENTRY_POINT_GROUP)
     monkeypatch.setattr(plugins, "entry_points", lambda group: [quitter])
     monkeypatch.setattr(plugins, "_loaded", set())
@@ -231,3 +231,28 @@ def test_a_plugin_calling_sys_exit_at_import_is_an_error_naming_it_with_no_folde
             load_recipe("quickstart", ["algorithm.name=anything"])
     finally:
         sys.modules.pop("quitter_ep", None)
+
+
+def test_a_comment_or_layout_edit_of_a_plugin_is_not_a_change_but_code_is(recipe, tmp_path):
+    """Issue 48.6: a comment-only edit of a local plugin module made `adarl eval` refuse the run. The recorded sha256
+    is of the parsed code (comments and layout left out); a record of the file's bytes (older runs) still checks."""
+    import json
+
+    from adarl.runtime.run_dir import RunDir
+
+    loaded = load_recipe(recipe)
+    run = RunDir.create(tmp_path / "run")
+    try:
+        run.save_recipe(loaded)
+    finally:
+        run.unlock()
+    module = tmp_path / "my_algo.py"
+    module.write_text("# a comment added after the run\n" + MODULE.replace("    pass", "\n\n    pass  # nothing"))
+    RunDir(run.path).load_recipe()  # comments and blank lines: the same code
+    record = json.loads((run.path / "plugins.json").read_text())
+    record["modules"][0]["sha256"] = local_plugins._sha256(module, code=False)  # as an older adarl recorded it
+    (run.path / "plugins.json").write_text(json.dumps(record))
+    RunDir(run.path).load_recipe()
+    module.write_text(MODULE.replace("    pass", "    gamma_scale = 2"))
+    with pytest.raises(RecipeError, match=r"'my_algo' .* which has changed since"):
+        RunDir(run.path).load_recipe()

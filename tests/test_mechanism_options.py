@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from adarl.core.product_polyak import ProductSoftUpdate, averaged_factors, factor_pairs, product_polyak_
-from adarl.runtime.builders.sac import build_components
+from adarl.runtime.builders.sac import build_sac_components
 from adarl.runtime.config import load_recipe
 from adarl.runtime.update import FusedStep, LossStep
 
@@ -16,7 +16,7 @@ OVR = ["collector.total_frames=2000", "collector.init_random_frames=500", "repla
 
 
 def _filled(overrides):
-    c = build_components(load_recipe("quickstart", OVR + overrides))
+    c = build_sac_components(load_recipe("quickstart", OVR + overrides))
     torch.manual_seed(3)
     c.replay_buffer.extend(c.env.rollout(200, break_when_any_done=False).reshape(-1))
     with torch.no_grad():

@@ -12,23 +12,11 @@ import sysconfig
 from pathlib import Path
 
 import pytest
+from _helpers import tiny
 
 REPO = Path(__file__).resolve().parents[1]
 RECIPES = sorted(p.relative_to(REPO / "recipes").as_posix() for p in (REPO / "recipes").rglob("*.yaml"))
-TINY = [
-    "collector.total_frames=600",
-    "collector.init_random_frames=200",
-    "collector.frames_per_batch=100",
-    "algorithm.batch_size=32",
-    "rank.interval=200",
-    "replay.size=2000",
-    "replay.warm_start.frames=100",
-    "lr_schedule.warmup_steps=20",
-    "eval.interval=600",
-    "eval.episodes=1",
-    "eval.max_steps=30",
-    "checkpoint.interval=600",
-]
+TINY = tiny("rank.interval=200", "eval.interval=600", "eval.episodes=1", "eval.max_steps=30", "checkpoint.interval=600")
 
 
 def _subpackages() -> list[str]:

@@ -1,7 +1,7 @@
 """``report.paper_table`` (issue 45): the paper's table beside ours in every cell, both bold rules, P(reference > each
 method) per row, and rliable's aggregate across the rows on normalised scores (mean, IQM, optimality gap,
 performance profile), on synthetic run folders whose every number is computed by hand here; the spec's errors for a
-bad table; and the two estimators it adds to adarl.experiments.stats."""
+bad table; and the two estimators it adds to adarl.experiments.report.stats."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from scipy.stats import mannwhitneyu
 from test_evaluation_experiments import _fake_run, _spec
 
 from adarl.errors import RecipeError
-from adarl.experiments.stats import interval_estimate, optimality_gap, performance_profile, poi_estimate
+from adarl.experiments.report.stats import interval_estimate, optimality_gap, performance_profile, poi_estimate
 
 # ------------------------------------------------------------------------------------------- estimators
 
@@ -164,7 +164,7 @@ def _md_rows(md: str, first_header_cell: str) -> dict[str, list[str]]:
 
 
 def _report(tmp_path, **extra):
-    from adarl.experiments.aggregate import write_aggregate_report
+    from adarl.experiments.report import write_aggregate_report
 
     report = {"columns": "algorithm", "reference": "a", "paper_table": {**TABLE, "rows": "env"}, **extra}
     out = tmp_path / "report"
@@ -271,7 +271,7 @@ def test_the_normalised_aggregate_across_rows_is_the_hand_computation(tmp_path):
 
 
 def test_runs_without_the_tables_row_axis_get_a_sentence(tmp_path):
-    from adarl.experiments.aggregate import write_aggregate_report
+    from adarl.experiments.report import write_aggregate_report
 
     root = tmp_path / "runs"
     for seed in (0, 1):

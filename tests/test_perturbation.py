@@ -30,7 +30,8 @@ from adarl.envs import (
     make_schedule,
     perturbation_transform,
 )
-from adarl.envs.parameters import MujocoDynamics, default_xml_path
+from adarl.envs.mujoco_appliers import MujocoDynamics
+from adarl.envs.registry import default_xml_path
 from adarl.errors import AdaRLValueError
 
 HOPPER_TORSO_MASS = 3.66519143  # compiled v5 default

@@ -19,15 +19,13 @@ from __future__ import annotations
 import csv
 import importlib.util
 import json
-import os
 import signal
 import subprocess
-import sys
 import textwrap
-import time
 from pathlib import Path
 
 import pytest
+from _helpers import adarl, checkpoints, install_plugin, start_adarl, tiny, wait_for
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -103,59 +101,24 @@ class LocalEnergyRule(EnergyRule):
 '''
 
 # Hopper, tiny: 600 frames, a checkpoint every 50, one rank event
-TINY = [
-    "collector.total_frames=600",
+TINY = tiny(
     "collector.init_random_frames=100",
     "collector.frames_per_batch=50",
-    "algorithm.batch_size=32",
     "rank.interval=200",
     "replay.size=600",
     "replay.warm_start.frames=50",
-    "lr_schedule.warmup_steps=20",
-    "eval.interval=300",
     "eval.episodes=1",
     "eval.max_steps=20",
     "checkpoint.interval=50",
     "checkpoint.keep_last=2",
     "logging.log_interval=100",
-]
+)
 
 
 @pytest.fixture(scope="module")
 def plugin(tmp_path_factory) -> Path:
     """The plugin package, pip-installed into a folder of its own; returns that folder."""
-    root = tmp_path_factory.mktemp("plugin")
-    src = root / "src"
-    (src / "adarl_robust_sac").mkdir(parents=True)
-    (src / "adarl_robust_sac" / "__init__.py").write_text(textwrap.dedent(PLUGIN))
-    (src / "pyproject.toml").write_text(textwrap.dedent(PYPROJECT))
-    site = root / "site"
-    proc = subprocess.run(
-        [sys.executable, "-m", "pip", "install", "--no-deps", "--no-build-isolation", "--no-index", "-q"]
-        + ["--target", str(site), str(src)],
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
-    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
-    assert (site / "adarl_robust_sac").is_dir()
-    return site
-
-
-def _env(site: Path | None) -> dict:
-    paths = [str(REPO)] + ([str(site)] if site is not None else [])
-    return {**os.environ, "PYTHONPATH": os.pathsep.join(paths), "OMP_NUM_THREADS": "1", "MUJOCO_GL": "egl"}
-
-
-def _adarl(site: Path | None, cwd: Path, *args: str, timeout: float = 600) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "adarl.cli", *args],
-        cwd=cwd,
-        env=_env(site),
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-    )
+    return install_plugin(tmp_path_factory.mktemp("plugin"), "adarl_robust_sac", PLUGIN, PYPROJECT)
 
 
 def _target_shift(run: Path) -> list[float]:
@@ -187,7 +150,7 @@ def test_a_plugin_loss_runs_resumes_and_goes_into_an_experiment(plugin: Path, tm
     )
 
     # show: the plugin's options are recipe keys, validated, with their defaults spelled out
-    shown = _adarl(plugin, elsewhere, "show", str(recipe))
+    shown = adarl("show", str(recipe), site=plugin, cwd=elsewhere)
     assert shown.returncode == 0, shown.stderr[-3000:]
     assert "name: robust_sac" in shown.stdout and "kappa: 0.002" in shown.stdout
     for bad, words in (
@@ -196,27 +159,16 @@ def test_a_plugin_loss_runs_resumes_and_goes_into_an_experiment(plugin: Path, tm
         ("algorithm.options.kappa=big", ["kappa", "number"]),
         ("algorithm.name=robust_sca", ["robust_sca", "robust_sac", "adarl.plugins"]),
     ):
-        proc = _adarl(plugin, elsewhere, "show", str(recipe), bad)
+        proc = adarl("show", str(recipe), bad, site=plugin, cwd=elsewhere)
         assert proc.returncode != 0 and all(w in proc.stderr for w in words), (bad, proc.stderr[-2000:])
     # without the package the name is unknown, and the error says how to get one
-    proc = _adarl(None, elsewhere, "show", str(recipe))
+    proc = adarl("show", str(recipe), cwd=elsewhere)
     assert proc.returncode != 0 and "robust_sac" in proc.stderr and "adarl.plugins" in proc.stderr
 
     # run, killed with SIGKILL once it has checkpointed
     run = tmp_path / "run"
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "adarl.cli", "run", str(recipe), *TINY, "-o", str(run), "--quiet"],
-        cwd=elsewhere,
-        env=_env(plugin),
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    end = time.monotonic() + 300
-    while time.monotonic() < end and proc.poll() is None:
-        if len(list((run / "checkpoints").glob("ckpt-*.pt"))) >= 2 if (run / "checkpoints").is_dir() else False:
-            break
-        time.sleep(0.05)
+    proc = start_adarl("run", str(recipe), *TINY, "-o", str(run), "--quiet", cwd=elsewhere, site=plugin)
+    wait_for(lambda: len(checkpoints(run)) >= 2, proc, timeout=300)
     killed = proc.poll() is None
     if killed:
         proc.send_signal(signal.SIGKILL)
@@ -231,14 +183,14 @@ def test_a_plugin_loss_runs_resumes_and_goes_into_an_experiment(plugin: Path, tm
 
     # resume without the plugin: refused, naming the algorithm; nothing in the run folder changes
     before = _snapshot(run)
-    proc = _adarl(None, elsewhere, "resume", str(run), "--quiet")
+    proc = adarl("resume", str(run), "--quiet", cwd=elsewhere)
     assert proc.returncode != 0
     assert "robust_sac" in proc.stderr and "adarl.plugins" in proc.stderr, proc.stderr[-2000:]
     assert "'adarl-robust-sac' 0.1.0" in proc.stderr and "pip install adarl-robust-sac" in proc.stderr
     assert _snapshot(run) == before
 
     # resume with it: the run finishes as the same algorithm, on the fused update (a TD-target shift only)
-    proc = _adarl(plugin, elsewhere, "resume", str(run), "--quiet")
+    proc = adarl("resume", str(run), "--quiet", site=plugin, cwd=elsewhere)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "FusedFallbackWarning" not in proc.stderr and "not the fused update" not in proc.stderr
     shifts = _target_shift(run)
@@ -257,7 +209,7 @@ def test_a_plugin_loss_runs_resumes_and_goes_into_an_experiment(plugin: Path, tm
     out = tmp_path / "experiment"
     # on Ray workers when Ray is installed (CI installs it): the plugin reaches them through the environment
     launcher = ["--launcher", "ray"] if importlib.util.find_spec("ray") else ["--workers", "1"]
-    proc = _adarl(plugin, elsewhere, "experiment", str(spec), "-o", str(out), *launcher, "--no-live")
+    proc = adarl("experiment", str(spec), "-o", str(out), *launcher, "--no-live", site=plugin, cwd=elsewhere)
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
     runs = sorted(p.parent for p in out.rglob("summary.json") if (p.parent / "recipe.yaml").is_file())
     assert len(runs) == 2, sorted(p.as_posix() for p in out.rglob("*"))[:50]
@@ -270,12 +222,12 @@ def test_a_plugin_loss_runs_resumes_and_goes_into_an_experiment(plugin: Path, tm
 
     # the local module changed, then went missing: resume and eval refuse the run by name, nothing written
     before = _snapshot(run)
-    (elsewhere / "my_rule.py").write_text(textwrap.dedent(LOCAL_RULE) + "\n# changed\n")
+    (elsewhere / "my_rule.py").write_text(textwrap.dedent(LOCAL_RULE) + "\nCHANGED = True\n")  # code: a comment is none
     for command in (("resume", str(run)), ("eval", str(run))):
-        line = _error_line(_adarl(plugin, elsewhere, *command))
+        line = _error_line(adarl(*command, site=plugin, cwd=elsewhere))
         assert "local plugin module 'my_rule'" in line and "has changed" in line, line
     (elsewhere / "my_rule.py").unlink()
-    line = _error_line(_adarl(plugin, elsewhere, "resume", str(run), "--quiet"))
+    line = _error_line(adarl("resume", str(run), "--quiet", site=plugin, cwd=elsewhere))
     assert "local plugin module 'my_rule'" in line and "missing" in line, line
     assert _snapshot(run) == before
 
@@ -293,7 +245,7 @@ def test_a_plugin_loss_on_the_ppo_loop_runs_and_logs_its_own_terms(plugin: Path,
     tiny = ["collector.total_frames=256", "collector.frames_per_batch=128", "algorithm.ppo.epochs=1"]
     tiny += ["eval.interval=256", "eval.episodes=1", "eval.max_steps=20", "checkpoint.interval=128"]
     tiny += ["logging.log_interval=128"]
-    proc = _adarl(plugin, tmp_path, "run", str(recipe), *tiny, "-o", str(run), "--quiet")
+    proc = adarl("run", str(recipe), *tiny, "-o", str(run), "--quiet", site=plugin, cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-3000:]
     scalars = run / "metrics" / "scalars" / "train"
     for name in ("loss_norm", "critic_sq_norm", "policy_gradient_loss", "value_loss"):  # ClipPPOLoss's: SB3's names

@@ -11,39 +11,14 @@ import sys
 import time
 from pathlib import Path
 
+import _helpers
 import pytest
 import torch
+from _helpers import adarl
 from tensordict import TensorDict
 
 REPO = Path(__file__).resolve().parents[1]
-TINY = [
-    "collector.total_frames=1600",
-    "collector.init_random_frames=300",
-    "collector.frames_per_batch=100",
-    "algorithm.batch_size=64",
-    "rank.interval=400",
-    "replay.size=5000",
-    "replay.warm_start.frames=100",
-    "lr_schedule.warmup_steps=50",
-    "eval.interval=800",
-    "eval.episodes=2",
-    "eval.max_steps=60",
-    "checkpoint.interval=500",
-]
-
-
-def adarl(*args: str, cwd: Path | None = None, gl: str | None = None, timeout: int = 600):
-    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
-    if gl is not None:
-        env["MUJOCO_GL"] = gl
-    return subprocess.run(
-        [sys.executable, "-m", "adarl.cli", *args],
-        cwd=cwd or REPO,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-    )
+TINY = _helpers.tiny(*_helpers.RANK_EVENTS)
 
 
 @pytest.fixture(scope="module")
@@ -86,7 +61,7 @@ def test_load_policy_restores_truncated_ranks_without_building_env_buffer_or_col
     def refuse(*args, **kwargs):
         raise AssertionError("load_policy built an env, a buffer or a collector")
 
-    monkeypatch.setattr(adarl.runtime.builders.sac, "build_components", refuse)
+    monkeypatch.setattr(adarl.runtime.builders.sac, "build_sac_components", refuse)
     monkeypatch.setattr(gymnasium, "make", refuse)
     monkeypatch.setattr(torchrl.envs.libs.gym.GymEnv, "__init__", refuse)
     monkeypatch.setattr(torchrl.collectors.Collector, "__init__", refuse)
@@ -113,11 +88,11 @@ def test_loaded_policy_acts_as_the_trained_one_and_in_gymnasium(tiny):
     from torchrl.envs.utils import ExplorationType, set_exploration_type
 
     import adarl
-    from adarl.runtime.trainers import Trainer
+    from adarl.runtime.trainers import OffPolicyTrainer
 
     out, _ = tiny
     actor = adarl.load_policy(out)
-    trainer = Trainer.resume(out, quiet=True, truncate_metrics=False)
+    trainer = OffPolicyTrainer.resume(out, quiet=True, truncate_metrics=False)
     try:
         obs = TensorDict(observation=torch.randn(32, 11), batch_size=[32])
         with set_exploration_type(ExplorationType.DETERMINISTIC):
@@ -205,7 +180,7 @@ def test_play_renders_headless_to_one_video(tiny, tmp_path):
         "--perturb",
         "torso_length=0.5",
         cwd=tmp_path,
-        gl=gl,
+        env={"MUJOCO_GL": gl},
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "torso_length=0.5" in proc.stdout and "episode 1: return" in proc.stdout and str(video) in proc.stdout

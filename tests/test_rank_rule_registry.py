@@ -9,15 +9,16 @@ import math
 
 import pytest
 import torch
+from _helpers import tiny
 from pydantic import BaseModel, ConfigDict, Field
 
 from adarl import plugins
-from adarl.core.rank import RULES, EnergyRule, RankRule, make_rule
+from adarl.core.rank import EnergyRule, RankRule, make_rule
 from adarl.errors import AdaRLValueError, RecipeError
 from adarl.runtime.builders.sac import make_rank_rule
 from adarl.runtime.config import load_recipe, recipe_to_yaml, save_resolved
 from adarl.runtime.run_dir import RunDir
-from adarl.runtime.trainers import Trainer
+from adarl.runtime.trainers import OffPolicyTrainer
 
 
 class TopKOptions(BaseModel):
@@ -121,10 +122,10 @@ def test_adarl_own_rules_take_no_rule_options():
 
 
 def test_make_rule_finds_registered_rules_and_refuses_other_classes(registered, monkeypatch):
-    assert "top_k" not in RULES
+    assert "top_k" not in plugins.BUILTIN_RANK_RULES
     rule = make_rule("top_k", k=3)
     assert type(rule) is TopK and rule.k == 3
-    with pytest.raises(AdaRLValueError, match=r"unknown rank rule 'nope'; allowed: .*'top_k'"):
+    with pytest.raises(AdaRLValueError, match=r"unknown rank.rule 'nope'; allowed: .*'top_k'"):
         make_rule("nope")
 
     @plugins.register_rank_rule("not_a_rule")
@@ -142,21 +143,16 @@ def test_make_rule_finds_registered_rules_and_refuses_other_classes(registered, 
 
 
 # Hopper, tiny: 300 frames, 200 updates, one rank event at update 150 (every candidate applied)
-TINY = [
+TINY = tiny(
     "collector.total_frames=300",
     "collector.init_random_frames=100",
     "collector.frames_per_batch=50",
-    "algorithm.batch_size=32",
-    "rank.interval=150",
     "rank.accept.mode=always",
     "replay.size=1000",
     "replay.warm_start.frames=50",
-    "lr_schedule.warmup_steps=20",
-    "eval.interval=300",
     "eval.episodes=1",
     "eval.max_steps=20",
-    "checkpoint.interval=300",
-]
+)
 
 
 def test_a_run_truncates_with_the_registered_rule(registered, tmp_path):
@@ -167,7 +163,7 @@ def test_a_run_truncates_with_the_registered_rule(registered, tmp_path):
         recipe = load_recipe("quickstart", [*TINY, "rank.rule=fit_top_k", "rank.rule_options.k=3"])
         run = RunDir.create(tmp_path / "run")
         save_resolved(recipe, run.recipe_path)
-        trainer = Trainer(recipe, run, quiet=True)
+        trainer = OffPolicyTrainer(recipe, run, quiet=True)
         assert type(trainer.c.adapter.rule) is FitTopK
         summary = trainer.train()
     finally:

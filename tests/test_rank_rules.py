@@ -14,8 +14,8 @@ import torch
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
+from adarl import plugins
 from adarl.core.rank import (
-    RULES,
     EnergyRule,
     FixedRank,
     InclusiveEnergyRule,
@@ -328,7 +328,7 @@ def test_invalid_current_and_min_rank():
 
 
 def test_make_rule():
-    assert set(RULES) == {"energy", "energy_inclusive", "ratio", "fixed", "policy_fit"}
+    assert set(plugins.BUILTIN_RANK_RULES) == {"energy", "energy_inclusive", "ratio", "fixed", "policy_fit"}
     r = make_rule("energy", beta=0.9)
     assert type(r) is EnergyRule and r.beta == 0.9
     assert type(make_rule("energy_inclusive")) is InclusiveEnergyRule
@@ -338,7 +338,7 @@ def test_make_rule():
     assert "beta=0.9" in repr(r)
     with pytest.raises(AdaRLValueError) as err:
         make_rule("svd_energy")
-    for name in RULES:
+    for name in plugins.BUILTIN_RANK_RULES:
         assert repr(name) in str(err.value)
     with pytest.raises(AdaRLValueError, match="energy"):
         make_rule("energy", gamma=0.5)
@@ -404,13 +404,14 @@ def test_property_scale_invariance(values, beta, scale):
             assert min(near) < Fraction(TOL), (rule, a, b)
 
 
-def test_fixed_rule_takes_the_recipe_key_name_and_warns_on_the_old_one():
-    """Issue 29.7: one name for one thing, ``target_rank`` in Python as in recipes (``rank.target_rank``)."""
+def test_fixed_rule_takes_the_recipe_key_name_only():
+    """Issues 29.7 and 47: one name for one thing, ``target_rank`` in Python as in recipes (``rank.target_rank``);
+    the old keyword and attribute ``rank`` are gone."""
     s = torch.tensor([5.0, 3.0, 1.0, 0.5, 0.5])
     assert make_rule("fixed", target_rank=2)(s).rank == 2
     assert FixedRank(target_rank=3).target_rank == 3 and FixedRank(4)(s).rank == 4
-    with pytest.warns(DeprecationWarning, match="target_rank"):
-        old = FixedRank(rank=2)
-    assert old.target_rank == 2 and old(s).rank == 2
+    with pytest.raises(TypeError, match="rank"):
+        FixedRank(rank=2)
+    assert not hasattr(FixedRank(2), "rank")
     with pytest.raises(AdaRLValueError, match="'fixed'.*target_rank"):
         make_rule("fixed")

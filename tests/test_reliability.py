@@ -13,28 +13,27 @@ from pathlib import Path
 
 import pytest
 import torch
+from _helpers import tiny
 
 from adarl.errors import CheckpointError, CheckpointFallbackWarning, RecipeError
 from adarl.runtime.config import load_recipe, save_resolved
 from adarl.runtime.guards import DeadLayerError, NonFiniteError, NonFiniteGuard, check_live_layers
 from adarl.runtime.run_dir import RunDir
 from adarl.runtime.signals import GracefulInterrupt
-from adarl.runtime.trainers import Trainer
+from adarl.runtime.trainers import OffPolicyTrainer
 
-SMALL = [
+SMALL = tiny(
     "collector.total_frames=300",
     "collector.init_random_frames=100",
     "collector.frames_per_batch=50",
-    "algorithm.batch_size=32",
     "rank.interval=100",
     "replay.size=1000",
     "replay.warm_start.frames=50",
-    "lr_schedule.warmup_steps=20",
     "eval.interval=150",
     "eval.episodes=1",
     "eval.max_steps=20",
     "checkpoint.interval=100",
-]
+)
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -46,11 +45,11 @@ def one_thread():
     torch.set_num_threads(n)
 
 
-def _trainer(path: Path, *extra: str) -> Trainer:
+def _trainer(path: Path, *extra: str) -> OffPolicyTrainer:
     recipe = load_recipe("quickstart", [*SMALL, *extra])
     run = RunDir.create(path)
     save_resolved(recipe, run.recipe_path)
-    return Trainer(recipe, run, quiet=True)
+    return OffPolicyTrainer(recipe, run, quiet=True)
 
 
 @pytest.fixture(scope="module")
@@ -172,13 +171,13 @@ def test_replay_buffer_is_found_beside_a_checkpoint_file(finished_run, tmp_path)
     shutil.copytree(RunDir._replay_buffer_dir(ckpt), RunDir._replay_buffer_dir(elsewhere / ckpt.name))
     shutil.rmtree(RunDir._replay_buffer_dir(ckpt))  # not in the run folder: only beside the file
     saved = torch.load(RunDir._replay_buffer_dir(elsewhere / ckpt.name) / "buffer.pt", weights_only=True)
-    trainer = Trainer.resume(run.path, quiet=True, checkpoint=elsewhere / ckpt.name)
+    trainer = OffPolicyTrainer.resume(run.path, quiet=True, checkpoint=elsewhere / ckpt.name)
     assert len(trainer.c.replay_buffer) == int(saved["_storage"]["_len"]) > 0
     trainer.close()
     shutil.rmtree(RunDir._replay_buffer_dir(elsewhere / ckpt.name))
     with pytest.raises(CheckpointError, match="has lost its replay buffer"):
-        Trainer.resume(run.path, quiet=True, checkpoint=elsewhere / ckpt.name)
-    evaluator = Trainer.resume(run.path, quiet=True, read_only=True, checkpoint=elsewhere / ckpt.name)
+        OffPolicyTrainer.resume(run.path, quiet=True, checkpoint=elsewhere / ckpt.name)
+    evaluator = OffPolicyTrainer.resume(run.path, quiet=True, read_only=True, checkpoint=elsewhere / ckpt.name)
     assert len(evaluator.c.replay_buffer) == 0  # evaluation does not need the buffer
     evaluator.close()
 
@@ -211,7 +210,7 @@ def test_best_checkpoint_is_kept_and_loadable(finished_run):
 # ------------------------------------------------------------------------------------------ guards
 
 
-def _inject_nan(trainer: Trainer, at_call: int, times: int = 1) -> dict:
+def _inject_nan(trainer: OffPolicyTrainer, at_call: int, times: int = 1) -> dict:
     calls = {"n": 0, "injected": 0}
 
     def hook(module, args, out):

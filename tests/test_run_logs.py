@@ -14,6 +14,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from _helpers import INTERVALS_1200, tiny
 from tensordict.nn import NormalParamExtractor, TensorDictModule
 from torch import nn
 from torchrl.modules import MLP, ProbabilisticActor, TanhNormal, ValueOperator
@@ -21,21 +22,7 @@ from torchrl.objectives import SACLoss
 
 from adarl.runtime import metrics
 
-TINY = [
-    "collector.total_frames=1200",
-    "collector.init_random_frames=300",
-    "collector.frames_per_batch=100",
-    "algorithm.batch_size=64",
-    "rank.interval=300",
-    "replay.size=5000",
-    "replay.warm_start.frames=100",
-    "lr_schedule.warmup_steps=50",
-    "eval.interval=600",
-    "eval.episodes=1",
-    "eval.max_steps=40",
-    "checkpoint.interval=400",
-    "logging.log_interval=200",
-]
+TINY = tiny(*INTERVALS_1200)
 ACTOR_PATH = "actor_network.module.0.module.0.0"
 
 
@@ -231,8 +218,9 @@ def _old_style_run(path: Path) -> Path:
 
 
 def test_reports_aggregates_and_progress_read_an_old_style_run_folder(tmp_path):
-    from adarl.experiments.aggregate import _load_run, event_dips, write_aggregate_report
     from adarl.experiments.progress import read_progress
+    from adarl.experiments.report import event_dips, write_aggregate_report
+    from adarl.experiments.report._runs import _load_run
     from adarl.runtime.report import plot_returns, write_report
     from adarl.runtime.run_dir import RunDir
 
@@ -336,7 +324,7 @@ def logged_run(tmp_path_factory):
 
     from adarl.runtime.config import load_recipe, save_resolved
     from adarl.runtime.run_dir import RunDir
-    from adarl.runtime.trainers import Trainer
+    from adarl.runtime.trainers import OffPolicyTrainer
 
     mp = pytest.MonkeyPatch()
     real_find_spec = importlib.util.find_spec
@@ -361,17 +349,17 @@ def logged_run(tmp_path_factory):
         assert recipe.replay.warm_start.count_frames
         run = RunDir.create(path)
         save_resolved(recipe, run.recipe_path)
-        summary = Trainer(recipe, run, quiet=False).train()
+        summary = OffPolicyTrainer(recipe, run, quiet=False).train()
         first = {"bar": _Bar.made[-1], "wandb": _FakeWandb.made[-1], "writer": _FakeWriter.made[-1]}
         # pretend it died after its checkpoint at 800 frames, and resume it
         for ckpt in run.checkpoints():
             if int(ckpt.stem.split("-")[1]) > 800:
                 ckpt.unlink()
-        resumed = Trainer.resume(path, quiet=False)
+        resumed = OffPolicyTrainer.resume(path, quiet=False)
         resumed.train()
         second = {"bar": _Bar.made[-1], "wandb": _FakeWandb.made[-1], "writer": _FakeWriter.made[-1], "from": 800}
         writers_before = len(_FakeWriter.made)
-        evaluating = Trainer.resume(path, quiet=True, truncate_metrics=False, checkpoint="best")  # adarl eval
+        evaluating = OffPolicyTrainer.resume(path, quiet=True, truncate_metrics=False, checkpoint="best")  # adarl eval
         evaluating.close()
         second["eval_writers"] = _FakeWriter.made[writers_before:]
         yield {"path": path, "recipe": recipe, "summary": summary, "first": first, "second": second}
@@ -395,11 +383,11 @@ def test_progress_bar_shows_updates_as_an_integer():
     from tqdm import tqdm
 
     from adarl.runtime.trainers.base import BaseTrainer
+    from adarl.runtime.trainers.off_policy import OffPolicyTrainer
     from adarl.runtime.trainers.ppo import PPOTrainer
-    from adarl.runtime.trainers.sac import SACTrainer
 
     state = types.SimpleNamespace(last_return=1.0, updates=10000, c=types.SimpleNamespace(adapter=None))
-    for cls in (BaseTrainer, SACTrainer, PPOTrainer):
+    for cls in (BaseTrainer, OffPolicyTrainer, PPOTrainer):
         bar = tqdm(total=1, file=io.StringIO())
         bar.set_postfix(refresh=False, **cls._postfix(state))
         assert "upd=10000" in str(bar), (cls.__name__, str(bar))
@@ -454,7 +442,7 @@ def test_human_layer_names_in_csv_report_and_plots_with_paths_in_json(logged_run
     assert "| actor.layer0 |" in report and "final ranks: {'actor.layer0'" in report
     summary = json.loads((path / "summary.json").read_text())
     assert summary["ranks"][ACTOR_PATH] >= 1 and summary["layer_names"][ACTOR_PATH] == "actor.layer0"
-    from adarl.experiments.aggregate import _load_run, _rank_series
+    from adarl.experiments.report._runs import _load_run, _rank_series
 
     labels = sorted(_rank_series(_load_run(path, None)))  # the legends of plots/ranks.png and the aggregate's
     assert labels == ["actor.layer0", "actor.layer1", "critic.layer0", "critic.layer1"]
@@ -483,7 +471,7 @@ def test_speed_png_and_the_aggregate_rank_figure_are_on_frames_too(logged_run, t
     """Issue 31, point 3: one x axis (frames) across a run's plots and the experiment report's rank figure."""
     import matplotlib.axes
 
-    from adarl.experiments.aggregate import write_aggregate_report
+    from adarl.experiments.report import write_aggregate_report
     from adarl.runtime.report import plot_speed
     from adarl.runtime.run_dir import RunDir
 

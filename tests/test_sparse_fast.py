@@ -281,10 +281,10 @@ OVR = ["collector.total_frames=2000", "collector.init_random_frames=500", "repla
 
 
 def _components():
-    from adarl.runtime.builders.sac import build_components
+    from adarl.runtime.builders.sac import build_sac_components
     from adarl.runtime.config import load_recipe
 
-    c = build_components(load_recipe("baselines/hopper_sparse", OVR))
+    c = build_sac_components(load_recipe("baselines/hopper_sparse", OVR))
     torch.manual_seed(3)
     c.replay_buffer.extend(c.env.rollout(200, break_when_any_done=False).reshape(-1))
     return c

@@ -1,10 +1,10 @@
 """Every interval in every committed ``docs/reports/*/statistics.csv`` is recomputed by an estimator written apart
-from ``adarl.experiments.stats`` (issue 45), end to end: the runs' scores are read again from the committed run
+from ``adarl.experiments.report.stats`` (issue 45), end to end: the runs' scores are read again from the committed run
 folders (``runs/<axis>=<value>__...__seed=<n>/eval.csv``) by a loader of this file, and the bootstrap is
 ``scipy.stats.bootstrap`` (percentile method, 95%, each arm's seeds resampled with replacement on their own) with
 its own generator and ten times the resamples. Nothing of adarl is imported.
 
-What a row of statistics.csv states, as ``adarl.experiments._sections`` writes it (and report.md says in words):
+What a row of statistics.csv states, as ``adarl.experiments.report._sections`` writes it (and report.md says in words):
 
 * a run's score is the mean of its last ``score_last`` nominal evaluations (eval.csv's ``mean`` column, file order;
   report.md: "Score of a run: its last evaluation" or "the mean of its last N evaluations");

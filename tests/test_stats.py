@@ -1,4 +1,4 @@
-"""adarl.experiments.stats (IQM, stratified bootstrap, probability of improvement) and the aggregate report's
+"""adarl.experiments.report.stats (IQM, stratified bootstrap, probability of improvement) and the aggregate report's
 statistics."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import pytest
 import yaml
 from test_evaluation_experiments import _fake_run
 
-from adarl.experiments.stats import (
+from adarl.experiments.report.stats import (
     interval_estimate,
     iqm,
     poi_estimate,
@@ -54,7 +54,7 @@ def test_bootstrap_is_stratified_reproducible_and_covers_the_point():
 
 
 def test_aggregate_report_statistics_reference_duplicates_and_iterations(tmp_path):
-    from adarl.experiments.aggregate import write_aggregate_report
+    from adarl.experiments.report import write_aggregate_report
 
     exp = tmp_path / "exp"
     runs = []
@@ -108,7 +108,8 @@ def test_aggregate_report_statistics_reference_duplicates_and_iterations(tmp_pat
 
 
 def test_rank_settling_reads_the_last_change_and_the_events_after_it(tmp_path):
-    from adarl.experiments.aggregate import _load_run, rank_settling
+    from adarl.experiments.report import rank_settling
+    from adarl.experiments.report._runs import _load_run
 
     run = _fake_run(tmp_path, "r", 0, 0, [(100, 1.0), (200, 2.0)])
     history = [
@@ -132,7 +133,7 @@ def test_rank_settling_reads_the_last_change_and_the_events_after_it(tmp_path):
 def test_runs_csv_has_one_column_per_name_with_an_env_axis(tmp_path):
     """An experiment whose axis is called ``env`` (table1, rank_trajectory) kept two ``env`` columns in runs.csv,
     so csv.DictReader silently lost the axis value."""
-    from adarl.experiments.aggregate import write_aggregate_report
+    from adarl.experiments.report import write_aggregate_report
 
     exp = tmp_path / "exp"
     runs = []
@@ -161,7 +162,7 @@ def test_runs_csv_has_one_column_per_name_with_an_env_axis(tmp_path):
 
 def test_event_window_counts_each_seed_once_with_an_interval_and_compares_with_the_reference(tmp_path):
     """The Fig. 9 table: the return dip after each rank event, per seed, refill against reset."""
-    from adarl.experiments.aggregate import write_aggregate_report
+    from adarl.experiments.report import write_aggregate_report
 
     exp = tmp_path / "exp"
     runs = []
@@ -206,7 +207,7 @@ def test_score_is_the_mean_of_the_last_evaluations_with_plateau_counts_and_verdi
     """Issue 34's protocol: a run scores the mean of its last three evaluations; the report counts the seeds whose
     best evaluation left the plateau and states the decision rule's verdict for each setting against the
     reference."""
-    from adarl.experiments.aggregate import verdict, write_aggregate_report
+    from adarl.experiments.report import verdict, write_aggregate_report
 
     exp = tmp_path / "exp"
     curves = {  # the last three evaluations decide, not the last one alone
@@ -249,7 +250,7 @@ def test_loose_run_folders_report_by_an_experiments_rule_given_on_the_command_li
     import shutil
 
     from adarl.cli import main
-    from adarl.experiments.aggregate import write_aggregate_report
+    from adarl.experiments.report import write_aggregate_report
 
     exp, loose = tmp_path / "exp", tmp_path / "runs"
     runs = []
@@ -367,7 +368,7 @@ def test_loose_run_folders_report_by_an_experiments_rule_given_on_the_command_li
 
 
 def test_axes_from_run_id():
-    from adarl.experiments.aggregate import axes_from_run_id
+    from adarl.experiments.report import axes_from_run_id
 
     assert axes_from_run_id("env=hopper__algorithm=adarl__seed=3", 3) == {"env": "hopper", "algorithm": "adarl"}
     assert axes_from_run_id("env=hopper__algorithm=adarl__seed=3", 4) is None  # the id's seed is not the recipe's

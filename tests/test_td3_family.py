@@ -13,16 +13,14 @@ from __future__ import annotations
 
 import csv
 import json
-import os
 import signal
 import subprocess
 import sys
-import textwrap
-import time
 from pathlib import Path
 
 import pytest
 import torch
+from _helpers import adarl_env, checkpoints, install_plugin, start_adarl, tiny, wait_for
 from torchrl.objectives import DDPGLoss, IQLLoss, SACLoss, TD3Loss
 
 from adarl import plugins
@@ -30,29 +28,24 @@ from adarl.errors import AdaRLValueError, RecipeError
 from adarl.runtime.builders.td3 import TD3Components, build_td3_components
 from adarl.runtime.config import load_recipe
 from adarl.runtime.guards import NonFiniteGuard
-from adarl.runtime.trainers import TD3Trainer, trainer_class
+from adarl.runtime.trainers import OffPolicyTrainer, trainer_class
 from adarl.runtime.update import DelayedActorStep
 
 REPO = Path(__file__).resolve().parents[1]
 
 # Hopper, tiny: updates from frame 100, a rank event every 150 updates (three of them), a checkpoint every 50 frames
-TINY = [
-    "collector.total_frames=600",
+TINY = tiny(
     "collector.init_random_frames=100",
     "collector.frames_per_batch=50",
     "algorithm.update_after=100",
-    "algorithm.batch_size=32",
-    "rank.interval=150",
     "replay.size=600",
     "replay.warm_start.frames=50",
-    "lr_schedule.warmup_steps=20",
-    "eval.interval=300",
     "eval.episodes=1",
     "eval.max_steps=20",
     "checkpoint.interval=50",
     "checkpoint.keep_last=2",
     "logging.log_interval=100",
-]
+)
 
 
 @pytest.fixture
@@ -93,7 +86,7 @@ def test_td3_and_ddpg_are_shipped_algorithms_on_the_td3_loop():
         spec = plugins.algorithm(name)
         assert spec.base == "td3" and spec.loss_class() is loss
         recipe = load_recipe(f"baselines/hopper_{name}")
-        assert recipe.algorithm.name == name and trainer_class(recipe) is TD3Trainer
+        assert recipe.algorithm.name == name and trainer_class(recipe) is OffPolicyTrainer
     assert load_recipe("baselines/hopper_ddpg").algorithm.td3.policy_update_delay == 1
 
 
@@ -228,51 +221,12 @@ packages = ["adarl_l2_td3"]
 @pytest.fixture(scope="module")
 def plugin(tmp_path_factory) -> Path:
     """The plugin package, pip-installed into a folder of its own; returns that folder."""
-    root = tmp_path_factory.mktemp("td3_plugin")
-    src = root / "src"
-    (src / "adarl_l2_td3").mkdir(parents=True)
-    (src / "adarl_l2_td3" / "__init__.py").write_text(textwrap.dedent(PLUGIN))
-    (src / "pyproject.toml").write_text(textwrap.dedent(PYPROJECT))
-    site = root / "site"
-    proc = subprocess.run(
-        [sys.executable, "-m", "pip", "install", "--no-deps", "--no-build-isolation", "--no-index", "-q"]
-        + ["--target", str(site), str(src)],
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
-    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
-    return site
+    return install_plugin(tmp_path_factory.mktemp("td3_plugin"), "adarl_l2_td3", PLUGIN, PYPROJECT)
 
 
-def _env(site: Path) -> dict:
-    paths = os.pathsep.join([str(REPO), str(site)])
-    return {**os.environ, "PYTHONPATH": paths, "OMP_NUM_THREADS": "1", "MUJOCO_GL": "egl"}
-
-
-def _start(site: Path, cwd: Path, *args: str) -> subprocess.Popen:
-    return subprocess.Popen(
-        [sys.executable, "-m", "adarl.cli", *args],
-        cwd=cwd,
-        env=_env(site),
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-
-
-def _checkpoints(run: Path) -> set[str]:
-    return {p.name for p in (run / "checkpoints").glob("ckpt-*.pt")} if (run / "checkpoints").is_dir() else set()
-
-
-def _wait_for_new_checkpoint(run: Path, proc: subprocess.Popen, seen: set[str], after: int) -> bool:
-    """Until a checkpoint of more than ``after`` frames, not in ``seen``, is written (or the process ends)."""
-    while proc.poll() is None:
-        new = _checkpoints(run) - seen
-        if any(int(name[5:17]) > after for name in new):
-            return True
-        time.sleep(0.02)  # polling the folder; nothing is decided by the clock
-    return False
+def _new_checkpoint(run: Path, seen: set[str], after: int):
+    """A checkpoint of more than ``after`` frames, not in ``seen``, is written (what :func:`wait_for` polls)."""
+    return lambda: any(int(name[5:17]) > after for name in checkpoints(run) - seen)
 
 
 def _results(run: Path) -> dict[str, str]:
@@ -311,17 +265,19 @@ def test_a_td3_plugin_runs_from_a_recipe_through_rank_events_kill_9_resume_and_a
         "algorithm:\n  name: l2_td3\n  options: {weight: 0.001}\n"
     )
     ref, killed = tmp_path / "reference", tmp_path / "killed"
-    reference = _start(plugin, elsewhere, "run", str(recipe), *TINY, "-o", str(ref), "--quiet")
-    proc = _start(plugin, elsewhere, "run", str(recipe), *TINY, "-o", str(killed), "--quiet")
+    reference = start_adarl("run", str(recipe), *TINY, "-o", str(ref), "--quiet", site=plugin, cwd=elsewhere)
+    proc = start_adarl("run", str(recipe), *TINY, "-o", str(killed), "--quiet", site=plugin, cwd=elsewhere)
     # kill -9 right after the first checkpoint past 200 frames (past the first rank event, at 150 updates = 250
     # frames) and again right after the first one past 400 (past the second), resuming each time
     kills = []
     for after in (200, 400):
-        assert _wait_for_new_checkpoint(killed, proc, _checkpoints(killed), after), proc.communicate()[1][-3000:]
+        assert wait_for(_new_checkpoint(killed, checkpoints(killed), after), proc, timeout=600, poll=0.02), (
+            proc.communicate()[1][-3000:]
+        )
         proc.send_signal(signal.SIGKILL)
         assert proc.wait() == -signal.SIGKILL, "the run ended before it could be killed"
-        kills.append(sorted(_checkpoints(killed))[-1])
-        proc = _start(plugin, elsewhere, "resume", str(killed), "--quiet")
+        kills.append(sorted(checkpoints(killed))[-1])
+        proc = start_adarl("resume", str(killed), "--quiet", site=plugin, cwd=elsewhere)
     _, err = proc.communicate(timeout=600)
     assert proc.returncode == 0, err[-3000:]
     _, err = reference.communicate(timeout=600)
@@ -336,7 +292,7 @@ def test_a_td3_plugin_runs_from_a_recipe_through_rank_events_kill_9_resume_and_a
     # the trained deterministic actor loads without the training stack, acts in the action box, and exports
     with subprocess.Popen(
         [sys.executable, "-c", LOAD_POLICY, str(ref), str(tmp_path / "l2_td3.pt")],
-        env=_env(plugin),
+        env=adarl_env(plugin),
         stdout=subprocess.PIPE,
         text=True,
     ) as loaded:
@@ -359,7 +315,9 @@ def test_a_td3_plugin_runs_from_a_recipe_through_rank_events_kill_9_resume_and_a
         "seeds: [0, 1]\n"
     )
     out = tmp_path / "experiment"
-    proc = _start(plugin, elsewhere, "experiment", str(spec), "-o", str(out), "--workers", "2", "--no-live")
+    proc = start_adarl(
+        "experiment", str(spec), "-o", str(out), "--workers", "2", "--no-live", site=plugin, cwd=elsewhere
+    )
     stdout, err = proc.communicate(timeout=600)
     assert proc.returncode == 0, stdout[-2000:] + err[-3000:]
     runs = sorted(p.parent for p in out.rglob("summary.json") if (p.parent / "recipe.yaml").is_file())

@@ -15,24 +15,12 @@ from pathlib import Path
 
 import pytest
 import yaml
+from _helpers import tiny
 
 optuna = pytest.importorskip("optuna")
 
 REPO = Path(__file__).resolve().parents[1]
-TINY = [
-    "collector.total_frames=600",
-    "collector.init_random_frames=200",
-    "collector.frames_per_batch=100",
-    "algorithm.batch_size=32",
-    "rank.interval=150",
-    "replay.size=2000",
-    "replay.warm_start.frames=100",
-    "lr_schedule.warmup_steps=20",
-    "eval.interval=300",
-    "eval.episodes=2",
-    "eval.max_steps=50",
-    "checkpoint.interval=300",
-]
+TINY = tiny()
 
 
 def _spec(tmp_path: Path, **changes) -> Path:
@@ -118,7 +106,7 @@ def test_bad_search_spaces_are_refused_by_name_before_anything_is_written(tmp_pa
 
 
 def test_override_values_and_grids():
-    from adarl.experiments.tune_spec import Param, grid_values, override_value
+    from adarl.experiments.tune import Param, grid_values, override_value
 
     assert [override_value(v) for v in (1e-05, 0.5, 3, True, None, "keep")] == [
         "1.0e-05",
@@ -136,8 +124,8 @@ def test_override_values_and_grids():
 
 def test_the_pruner_reads_the_trials_evaluations(tmp_path):
     """What the watcher does while a trial trains: report each new line of eval.csv once, then ask the pruner."""
-    from adarl.experiments.tune import _Study
-    from adarl.experiments.tune_spec import load_tune_spec
+    from adarl.experiments.tune import load_tune_spec
+    from adarl.experiments.tune._study import _Study
 
     spec = load_tune_spec(_spec(tmp_path, pruner={"name": "median", "n_startup_trials": 1}))
     out = tmp_path / "out"
@@ -238,7 +226,7 @@ def test_a_study_killed_mid_trial_continues_with_its_trial_count_and_no_duplicat
 
 
 def test_the_shipped_tune_specs_validate_and_are_not_recipes():
-    from adarl.experiments.tune_spec import check_space, load_tune_spec
+    from adarl.experiments.tune import check_space, load_tune_spec
     from adarl.runtime.config import list_recipes
 
     specs = sorted((REPO / "recipes" / "tune").glob("*.yaml"))
@@ -251,8 +239,8 @@ def test_the_shipped_tune_specs_validate_and_are_not_recipes():
 def test_grid_sampler_and_the_sweep_objective(tmp_path):
     """The grid covers its points once each (the budget capped at its size, no study.stop() outside optimize);
     the sweep objective reads the worst case of the trial's sweep."""
-    from adarl.experiments.tune import _grid_size, _Study
-    from adarl.experiments.tune_spec import load_tune_spec
+    from adarl.experiments.tune import load_tune_spec
+    from adarl.experiments.tune._study import _grid_size, _Study
 
     space = {
         "rank.beta": {"type": "float", "low": 0.8, "high": 0.9, "step": 0.1},
@@ -285,8 +273,8 @@ def test_grid_sampler_and_the_sweep_objective(tmp_path):
 
 def test_a_study_folder_refuses_another_search_space(tmp_path):
     from adarl.errors import RecipeError
-    from adarl.experiments.tune import _Study
-    from adarl.experiments.tune_spec import load_tune_spec
+    from adarl.experiments.tune import load_tune_spec
+    from adarl.experiments.tune._study import _Study
 
     out = tmp_path / "out"
     out.mkdir()
@@ -308,8 +296,8 @@ def test_a_study_folder_refuses_another_search_space(tmp_path):
 def test_a_study_made_before_seeds_existed_continues_with_its_seed(tmp_path):
     """Studies recorded `seed` (an int) before `seeds` existed: the same seed continues them, another is refused."""
     from adarl.errors import RecipeError
-    from adarl.experiments.tune import STUDY_FILE, _Study
-    from adarl.experiments.tune_spec import load_tune_spec
+    from adarl.experiments.tune import STUDY_FILE, load_tune_spec
+    from adarl.experiments.tune._study import _Study
 
     out = tmp_path / "out"
     out.mkdir()
@@ -334,8 +322,8 @@ def test_a_study_made_before_seeds_existed_continues_with_its_seed(tmp_path):
 def test_what_the_pruner_sees_of_several_seeds(tmp_path):
     """The mean over seeds at each frame count that every seed reached, each seed at its last evaluation by then;
     a frame count some seed has not reached yet waits."""
-    from adarl.experiments.tune import _Study, mean_scores
-    from adarl.experiments.tune_spec import load_tune_spec
+    from adarl.experiments.tune import load_tune_spec, mean_scores
+    from adarl.experiments.tune._study import _Study
 
     a, b = [(300, 10.0), (600, 20.0), (900, 40.0)], [(400, 30.0), (700, 50.0)]
     assert mean_scores([a, b]) == [(400, 20.0), (600, 25.0), (700, 35.0)]  # 300: b not evaluated; 900: b not there
@@ -432,8 +420,8 @@ def test_a_missing_launcher_extra_is_bad_input_and_writes_nothing(tmp_path, monk
 def _add_unbeatable_trial(spec_path: Path, out: Path) -> None:
     """Trial 0: a complete trial that no run of a few hundred frames can match at any frame count, so that the
     median pruner (n_startup_trials 1) prunes the next trial at its first evaluation past the warm-up."""
-    from adarl.experiments.tune import _Study
-    from adarl.experiments.tune_spec import load_tune_spec
+    from adarl.experiments.tune import load_tune_spec
+    from adarl.experiments.tune._study import _Study
 
     spec = load_tune_spec(spec_path)
     out.mkdir()
@@ -464,7 +452,8 @@ def test_a_study_on_ray_prunes_and_continues_after_kill_9(tmp_path):
     re-attached and resumed from its checkpoint on Ray, then pruned (stopped through its folder: it checkpoints)."""
     pytest.importorskip("ray")
     from adarl.experiments.execute import read_attempts
-    from adarl.experiments.tune import _scores, run_tune
+    from adarl.experiments.tune import run_tune
+    from adarl.experiments.tune._records import scores
 
     pruner = {"name": "median", "n_startup_trials": 1, "n_warmup_steps": 500}
     spec = _spec(tmp_path, overrides=[*TINY, "collector.total_frames=900"], pruner=pruner)
@@ -475,7 +464,7 @@ def test_a_study_on_ray_prunes_and_continues_after_kill_9(tmp_path):
     storage = f"sqlite:///{out / 'study.db'}"
     before = optuna.load_study(study_name="tiny", storage=storage).trials
     assert [(t.number, t.state.name) for t in before] == [(0, "COMPLETE"), (1, "RUNNING")]
-    seen = [frames for frames, _ in _scores(trial, 1)]  # the evaluations its first attempt wrote
+    seen = [frames for frames, _ in scores(trial, 1)]  # the evaluations its first attempt wrote
 
     said: list[str] = []
     result = run_tune(spec, output=out, launcher="ray", log=said.append)

@@ -22,11 +22,9 @@ A share or ratio within 1e-12 of ``beta`` counts as equal to it (``beta=0.7`` me
 from __future__ import annotations
 
 import math
-import warnings
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
-from typing import Any
 
 import torch
 
@@ -41,7 +39,7 @@ __all__ = [
     "RatioRule",
     "FixedRank",
     "PolicyFitRule",
-    "RULES",
+    "registered_rule",
     "make_rule",
     "energy_share",
 ]
@@ -51,7 +49,6 @@ FitFn = Callable[[int], float]
 # Shares and ratios within this of beta count as ties (equal to beta): a beta written as a decimal (0.7) means
 # the decimal, and float64 rounding of a cumsum must not make the answer depend on the spectrum's scale.
 _TIE_TOL = 1e-12
-_MISSING: Any = object()  # a keyword not given (None is a value, refused like any non-integer)
 
 
 @dataclass(frozen=True)
@@ -186,32 +183,16 @@ class FixedRank(RankRule):
     """Always ``target_rank`` (clamped to the current rank: rules never grow a layer).
 
     ``target_rank`` is the recipe's ``rank.target_rank``: one name in Python and in recipes
-    (``make_rule("fixed", target_rank=8)``). The old keyword ``rank=`` still works, with a DeprecationWarning.
+    (``make_rule("fixed", target_rank=8)``).
     """
 
     name = "fixed"
 
-    def __init__(self, target_rank: int = _MISSING, zero_tol: float = 1e-10, *, rank: int = _MISSING) -> None:
+    def __init__(self, target_rank: int, zero_tol: float = 1e-10) -> None:
         super().__init__(zero_tol)
-        if rank is not _MISSING:
-            if target_rank is not _MISSING:
-                raise AdaRLValueError("FixedRank: give target_rank only (rank= is its deprecated old name)")
-            warnings.warn(
-                "FixedRank(rank=...) is deprecated: the keyword is target_rank, as the recipe key rank.target_rank",
-                DeprecationWarning,
-                stacklevel=2,
-            )
-            target_rank = rank
-        if target_rank is _MISSING:
-            raise TypeError("FixedRank() missing 1 required argument: 'target_rank' (the rank to truncate to)")
         if isinstance(target_rank, bool) or not isinstance(target_rank, int) or target_rank < 1:
             raise AdaRLValueError(f"FixedRank: target_rank must be an integer >= 1, got {target_rank!r}")
         self.target_rank = target_rank
-
-    @property
-    def rank(self) -> int:
-        """Deprecated alias of :attr:`target_rank`."""
-        return self.target_rank
 
     def select(self, s, current_rank, min_rank, fit):
         return self.target_rank
@@ -256,37 +237,30 @@ class PolicyFitRule(RankRule):
         return best_rank
 
 
-RULES: dict[str, type[RankRule]] = {
-    cls.name: cls for cls in (EnergyRule, InclusiveEnergyRule, RatioRule, FixedRank, PolicyFitRule)
-}
+def registered_rule(name: str, *, spec: bool = False):
+    """The :class:`RankRule` subclass registered as ``name`` in the one table of rules,
+    :data:`adarl.plugins.RANK_RULES` (adarl's five, declared there by path as a plugin's would be, and every
+    registered or installed plugin's), checked here once for every caller: :func:`make_rule` and a recipe's
+    ``rank`` section (``spec=True``: ``(class, its RankRuleSpec)``). An unknown name lists the registered ones.
+
+    That module imports neither torch nor anything of core (it names core's rules by ``"module:Class"`` path), so
+    this is no import cycle (tests/test_architecture.py)."""
+    entry = plugins.rank_rule(name)
+    cls = entry.rule_class()
+    if not (isinstance(cls, type) and issubclass(cls, RankRule)):
+        provider = entry.provider or ("adarl" if entry.builtin else "a register_rank_rule call")
+        raise AdaRLValueError(
+            f"rank rule {name!r} ({entry.rule_path}, from {provider}) is registered as {cls!r}, which is not an "
+            "adarl.core.rank.RankRule subclass"
+        )
+    return (cls, entry) if spec else cls
 
 
 def make_rule(name: str, **kwargs) -> RankRule:
-    """Build a rule by its name: one of :data:`RULES` (``energy``, ``energy_inclusive``, ``ratio``, ``fixed``,
-    ``policy_fit``, and any class added to it), else one registered with :func:`adarl.register_rank_rule`
-    (installed plugins included), built with ``kwargs``."""
-    cls = RULES.get(name)
-    if cls is None:
-        cls = _registered_rule_class(name)
+    """Build a rule by its registered name (``energy``, ``energy_inclusive``, ``ratio``, ``fixed``, ``policy_fit``,
+    or one registered with :func:`adarl.register_rank_rule`, installed plugins included) with ``kwargs``."""
+    cls = registered_rule(name)
     try:
         return cls(**kwargs)
     except TypeError as err:
         raise AdaRLValueError(f"rank rule {name!r}: {err}") from None
-
-
-def _registered_rule_class(name: str) -> type[RankRule]:
-    """The class registered as ``name`` in :mod:`adarl.plugins` (the registry recipes use).
-
-    That module imports neither torch nor anything of core (it names core's rules by ``"module:Class"`` path), so
-    this is no import cycle (tests/test_architecture.py)."""
-    if name not in plugins.rank_rule_names(load=False):
-        plugins.load_entry_points()
-    names = list(dict.fromkeys([*RULES, *plugins.rank_rule_names(load=False)]))
-    if name not in names:
-        raise AdaRLValueError(f"unknown rank rule {name!r}; allowed: {sorted(names)}")
-    cls = plugins.rank_rule(name).rule_class()
-    if not (isinstance(cls, type) and issubclass(cls, RankRule)):
-        raise AdaRLValueError(
-            f"rank rule {name!r} is registered as {cls!r}, which is not an adarl.core.rank.RankRule subclass"
-        )
-    return cls

@@ -10,7 +10,6 @@ validates against, import without TorchRL or MuJoCo.
 * :mod:`adarl.envs.registration` - :func:`register_env` / :func:`register_parameter` for installed packages;
 * :mod:`adarl.envs.presets` - the presets' schedules (the paper's, Table 2's boxes, ours);
 * :mod:`adarl.envs.mujoco_appliers` - the appliers that put parameter values into a live env (MuJoCo, CartPole);
-* :mod:`adarl.envs.parameters` - all of the four above, by their public names (as before they were split);
 * :mod:`adarl.envs.perturbation` - :class:`PerturbedDynamicsEnvTransform`, the TorchRL ``Transform``;
 * :mod:`adarl.envs.factory` - :func:`make_env` / :func:`make_eval_env`;
 * :mod:`adarl.envs.state` - snapshots of live envs mid-episode (exact resume);

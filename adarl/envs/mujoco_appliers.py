@@ -5,7 +5,7 @@ arrays in ``ompo`` mode -, mass and friction scales, gravity and wind); :class:`
 :class:`LinearCartPoleDynamics` set a pole length; a registered env without a MuJoCo model has its parameters'
 ``apply`` run on the live env. Each keeps a copy of the environment's own defaults and starts every application from
 it, so nothing compounds across episodes. Why apart from the registry (:mod:`adarl.envs.registry`): this is the only
-part that needs MuJoCo (imported when an applier is built). Re-exported by :mod:`adarl.envs.parameters`.
+part that needs MuJoCo (imported when an applier is built).
 """
 
 from __future__ import annotations

@@ -2,9 +2,9 @@
 
 Why apart from the lookups (:mod:`adarl.envs.registry`): a registration changes several tables at once (ids, model
 files, parameters and their edits, presets), all or nothing: a failed :func:`register_env` puts every table back as
-it was (:func:`_registry_state`, :func:`_restore_registry`, which tests use too). Both functions are re-exported by
-:mod:`adarl.envs.parameters`, :mod:`adarl.envs` and :mod:`adarl`; installed packages reach them through the
-``adarl.plugins`` entry-point group (docs/adding-a-component.md).
+it was (:func:`_registry_state`, :func:`_restore_registry`, which tests use too). :func:`register_env` and
+:func:`register_parameter` are public names of :mod:`adarl.envs` and :mod:`adarl` too; installed packages reach them
+through the ``adarl.plugins`` entry-point group (docs/adding-a-component.md).
 """
 
 from __future__ import annotations

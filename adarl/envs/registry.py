@@ -3,8 +3,7 @@ ranges, presets by name, what each registered parameter edits, and the envs' dat
 
 The registry needs no live environment and imports neither MuJoCo nor TorchRL, so recipes are validated before
 anything is built. Installed packages add ids and parameters through :mod:`adarl.envs.registration`; the presets'
-schedules are :mod:`adarl.envs.presets`, the appliers that edit a live env :mod:`adarl.envs.mujoco_appliers`;
-:mod:`adarl.envs.parameters` re-exports the public names of all four.
+schedules are :mod:`adarl.envs.presets`, the appliers that edit a live env :mod:`adarl.envs.mujoco_appliers`.
 
 Parameters (lengths are half-lengths, as MuJoCo capsule sizes and the paper's schedules are):
 
@@ -45,7 +44,7 @@ import numpy as np
 from adarl import plugins
 from adarl.envs.presets import PRESETS, generic_presets, paper_env_presets
 from adarl.envs.schedules import FixedSchedule, Schedule
-from adarl.errors import AdaRLValueError, did_you_mean
+from adarl.errors import AdaRLValueError, UnknownNameError, did_you_mean
 
 __all__ = [
     "SUPPORTED_ENVS",
@@ -282,20 +281,23 @@ class _EnvIds(plugins.Registry):
     :func:`~adarl.envs.registration.register_env`. An unknown id of another version of a known env is pointed at
     the supported version."""
 
-    def unknown(self, env_id: Any) -> AdaRLValueError:
+    def unknown(self, env_id: Any) -> UnknownNameError:
         known = tuple(self.names(load=False))
+        typed = {"kind": self.key, "name": env_id, "allowed": known}
         family = env_id.rsplit("-v", 1)[0].lower()
         for supported in known:
             if supported.rsplit("-v", 1)[0].lower() == family:
                 kind = "gymnasium " if supported in SUPPORTED_ENVS else ""
-                return AdaRLValueError(
+                return UnknownNameError(
                     f"env id {env_id!r} is not supported: the perturbations are written for the {kind}"
                     f"{supported.rsplit('-', 1)[1]} models (their XML bodies and geoms); use {supported!r}. "
-                    f"Supported: {list(known)}"
+                    f"Supported: {list(known)}",
+                    **typed,
                 )
-        return AdaRLValueError(
+        return UnknownNameError(
             f"unknown env id {env_id!r}; supported: {list(known)}{did_you_mean(env_id, known)} (no installed plugin "
-            f"registers it; {HOW_TO_REGISTER_ENV})"
+            f"registers it; {HOW_TO_REGISTER_ENV})",
+            **typed,
         )
 
 
@@ -323,7 +325,8 @@ def supported_envs(*, load: bool = True) -> tuple[str, ...]:
 
 
 def check_env_id(env_id: Any) -> str:
-    """``env_id`` if supported, else :class:`AdaRLValueError` (pointing other versions at the supported one).
+    """``env_id`` if supported, else :class:`~adarl.errors.UnknownNameError` (pointing other versions at the
+    supported one).
 
     An id not known yet gives installed plugins (the ``adarl.plugins`` entry points) a chance to register it."""
     if not isinstance(env_id, str):

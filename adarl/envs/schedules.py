@@ -414,7 +414,7 @@ def schedule_problems(s: Mapping) -> list[tuple[str, Any, str]]:
 
     The grammar of :func:`schedule_from_dict` (each kind's keys, from the classes) checked with key paths in the
     messages, so that a recipe reports ``schedule.high.torso_length`` rather than a constructor's message. Parameter
-    names and ranges belong to the env: :func:`adarl.envs.parameters.validate_schedule` checks them.
+    names and ranges belong to the env: :func:`adarl.envs.registry.validate_schedule` checks them.
 
     >>> schedule_problems({"kind": "uniform", "low": {"torso_length": 0.5}, "high": {"torso_length": 0.3}})
     [('high.torso_length', 0.3, 'must be >= low.torso_length (0.5)')]

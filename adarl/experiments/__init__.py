@@ -6,9 +6,9 @@
 * :mod:`~adarl.experiments.orchestrate` - :func:`~adarl.experiments.orchestrate.run_experiment`;
 * :mod:`~adarl.experiments.progress` - the live progress board;
 * :mod:`~adarl.experiments.sweep` - robustness sweeps of a trained run (Fig. 8);
-* :mod:`~adarl.experiments.aggregate` and :mod:`~adarl.experiments.stats` - reports across seeds, IQM and
-  bootstrap intervals;
-* :mod:`~adarl.experiments.bench` - ``adarl bench``, the side-by-side speed benchmark.
-* :mod:`~adarl.experiments.bench_whole_run` - ``adarl bench --whole-run``: whole runs, process start to finished
-  run folder, against SB3.
+* :mod:`~adarl.experiments.report` - reports across seeds (a hub over private modules), with the estimators in
+  :mod:`~adarl.experiments.report.stats` (IQM, bootstrap intervals, probability of improvement);
+* :mod:`~adarl.experiments.tune` - ``adarl tune``: the spec, the Optuna study and the command (a hub);
+* :mod:`~adarl.experiments.bench` - ``adarl bench``: the side-by-side speed benchmark and, with ``--whole-run``,
+  whole runs (process start to finished run folder) against SB3 (a hub).
 """

@@ -2,7 +2,7 @@
 beside ours, and the normalisation of the aggregate across its rows. Validated as the rest of
 :class:`~adarl.experiments.spec.ReportSpec`: its shape here, its names against the spec's axes by
 :meth:`PaperTable.check_axes`. Private module of :mod:`adarl.experiments.spec`; the report's section is
-:mod:`adarl.experiments._paper_table`.
+:mod:`adarl.experiments.report._paper_table`.
 """
 
 from __future__ import annotations

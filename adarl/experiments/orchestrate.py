@@ -1,7 +1,7 @@
 """Running an experiment: :func:`run_experiment` plans the spec's runs, skips finished ones, flags runs whose recipe
 does not exist (yet), hands the rest to a launcher (one after another, ``workers`` at a time, Ray or SLURM), shows
 their progress, sweeps each finished run if the spec asks, and writes the aggregate report
-(:mod:`adarl.experiments.aggregate`). ``experiment.json`` in the output folder records what ran.
+(:mod:`adarl.experiments.report`). ``experiment.json`` in the output folder records what ran.
 
 A finished (or resumable) run folder is reused only while it is what the spec plans now: its recipe, re-validated with
 today's schema, equal to the planned one in every training key, and its plugin modules the same
@@ -30,10 +30,10 @@ from pathlib import Path
 from typing import Any
 
 from adarl.errors import AdaRLError, AdaRLValueError, RecipeError
-from adarl.experiments.aggregate import write_aggregate_report
 from adarl.experiments.execute import OutputFolderGone, holds_training, run_is_finished
 from adarl.experiments.launchers import ExperimentInterrupted, Launcher, make_launcher
 from adarl.experiments.progress import LiveBoard, ProgressBoard
+from adarl.experiments.report import write_aggregate_report
 from adarl.experiments.spec import (
     ExperimentSpec,
     PlannedRun,

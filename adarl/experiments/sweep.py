@@ -21,7 +21,7 @@ from pathlib import Path
 
 from adarl.envs.factory import make_eval_env, resolve_schedule
 from adarl.envs.registry import env_parameters
-from adarl.errors import AdaRLValueError
+from adarl.errors import AdaRLValueError, did_you_mean
 from adarl.runtime.evaluation import EvalResult, evaluate_policy
 from adarl.runtime.report import pyplot
 from adarl.runtime.run_dir import RunDir
@@ -170,7 +170,9 @@ def sweep_policy(
     allowed = env_parameters(env_id, require=names)  # a plugin's parameter: its package is loaded first
     for n in names:
         if n not in allowed:
-            raise AdaRLValueError(f"unknown sweep parameter {n!r} for {env_id}; allowed: {list(allowed)}")
+            raise AdaRLValueError(
+                f"unknown sweep parameter {n!r} for {env_id}; allowed: {list(allowed)}{did_you_mean(n, allowed)}"
+            )
     if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 1:
         raise AdaRLValueError(f"episodes must be an integer >= 1, got {episodes!r}")
     points = []
@@ -207,7 +209,9 @@ def sweep_run(
     allowed = env_parameters(env_id, require=[n for n, _ in axes])
     for n, _ in axes:
         if n not in allowed:
-            raise AdaRLValueError(f"unknown sweep parameter {n!r} for {env_id}; allowed: {list(allowed)}")
+            raise AdaRLValueError(
+                f"unknown sweep parameter {n!r} for {env_id}; allowed: {list(allowed)}{did_you_mean(n, allowed)}"
+            )
     trainer = BaseTrainer.resume(run_dir, quiet=True, read_only=True, checkpoint=checkpoint)
     try:
         recipe = trainer.recipe

@@ -10,7 +10,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import torch
-from torch.optim import optimizer as optim_mod
+
+from adarl.fast import _torch_private as private
 
 __all__ = ["DirectAdamStep", "make_adam"]
 
@@ -39,11 +40,12 @@ class DirectAdamStep:
     Why: at (64, 64) the three optimisers' ``step()`` took ~0.55 ms of a ~4.6 ms update, nearly all of it Python
     (grouping tensors, state look-ups, hooks, the profiler wrapper); the fused kernel itself is tens of
     microseconds. This calls the very kernels ``Adam(fused=True)`` calls (``torch._foreach_add_`` on the step
-    counters, then ``torch._fused_adam_``) on lists cached from ``opt.state``, with the group's current
-    hyper-parameters, so the result is bit-identical (tested). It falls back to ``opt.step()`` whenever an
-    assumption does not hold: state not created yet or replaced (first step, a rank event popping a factor's
-    state, ``load_state_dict``), a missing gradient, hooks, or options other than
-    plain fused Adam (amsgrad, capturable, differentiable, decoupled weight decay). Several parameter groups
+    counters, then ``torch._fused_adam_``, through the version guard :mod:`adarl.fast._torch_private`) on lists
+    cached from ``opt.state``, with the group's current hyper-parameters, so the result is bit-identical (tested).
+    It falls back to ``opt.step()`` whenever an assumption does not hold: state not created yet or replaced (first
+    step, a rank event popping a factor's state, ``load_state_dict``), a missing gradient, hooks, options other than
+    plain fused Adam (amsgrad, capturable, differentiable, decoupled weight decay), or a torch the guard does not
+    know. Several parameter groups
     (``algorithm.factor_lr_scale``) take one kernel call each, with each group's own learning rate, as
     ``Adam(fused=True)`` does.
     """
@@ -54,13 +56,8 @@ class DirectAdamStep:
         self.fast_steps = 0  # steps taken by the direct path (the rest went through opt.step())
 
     def _hooked(self) -> bool:
-        o = self.opt
-        return bool(
-            o._optimizer_step_pre_hooks
-            or o._optimizer_step_post_hooks
-            or optim_mod._global_optimizer_pre_hooks
-            or optim_mod._global_optimizer_post_hooks
-        )
+        """Whether ``opt.step()`` must run (a hook to honour, or a torch the private kernels were not tested on)."""
+        return private.optimizer_hooked(self.opt)
 
     def _supported(self) -> bool:
         o = self.opt
@@ -131,25 +128,7 @@ class DirectAdamStep:
                 self.opt.zero_grad(set_to_none=True)
                 return
         for g, (_, plist, _, avgs, sqs, steps) in zip(self.opt.param_groups, cache):
-            beta1, beta2 = g["betas"]
-            torch._foreach_add_(steps, 1)
-            torch._fused_adam_(
-                plist,
-                [p.grad for p in plist],
-                avgs,
-                sqs,
-                [],
-                steps,
-                amsgrad=False,
-                lr=g["lr"],
-                beta1=float(beta1),
-                beta2=float(beta2),
-                weight_decay=g["weight_decay"],
-                eps=g["eps"],
-                maximize=g["maximize"],
-                grad_scale=None,
-                found_inf=None,
-            )
+            private.fused_adam_step(g, plist, avgs, sqs, steps)
             for p in plist:
                 p.grad = None
         self.fast_steps += 1

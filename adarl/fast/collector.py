@@ -41,12 +41,12 @@ from collections.abc import Callable, Iterator
 import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import NormalParamExtractor
-from torch.nn.modules import module as nn_module
 from torchrl.modules import MLP
 
 from adarl.envs.factory import dynamics_state_dict, load_dynamics_state_dict
 from adarl.envs.state import env_state_dict, load_env_state_dict
 from adarl.errors import AdaRLValueError
+from adarl.fast import _torch_private as private
 from adarl.fast.direct_env import DirectStepper, direct_stepper
 
 __all__ = ["LeanCollector", "wants_lean", "OVERLAP_MODES"]
@@ -379,19 +379,15 @@ def _tanh_normal_action(net, obs: torch.Tensor, generator: torch.Generator | Non
 def _layer_chain(net: torch.nn.Module) -> Callable[[torch.Tensor], object]:
     """``net`` as the chain of its layers' ``forward`` methods: the same operations in the same order, without the
     containers' and ``Module.__call__``'s Python overhead (~20 us of the ~125 us a (64, 64) actor's action takes
-    on one observation). ``net`` itself where a hook is registered or a container does more than chain its children."""
+    on one observation). ``net`` itself where a hook is registered or a container does more than chain its children
+    (and on a torch whose hook tables :mod:`adarl.fast._torch_private` does not know)."""
 
-    if (
-        nn_module._global_forward_hooks
-        or nn_module._global_forward_pre_hooks
-        or nn_module._global_backward_hooks
-        or nn_module._global_backward_pre_hooks
-    ):
+    if private.global_module_hooks():
         return net
     layers = []
 
     def add(m: torch.nn.Module) -> bool:
-        if m._forward_hooks or m._forward_pre_hooks or m._backward_hooks or m._backward_pre_hooks:
+        if private.module_hooked(m):
             return False
         if type(m) is torch.nn.Sequential or (type(m) is MLP and not m._reshape_out):
             return all(add(child) for child in m)

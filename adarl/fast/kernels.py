@@ -1,8 +1,13 @@
 """Small kernels the fused SAC step and its hand-written backward share: an affine map in one ATen call, and
 ``torch.compile`` from a fresh code object (one compilation per rank event).
 
-Used by :mod:`adarl.fast.sac` and :mod:`adarl.fast.manual_backward`; equality with TorchRL's ``SACLoss`` is
-tested through them (``tests/test_fast_sac.py``).
+Used by :mod:`adarl.fast.sac` and :mod:`adarl.fast.manual_backward`.
+
+Mirrors: ``torch.nn.Linear``'s ``x @ weight.T + bias`` (and the stacked critics' ``bmm``), and ``torch.compile`` of
+the same method.
+Equality: through the fused step, against TorchRL's ``SACLoss``
+(``tests/test_fast_sac.py::test_losses_and_gradients_match_sacloss``) and compiled against eager
+(``tests/test_fast_sac.py::test_compiled_update_recompiles_once_per_rank_event``).
 """
 
 from __future__ import annotations

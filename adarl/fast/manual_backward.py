@@ -34,6 +34,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from adarl.errors import AdaRLValueError
+from adarl.fast import _torch_private as private
 from adarl.fast.kernels import affine, compile_fresh
 
 __all__ = ["ManualSACStep", "unsupported_reason"]
@@ -41,7 +42,7 @@ __all__ = ["ManualSACStep", "unsupported_reason"]
 
 def _activation_backward(module: nn.Module):
     """``(grad, input, output) -> grad_input`` for a stateless activation, with autograd's own kernel; or None."""
-    aten = torch.ops.aten
+    aten = private.aten
     if isinstance(module, nn.ReLU):
         return lambda g, x, y: aten.threshold_backward(g, y, 0)
     if isinstance(module, nn.Tanh):
@@ -61,6 +62,8 @@ def _activation_backward(module: nn.Module):
 
 def unsupported_reason(update) -> str | None:
     """Why a :class:`~adarl.fast.sac.FusedSACUpdate` cannot use the manual backward (None: it can)."""
+    if not private.usable():  # its ATen backward kernels are torch-private
+        return f"torch {torch.__version__} (its ATen backward kernels are checked on torch {', '.join(private.TESTED)})"
     for what, mlp in (("actor", update.actor_mlp), ("critic", update.q_net)):
         for kind, spec in mlp.layers:
             if kind == "act" and (getattr(spec, "inplace", False) or _activation_backward(spec) is None):
@@ -284,7 +287,7 @@ class ManualSACStep:
 
     def _sample_backward(self, saved: tuple, rows: slice, d_action: torch.Tensor, d_logp: torch.Tensor) -> torch.Tensor:
         """Gradient at the actor network's output (``loc``, raw scale) for the rows ``rows`` of a :meth:`_sample`."""
-        aten = torch.ops.aten
+        aten = private.aten
         z, s0, scale, a, m2pre, noise = (_rows(t, rows) for t in saved)
         if self.u._affine:
             d_action = d_action * self.u._half

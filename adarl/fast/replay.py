@@ -33,8 +33,8 @@ class UniformTensorSampler:
     Args:
         replay_buffer: a TorchRL replay buffer with a ``RandomSampler``, a one-dimensional
             ``LazyTensorStorage``/``LazyMemmapStorage`` and no transform (what
-            :func:`adarl.runtime.builders.sac.build_components` builds); anything else raises, so a buffer this class
-            cannot reproduce is never sampled differently.
+            :func:`adarl.runtime.builders.sac.build_sac_components` builds); anything else raises, so a buffer this
+            class cannot reproduce is never sampled differently.
         keys: the (nested) keys to gather, in the order they are returned.
         generator: the generator given to the buffer (``generator=`` of the buffer); ``None`` = torch's default
             generator, as the buffer uses then.

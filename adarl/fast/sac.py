@@ -12,10 +12,10 @@ Why: at the paper's (64, 64) sizes most of a TorchRL SAC update is Python and Te
 arithmetic (docs/performance.md). :class:`FusedSACUpdate` reads the *same parameter objects* the ``SACLoss``
 holds (actor, stacked Q ensemble, target Q ensemble, ``log_alpha``) and runs the three SAC losses on plain
 tensors: the Q ensemble as batched matmuls (one ``bmm`` per layer for all critics), the target update as one
-``torch._foreach_lerp_``. Because it shares the parameters, :class:`~adarl.core.adapter.RankAdapter` keeps
-working: it resizes ``.data`` in place and pops the optimiser state, and :meth:`FusedSACUpdate.on_rank_event`
-(registered as an ``on_truncate`` callback) rebuilds the compiled function so each rank event costs exactly
-one recompilation, never a silent fall-back to eager.
+``torch._foreach_lerp_`` (behind :mod:`adarl.fast._torch_private`'s version guard). Because it shares the
+parameters, :class:`~adarl.core.adapter.RankAdapter` keeps working: it resizes ``.data`` in place and pops the
+optimiser state, and :meth:`FusedSACUpdate.on_rank_event` (registered as an ``on_truncate`` callback) rebuilds the
+compiled function so each rank event costs exactly one recompilation, never a silent fall-back to eager.
 
 The Gaussian noise of the two reparameterised samples is drawn eagerly, in the order ``SACLoss`` draws it
 (next state first, then current state), so with the same RNG state both paths compute the same losses. The
@@ -43,6 +43,7 @@ from adarl.core.lowrank import LowRankLinear
 from adarl.core.product_polyak import factor_keys, factor_pairs, product_polyak_
 from adarl.core.target_shift import TargetShiftSACLoss
 from adarl.errors import AdaRLValueError
+from adarl.fast import _torch_private as private
 from adarl.fast.adam import DirectAdamStep
 from adarl.fast.kernels import affine, compile_fresh
 from adarl.fast.manual_backward import ManualSACStep, unsupported_reason
@@ -534,7 +535,7 @@ class FusedSACUpdate:
         for sched in self.schedulers:
             sched.step()
         with torch.no_grad():
-            torch._foreach_lerp_(self._q_targets, self._q_sources, self.tau)
+            private.foreach_lerp_(self._q_targets, self._q_sources, self.tau)
         if self._product_pairs:
             product_polyak_(self._product_pairs, self.tau)
         return {

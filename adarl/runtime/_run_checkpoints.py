@@ -33,6 +33,7 @@ from adarl.runtime._file_safety import (
     safe_load,
     why_unloadable,
 )
+from adarl.runtime.families import family
 
 CHECKPOINT_FORMAT = "adarl.checkpoint"
 CHECKPOINT_VERSION = 1
@@ -61,10 +62,17 @@ def recipe_fingerprint(recipe) -> dict:
         fp[f"network.{net}.low_rank_layers"] = list(m.low_rank_layers)
         fp[f"network.{net}.rank"] = m.rank
         fp[f"network.{net}.sparse"] = m.sparse.model_dump()
-    if recipe.algorithm.base == "ppo":
-        fp["algorithm.ppo.obs_norm"] = recipe.algorithm.ppo.obs_norm
-        fp["algorithm.ppo.policy"] = recipe.algorithm.ppo.policy
+    for key in family(recipe).fingerprint:  # the loop's own shape-fixing keys (PPO's observation norm and policy)
+        fp[key] = _dotted(recipe, key)
     return fp
+
+
+def _dotted(recipe, key: str):
+    """The recipe's value at a dotted key (``algorithm.ppo.policy``)."""
+    value = recipe
+    for part in key.split("."):
+        value = getattr(value, part)
+    return value
 
 
 def _same_in_fingerprint(key: str, theirs: dict, ours: dict) -> bool:

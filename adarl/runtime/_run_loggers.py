@@ -39,11 +39,28 @@ class Fanout:
     """Send each scalar to every configured TorchRL logger (CSV always; tensorboard / wandb on request).
 
     ``check``: called before each scalar (the run folder is still there, :meth:`RunDir.ensure_present`), so a
-    logger never recreates a deleted run folder (TorchRL's CSV logger makes the folders of a new metric's file)."""
+    logger never recreates a deleted run folder (TorchRL's CSV logger makes the folders of a new metric's file).
+    ``make``: builds the loggers at the first scalar instead (TensorBoard's writer creates its event file when made:
+    each ``adarl resume`` of a complete run added one)."""
 
-    def __init__(self, loggers, check=None):
-        self.loggers = loggers
+    def __init__(self, loggers=None, check=None, *, make=None):
+        if (loggers is None) == (make is None):
+            raise TypeError("Fanout takes loggers or make, one of them")
+        self._loggers = loggers
+        self._make = make
         self.check = check
+
+    @property
+    def loggers(self) -> list:
+        """The loggers, built now if they were not yet."""
+        if self._loggers is None:
+            self._loggers = self._make()
+        return self._loggers
+
+    @property
+    def started(self) -> list:
+        """The loggers built so far (what there is to flush or close): none before the first scalar."""
+        return self._loggers or []
 
     def log_scalar(self, name: str, value: float, step: int | None = None) -> None:
         if self.check is not None:

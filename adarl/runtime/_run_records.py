@@ -59,8 +59,12 @@ class RunRecords:
         after it (the work since the checkpoint, logged again), and wandb continues the folder's run (same id,
         ``resume="allow"``) on the same step axis (frames; wandb cannot hide rows, so the lost work's rows stay).
         wandb gets the resolved recipe as the run's config, TensorBoard as text."""
+        backends = logging_backends(recipe)  # a missing extra is named now, before anything is written
+        return Fanout(make=lambda: self._loggers(recipe, backends, step), check=self.ensure_present)
+
+    def _loggers(self, recipe, backends: set[str], step: int | None) -> list:
+        """The loggers :meth:`make_logger` names, made (files created) at the run's first scalar."""
         loggers = [torchrl_loggers.CSVLogger(exp_name="metrics", log_dir=str(self.path))]
-        backends = logging_backends(recipe)
         config = recipe.model_dump(mode="json") if hasattr(recipe, "model_dump") else None
         if "tensorboard" in backends:
             new = not (self.path / "tensorboard").exists()
@@ -79,10 +83,10 @@ class RunRecords:
                     config=config,
                 )
             )
-        return Fanout(loggers, check=self.ensure_present)
+        return loggers
 
     def close_logger(self, logger: Fanout) -> None:
-        for lg in logger.loggers:
+        for lg in logger.started:
             exp = getattr(lg, "experiment", None)
             if not hasattr(exp, "files"):  # wandb: finish (a resume or rollback re-opens the run by its id); TB
                 close = getattr(exp, "finish", None) or getattr(exp, "close", None)
@@ -163,7 +167,7 @@ class RunRecords:
     def sync_metrics(self, logger: Fanout) -> None:
         """Flush and fsync the CSV metric files, so that what a checkpoint says was logged is on disk."""
         self.ensure_present()
-        for lg in logger.loggers:
+        for lg in logger.started:
             for name, fd in list(getattr(getattr(lg, "experiment", None), "files", {}).items()):
                 try:
                     with naming(Path(name)):

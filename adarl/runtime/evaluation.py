@@ -16,7 +16,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from adarl.fast.evaluation import episode_runner
 
-__all__ = ["EvalResult", "evaluate_policy"]
+__all__ = ["EvalResult", "evaluate_policy", "describe_returns"]
 
 # Two-sided 95% Student-t quantiles for small samples (df = n - 1); normal beyond the table.
 _T95 = {
@@ -43,6 +43,18 @@ def _t95(df: int) -> float:
         if df <= k:
             return _T95[k]
     return 1.96
+
+
+def describe_returns(mean: float, std: float, ci95: float, episodes: int) -> str:
+    """``"3012.4 ± 41.2 (95% CI ± 29.5) over 10 episodes"``; one episode has no spread to show (it printed
+    ``95% CI ± nan`` and ``1 episodes``).
+
+    >>> describe_returns(3012.4, 0.0, float("nan"), 1)
+    '3012.4 over 1 episode (no spread from one episode)'
+    """
+    if episodes == 1 or not math.isfinite(ci95):
+        return f"{mean:.1f} over {episodes} episode{'' if episodes == 1 else 's'} (no spread from one episode)"
+    return f"{mean:.1f} ± {std:.1f} (95% CI ± {ci95:.1f}) over {episodes} episodes"
 
 
 @dataclass

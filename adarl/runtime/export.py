@@ -32,7 +32,7 @@ import importlib.util
 import io
 import json
 import os
-import tempfile
+import uuid
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -171,9 +171,10 @@ def _metadata(program: Program, fmt: str, source: dict, check_diff: float | None
 
 
 def _write_atomic(path: Path, write) -> None:
-    """``write(tmp_path)``, then rename onto ``path`` (no half-written file under the final name)."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
+    """``write(tmp_path)``, then rename onto ``path`` (no half-written file under the final name). The temporary name
+    is not created beforehand (``mkstemp`` made it 0600, and exports were unreadable to a group that shares runs):
+    the file gets the mode the user's umask gives any new file."""
+    tmp = str(path.parent / f".{path.name}.{uuid.uuid4().hex}.tmp")
     try:
         write(tmp)
         os.replace(tmp, path)

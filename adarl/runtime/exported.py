@@ -78,12 +78,19 @@ class ExportedPolicy:
         self.program = load_program(archive)
         for t in self.program.parameters():  # torch.export's module gives them back requiring grad
             t.requires_grad_(False)
-        self._batched_only = self.format == "export"  # the .pt2 program's input is (batch, *observation_shape)
 
     def __call__(self, observation: torch.Tensor) -> torch.Tensor:
-        """The program on a float32 tensor (TorchScript: any leading dimensions; ``.pt2``: ``(batch, obs)``)."""
+        """The program on a float32 tensor of shape ``(*leading, *observation_shape)``, any leading dimensions,
+        none included: one observation gives one action (the ``.pt2`` program takes ``(batch, obs)`` only and
+        raised IndexError on one observation; it is given a batch of one)."""
+        shape = tuple(self.observation_shape)
+        got = tuple(observation.shape)
+        if got[len(got) - len(shape) :] != shape or len(got) < len(shape):
+            raise ValueError(f"observation of shape {got}: this policy takes (..., {', '.join(map(str, shape))})")
+        leading = got[: len(got) - len(shape)]
         with torch.no_grad():
-            return self.program(observation)
+            out = self.program(observation.reshape(-1, *shape))
+        return out.reshape(*leading, *out.shape[1:])
 
     def predict(
         self,
@@ -104,22 +111,14 @@ class ExportedPolicy:
                 "for sampled actions use adarl.load_policy(run) under torchrl's set_exploration_type(RANDOM)"
             )
         obs = np.asarray(observation, dtype=np.float32)
-        if obs.shape == self.observation_shape:
-            single = True
-        elif obs.ndim == len(self.observation_shape) + 1 and obs.shape[1:] == self.observation_shape:
-            single = False
-        else:
+        if obs.shape != self.observation_shape and not (
+            obs.ndim == len(self.observation_shape) + 1 and obs.shape[1:] == self.observation_shape
+        ):
             raise ValueError(
                 f"observation of shape {obs.shape}: this policy takes {self.observation_shape} "
                 f"or a batch (n, {', '.join(map(str, self.observation_shape))})"
             )
-        x = torch.from_numpy(np.ascontiguousarray(obs))
-        # no torch.no_grad() needed: nothing here requires grad (the program's parameters were saved without)
-        if single and self._batched_only:
-            action = self.program(x.unsqueeze(0))[0]
-        else:  # TorchScript takes one observation as it is
-            action = self.program(x)
-        action = action.numpy()
+        action = self(torch.from_numpy(np.ascontiguousarray(obs))).numpy()  # one observation or a batch: __call__
         if self.action_kind != "box":
             action = action.argmax(-1)
         return action, None

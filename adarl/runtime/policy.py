@@ -21,16 +21,13 @@ from adarl.envs.registry import quiet_mujoco
 from adarl.errors import AdaRLValueError, CheckpointError
 from adarl.runtime._export_archive import is_export_file
 from adarl.runtime.builders.common import check_device, policy_specs, spec_env
-from adarl.runtime.builders.ppo import make_ppo_modules
-from adarl.runtime.builders.sac import make_recipe_actor
-from adarl.runtime.builders.td3 import make_recipe_td3_actor
+from adarl.runtime.families import family
 from adarl.runtime.run_dir import RunDir
 
 __all__ = ["load_policy", "LoadedPolicy", "load_policy_with_info", "WHICH"]
 
 #: the checkpoints of a run folder ``load_policy`` can load
 WHICH = ("latest", "best")
-_ACTOR_PREFIX = "actor_network_params."
 
 
 def _specs_from_env_id(env_id: str) -> dict:
@@ -132,13 +129,10 @@ def load_policy_with_info(
     recipe = run.load_recipe().model_copy(update={"device": str(dev)})
     specs = state.get("policy_specs") or _specs_from_env_id(recipe.env.id)
     env = spec_env(specs, dev)
-    if recipe.algorithm.base == "ppo":
-        actor = make_ppo_modules(recipe, env).actor
-        params = state["actor"]
-    else:  # the off-policy loops: the actor's tensors are the loss's
-        actor = (make_recipe_td3_actor if recipe.algorithm.base == "td3" else make_recipe_actor)(recipe, env)
-        params = {k[len(_ACTOR_PREFIX) :]: v for k, v in state["loss"].items() if k.startswith(_ACTOR_PREFIX)}
-        _resize_low_rank(actor, params)
+    fam = family(recipe)  # the loop says which actor and where its tensors lie (the loss's, off-policy)
+    actor = fam.make_actor(recipe, env)
+    params = fam.actor_params(state)
+    _resize_low_rank(actor, params)
     try:
         actor.load_state_dict({k: v.to(dev) for k, v in params.items()})
     except RuntimeError as err:

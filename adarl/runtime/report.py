@@ -269,8 +269,13 @@ def write_report(path: str | os.PathLike) -> Path | str:
         lines += [
             "## Evaluation on nominal dynamics",
             "",
-            f"Final: **{float(last['mean']):.1f} ± {float(last['std']):.1f}** (std over {last['episodes']} episodes; "
-            f"95% CI ± {float(last['ci95']):.1f}) at {last['frames']} frames.",
+            (
+                f"Final: **{float(last['mean']):.1f} ± {float(last['std']):.1f}** "
+                f"(std over {last['episodes']} episodes; 95% CI ± {float(last['ci95']):.1f}) "
+                f"at {last['frames']} frames."
+                if int(last["episodes"]) > 1
+                else f"Final: **{float(last['mean']):.1f}** (one episode: no spread) at {last['frames']} frames."
+            ),
             "",
             "| frames | updates | mean | std | episodes |",
             "|---:|---:|---:|---:|---:|",

@@ -48,6 +48,7 @@ from adarl import plugins
 from adarl.envs.registry import ENV_IDS, supported_envs
 from adarl.errors import (
     AdaRLError,
+    AdaRLValueError,
     AdaRLWarning,
     RecipeError,
     command,
@@ -103,7 +104,17 @@ TRAINING_RECORDS = (
 )
 # What the other commands write into a run folder; with TRAINING_RECORDS, every name adarl puts at its top level.
 # `--overwrite` replaces only a folder that holds nothing else (a thesis.tex in it is refused by name).
-OTHER_OUTPUTS = ("wandb_run_id", "report.md", "plots/", "eval_nominal.json", "sweeps/")
+# written by other adarl commands into a run folder (report, eval, export's default files): `--overwrite` replaces them
+OTHER_OUTPUTS = (
+    "wandb_run_id",
+    "report.md",
+    "plots/",
+    "eval_nominal.json",
+    "sweeps/",
+    "policy.pt",
+    "policy.pt2",
+    "policy.onnx",
+)
 
 
 class RunFolderGone(AdaRLError):
@@ -216,6 +227,8 @@ class RunDir(RunRecords, RunCheckpoints):
                     f"{str(p)!r} holds no recipe.yaml: `adarl run` was stopped before it wrote one, so nothing ran "
                     f"there; start the run again with `adarl run RECIPE -o {command(p)}`"
                 )
+            if not p.exists():  # a mistyped path is bad input, not a broken folder (issue 48.6)
+                raise AdaRLValueError(f"run folder {str(p)!r} does not exist")
             raise AdaRLError(f"{str(p)!r} is not an adarl run folder (no recipe.yaml in it)")
         return cls(p)
 

@@ -1,11 +1,13 @@
 """Where a recipe becomes objects, in one package: networks, losses, and every component of a run wired together.
 
 * :mod:`~adarl.runtime.builders.common` - the device check, the MLP of a ``network.<net>`` section (plain,
-  low-rank, or a registered baseline's variant), the training and evaluation envs, an actor's specs;
-* :mod:`~adarl.runtime.builders.sac` - SAC's actor, critic and ``SACLoss``; :func:`build_sac_components` (alias
-  ``build_components``) for AdaRL-SAC and the SAC baselines;
-* :mod:`~adarl.runtime.builders.off_policy` - what the off-policy families share: replay buffer, collector, rank
-  adapter, warm start, rank events, :class:`OffPolicyComponents` (their checkpoint state);
+  low-rank, or a registered baseline's variant), the Q(s, a) critic the off-policy families share, the training and
+  evaluation envs, an actor's specs;
+* :mod:`~adarl.runtime.builders.off_policy` - the off-policy builders' one skeleton
+  (:func:`build_off_policy_components` around a family's :class:`OffPolicyParts`) and what they share: replay buffer,
+  collector, rank adapter, warm start, rank events, :class:`OffPolicyComponents` (their checkpoint state);
+* :mod:`~adarl.runtime.builders.sac` - SAC's actor and ``SACLoss``; :func:`build_sac_components` for AdaRL-SAC and
+  the SAC baselines;
 * :mod:`~adarl.runtime.builders.td3` - TD3's (and DDPG's) deterministic actor, exploration and loss;
   :func:`build_td3_components`;
 * :mod:`~adarl.runtime.builders.ppo` - the RNAC baselines' PPO modules; :func:`build_ppo_components`.
@@ -19,21 +21,19 @@ from adarl.runtime.builders.common import (
     check_device,
     make_envs,
     make_mlp,
+    make_sac_critic,
     policy_specs,
     spec_env,
     train_env_factory,
 )
-from adarl.runtime.builders.off_policy import OffPolicyComponents
+from adarl.runtime.builders.off_policy import OffPolicyComponents, OffPolicyParts, build_off_policy_components
 from adarl.runtime.builders.ppo import PPOComponents, PPOModules, build_ppo_components, make_ppo_modules
 from adarl.runtime.builders.sac import (
-    Components,
     SACComponents,
     SACModules,
-    build_components,
     build_sac_components,
     make_recipe_actor,
     make_sac_actor,
-    make_sac_critic,
     make_sac_loss,
     make_sac_modules,
     planned_updates,
@@ -59,8 +59,6 @@ __all__ = [
     "SACModules",
     "SACComponents",
     "build_sac_components",
-    "Components",
-    "build_components",
     "planned_updates",
     "update_after",
     "PPOModules",
@@ -68,6 +66,8 @@ __all__ = [
     "make_ppo_modules",
     "build_ppo_components",
     "OffPolicyComponents",
+    "OffPolicyParts",
+    "build_off_policy_components",
     "TD3Modules",
     "TD3Components",
     "make_td3_modules",

@@ -1,5 +1,6 @@
-"""What every recipe builds the same way: the device check, the MLP of a ``network.<net>`` section, the training
-and evaluation envs, and the specs an actor is built from (an env's, or a checkpoint's without an env).
+"""What every recipe builds the same way: the device check, the MLP of a ``network.<net>`` section, the Q(s, a)
+critic the off-policy families share (:func:`make_sac_critic`: SAC's and TD3's), the training and evaluation envs,
+and the specs an actor is built from (an env's, or a checkpoint's without an env).
 
 The MLP builder is generic: a plain TorchRL ``MLP``, an :func:`~adarl.core.lowrank.low_rank_mlp`, or, when a
 registered baseline asks for a variant (:mod:`adarl.baselines.registry`), that variant's builder.
@@ -15,7 +16,7 @@ import torch
 from torch import nn
 from torchrl.data import Bounded, Categorical, Composite, OneHot, Unbounded
 from torchrl.envs import TransformedEnv
-from torchrl.modules import MLP
+from torchrl.modules import MLP, ValueOperator
 
 from adarl.baselines import registry
 from adarl.core.lowrank import low_rank_mlp
@@ -35,6 +36,7 @@ __all__ = [
     "init_network",
     "action_spec",
     "is_discrete",
+    "make_sac_critic",
     "train_env_factory",
     "make_envs",
     "policy_specs",
@@ -162,6 +164,18 @@ def action_spec(env):
 
 def is_discrete(spec) -> bool:
     return isinstance(spec, (OneHot, Categorical))
+
+
+def make_sac_critic(env, obs_key="observation", **mlp_kwargs) -> ValueOperator:
+    """Q(s, a) for boxes (input ``[s, a]``), or Q(s, .) over all actions for discrete specs: SAC's critic, which
+    TD3 and DDPG share (here, so that no family's builder imports another's)."""
+    obs_dim = env.observation_spec[obs_key].shape[-1]
+    spec = action_spec(env)
+    if is_discrete(spec):
+        net = make_mlp(obs_dim, spec.space.n, **mlp_kwargs)
+        return ValueOperator(net, in_keys=[obs_key], out_keys=["action_value"])
+    net = make_mlp(obs_dim + spec.shape[-1], 1, **mlp_kwargs)
+    return ValueOperator(net, in_keys=[obs_key, "action"])
 
 
 def _env_kwargs(recipe) -> dict:

@@ -1,16 +1,19 @@
-"""What every off-policy family builds the same way (SAC, TD3/DDPG): the LR schedules, the replay buffer, the
-collector, the rank adapter with its acceptance step, the warm start, the wiring of rank events, and the component
-bundle that saves and loads its own checkpoint state (:class:`OffPolicyComponents`).
+"""What every off-policy family builds the same way (SAC, TD3/DDPG, a family of your own): the skeleton of its
+builder (:func:`build_off_policy_components`), the LR schedules, the replay buffer, the collector, the rank adapter
+with its acceptance step, the warm start, the wiring of rank events, and the component bundle that saves and loads
+its own checkpoint state (:class:`OffPolicyComponents`).
 
 A family's builder (:func:`~adarl.runtime.builders.sac.build_sac_components`,
-:func:`~adarl.runtime.builders.td3.build_td3_components`) makes its networks, loss, optimisers and update step, and
-asks this module for the rest, so that a rank event, a warm start, a checkpoint or a resume means the same in every
-off-policy loop.
+:func:`~adarl.runtime.builders.td3.build_td3_components`) says what is its own, as an :class:`OffPolicyParts`
+(networks and loss, optimisers, update step, the parameters the divergence guard checks), and this module builds
+the rest in one order, so that a rank event, a warm start, a checkpoint or a resume means the same in every
+off-policy loop, and a new family is its parts and nothing else.
 """
 
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -18,21 +21,30 @@ from torchrl.collectors import Collector
 from torchrl.data import LazyMemmapStorage, LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.data.replay_buffers.samplers import RandomSampler
 
-from adarl import plugins
 from adarl.core.acceptance import ProjectionAcceptance, RecentTransitions
 from adarl.core.adapter import RankAdapter, resize_to_ranks
 from adarl.core.lr_schedule import make_lr_scheduler
-from adarl.core.rank import RankRule
+from adarl.core.rank import RankRule, registered_rule
 from adarl.core.restarts import ScheduledRestarts
 from adarl.core.warmstart import ReplayWarmStart
 from adarl.errors import AdaRLValueError
 from adarl.fast.collector import LeanCollector, wants_lean
-from adarl.runtime.builders.common import RunComponents, train_env_factory
+from adarl.runtime.builders.common import (
+    RunComponents,
+    apply_num_threads,
+    check_device,
+    make_envs,
+    train_env_factory,
+)
+from adarl.runtime.families import check_builder
 from adarl.runtime.rank_events import RankEventEffects
+from adarl.runtime.state import seed_everything
 from adarl.runtime.update import UpdateStep
 
 __all__ = [
     "OffPolicyComponents",
+    "OffPolicyParts",
+    "build_off_policy_components",
     "update_after",
     "planned_updates",
     "event_threads",
@@ -122,23 +134,22 @@ def event_threads(setting, environ=None) -> int | None:
 
 
 def make_rank_rule(rank) -> RankRule:
-    """The rule of a recipe's ``rank`` section, built one way for every registered rule (adarl's own and a plugin's):
-    ``rule_class()(**arguments)``, the arguments being adarl's own rules' keys (``rank.beta``, ``rank.target_rank``,
+    """The rule of a recipe's ``rank`` section, built one way for every registered rule (adarl's own and a plugin's,
+    one table: :data:`adarl.plugins.RANK_RULES`, checked by :func:`~adarl.core.rank.registered_rule`):
+    ``rule_class(**arguments)``, the arguments being adarl's own rules' keys (``rank.beta``, ``rank.target_rank``,
     ``rank.lam``) or a plugin rule's ``rank.rule_options`` (:meth:`adarl.plugins.RankRuleSpec.arguments`). A rule
     whose class sets ``needs_fit = True`` gets ``fit(rank)`` from the adapter (on replay states), as ``policy_fit``
     does."""
-    spec = plugins.rank_rule(rank.rule)
-    cls = spec.rule_class()
-    provider = spec.provider or ("adarl" if spec.builtin else "a register_rank_rule call")
-    where = f"rank rule {spec.name!r} ({spec.rule_path}, from {provider})"
-    if not (isinstance(cls, type) and issubclass(cls, RankRule)):
-        raise AdaRLValueError(f"{where} is not an adarl.core.rank.RankRule subclass (got {cls!r})")
+    cls, spec = registered_rule(rank.rule, spec=True)
     kwargs = spec.arguments(rank)
     try:
         return cls(**kwargs)
     except TypeError as err:
+        provider = spec.provider or ("adarl" if spec.builtin else "a register_rank_rule call")
         source = f"its rank keys {kwargs}" if spec.builtin else f"rank.rule_options {rank.rule_options}"
-        raise AdaRLValueError(f"{where} cannot be built from {source}: {err}") from None
+        raise AdaRLValueError(
+            f"rank rule {spec.name!r} ({spec.rule_path}, from {provider}) cannot be built from {source}: {err}"
+        ) from None
 
 
 def make_lr_schedulers(recipe, optimizers: dict, total_updates: int, names=("actor", "critic")) -> dict:
@@ -192,13 +203,14 @@ def make_collector(recipe, env, policy, init_random_frames: int | None = None) -
             noise_seed=recipe.seed + 2,
             env_factory=train_env_factory(recipe) if c.overlap == "process" else None,
         )
-    return Collector(
+    return Collector(  # (no recurrent state: the env is left as it is, without TorchRL 0.14's FutureWarning)
         env,
         policy,
         frames_per_batch=c.frames_per_batch,
         total_frames=-1,
         init_random_frames=init_random,
         device=recipe.device,
+        auto_register_policy_transforms=False,
     )
 
 
@@ -258,3 +270,82 @@ def wire_rank_events(adapter, update: UpdateStep, collector, warm_start, paramet
     effects = RankEventEffects(update, collector, warm_start, factors)
     effects.register(adapter)
     return effects
+
+
+class OffPolicyParts:
+    """What one off-policy family builds itself; :func:`build_off_policy_components` builds the rest around it.
+
+    A family's builder makes one (a new instance per build: a part may keep what a later one needs, as SAC's
+    optimisers keep whether the update is fused) and overrides:
+
+    * :meth:`modules` - networks, loss and target updater (an object with ``actor`` and ``loss``);
+    * :meth:`optimizers` - ``{"actor": ..., "critic": ..., ...}`` (schedules are made for ``actor`` and ``critic``);
+    * :meth:`update` - the update step (:class:`~adarl.runtime.update.UpdateStep`);
+    * :meth:`parameters` - the trained tensors by readable name (the divergence guard's, the factors' check);
+    * :meth:`policy` - what the collector runs (default: ``modules.actor``).
+
+    ``components``: the :class:`OffPolicyComponents` subclass returned."""
+
+    components: type[OffPolicyComponents] = OffPolicyComponents
+
+    def modules(self, recipe, env):
+        raise NotImplementedError
+
+    def optimizers(self, recipe, modules) -> dict[str, torch.optim.Optimizer]:
+        raise NotImplementedError
+
+    def update(self, recipe, modules, optimizers, schedulers, replay_buffer, generator) -> UpdateStep:
+        raise NotImplementedError
+
+    def parameters(self, recipe, modules) -> dict[str, torch.Tensor]:
+        raise NotImplementedError
+
+    def policy(self, modules):
+        return modules.actor
+
+
+def build_off_policy_components(
+    recipe,
+    builder: Callable,
+    parts: OffPolicyParts,
+    *,
+    init_random_frames: int | None = None,
+    scratch_dir: str | os.PathLike | None = None,
+) -> OffPolicyComponents:
+    """The skeleton of every off-policy builder: refuse a recipe of another loop (naming its builder; ``builder``:
+    the public builder calling, :func:`adarl.runtime.families.check_builder`), seed, envs, then the family's
+    ``parts`` and everything shared, in one order: modules, optimisers, LR schedules, replay buffer, collector, rank
+    adapter and warm start, update step, and what a rank event sets off (registered on the adapter: a loop of your
+    own gets the same effects as the trainer). ``scratch_dir`` holds a memmap replay storage;
+    ``init_random_frames``: None = ``collector.init_random_frames``."""
+    check_builder(recipe, builder)
+    check_device(recipe.device)
+    apply_num_threads(recipe)
+    seed_everything(recipe.seed)
+    env, eval_env = make_envs(recipe)
+    modules = parts.modules(recipe, env)
+    optimizers = parts.optimizers(recipe, modules)
+    total_updates = planned_updates(recipe)
+    schedulers = make_lr_schedulers(recipe, optimizers, total_updates)
+    generator = torch.Generator().manual_seed(recipe.seed + 1)
+    replay_buffer = make_replay_buffer(recipe, generator, scratch_dir)
+    collector = make_collector(recipe, env, parts.policy(modules), init_random_frames)
+    adapter, warm_start = make_rank_control(recipe, modules.loss, optimizers, schedulers, replay_buffer, collector)
+    update = parts.update(recipe, modules, optimizers, schedulers, replay_buffer, generator)
+    effects = wire_rank_events(adapter, update, collector, warm_start, parts.parameters(recipe, modules))
+    return parts.components(
+        recipe,
+        env,
+        eval_env,
+        modules,
+        optimizers,
+        schedulers,
+        replay_buffer,
+        collector,
+        update,
+        adapter,
+        warm_start,
+        total_updates,
+        generator,
+        effects,
+    )

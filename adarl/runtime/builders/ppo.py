@@ -40,7 +40,7 @@ from adarl.runtime.builders.common import (
     make_envs,
     make_recipe_mlp,
 )
-from adarl.runtime.families import check_family
+from adarl.runtime.families import check_builder
 from adarl.runtime.state import seed_everything
 
 __all__ = [
@@ -48,6 +48,7 @@ __all__ = [
     "PPOComponents",
     "LinearDecay",
     "make_ppo_modules",
+    "make_recipe_ppo_actor",
     "build_ppo_components",
     "simulator_steps_per_frame",
 ]
@@ -204,10 +205,16 @@ def make_ppo_modules(recipe, env) -> PPOModules:
     return PPOModules(actor, critic, loss, advantage, norms)
 
 
+def make_recipe_ppo_actor(recipe, env):
+    """The PPO actor of a recipe for ``env``'s specs (the ``ppo`` family's actor: :func:`adarl.load_policy`, ``adarl
+    export``)."""
+    return make_ppo_modules(recipe, env).actor
+
+
 def build_ppo_components(recipe) -> PPOComponents:
     """Env (+ RNAC-DS), evaluation env, networks, loss, optimisers, LR decay and collector of a PPO recipe (a recipe
-    on another loop is refused, naming its builder: :func:`adarl.runtime.families.check_family`)."""
-    check_family(recipe, "ppo")
+    on another loop is refused, naming its builder: :func:`adarl.runtime.families.check_builder`)."""
+    check_builder(recipe, build_ppo_components)
     check_device(recipe.device)
     apply_num_threads(recipe)
     seed_everything(recipe.seed)
@@ -228,8 +235,13 @@ def build_ppo_components(recipe) -> PPOComponents:
         k: torch.optim.lr_scheduler.LambdaLR(o, LinearDecay(iterations if ppo.lr_decay else 10**12))
         for k, o in optimizers.items()
     }
-    collector = Collector(
-        env, modules.actor, frames_per_batch=c.frames_per_batch, total_frames=-1, device=recipe.device
+    collector = Collector(  # (no recurrent state: the env is left as it is, without TorchRL 0.14's FutureWarning)
+        env,
+        modules.actor,
+        frames_per_batch=c.frames_per_batch,
+        total_frames=-1,
+        device=recipe.device,
+        auto_register_policy_transforms=False,
     )
     terms = registry.loss_terms(modules.loss, alg)
     scaler = RewardScaler(alg.gamma) if ppo.reward_scaling else None

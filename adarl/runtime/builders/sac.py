@@ -1,9 +1,10 @@
 """Where a SAC recipe becomes objects: actor, critic and ``SACLoss`` (stock TorchRL pieces with
 :class:`~adarl.core.lowrank.LowRankLinear` layers), then every component of a run wired together
 (:func:`build_sac_components`, :class:`SACComponents`): envs, optimisers, LR schedules, replay buffer, collector, the
-update step, the rank adapter with its acceptance step, the warm start, and what a rank event sets off (the pieces every
-off-policy family shares are :mod:`~adarl.runtime.builders.off_policy`'s).
-``build_components`` and ``Components`` are aliases of the two, the names they had before the PPO loop had its own.
+update step, the rank adapter with its acceptance step, the warm start, and what a rank event sets off. What is
+SAC's own is :class:`SACParts` (networks and loss, optimisers, the fused or TorchRL update step); the skeleton and the
+pieces every off-policy family shares are :mod:`~adarl.runtime.builders.off_policy`'s, the critic
+:mod:`~adarl.runtime.builders.common`'s (TD3 shares it).
 
 Each network builder takes plain arguments (not the recipe) so that users composing in Python can call them
 directly; :func:`make_sac_modules` and :func:`build_sac_components` are the recipe-facing ones. The baselines plug in
@@ -41,33 +42,20 @@ from adarl.core.product_polyak import ProductSoftUpdate, factor_keys
 from adarl.errors import AdaRLValueError, AdaRLWarning
 from adarl.fast.adam import make_adam
 from adarl.fast.sac import FusedSACUpdate, fused_fallback_reason, wants_fused
-from adarl.runtime.builders.common import (
-    action_spec,
-    apply_num_threads,
-    check_device,
-    is_discrete,
-    make_envs,
-    make_mlp,
-)
+from adarl.runtime.builders.common import action_spec, is_discrete, make_mlp, make_sac_critic
 from adarl.runtime.builders.off_policy import (
     OffPolicyComponents,
+    OffPolicyParts,
+    build_off_policy_components,
     event_threads,
-    make_collector,
-    make_lr_schedulers,
-    make_rank_control,
     make_rank_rule,
-    make_replay_buffer,
     planned_updates,
     update_after,
-    wire_rank_events,
 )
-from adarl.runtime.families import check_family
-from adarl.runtime.state import seed_everything
 from adarl.runtime.update import FusedStep, LossStep, UpdateStep
 
 __all__ = [
     "make_sac_actor",
-    "make_sac_critic",
     "make_sac_loss",
     "reinit_low_rank_ensemble",
     "SACModules",
@@ -75,8 +63,7 @@ __all__ = [
     "make_sac_modules",
     "SACComponents",
     "build_sac_components",
-    "Components",
-    "build_components",
+    "SACParts",
     "sac_parameters",
     "FusedFallbackWarning",
     "update_after",
@@ -108,17 +95,6 @@ def make_sac_actor(env: EnvBase, obs_key="observation", **mlp_kwargs) -> Probabi
         distribution_kwargs={"low": spec.space.low, "high": spec.space.high},
         return_log_prob=False,
     )
-
-
-def make_sac_critic(env: EnvBase, obs_key="observation", **mlp_kwargs) -> ValueOperator:
-    """Q(s, a) for boxes (input ``[s, a]``), or Q(s, .) over all actions for discrete specs."""
-    obs_dim = env.observation_spec[obs_key].shape[-1]
-    spec = action_spec(env)
-    if is_discrete(spec):
-        net = make_mlp(obs_dim, spec.space.n, **mlp_kwargs)
-        return ValueOperator(net, in_keys=[obs_key], out_keys=["action_value"])
-    net = make_mlp(obs_dim + spec.shape[-1], 1, **mlp_kwargs)
-    return ValueOperator(net, in_keys=[obs_key, "action"])
 
 
 def make_sac_loss(
@@ -253,10 +229,6 @@ class SACComponents(OffPolicyComponents):
         return sac_parameters(self.modules.loss, self.recipe.algorithm.fixed_alpha)
 
 
-#: the name :class:`SACComponents` had before the PPO loop had its own (kept: an alias)
-Components = SACComponents
-
-
 class FusedFallbackWarning(AdaRLWarning):
     """A registered algorithm's ``SACLoss`` runs TorchRL's (slower) path instead of the fused update, and why."""
 
@@ -315,6 +287,49 @@ def _split_factors(params) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
     return [v for k, v in flat.items() if k not in factors], [v for k, v in flat.items() if k in factors]
 
 
+class SACParts(OffPolicyParts):
+    """What the ``sac`` family builds itself: its networks and ``SACLoss``, Adam optimisers (the low-rank factors in
+    a second group at ``lr * algorithm.factor_lr_scale``; alpha's unless fixed), and the update step: the fused one
+    where ``algorithm.fused`` asks for it and it applies, else TorchRL's."""
+
+    components = SACComponents
+
+    def modules(self, recipe, env) -> SACModules:
+        return make_sac_modules(recipe, env)
+
+    def optimizers(self, recipe, modules: SACModules) -> dict[str, torch.optim.Optimizer]:
+        loss, alg = modules.loss, recipe.algorithm
+        actor_params, actor_factors = _split_factors(loss.actor_network_params)
+        critic_params, critic_factors = _split_factors(loss.qvalue_network_params)
+        self.terms = registry.loss_terms(loss, alg)
+        self.fused = wants_fused(alg.fused, loss)
+        reason = fused_fallback_reason(loss)
+        if alg.fused == "auto" and reason is not None and isinstance(loss, SACLoss):
+            # a SACLoss of a plugin the fused update cannot compute: say so, once, rather than slow down in silence
+            warnings.warn(
+                f"algorithm {alg.name!r} runs TorchRL's SACLoss path, not the fused update: {reason}; it costs about "
+                "3x the time per update (docs/performance.md)",
+                FusedFallbackWarning,
+                stacklevel=4,
+            )
+        fused, scale = self.fused, alg.factor_lr_scale
+        optimizers = {
+            "actor": make_adam(actor_params, alg.lr, fused=fused, scaled=actor_factors, scale=scale),
+            "critic": make_adam(critic_params, alg.lr, fused=fused, scaled=critic_factors, scale=scale),
+        }
+        if not alg.fixed_alpha:
+            optimizers["alpha"] = make_adam([loss.log_alpha], alg.alpha_lr, fused=fused)
+        return optimizers
+
+    def update(self, recipe, modules, optimizers, schedulers, replay_buffer, generator) -> UpdateStep:
+        return _update_step(
+            recipe, modules, optimizers, schedulers, replay_buffer, generator, fused=self.fused, terms=self.terms
+        )
+
+    def parameters(self, recipe, modules) -> dict[str, torch.Tensor]:
+        return sac_parameters(modules.loss, recipe.algorithm.fixed_alpha)
+
+
 def build_sac_components(
     recipe, *, init_random_frames: int | None = None, scratch_dir: str | os.PathLike | None = None
 ) -> SACComponents:
@@ -324,61 +339,8 @@ def build_sac_components(
 
     With ``algorithm.fused`` the update step is a :class:`~adarl.runtime.update.FusedStep` (same parameters, losses
     and optimisers as the plain path). ``scratch_dir`` holds a memmap replay storage. A recipe on another loop
-    (RNAC's PPO) is refused, naming its builder (:func:`adarl.runtime.families.check_family`)."""
-    check_family(recipe, "sac")
-    check_device(recipe.device)
-    apply_num_threads(recipe)
-    seed_everything(recipe.seed)
-    env, eval_env = make_envs(recipe)
-    modules = make_sac_modules(recipe, env)
-    loss = modules.loss
-    alg = recipe.algorithm
-
-    # algorithm.factor_lr_scale: the low-rank factors W1, W2 in a second Adam group at lr * scale
-    actor_params, actor_factors = _split_factors(loss.actor_network_params)
-    critic_params, critic_factors = _split_factors(loss.qvalue_network_params)
-    terms = registry.loss_terms(loss, alg)
-    fused = wants_fused(alg.fused, loss)
-    reason = fused_fallback_reason(loss)
-    if alg.fused == "auto" and reason is not None and isinstance(loss, SACLoss):
-        # a SACLoss of a plugin the fused update cannot compute: say so, once, rather than slow down in silence
-        warnings.warn(
-            f"algorithm {alg.name!r} runs TorchRL's SACLoss path, not the fused update: {reason}; it costs about "
-            "3x the time per update (docs/performance.md)",
-            FusedFallbackWarning,
-            stacklevel=2,
-        )
-    optimizers = {
-        "actor": make_adam(actor_params, alg.lr, fused=fused, scaled=actor_factors, scale=alg.factor_lr_scale),
-        "critic": make_adam(critic_params, alg.lr, fused=fused, scaled=critic_factors, scale=alg.factor_lr_scale),
-    }
-    if not alg.fixed_alpha:
-        optimizers["alpha"] = make_adam([loss.log_alpha], alg.alpha_lr, fused=fused)
-    total_updates = planned_updates(recipe)
-    schedulers = make_lr_schedulers(recipe, optimizers, total_updates)
-    generator = torch.Generator().manual_seed(recipe.seed + 1)
-    replay_buffer = make_replay_buffer(recipe, generator, scratch_dir)
-    collector = make_collector(recipe, env, modules.actor, init_random_frames)
-    adapter, warm_start = make_rank_control(recipe, loss, optimizers, schedulers, replay_buffer, collector)
-    update = _update_step(recipe, modules, optimizers, schedulers, replay_buffer, generator, fused=fused, terms=terms)
-    effects = wire_rank_events(adapter, update, collector, warm_start, sac_parameters(loss, alg.fixed_alpha))
-    return SACComponents(
-        recipe,
-        env,
-        eval_env,
-        modules,
-        optimizers,
-        schedulers,
-        replay_buffer,
-        collector,
-        update,
-        adapter,
-        warm_start,
-        total_updates,
-        generator,
-        effects,
+    (RNAC's PPO, TD3) is refused, naming its builder (:func:`adarl.runtime.families.check_builder`). The skeleton:
+    :func:`~adarl.runtime.builders.off_policy.build_off_policy_components`."""
+    return build_off_policy_components(
+        recipe, build_sac_components, SACParts(), init_random_frames=init_random_frames, scratch_dir=scratch_dir
     )
-
-
-#: the name :func:`build_sac_components` had before the PPO loop had its own (kept: an alias)
-build_components = build_sac_components

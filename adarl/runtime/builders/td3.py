@@ -3,13 +3,14 @@
 (:func:`build_td3_components`, :class:`TD3Components`).
 
 The pieces are TorchRL's TD3 example's: a deterministic actor (an MLP, then ``TanhModule`` into the action box), a
-Q(s, a) critic (the SAC critic's :func:`~adarl.runtime.builders.sac.make_sac_critic`), ``TD3Loss`` (target policy
+Q(s, a) critic (the SAC critic, :func:`~adarl.runtime.builders.common.make_sac_critic`), ``TD3Loss`` (target policy
 smoothing: ``algorithm.td3.policy_noise``, ``noise_clip``) or ``DDPGLoss`` (one critic), exploration by
 ``AdditiveGaussianModule`` on the actor's action (``algorithm.td3.exploration_noise``), and delayed actor and target
-updates (``algorithm.td3.policy_update_delay``; :class:`~adarl.runtime.update.DelayedActorStep`). Everything else is
-the SAC loop's (:mod:`~adarl.runtime.builders.off_policy`): the replay buffer, TorchRL's collector, the rank adapter
-and its acceptance step, the warm start (collecting with the exploration policy), the rank events' effects and the
-checkpoint state. adarl's fused SAC update and lean collector are SAC's alone: this loop runs TorchRL's plain path.
+updates (``algorithm.td3.policy_update_delay``; :class:`~adarl.runtime.update.DelayedActorStep`): :class:`TD3Parts`.
+Everything else is every off-policy family's (:mod:`~adarl.runtime.builders.off_policy`'s skeleton): the replay
+buffer, TorchRL's collector, the rank adapter and its acceptance step, the warm start (collecting with the
+exploration policy), the rank events' effects and the checkpoint state. adarl's fused SAC update and lean
+collector are SAC's alone: this loop runs TorchRL's plain path.
 
 A registered algorithm on ``base="td3"`` is built with ``TD3Loss``'s keyword arguments (a ``DDPGLoss`` subclass:
 ``DDPGLoss``'s) plus its ``algorithm.options`` (docs/custom-loss.md).
@@ -40,26 +41,8 @@ from adarl.baselines import registry
 from adarl.core.ensemble import reinit_low_rank_ensemble
 from adarl.errors import AdaRLValueError
 from adarl.fast.adam import make_adam
-from adarl.runtime.builders.common import (
-    action_spec,
-    apply_num_threads,
-    check_device,
-    is_discrete,
-    make_envs,
-    make_mlp,
-)
-from adarl.runtime.builders.off_policy import (
-    OffPolicyComponents,
-    make_collector,
-    make_lr_schedulers,
-    make_rank_control,
-    make_replay_buffer,
-    planned_updates,
-    wire_rank_events,
-)
-from adarl.runtime.builders.sac import make_sac_critic
-from adarl.runtime.families import check_family
-from adarl.runtime.state import seed_everything
+from adarl.runtime.builders.common import action_spec, is_discrete, make_mlp, make_sac_critic
+from adarl.runtime.builders.off_policy import OffPolicyComponents, OffPolicyParts, build_off_policy_components
 from adarl.runtime.update import DelayedActorStep
 
 __all__ = [
@@ -71,6 +54,7 @@ __all__ = [
     "make_td3_modules",
     "td3_parameters",
     "TD3Components",
+    "TD3Parts",
     "build_td3_components",
 ]
 
@@ -225,55 +209,50 @@ class TD3Components(OffPolicyComponents):
         return td3_parameters(self.modules.loss)
 
 
+class TD3Parts(OffPolicyParts):
+    """What the ``td3`` family builds itself: the deterministic actor, its exploration policy (what the collector
+    runs), the critic and ``TD3Loss`` / ``DDPGLoss``, plain Adam, and the delayed-actor update step."""
+
+    components = TD3Components
+
+    def modules(self, recipe, env) -> TD3Modules:
+        return make_td3_modules(recipe, env)
+
+    def optimizers(self, recipe, modules: TD3Modules) -> dict[str, torch.optim.Optimizer]:
+        params, lr = td3_parameters(modules.loss), recipe.algorithm.lr
+        return {
+            "actor": make_adam([v for k, v in params.items() if k.startswith("actor.")], lr, fused=False),
+            "critic": make_adam([v for k, v in params.items() if k.startswith("critic.")], lr, fused=False),
+        }
+
+    def update(self, recipe, modules, optimizers, schedulers, replay_buffer, generator) -> DelayedActorStep:
+        alg = recipe.algorithm
+        return DelayedActorStep(
+            modules.loss,
+            optimizers,
+            replay_buffer=replay_buffer,
+            target_updater=modules.target_updater,
+            policy_update_delay=alg.td3.policy_update_delay,
+            schedulers=list(schedulers.values()),
+            max_grad_norm=alg.max_grad_norm,
+            terms=registry.loss_terms(modules.loss, alg),
+        )
+
+    def parameters(self, recipe, modules) -> dict[str, torch.Tensor]:
+        return td3_parameters(modules.loss)
+
+    def policy(self, modules: TD3Modules):
+        return modules.exploration
+
+
 def build_td3_components(
     recipe, *, init_random_frames: int | None = None, scratch_dir: str | os.PathLike | None = None
 ) -> TD3Components:
     """Build env, networks, the TD3 (or DDPG) loss, optimisers, LR schedules, buffer, collector, the delayed-actor
     update step, rank adapter and warm start, and wire what a rank event sets off, as
-    :func:`~adarl.runtime.builders.sac.build_sac_components` does for SAC. A recipe on another loop is refused,
-    naming its builder (:func:`adarl.runtime.families.check_family`)."""
-    check_family(recipe, "td3")
-    check_device(recipe.device)
-    apply_num_threads(recipe)
-    seed_everything(recipe.seed)
-    env, eval_env = make_envs(recipe)
-    modules = make_td3_modules(recipe, env)
-    loss, alg = modules.loss, recipe.algorithm
-    params = td3_parameters(loss)
-    optimizers = {
-        "actor": make_adam([v for k, v in params.items() if k.startswith("actor.")], alg.lr, fused=False),
-        "critic": make_adam([v for k, v in params.items() if k.startswith("critic.")], alg.lr, fused=False),
-    }
-    total_updates = planned_updates(recipe)
-    schedulers = make_lr_schedulers(recipe, optimizers, total_updates)
-    generator = torch.Generator().manual_seed(recipe.seed + 1)
-    replay_buffer = make_replay_buffer(recipe, generator, scratch_dir)
-    collector = make_collector(recipe, env, modules.exploration, init_random_frames)
-    adapter, warm_start = make_rank_control(recipe, loss, optimizers, schedulers, replay_buffer, collector)
-    update = DelayedActorStep(
-        loss,
-        optimizers,
-        replay_buffer=replay_buffer,
-        target_updater=modules.target_updater,
-        policy_update_delay=alg.td3.policy_update_delay,
-        schedulers=list(schedulers.values()),
-        max_grad_norm=alg.max_grad_norm,
-        terms=registry.loss_terms(loss, alg),
-    )
-    effects = wire_rank_events(adapter, update, collector, warm_start, params)
-    return TD3Components(
-        recipe,
-        env,
-        eval_env,
-        modules,
-        optimizers,
-        schedulers,
-        replay_buffer,
-        collector,
-        update,
-        adapter,
-        warm_start,
-        total_updates,
-        generator,
-        effects,
+    :func:`~adarl.runtime.builders.sac.build_sac_components` does for SAC (one skeleton:
+    :func:`~adarl.runtime.builders.off_policy.build_off_policy_components`). A recipe on another loop is refused,
+    naming its builder (:func:`adarl.runtime.families.check_builder`)."""
+    return build_off_policy_components(
+        recipe, build_td3_components, TD3Parts(), init_random_frames=init_random_frames, scratch_dir=scratch_dir
     )

@@ -88,9 +88,13 @@ def _locate(name_or_path: Any) -> Path:
     if p.is_file():
         return p
     names = _available_names()
-    raise RecipeError(
-        f"no recipe named {s!r} in {', '.join(str(d) for d in recipes_dir())}; available: "
-        f"{', '.join(names) or '(none)'}{did_you_mean(s, names)} (or pass a path to a .yaml file)"
+    top = [n for n in names if "/" not in n]  # the shipped recipes' first level; `adarl recipes` lists them all
+    shown = ", ".join(top[:12]) + (
+        f", ... ({len(names)} in all: `adarl recipes` lists them)" if len(names) > 12 else ""
+    )
+    raise RecipeError(  # the did-you-mean first: a long list before it hid it (issue 48.6)
+        f"no recipe named {s!r} in {', '.join(str(d) for d in recipes_dir())}{did_you_mean(s, names)}; available: "
+        f"{shown or '(none)'} (or pass a path to a .yaml file)"
     )
 
 

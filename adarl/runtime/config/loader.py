@@ -279,10 +279,11 @@ def load_recipe(name_or_path: str | os.PathLike, overrides: Sequence[str] = ()) 
         data = _resolve(cfg, label)
         if isinstance(data.get("plugins"), list):  # an override's entries are relative to the working folder
             data["plugins"] = [resolve_entry(entry, Path.cwd(), f"invalid recipe {label}") for entry in data["plugins"]]
-            import_plugins(data["plugins"])  # before validation: their registrations are what the recipe names
-    except RecipeError as err:
-        if str(err).startswith("plugins:"):
-            raise RecipeError(f"invalid recipe {label}: {err}") from None
+            try:  # before validation: their registrations are what the recipe names
+                import_plugins(data["plugins"])
+            except RecipeError as err:  # its errors name the entry, not the recipe
+                raise RecipeError(f"invalid recipe {label}: {err}") from None
+    except RecipeError:
         raise
     except RecursionError:
         raise RecipeError(f"invalid recipe {label}: nested too deeply") from None

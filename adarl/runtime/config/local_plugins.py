@@ -110,15 +110,31 @@ def _locate(entry: str) -> tuple[str, Path]:
     return entry, origin.parent if origin.name == "__init__.py" else origin
 
 
-def _sha256(path: Path) -> str:
-    """The file's sha256, or a package folder's (every .py file under it, by relative path)."""
+def _sha256(path: Path, *, code: bool = True) -> str:
+    """The sha256 of a module's code, or of a package folder's (every .py file under it, by relative path).
+
+    ``code``: of each file's parsed module (``ast.dump``), so that a comment or a layout change is not a change (a
+    comment-only edit made ``adarl eval`` refuse the run: issue 48.6); a file that does not parse is hashed by its
+    bytes. ``code=False``: the bytes, what adarl recorded before (:func:`check_recorded` accepts either)."""
     digest = hashlib.sha256()
     files = [path] if path.is_file() else sorted(p for p in path.rglob("*.py") if "__pycache__" not in p.parts)
     for f in files:
         if f is not path:
             digest.update(f.relative_to(path).as_posix().encode() + b"\0")
-        digest.update(f.read_bytes())
+        data = f.read_bytes()
+        if code:
+            try:
+                data = ast.dump(ast.parse(data, filename=str(f))).encode()
+            except (SyntaxError, ValueError):
+                pass
+        digest.update(data)
     return digest.hexdigest()
+
+
+def _same(path: Path, recorded) -> bool:
+    """Whether ``path`` holds what ``recorded`` hashed: its code now, or its bytes (a record made before code
+    hashes)."""
+    return recorded in (_sha256(path), _sha256(path, code=False))
 
 
 def _imported_names(files: Iterable[Path]) -> set[str]:
@@ -299,7 +315,7 @@ def check_recorded(recorded: Iterable[Mapping], run: str) -> None:
                 f"{how}"
             )
         now = _sha256(path)
-        if now != rec.get("sha256"):
+        if not _same(path, rec.get("sha256")):
             raise RecipeError(
                 f"run folder {run!r} was trained with the local plugin module {name!r} ({path}), which has changed "
                 f"since (sha256 {str(rec.get('sha256'))[:12]}... then, {now[:12]}... now): {how}"
@@ -315,7 +331,7 @@ def check_recorded(recorded: Iterable[Mapping], run: str) -> None:
                     f"({helper}), now missing: {how}"
                 )
             now = _sha256(helper)
-            if now != sha:
+            if not _same(helper, sha):
                 raise RecipeError(
                     f"run folder {run!r} was trained with the local plugin module {name!r}, which imports {rel} "
                     f"({helper}), changed since (sha256 {str(sha)[:12]}... then, {now[:12]}... now): {how}"

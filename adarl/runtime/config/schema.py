@@ -23,7 +23,6 @@ from adarl.envs.registry import (
     env_parameters,
     is_mujoco,
     preset_names,
-    supported_envs,
     validate_schedule,
 )
 from adarl.envs.schedules import (
@@ -32,8 +31,9 @@ from adarl.envs.schedules import (
     schedule_parameter_paths,
     schedule_problems,
 )
-from adarl.errors import NO_VALUE, AdaRLValueError, did_you_mean, one_of
+from adarl.errors import NO_VALUE, AdaRLValueError, UnknownNameError, did_you_mean, one_of
 from adarl.runtime.config.local_plugins import entry_form_error
+from adarl.runtime.families import FAMILIES, family
 
 __all__ = [
     "SCHEMA_VERSION",
@@ -58,6 +58,8 @@ __all__ = [
     "CheckpointConfig",
     "GuardsConfig",
     "OutputConfig",
+    "ppo_problems",
+    "td3_problems",
 ]
 
 #: The recipe schema version this adarl reads. A recipe with a higher ``version`` is refused.
@@ -165,15 +167,12 @@ class EnvConfig(_Section):
     def _check_id(cls, v: str) -> str:
         try:
             check_env_id(v)  # adarl's own ids, and those installed plugins register (adarl.register_env)
-        except AdaRLValueError as err:
-            msg = str(err)
-            if not msg.startswith("the adarl plugin"):  # else: an installed plugin failed to load (named)
-                supported = list(supported_envs(load=False))
-                msg = (
-                    f"must be a supported env: {one_of(supported)}{did_you_mean(v, supported)} "
-                    f"(or {HOW_TO_REGISTER_ENV})"
-                )
+        except UnknownNameError as err:
+            allowed = err.allowed
+            msg = f"must be a supported env: {one_of(allowed)}{did_you_mean(v, allowed)} (or {HOW_TO_REGISTER_ENV})"
             raise _Problems([("", v, msg)]) from None
+        except AdaRLValueError as err:  # an installed plugin failed to load (named)
+            raise _Problems([("", v, str(err))]) from None
         return v
 
     @model_validator(mode="after")
@@ -578,11 +577,11 @@ class AlgorithmConfig(_Section):
     def _check_name(cls, v: str) -> str:
         try:
             plugins.algorithm(v)
-        except AdaRLValueError as err:
-            msg = str(err)
-            if msg.startswith("unknown algorithm.name"):  # else: an installed plugin failed to load (named)
-                msg = "not a registered algorithm; " + msg.split("; ", 1)[-1]
+        except UnknownNameError as err:
+            msg = f"not a registered algorithm; allowed: {one_of(err.allowed)}{did_you_mean(v, err.allowed)}{err.hint}"
             raise _Problems([("", v, msg)]) from None
+        except AdaRLValueError as err:  # an installed plugin failed to load (named)
+            raise _Problems([("", v, str(err))]) from None
         return v
 
     @model_validator(mode="after")
@@ -683,11 +682,11 @@ class RankConfig(_Section):
     def _check_rule_name(cls, v: str) -> str:
         try:
             plugins.rank_rule(v)
-        except AdaRLValueError as err:
-            msg = str(err)
-            if msg.startswith("unknown rank.rule"):  # else: an installed plugin failed to load (named)
-                msg = "must be one of " + msg.split("allowed: ", 1)[-1]
+        except UnknownNameError as err:
+            msg = f"must be one of {one_of(err.allowed)}{did_you_mean(v, err.allowed)}{err.hint}"
             raise _Problems([("", v, msg)]) from None
+        except AdaRLValueError as err:  # an installed plugin failed to load (named)
+            raise _Problems([("", v, str(err))]) from None
         return v
 
     @model_validator(mode="after")
@@ -967,62 +966,23 @@ class Recipe(_Section):
         return self
 
     def _algorithm_checks(self) -> list[tuple[str, Any, str]]:
-        """PPO/RNAC combinations (the baselines' loop, adarl.runtime.trainers.ppo)."""
-        p: list[tuple[str, Any, str]] = []
+        """The combinations the recipe's loop refuses (its family's checks: :func:`ppo_problems`,
+        :func:`td3_problems`), the keys another loop owns left at their defaults, and the algorithms' own."""
         alg, env = self.algorithm, self.env
-        if alg.base == "ppo":
-            if self.rank.enabled:
-                p.append(
-                    (
-                        "rank.enabled",
-                        True,
-                        f"must be false with algorithm.name={alg.name!r} (on the PPO loop): it runs the RNAC "
-                        "baselines without rank adaptation (docs/custom-loss.md shows RankAdapter on another loss)",
-                    )
-                )
-            if env.id == "CartPole-v1":
-                p.append(
-                    ("algorithm.name", alg.name, f"needs a continuous-action env; {env.id} is discrete (use 'sac')")
-                )
-            if alg.ppo.minibatch_size > self.collector.frames_per_batch:
-                p.append(
-                    (
-                        "algorithm.ppo.minibatch_size",
-                        alg.ppo.minibatch_size,
-                        f"must be <= collector.frames_per_batch ({self.collector.frames_per_batch})",
-                    )
-                )
-        if alg.base == "td3":
-            if env.id in ("CartPole-v1", "LinearCartPole-v0"):
-                p.append(
-                    ("algorithm.name", alg.name, f"needs a continuous-action env; {env.id} is discrete (use 'sac')")
-                )
-            for key, value, allowed in (
-                ("algorithm.fused", alg.fused, "'auto' or false"),
-                ("algorithm.compile", alg.compile, "false"),
-                ("collector.lean", self.collector.lean, "'auto' or false"),
-            ):
-                if value is True:
-                    p.append(
-                        (
-                            key,
-                            True,
-                            f"is SAC's fast path (a fused SACLoss update, a TanhNormal actor); algorithm.name "
-                            f"{alg.name!r} runs on the 'td3' loop, TorchRL's plain path; allowed: {allowed}",
-                        )
-                    )
-        if alg.base != "sac":
-            for key, value, default in (
-                ("algorithm.polyak", alg.polyak, "factors"),
-                ("algorithm.factor_lr_scale", alg.factor_lr_scale, 1.0),
-            ):
+        mine = family(alg.base)
+        p: list[tuple[str, Any, str]] = mine.problems(self)
+        for other in FAMILIES.entries.values():
+            if other.base == alg.base:
+                continue
+            for key in other.owns:
+                value, default = getattr(alg, key), AlgorithmConfig.model_fields[key].default
                 if value != default:
                     p.append(
                         (
-                            key,
+                            f"algorithm.{key}",
                             value,
-                            f"is implemented for SAC's factorised critics only; algorithm.name {alg.name!r} runs "
-                            f"on the {alg.base!r} loop; allowed there: {default!r}",
+                            f"is implemented for {other.base.upper()}'s loop ({other.base!r}) only; algorithm.name "
+                            f"{alg.name!r} runs on the {alg.base!r} loop; allowed there: {default!r}",
                         )
                     )
         if alg.name == "rnac_ds":
@@ -1033,6 +993,55 @@ class Recipe(_Section):
             if not is_mujoco(env.id):
                 p.append(("algorithm.name", "rnac_ds", f"needs a MuJoCo env; {env.id} is not one"))
         return p
+
+
+def ppo_problems(recipe: Recipe) -> list[tuple[str, Any, str]]:
+    """The ``ppo`` family's combinations (the RNAC baselines' loop, adarl.runtime.trainers.ppo)."""
+    p: list[tuple[str, Any, str]] = []
+    alg, env = recipe.algorithm, recipe.env
+    if recipe.rank.enabled:
+        p.append(
+            (
+                "rank.enabled",
+                True,
+                f"must be false with algorithm.name={alg.name!r} (on the PPO loop): it runs the RNAC "
+                "baselines without rank adaptation (docs/custom-loss.md shows RankAdapter on another loss)",
+            )
+        )
+    if env.id == "CartPole-v1":
+        p.append(("algorithm.name", alg.name, f"needs a continuous-action env; {env.id} is discrete (use 'sac')"))
+    if alg.ppo.minibatch_size > recipe.collector.frames_per_batch:
+        p.append(
+            (
+                "algorithm.ppo.minibatch_size",
+                alg.ppo.minibatch_size,
+                f"must be <= collector.frames_per_batch ({recipe.collector.frames_per_batch})",
+            )
+        )
+    return p
+
+
+def td3_problems(recipe: Recipe) -> list[tuple[str, Any, str]]:
+    """The ``td3`` family's combinations: box actions, and none of SAC's fast path (TorchRL's plain path)."""
+    p: list[tuple[str, Any, str]] = []
+    alg, env = recipe.algorithm, recipe.env
+    if env.id in ("CartPole-v1", "LinearCartPole-v0"):
+        p.append(("algorithm.name", alg.name, f"needs a continuous-action env; {env.id} is discrete (use 'sac')"))
+    for key, value, allowed in (
+        ("algorithm.fused", alg.fused, "'auto' or false"),
+        ("algorithm.compile", alg.compile, "false"),
+        ("collector.lean", recipe.collector.lean, "'auto' or false"),
+    ):
+        if value is True:
+            p.append(
+                (
+                    key,
+                    True,
+                    f"is SAC's fast path (a fused SACLoss update, a TanhNormal actor); algorithm.name "
+                    f"{alg.name!r} runs on the 'td3' loop, TorchRL's plain path; allowed: {allowed}",
+                )
+            )
+    return p
 
 
 def _validated_options(model: type[BaseModel], options: Any, key: str, what: str) -> dict:

@@ -8,7 +8,8 @@ collector's state in every checkpoint). A subclass builds its components and con
 
 * :meth:`_build_components` - the components (``self.c``, a
   :class:`~adarl.runtime.builders.common.RunComponents`: they save and load their own checkpoint state, say which
-  parameters the divergence guard checks, and hold the replay buffer, rank adapter and rank events if any);
+  parameters the divergence guard checks, and hold the replay buffer, rank adapter and rank events if any); by
+  default the recipe's family's builder makes them (``family(recipe).build(recipe)``);
 * :meth:`_consume` - one batch: count its frames, log its episodes, run the updates; return the losses;
 * :attr:`counters` - its own counters, checkpointed with the common ones.
 
@@ -25,6 +26,7 @@ import os
 import signal
 import sys
 import time
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import ClassVar
@@ -33,12 +35,13 @@ import torch
 from tensordict import TensorDictBase
 from tqdm import auto as tqdm_auto
 
-from adarl.errors import AdaRLError, AdaRLValueError, CheckpointError, command
+from adarl.errors import AdaRLError, CheckpointError, command
 from adarl.runtime import metrics
 from adarl.runtime.builders.common import RunComponents
+from adarl.runtime.builders.sac import FusedFallbackWarning
 from adarl.runtime.continuing import continued_recipe, retarget_schedules, schedule_totals
 from adarl.runtime.evaluation import EvalResult, evaluate_policy
-from adarl.runtime.families import family
+from adarl.runtime.families import check_trainer, family
 from adarl.runtime.guards import NonFiniteError, NonFiniteGuard
 from adarl.runtime.report import write_report
 from adarl.runtime.run_dir import RunDir, null_logger, recipe_fingerprint
@@ -51,21 +54,15 @@ __all__ = ["BaseTrainer", "trainer_class"]
 class BaseTrainer:
     """Runs one recipe in one run folder: train, evaluate on nominal dynamics, checkpoint, report.
 
-    ``SACTrainer(recipe, run_dir).train()`` for a new run; ``BaseTrainer.resume(run_dir).train()`` to continue one (the
-    recipe's ``algorithm.base`` picks the subclass: :func:`trainer_class`). Subclasses declare the loop they run:
-    ``class PPOTrainer(BaseTrainer, algorithm="ppo")``, and are named in :mod:`adarl.runtime.families`.
+    ``OffPolicyTrainer(recipe, run_dir).train()`` for a new run; ``BaseTrainer.resume(run_dir).train()`` to continue
+    one (the recipe's ``algorithm.base`` picks the subclass: :func:`trainer_class`). Which loop a trainer runs is
+    said once, by the family that names it (:mod:`adarl.runtime.families`); a recipe of another loop is refused there
+    (:func:`~adarl.runtime.families.check_trainer`).
     """
 
-    #: the loop (``algorithm.base``) a subclass runs
-    algorithm: ClassVar[str | None] = None
     #: the subclass's own counters, checkpointed with the common ones: ``{attribute: (type, value a checkpoint
     #: without it resumes from)}``, ``None`` for a counter every checkpoint has; each starts at 0
     counters: ClassVar[dict[str, tuple[type, int | float | None]]] = {}
-
-    def __init_subclass__(cls, algorithm: str | None = None, **kwargs) -> None:
-        super().__init_subclass__(**kwargs)
-        if algorithm is not None:
-            cls.algorithm = algorithm
 
     def __init__(
         self,
@@ -77,11 +74,7 @@ class BaseTrainer:
         _log_from: int | None = None,
         _read_only: bool = False,
     ) -> None:
-        if self.algorithm is not None and recipe.algorithm.base != self.algorithm:
-            raise AdaRLValueError(
-                f"{type(self).__name__} runs algorithm.name: {self.algorithm!r}, the recipe has "
-                f"{recipe.algorithm.name!r}; use {trainer_class(recipe).__name__} (trainer_class)"
-            )
+        check_trainer(recipe, type(self))
         self.recipe = recipe
         self.run_dir = run_dir
         self.quiet = quiet
@@ -96,7 +89,7 @@ class BaseTrainer:
         self.last_return = float("nan")
         self.rollbacks = 0
         self.warm_start_frames = (
-            0  # env frames collected by rank events' warm starts (SAC; counted in `frames` by default)
+            0  # env frames collected by rank events' warm starts (off-policy; counted in `frames` by default)
         )
         # training losses are averaged over logging.log_interval frames (sums kept in checkpoints: exact resume)
         self._loss_sums: dict[str, float] = {}
@@ -114,12 +107,15 @@ class BaseTrainer:
                 run_dir.save_recipe(recipe)  # a run started from Python resumes and loads like any
         # _log_from: the frames a resumed run's logs continue from (None: a new run, or evaluation only)
         self.logger = null_logger() if _read_only else run_dir.make_logger(recipe, step=_log_from)
-        self._build(_resume_state)
+        with warnings.catch_warnings():
+            if _read_only:  # loaded to evaluate: no update runs, so the update path's cost is no news (issue 48.6)
+                warnings.simplefilter("ignore", FusedFallbackWarning)
+            self._build(_resume_state)
 
     # ------------------------------------------------------------------ what a subclass provides
     def _build_components(self, state: dict | None) -> RunComponents:
-        """Build the run's components (to continue from checkpoint ``state`` when given)."""
-        raise NotImplementedError
+        """Build the run's components (to continue from checkpoint ``state`` when given): the family's builder's."""
+        return family(self.recipe).build(self.recipe)
 
     def _consume(self, batch: TensorDictBase) -> list[dict[str, torch.Tensor]] | None:
         """One collected batch: count its frames, log its episodes, run the updates it allows. Returns the
@@ -176,7 +172,7 @@ class BaseTrainer:
     ) -> BaseTrainer:
         """Continue the run in ``path`` from its latest loadable checkpoint (metrics after it are dropped first).
 
-        The trainer is the recipe's (:func:`trainer_class`: ``SACTrainer.resume`` of a PPO run gives a
+        The trainer is the recipe's (:func:`trainer_class`: ``OffPolicyTrainer.resume`` of a PPO run gives a
         :class:`~adarl.runtime.trainers.ppo.PPOTrainer`) unless ``cls`` is a subclass of it.
         ``checkpoint``: None, the newest checkpoint that loads (a damaged or foreign newer one is skipped with a
         :class:`~adarl.errors.CheckpointFallbackWarning` naming it and why); ``"latest"``, the newest or a

@@ -18,7 +18,7 @@ from tensordict import TensorDictBase
 
 from adarl.baselines.rnac import IPMAdvantage
 from adarl.errors import AdaRLValueError
-from adarl.runtime.builders.ppo import PPOComponents, build_ppo_components, simulator_steps_per_frame
+from adarl.runtime.builders.ppo import simulator_steps_per_frame
 from adarl.runtime.trainers.base import BaseTrainer
 
 __all__ = ["PPOTrainer", "normalize_advantage_"]
@@ -44,16 +44,14 @@ def normalize_advantage_(batch: TensorDictBase, key: str = "advantage", eps: flo
     return batch
 
 
-class PPOTrainer(BaseTrainer, algorithm="ppo"):
-    """Runs a PPO/RNAC recipe in a run folder; same outputs as :class:`~adarl.runtime.trainers.sac.SACTrainer`
-    (and ``simulator_steps_per_frame``/``simulator_steps`` in the summary). Its components
+class PPOTrainer(BaseTrainer):
+    """Runs a PPO/RNAC recipe in a run folder; same outputs as
+    :class:`~adarl.runtime.trainers.off_policy.OffPolicyTrainer` (and ``simulator_steps_per_frame``/``simulator_steps``
+    in the summary). Its components
     (:class:`~adarl.runtime.builders.ppo.PPOComponents`) save and load their own state."""
 
     #: PPO iterations done (one per collected batch)
     counters = {"iterations": (int, 0)}
-
-    def _build_components(self, state: dict | None) -> PPOComponents:
-        return build_ppo_components(self.recipe)
 
     # ------------------------------------------------------------------ one batch
     def _consume(self, batch: TensorDictBase) -> list[dict[str, torch.Tensor]]:

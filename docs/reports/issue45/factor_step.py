@@ -19,7 +19,7 @@ import math
 
 import torch
 
-from adarl.runtime.builders.sac import build_components
+from adarl.runtime.builders.sac import build_sac_components
 from adarl.runtime.config import load_recipe
 
 PILOT = [
@@ -54,7 +54,7 @@ def main() -> None:
     args = ap.parse_args()
     logs = []
     for seed in args.seeds:
-        c = build_components(load_recipe("hopper_adarl", PILOT + [f"seed={seed}"]))
+        c = build_sac_components(load_recipe("hopper_adarl", PILOT + [f"seed={seed}"]))
         torch.manual_seed(seed)
         c.replay_buffer.extend(c.env.rollout(5000, break_when_any_done=False).reshape(-1))
         loss, lr = c.modules.loss, c.recipe.algorithm.lr

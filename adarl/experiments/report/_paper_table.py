@@ -1,14 +1,14 @@
 """The report's sections for ``report.paper_table``: the paper's table as it prints it, its mean ± std beside ours
 in every cell with both bold rules, P(reference > each method) per row, and rliable's aggregate across its rows on
 normalised scores (mean, IQM, optimality gap, performance profile). Private module of
-:mod:`adarl.experiments.aggregate`; the spec's part is :mod:`adarl.experiments._paper_spec`.
+:mod:`adarl.experiments.report`; the spec's part is :mod:`adarl.experiments._paper_spec`.
 
 The two bold rules of a row, both over the paper's own methods only (not its ``extra_columns``):
 
 * the paper's: the best mean of the row (applied to the paper's numbers and, separately, to ours among the methods
   with runs);
 * the protocol's: a method is "not beaten" when no other method of the row with runs beats it by the decision rule
-  (:func:`~adarl.experiments._sections.verdict`: P's 95% interval excludes 0.5, with ``verdict_seeds`` reached);
+  (:func:`~adarl.experiments.report._sections.verdict`: P's 95% interval excludes 0.5, with ``verdict_seeds`` reached);
   while one of its comparisons waits for seeds it is neither.
 """
 
@@ -22,12 +22,12 @@ from pydantic import ValidationError
 from scipy.stats import mannwhitneyu
 
 from adarl.errors import RecipeError
-from adarl.experiments._blocks import Block, Bold, Heading, Image, Paragraph, Table, csv_text
-from adarl.experiments._figures import plot_normalised_aggregate
 from adarl.experiments._paper_spec import PaperTable
-from adarl.experiments._runs import Aggregate, Group
-from adarl.experiments._sections import _planned_seeds, verdict
-from adarl.experiments.stats import interval_estimate, performance_profile, poi_estimate
+from adarl.experiments.report._blocks import Block, Bold, Heading, Image, Paragraph, Table, csv_text
+from adarl.experiments.report._figures import plot_normalised_aggregate
+from adarl.experiments.report._runs import Aggregate, Group
+from adarl.experiments.report._sections import _planned_seeds, verdict
+from adarl.experiments.report.stats import interval_estimate, performance_profile, poi_estimate
 
 __all__ = ["paper_table_of", "paper_table_blocks", "protocol_status"]
 
@@ -314,8 +314,8 @@ def _aggregate_blocks(table: PaperTable, by: dict, row_axis: str, out: Path) -> 
             f"{row_axis} values): the mean and the IQM of the normalised scores, and the optimality gap at 1 "
             f"(1 - mean(min(x, 1)): how far the runs fall short of {ref} on average; 0 = every run at or above it), "
             f"each with a 95% stratified-bootstrap interval (2000 resamples within each {row_axis}, fixed seed; "
-            "rliable's estimators, adarl.experiments.stats). Paper: the mean over the same rows of the paper's own "
-            "means, normalised alike (its runs are not published: no IQM, gap or interval). The performance "
+            "rliable's estimators, adarl.experiments.report.stats). Paper: the mean over the same rows of the paper's "
+            "own means, normalised alike (its runs are not published: no IQM, gap or interval). The performance "
             "profile is the share of runs whose normalised score exceeds tau, with its 95% band. Data in "
             "normalised_aggregate.csv, normalised_scores.csv and normalised_profile.csv."
         ),

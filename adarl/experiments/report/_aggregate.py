@@ -7,14 +7,15 @@ replicates. A run's score is the mean of its last ``report.score_last`` nominal-
 default: the last one; issue 34's protocol uses 3); a group's score is the mean ± sample std of its seeds' scores
 (the paper's Table 1 convention), with the number of seeds shown.
 
-This module is the hub; the work is done in private modules, one job each: :mod:`~adarl.experiments._runs` (run
-folders to records and groups), :mod:`~adarl.experiments._sections` (tables, statistics and the decision rule),
-:mod:`~adarl.experiments._figures` (plots), :mod:`~adarl.experiments._blocks` (Markdown, HTML and CSV).
+:mod:`adarl.experiments.report` is the hub; the work is done in private modules, one job each: this one writes the
+report; :mod:`~adarl.experiments.report._runs` (run folders to records and groups),
+:mod:`~adarl.experiments.report._sections` (tables, statistics and the decision rule),
+:mod:`~adarl.experiments.report._figures` (plots), :mod:`~adarl.experiments.report._blocks` (Markdown, HTML and CSV).
 
 Outputs in the report folder: ``report.md``, ``report.html``, ``table.csv``, ``runs.csv``, ``statistics.csv``, and
 per figure a PNG with the CSV it was drawn from: ``learning_curves``, ``learning_curves_by_seed``, ``ranks``,
 ``return_vs_<axis>`` (Fig. 1), ``sweep_<name>`` (Fig. 8); with ``report.paper_table``
-(:mod:`~adarl.experiments._paper_table`), ``paper_table.csv`` and the normalised aggregate (``normalised_*``).
+(:mod:`~adarl.experiments.report._paper_table`), ``paper_table.csv`` and the normalised aggregate (``normalised_*``).
 """
 
 from __future__ import annotations
@@ -27,10 +28,18 @@ import os
 import tempfile
 from pathlib import Path
 
-from adarl.envs.registry import ACTION_DIMS, intrinsic_rank
 from adarl.errors import RecipeError
-from adarl.experiments._blocks import Code, Heading, Image, Paragraph, Table, csv_text, render_html, render_markdown
-from adarl.experiments._figures import (
+from adarl.experiments.report._blocks import (
+    Code,
+    Heading,
+    Image,
+    Paragraph,
+    Table,
+    csv_text,
+    render_html,
+    render_markdown,
+)
+from adarl.experiments.report._figures import (
     plot_learning_curves,
     plot_rank_trajectories,
     plot_return_vs,
@@ -39,42 +48,15 @@ from adarl.experiments._figures import (
     plot_sweeps,
     rank_x_label,
 )
-from adarl.experiments._paper_table import paper_table_blocks
-from adarl.experiments._runs import (
-    Aggregate,
-    Group,
-    RunRecord,
-    _load_run,
+from adarl.experiments.report._paper_table import paper_table_blocks
+from adarl.experiments.report._runs import (
     _num_key,
-    _rank_series,
     aggregate_runs,
-    axes_from_run_id,
-    collect_runs,
-    event_dips,
-    is_single_run,
-    rank_settling,
 )
-from adarl.experiments._sections import _rank_settling_blocks, _statistics_blocks, _table, verdict
+from adarl.experiments.report._sections import _rank_settling_blocks, _statistics_blocks, _table
 from adarl.runtime.results import download_results, exists, is_url, join, upload_tree
 
-__all__ = [
-    "RunRecord",
-    "Group",
-    "Aggregate",
-    "collect_runs",
-    "aggregate_runs",
-    "axes_from_run_id",
-    "write_aggregate_report",
-    "is_single_run",
-    "intrinsic_rank",
-    "event_dips",
-    "rank_settling",
-    "verdict",
-    "ACTION_DIMS",
-]
-
-# names the tests and older callers import from here (the private modules hold them now)
-_PRIVATE = (_load_run, _rank_series)
+__all__ = ["write_aggregate_report"]
 
 
 def write_aggregate_report(

@@ -1,7 +1,7 @@
 """The report's sections: the score table, statistics across seeds with the decision rule's verdict, the plateau
 count, scores at given optimisation steps, the training return around rank events (Fig. 9) and the rank settling
-table (Fig. 4). Each returns its blocks (:mod:`adarl.experiments._blocks`) and writes the CSV it was computed from.
-Private module of :mod:`adarl.experiments.aggregate`.
+table (Fig. 4). Each returns its blocks (:mod:`adarl.experiments.report._blocks`) and writes the CSV it was computed
+from. Private module of :mod:`adarl.experiments.report`.
 """
 
 from __future__ import annotations
@@ -11,9 +11,9 @@ import statistics
 from pathlib import Path
 
 from adarl.envs.registry import intrinsic_rank
-from adarl.experiments._blocks import Block, Heading, Paragraph, Table, csv_text
-from adarl.experiments._runs import Aggregate, Group, _num_key, event_dips, rank_settling
-from adarl.experiments.stats import interval_estimate, poi_estimate
+from adarl.experiments.report._blocks import Block, Heading, Paragraph, Table, csv_text
+from adarl.experiments.report._runs import Aggregate, Group, _num_key, event_dips, rank_settling
+from adarl.experiments.report.stats import interval_estimate, poi_estimate
 
 
 def _cell(g: Group | None) -> str:
@@ -195,7 +195,7 @@ def _planned_seeds(need: int | dict[str, int]) -> str:
 
 def _statistics_blocks(agg: Aggregate, out: Path) -> list[Block]:
     """IQM and mean with stratified bootstrap intervals, probability of improvement over the reference column,
-    and scores at the optimisation steps the spec names (adarl.experiments.stats); writes statistics.csv."""
+    and scores at the optimisation steps the spec names (adarl.experiments.report.stats); writes statistics.csv."""
     col_axis = agg.report.get("columns") or ("algorithm" if "algorithm" in agg.axes else None)
     ref = agg.report.get("reference")
     groups = sorted(agg.groups, key=lambda g: [_num_key(v) for _, v in g.key])
@@ -277,7 +277,7 @@ def _statistics_blocks(agg: Aggregate, out: Path) -> list[Block]:
         Paragraph(
             "Each seed counted once. Mean and interquartile mean (IQM: the mean of the middle 50% of the seeds' "
             "scores) with 95% stratified-bootstrap percentile intervals (2000 resamples of the seeds within each "
-            "env, fixed seed), computed by adarl.experiments.stats as the rliable library defines them"
+            "env, fixed seed), computed by adarl.experiments.report.stats as the rliable library defines them"
             + (
                 f"; P({ref} > setting): the probability that a run of {ref} scores above a run of the setting "
                 "(ties count half), with its bootstrap interval, and the verdict it gives: one side 'beats' the "

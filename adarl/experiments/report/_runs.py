@@ -3,7 +3,7 @@ r"""The runs a report reads: run folders (or experiment folders) become :class:`
 Nothing is typed in: every number comes from the run folders' ``eval.csv``, ``ranks.json``, ``metrics/``, ``sweeps/``
 and ``summary.json``. A run's score follows the report's rule (``report.score_last``: the mean of its last N nominal
 evaluations); seeds are the replicates of a setting (:class:`Group`). Private module of
-:mod:`adarl.experiments.aggregate`.
+:mod:`adarl.experiments.report`.
 """
 
 from __future__ import annotations

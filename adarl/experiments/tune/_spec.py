@@ -21,7 +21,7 @@ A spec is a YAML file with ``kind: tune`` (the shipped ones are in ``recipes/tun
 :func:`load_tune_spec` reads the file and checks its own keys (did-you-mean for a misspelt one, allowed values for a
 name); :func:`check_space` checks every search-space key against the recipe: the key must exist and each end of its
 range (each choice) must validate as a value of it, by building the recipe with it. Nothing here imports Optuna:
-:mod:`adarl.experiments.tune` runs the study.
+:mod:`adarl.experiments.tune._study` runs the study.
 """
 
 from __future__ import annotations
@@ -41,7 +41,6 @@ from adarl.experiments.sweep import parse_sweep
 from adarl.runtime.config import TUNE_DIR, load_recipe, recipes_dir
 
 __all__ = [
-    "TUNE_DIR",
     "SAMPLERS",
     "PRUNERS",
     "Param",

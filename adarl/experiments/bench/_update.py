@@ -10,7 +10,7 @@ critic, one torch thread unless told otherwise. ``adarl bench --help`` lists the
 ``python -m adarl.experiments.bench --worker ...`` is the per-measurement entry point the driver calls.
 
 ``adarl bench --whole-run`` times whole runs instead, process start to exit, against SB3 SAC
-(:mod:`adarl.experiments.bench_whole_run`, the driver); its SB3 run (:func:`whole_run_sb3`) and the act()
+(:mod:`adarl.experiments.bench._whole_run`, the driver); its SB3 run (:func:`whole_run_sb3`) and the act()
 latencies of ``--inference`` (:func:`act_latency`) run here, in worker processes
 (``--whole-run-worker sb3``, ``--act-latency-worker``).
 
@@ -666,9 +666,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def cli(a) -> int:
-    """``adarl bench`` (the update window; ``--whole-run`` goes to :mod:`adarl.experiments.bench_whole_run`)."""
+    """``adarl bench`` (the update window; ``--whole-run`` goes to :mod:`adarl.experiments.bench._whole_run`)."""
     if getattr(a, "whole_run", False):  # `python -m adarl.experiments.bench --whole-run`: not this driver's mode
-        raise AdaRLValueError("--whole-run is timed by `adarl bench --whole-run` (adarl.experiments.bench_whole_run)")
+        raise AdaRLValueError("--whole-run is timed by `adarl bench --whole-run` (adarl.experiments.bench._whole_run)")
     a.variants = list(VARIANTS) if a.variants is None else a.variants
     a.warmup = 1000 if a.warmup is None else a.warmup
     a.output = "bench.json" if a.output is None else a.output

@@ -1,12 +1,16 @@
-"""AdaRL-SAC end to end: :class:`SACTrainer` runs a SAC recipe (AdaRL and the SAC baselines) in a run folder
-(``Trainer`` is an alias, its name before the PPO loop had its own).
+"""The off-policy loop end to end: :class:`OffPolicyTrainer` runs a recipe on any off-policy family (``sac``: AdaRL
+and the SAC baselines; ``td3``: TD3 and DDPG; a family of your own) in a run folder.
 
-What it adds to :class:`~adarl.runtime.trainers.base.BaseTrainer`: its step. Each batch goes into the replay buffer,
-then the update-to-data cadence (``algorithm.utd_ratio`` from ``algorithm.update_after`` on) runs the update step
-(:class:`~adarl.runtime.update.UpdateStep`: TorchRL's ``SACLoss`` step or the fused one, both checked by the
-divergence guard) and the rank adapter. Its components (:class:`~adarl.runtime.builders.sac.SACComponents`) save and
-load their own state, replay buffer included; what a rank event sets off, the warm start's frames and the rank
-records included, is wired in :mod:`adarl.runtime.rank_events`.
+One trainer for every off-policy loss, as TorchRL's ``Trainer`` is one loop whatever the loss: what differs between
+SAC and TD3 (networks, loss, update step) is the family's builder's (:func:`~adarl.runtime.families.family`,
+``family(recipe).build(...)``), so a new family needs no trainer. What it adds to
+:class:`~adarl.runtime.trainers.base.BaseTrainer`: its step. Each batch goes into the replay buffer, then the
+update-to-data cadence (``algorithm.utd_ratio`` from ``algorithm.update_after`` on) runs the family's update step
+(:class:`~adarl.runtime.update.UpdateStep`: TorchRL's ``SACLoss`` step or the fused one, TD3's delayed-actor step;
+each checked by the divergence guard) and the rank adapter. Its components
+(:class:`~adarl.runtime.builders.off_policy.OffPolicyComponents`) save and load their own state, replay buffer
+included; what a rank event sets off, the warm start's frames and the rank records included, is wired in
+:mod:`adarl.runtime.rank_events`.
 """
 
 from __future__ import annotations
@@ -15,10 +19,11 @@ import torch
 from tensordict import TensorDictBase
 
 from adarl.core.adapter import RankAdapter
-from adarl.runtime.builders.sac import SACComponents, build_sac_components, update_after
+from adarl.runtime.builders.off_policy import OffPolicyComponents, update_after
+from adarl.runtime.families import family
 from adarl.runtime.trainers.base import BaseTrainer
 
-__all__ = ["SACTrainer", "Trainer"]
+__all__ = ["OffPolicyTrainer"]
 
 
 def _rank_summary(adapter: RankAdapter | None) -> str:
@@ -28,10 +33,12 @@ def _rank_summary(adapter: RankAdapter | None) -> str:
     return " ".join(f"{name}={rank}" for name, rank in adapter.named_ranks.items())
 
 
-class SACTrainer(BaseTrainer, algorithm="sac"):
-    """Runs a SAC recipe in one run folder: train, adapt ranks, evaluate on nominal dynamics, checkpoint, report.
+class OffPolicyTrainer(BaseTrainer):
+    """Runs a recipe on an off-policy loop in one run folder: train, adapt ranks, evaluate on nominal dynamics,
+    checkpoint, report.
 
-    ``SACTrainer(recipe, run_dir).train()`` for a new run; ``SACTrainer.resume(run_dir).train()`` to continue one.
+    ``OffPolicyTrainer(recipe, run_dir).train()`` for a new run; ``BaseTrainer.resume(run_dir).train()`` to continue
+    one.
 
     >>> from tensordict import TensorDict
     >>> from adarl import load_policy, load_recipe
@@ -39,7 +46,7 @@ class SACTrainer(BaseTrainer, algorithm="sac"):
     >>> recipe = load_recipe("quickstart", ["collector.total_frames=400", "collector.init_random_frames=200",
     ...                                     "collector.frames_per_batch=100", "replay.size=400",
     ...                                     "replay.warm_start.frames=100", "eval.episodes=1", "eval.max_steps=50"])
-    >>> summary = SACTrainer(recipe, RunDir.create("runs/tiny"), quiet=True).train()
+    >>> summary = OffPolicyTrainer(recipe, RunDir.create("runs/tiny"), quiet=True).train()
     >>> summary["frames"], summary["updates"]
     (400, 200)
     >>> policy = load_policy("runs/tiny")  # the trained actor, a TorchRL ProbabilisticActor
@@ -51,12 +58,12 @@ class SACTrainer(BaseTrainer, algorithm="sac"):
     #: env frames rank events' warm starts collected
     counters = {"pending_updates": (float, None), "warm_start_frames": (int, 0)}
 
-    def _build_components(self, state: dict | None) -> SACComponents:
+    def _build_components(self, state: dict | None) -> OffPolicyComponents:
         init_random = None
         if state is not None and state.get("collector") is None:
             # Checkpoints without the collector's state (older format): skip the random frames already done.
             init_random = max(0, self.recipe.collector.init_random_frames - int(state["counters"]["frames"]))
-        return build_sac_components(
+        return family(self.recipe).build(
             self.recipe,
             init_random_frames=init_random,
             scratch_dir=None if self.read_only else self.run_dir.path / "replay_storage",
@@ -87,7 +94,7 @@ class SACTrainer(BaseTrainer, algorithm="sac"):
         return losses
 
     def _update(self) -> dict[str, torch.Tensor]:
-        """One SAC optimisation step (guarded), then (maybe) a rank event."""
+        """One optimisation step of the family's update step (guarded), then (maybe) a rank event."""
         out = self.c.update(self.guard, update=self.updates)
         self.updates += 1
         if self.c.adapter is not None:
@@ -96,7 +103,3 @@ class SACTrainer(BaseTrainer, algorithm="sac"):
 
     def _postfix(self) -> dict:
         return {"ret": f"{self.last_return:.1f}", "ranks": _rank_summary(self.c.adapter), "upd": str(self.updates)}
-
-
-#: the name :class:`SACTrainer` had before the PPO loop had its own (kept: an alias)
-Trainer = SACTrainer

@@ -2,7 +2,7 @@
 the CSV text each table and figure writes beside it.
 
 The report's sections build blocks; this module alone knows the output formats, so a section never writes
-Markdown by hand. Private module of :mod:`adarl.experiments.aggregate`.
+Markdown by hand. Private module of :mod:`adarl.experiments.report`.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """``adarl bench --whole-run``: whole training runs timed as a user waits for them, AdaRL against SB3 SAC.
 
-The update-window benchmark (:mod:`adarl.experiments.bench`) times updates after warm-up. What a user waits for is
-more: process start (imports), the random frames, the updates, rank events with their warm starts, evaluations,
+The update-window benchmark (:mod:`adarl.experiments.bench._update`) times updates after warm-up. What a user waits
+for is more: process start (imports), the random frames, the updates, rank events with their warm starts, evaluations,
 checkpoints and the report. Here each variant is one whole run in a fresh subprocess, timed by this driver from
 just before the process is started to its exit:
 
@@ -46,7 +46,7 @@ from importlib import metadata
 from pathlib import Path
 
 from adarl.errors import AdaRLValueError
-from adarl.experiments.bench import interleave
+from adarl.experiments.bench._update import interleave
 from adarl.runtime.config import load_recipe
 
 __all__ = [
@@ -56,6 +56,8 @@ __all__ = [
     "rank_interval",
     "adarl_overrides",
     "adarl_command",
+    "sb3_command",
+    "event_threads",
     "run_whole_runs",
     "format_whole_run_table",
     "command_line",

@@ -1,6 +1,6 @@
 """What ``adarl tune`` writes once its study has run: ``trials.csv`` (one row per trial), ``best_recipe.yaml`` (the
 best trial's recipe, resolved: ``adarl run`` accepts it), the figures (optimisation history, intermediate values,
-parameter importances) and ``report.md``. Private module of :mod:`adarl.experiments.tune`.
+parameter importances) and ``report.md``. Private module of :mod:`adarl.experiments.tune._study`.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from pathlib import Path
 import optuna
 from optuna.trial import TrialState
 
-from adarl.experiments.tune_spec import TuneSpec, override_value, trial_overrides
+from adarl.experiments.tune._spec import TuneSpec, override_value, trial_overrides
 from adarl.runtime.config import load_recipe, recipe_to_yaml
 from adarl.runtime.report import pyplot
 

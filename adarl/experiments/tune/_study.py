@@ -36,8 +36,12 @@ from optuna.distributions import CategoricalDistribution, FloatDistribution, Int
 from optuna.trial import TrialState
 
 from adarl.errors import AdaRLError, AdaRLValueError, RecipeError, is_storage_failure
-from adarl.experiments._tune_outputs import write_outputs
-from adarl.experiments._tune_records import (
+from adarl.experiments.execute import clear_stop, run_is_finished
+from adarl.experiments.launchers import Launcher, LocalLauncher, make_launcher
+from adarl.experiments.spec import PlannedRun
+from adarl.experiments.sweep import parse_sweep, sweep_run
+from adarl.experiments.tune._outputs import write_outputs
+from adarl.experiments.tune._records import (
     TRIAL_FILE,
     check_trial,
     mean_scores,
@@ -48,13 +52,9 @@ from adarl.experiments._tune_records import (
     trial_run_dir,
     write_record,
 )
-from adarl.experiments._tune_records import scores as _scores
-from adarl.experiments._tune_records import write_trial_file as _write_trial_file
-from adarl.experiments.execute import clear_stop, run_is_finished
-from adarl.experiments.launchers import Launcher, LocalLauncher, make_launcher
-from adarl.experiments.spec import PlannedRun
-from adarl.experiments.sweep import parse_sweep, sweep_run
-from adarl.experiments.tune_spec import (
+from adarl.experiments.tune._records import scores as _scores
+from adarl.experiments.tune._records import write_trial_file as _write_trial_file
+from adarl.experiments.tune._spec import (
     Param,
     TuneSpec,
     check_space,
@@ -70,11 +70,7 @@ __all__ = [
     "run_tune",
     "TuneResult",
     "STUDY_FILE",
-    "TRIAL_FILE",
-    "trial_dir",
-    "trial_run_dir",
     "distributions",
-    "mean_scores",
 ]
 
 STUDY_FILE = "study.db"
@@ -259,7 +255,7 @@ class _Study:
 
     def _check_old_trials_base(self) -> None:
         """A study made before its base recipe was pinned by content: each trial's run (finished or resumable) must
-        be what its parameters make from the recipe now (:func:`~adarl.experiments._tune_records.check_trial`)."""
+        be what its parameters make from the recipe now (:func:`~adarl.experiments.tune._records.check_trial`)."""
         for t in self.study.get_trials(deepcopy=False):
             if set(t.params) == set(self.dists):
                 check_trial(self.spec, self.out, t.number, dict(t.params))

@@ -1,6 +1,6 @@
 """The record ``adarl tune`` keeps of each trial beside its run, and what it is for: rebuilding a study whose
 ``study.db`` was lost, emptied or replaced, and refusing a trial folder made with other settings. Private module of
-:mod:`adarl.experiments.tune`.
+:mod:`adarl.experiments.tune._study`.
 
 ``<output>/trials/trial-NNNN.json`` is written when the trial is asked, before its run starts (number, parameters,
 the sampler's attributes, the study's settings), and again when it ends (state, value, per-seed values, where it was
@@ -26,7 +26,7 @@ from optuna.trial import TrialState
 
 from adarl.errors import RecipeError
 from adarl.experiments.execute import run_is_finished
-from adarl.experiments.tune_spec import TuneSpec, override_value, trial_overrides
+from adarl.experiments.tune._spec import TuneSpec, override_value, trial_overrides
 from adarl.runtime.config import load_recipe
 from adarl.runtime.fingerprint import differences
 from adarl.runtime.run_dir import RunDir

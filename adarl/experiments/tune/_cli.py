@@ -1,5 +1,6 @@
 """The ``adarl tune`` command's arguments and its entry (:func:`cli`), light enough for the ``adarl`` parser to
-import at its top: Optuna, torch and the study driver (:mod:`adarl.experiments.tune`) are imported when it runs."""
+import at its top: Optuna, torch and the study driver (:mod:`adarl.experiments.tune._study`) are imported when it
+runs."""
 
 from __future__ import annotations
 
@@ -34,7 +35,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def cli(args) -> int:
     try:
-        from adarl.experiments.tune import run_tune
+        from adarl.experiments.tune._study import run_tune
     except ImportError as err:
         if getattr(err, "name", "") != "optuna":
             raise

@@ -1,6 +1,6 @@
 """The report's figures: learning curves (with rank events and restarts marked), rank trajectories against
 2*d_a+1, return against a numeric axis (Fig. 1) and robustness sweeps (Fig. 8). Each writes its PNG (matplotlib,
-Agg) and the CSV it was drawn from. Private module of :mod:`adarl.experiments.aggregate`.
+Agg) and the CSV it was drawn from. Private module of :mod:`adarl.experiments.report`.
 """
 
 from __future__ import annotations
@@ -11,9 +11,9 @@ import statistics
 from pathlib import Path
 
 from adarl.envs.registry import intrinsic_rank
-from adarl.experiments._blocks import csv_text
-from adarl.experiments._runs import Aggregate, Group, _num_key, _rank_series, rank_on_frames
-from adarl.experiments.stats import interval_estimate, poi_estimate
+from adarl.experiments.report._blocks import csv_text
+from adarl.experiments.report._runs import Aggregate, Group, _num_key, _rank_series, rank_on_frames
+from adarl.experiments.report.stats import interval_estimate, poi_estimate
 from adarl.runtime.report import pyplot, rank_ticks
 
 
@@ -266,7 +266,7 @@ def plot_rliable(agg: Aggregate, out: Path, ref: str | None, col_axis: str | Non
     """rliable's three figures (Agarwal et al. 2021) from the scores: interval estimates (mean and IQM with 95%
     stratified-bootstrap intervals per setting), the performance profile (the share of runs scoring above tau, with
     a bootstrap band) and, against the reference, the probability of improvement with its interval. Drawn with
-    matplotlib from :mod:`adarl.experiments.stats` (rliable's estimators; the package itself is not needed).
+    matplotlib from :mod:`adarl.experiments.report.stats` (rliable's estimators; the package itself is not needed).
     Data: rliable.csv."""
     groups = [g for g in sorted(agg.groups, key=lambda g: [_num_key(v) for _, v in g.key]) if len(g.scores) >= 2]
     if not groups:

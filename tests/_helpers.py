@@ -1,0 +1,172 @@
+"""What many test files share: tiny-run overrides, ``adarl`` in a subprocess, waiting on one, installed plugins.
+
+* :func:`tiny` / :func:`tiny_ppo`: the overrides of a tiny run (Hopper, seconds): one base list each; a test that
+  needs other values passes them (``tiny("collector.total_frames=1600", "eval.episodes=1")`` replaces those keys in
+  place, a key the base lacks is appended) or drops keys (``drop=("rank.interval",)``).
+* :func:`adarl` / :func:`start_adarl`: ``python -m adarl.cli ARGS`` (one torch thread, this checkout first on
+  ``PYTHONPATH``, an installed plugin's folder after it), run to its end or started in the background;
+  :func:`wait_for` polls a condition while such a process runs; :func:`checkpoints` names a run's checkpoints.
+* :func:`install_plugin`: a plugin package pip-installed into a folder of its own (``pip install --target``, so the
+  test venv is left as it was); put that folder on ``PYTHONPATH`` (``site=``) to use it.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+
+#: the tiny SAC run: 600 frames, rank events every 150 updates, evaluations and checkpoints every 300 frames
+TINY = (
+    "collector.total_frames=600",
+    "collector.init_random_frames=200",
+    "collector.frames_per_batch=100",
+    "algorithm.batch_size=32",
+    "rank.interval=150",
+    "replay.size=2000",
+    "replay.warm_start.frames=100",
+    "lr_schedule.warmup_steps=20",
+    "eval.interval=300",
+    "eval.episodes=2",
+    "eval.max_steps=50",
+    "checkpoint.interval=300",
+)
+#: with :func:`tiny`: 1600 frames, rank events every 400 updates (at least two; they truncate the actor's second
+#: layer): the CLI, policy and export tests' run
+RANK_EVENTS = (
+    "collector.total_frames=1600",
+    "collector.init_random_frames=300",
+    "algorithm.batch_size=64",
+    "rank.interval=400",
+    "replay.size=5000",
+    "lr_schedule.warmup_steps=50",
+    "eval.interval=800",
+    "eval.max_steps=60",
+    "checkpoint.interval=500",
+)
+#: with :func:`tiny`: N = 1200 frames, a multiple of the batch (100), the evaluation (600), logging (200) and
+#: checkpoint (400) intervals: the continued-run and run-log tests' run
+INTERVALS_1200 = (
+    "collector.total_frames=1200",
+    "collector.init_random_frames=300",
+    "algorithm.batch_size=64",
+    "rank.interval=300",
+    "replay.size=5000",
+    "lr_schedule.warmup_steps=50",
+    "eval.interval=600",
+    "eval.episodes=1",
+    "eval.max_steps=40",
+    "checkpoint.interval=400",
+    "logging.log_interval=200",
+)
+#: the tiny PPO run: two batches of 128 frames, one epoch
+TINY_PPO = (
+    "collector.total_frames=256",
+    "collector.frames_per_batch=128",
+    "algorithm.ppo.epochs=1",
+    "eval.interval=256",
+    "eval.episodes=1",
+    "eval.max_steps=30",
+    "checkpoint.interval=256",
+)
+
+
+def _merged(base: tuple[str, ...], overrides: tuple[str, ...], drop) -> list[str]:
+    out = {o.split("=", 1)[0]: o for o in base}
+    for o in overrides:
+        out[o.split("=", 1)[0]] = o  # a key of the base keeps its place; a new one goes last
+    unknown = set(drop) - set(out)
+    assert not unknown, f"drop names keys the list does not hold: {sorted(unknown)}"
+    return [o for k, o in out.items() if k not in drop]
+
+
+def tiny(*overrides: str, drop=()) -> list[str]:
+    """:data:`TINY` with ``overrides`` (``key=value``) in place of its values for those keys, less ``drop``."""
+    return _merged(TINY, overrides, drop)
+
+
+def tiny_ppo(*overrides: str, drop=()) -> list[str]:
+    """:data:`TINY_PPO` with ``overrides`` in place of its values for those keys, less ``drop``."""
+    return _merged(TINY_PPO, overrides, drop)
+
+
+def adarl_env(site: Path | None = None) -> dict[str, str]:
+    """The environment of an ``adarl`` subprocess: this checkout (and ``site``, an installed plugin's folder) on
+    ``PYTHONPATH``, one torch/OpenMP thread, headless MuJoCo."""
+    paths = [str(REPO)] + ([str(site)] if site is not None else [])
+    return {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join(paths),
+        "OMP_NUM_THREADS": "1",
+        "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"),
+    }
+
+
+def adarl(
+    *args: str, cwd: Path | None = None, site: Path | None = None, timeout: float = 600, env: dict | None = None
+) -> subprocess.CompletedProcess:
+    """``adarl ARGS`` in a subprocess, run to its end; its output captured as text (``env``: variables to set)."""
+    return subprocess.run(
+        [sys.executable, "-m", "adarl.cli", *args],
+        cwd=cwd or REPO,
+        env={**adarl_env(site), **(env or {})},
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+
+
+def start_adarl(*args: str, cwd: Path | None = None, site: Path | None = None) -> subprocess.Popen:
+    """``adarl ARGS`` in the background, to be stopped, killed or signalled at a moment a test waits for."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "adarl.cli", *args],
+        cwd=cwd or REPO,
+        env=adarl_env(site),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+def wait_for(condition, proc: subprocess.Popen, timeout: float = 300, poll: float = 0.05) -> bool:
+    """Poll ``condition()`` (a file appearing) until it holds, ``proc`` ends (then: whether it holds now) or
+    ``timeout`` seconds pass (generous: CI is loaded). Nothing is decided by the clock but the limit."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if condition():
+            return True
+        if proc.poll() is not None:
+            return bool(condition())
+        time.sleep(poll)
+    return False
+
+
+def checkpoints(run: Path) -> set[str]:
+    """The names of a run folder's checkpoint files (``ckpt-<frames>.pt``)."""
+    folder = run / "checkpoints"
+    return {p.name for p in folder.glob("ckpt-*.pt")} if folder.is_dir() else set()
+
+
+def install_plugin(root: Path, package: str, source: str, pyproject: str) -> Path:
+    """The plugin package ``package`` (its ``__init__.py`` is ``source``, with ``pyproject``), pip-installed into a
+    folder of its own under ``root``; returns that folder."""
+    src = root / "src"
+    (src / package).mkdir(parents=True)
+    (src / package / "__init__.py").write_text(textwrap.dedent(source))
+    (src / "pyproject.toml").write_text(textwrap.dedent(pyproject))
+    site = root / "site"
+    proc = subprocess.run(
+        [sys.executable, "-m", "pip", "install", "--no-deps", "--no-build-isolation", "--no-index", "-q"]
+        + ["--target", str(site), str(src)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    assert (site / package).is_dir()
+    return site
