@@ -92,7 +92,7 @@ def _missing_parents(path: Path) -> list[Path]:
 
 def cmd_run(args) -> int:
     from adarl.runtime.config import load_recipe
-    from adarl.runtime.run_dir import RunDir, logging_backends
+    from adarl.runtime.run_folder.run_dir import RunDir, logging_backends
     from adarl.runtime.trainers import trainer_class
 
     recipe = load_recipe(args.recipe, args.overrides)  # validates everything before anything is written
@@ -297,7 +297,7 @@ def cmd_experiment(args) -> int:
     from adarl.experiments.orchestrate import run_experiment
     from adarl.experiments.progress import use_live
     from adarl.experiments.spec import load_experiment
-    from adarl.runtime.results import is_url
+    from adarl.runtime.run_folder.results import is_url
 
     options = launcher_options(args)
     live = not args.no_live and use_live()

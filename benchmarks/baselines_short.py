@@ -56,7 +56,7 @@ def main() -> None:
 
     from adarl.runtime.config import load_recipe
     from adarl.runtime.evaluation import evaluate_policy
-    from adarl.runtime.run_dir import RunDir
+    from adarl.runtime.run_folder.run_dir import RunDir
     from adarl.runtime.trainers import trainer_class
 
     out = Path(args.out)

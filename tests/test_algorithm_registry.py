@@ -118,7 +118,7 @@ def test_another_override_falls_back_in_one_line_and_its_metrics_are_returned(re
     assert {"loss_actor", "loss_qvalue", "loss_alpha", "alpha", "entropy", "target_shift", "my_metric"} <= set(out)
     c.close()
     # loaded to evaluate (`adarl eval`, `adarl play`: read-only, no update runs): not said (issue 48.6)
-    from adarl.runtime.run_dir import RunDir
+    from adarl.runtime.run_folder.run_dir import RunDir
     from adarl.runtime.trainers import OffPolicyTrainer
 
     with warnings.catch_warnings(record=True) as caught:

@@ -385,7 +385,7 @@ def test_clipped_normal_and_box_tanh():
 def _advantage_seen_by_the_loss(tmp_path, how: str) -> tuple[torch.Tensor, torch.Tensor, float]:
     """Run one PPO iteration on a batch whose advantages are 0 .. 127, and return the raw advantages of the first
     minibatch, all raw advantages, and the first update's loss_objective (ratio 1 there, so it is -mean(A_used))."""
-    from adarl.runtime.run_dir import RunDir
+    from adarl.runtime.run_folder.run_dir import RunDir
     from adarl.runtime.trainers import PPOTrainer
 
     torch.manual_seed(0)
@@ -621,7 +621,7 @@ def test_bad_baseline_settings_are_recipe_errors(recipe, overrides, expected):
 def test_recipes_with_the_old_rnac_section_still_load(tmp_path):
     """Run folders written before RNAC became registered algorithms say name: ppo + algorithm.rnac: read as the new
     names, and their checkpoints (fingerprint algorithm.name 'ppo', no options) still load."""
-    from adarl.runtime._run_checkpoints import _same_in_fingerprint, recipe_fingerprint
+    from adarl.runtime.run_folder._checkpoints import _same_in_fingerprint, recipe_fingerprint
 
     old = tmp_path / "old.yaml"
     base = (REPO / "recipes" / "baselines" / "ppo_base.yaml").as_posix()

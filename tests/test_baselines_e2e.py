@@ -73,7 +73,7 @@ def test_rnac_resume_from_a_mid_episode_checkpoint_is_exact(mode, tmp_path):
     import torch
 
     from adarl.runtime.config import load_recipe, save_resolved
-    from adarl.runtime.run_dir import RunDir
+    from adarl.runtime.run_folder.run_dir import RunDir
     from adarl.runtime.trainers import OffPolicyTrainer, PPOTrainer
 
     recipe = load_recipe(
@@ -124,7 +124,7 @@ def test_rnac_resume_from_a_mid_episode_checkpoint_is_exact(mode, tmp_path):
 
 def _ppo_trainer(path: Path, *extra: str):
     from adarl.runtime.config import load_recipe, save_resolved
-    from adarl.runtime.run_dir import RunDir
+    from adarl.runtime.run_folder.run_dir import RunDir
     from adarl.runtime.trainers import PPOTrainer
 
     recipe = load_recipe(
@@ -164,7 +164,7 @@ def test_ppo_divergence_guard_stops_or_rolls_back(tmp_path, on_nonfinite):
     import torch
 
     from adarl.runtime.guards import NonFiniteError
-    from adarl.runtime.run_dir import RunDir
+    from adarl.runtime.run_folder.run_dir import RunDir
 
     trainer = _ppo_trainer(tmp_path / "run", f"guards.on_nonfinite={on_nonfinite}", "guards.lr_factor=0.5")
     base_lr = trainer.c.optimizers["actor"].param_groups[0]["lr"]

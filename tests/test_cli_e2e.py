@@ -109,7 +109,7 @@ def test_ranks_fell_and_evaluation_ran(tiny_run: Path):
 
 @pytest.mark.slow
 def test_checkpoint_holds_ranks_and_loads_safely(tiny_run: Path):
-    from adarl.runtime.run_dir import RunDir
+    from adarl.runtime.run_folder.run_dir import RunDir
 
     run = RunDir.open(tiny_run)
     ckpts = run.checkpoints()
@@ -135,7 +135,7 @@ def test_resume_continues_without_duplicated_metrics(tmp_path: Path):
     proc = adarl("run", "quickstart", *TINY, "collector.total_frames=1000", "-o", str(out), "--quiet")
     assert proc.returncode == 0, proc.stderr[-3000:]
     # Pretend the run died after its checkpoint at 500 frames: drop the later checkpoint, keep later metrics.
-    from adarl.runtime.run_dir import RunDir
+    from adarl.runtime.run_folder.run_dir import RunDir
 
     run = RunDir.open(out)
     for ckpt in run.checkpoints():

@@ -353,7 +353,7 @@ def test_a_run_whose_env_or_rank_rule_package_is_gone_is_refused_by_package(tmp_
     """Issue 29.6: plugins.json records the env's and the rank rule's package (as the algorithm's); resume/eval of a
     run whose plugin package is gone names that package, not an unknown env or rule with a did-you-mean."""
     from adarl.core.rank import EnergyRule
-    from adarl.runtime.run_dir import RunDir
+    from adarl.runtime.run_folder.run_dir import RunDir
 
     monkeypatch.setattr(plugins, "_rank_rules", dict(plugins._rank_rules))
     state = registration._registry_state()

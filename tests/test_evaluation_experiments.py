@@ -331,7 +331,7 @@ def test_experiment_end_to_end_two_seeds_two_algorithms(tmp_path):
 def test_hopper_sweep_writes_fig8_plot_and_worst_case(tmp_path):
     from adarl.experiments.sweep import parse_sweep, sweep_run
     from adarl.runtime.config import load_recipe, save_resolved
-    from adarl.runtime.run_dir import RunDir
+    from adarl.runtime.run_folder.run_dir import RunDir
     from adarl.runtime.trainers import OffPolicyTrainer
 
     run = tmp_path / "hopper"

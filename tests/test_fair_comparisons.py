@@ -15,7 +15,7 @@ from adarl.core.warmstart import ReplayWarmStart
 from adarl.errors import AdaRLValueError
 from adarl.runtime.builders.sac import planned_updates, update_after
 from adarl.runtime.config import load_recipe, save_resolved
-from adarl.runtime.run_dir import RunDir
+from adarl.runtime.run_folder.run_dir import RunDir
 from adarl.runtime.trainers import OffPolicyTrainer
 
 SMALL = tiny(

@@ -23,7 +23,7 @@ from adarl.runtime.builders.td3 import build_td3_components
 from adarl.runtime.config import load_recipe
 from adarl.runtime.families import FAMILIES, family, register_family
 from adarl.runtime.policy import load_policy
-from adarl.runtime.run_dir import RunDir
+from adarl.runtime.run_folder.run_dir import RunDir
 from adarl.runtime.trainers import BaseTrainer, OffPolicyTrainer, PPOTrainer, trainer_class
 from adarl.runtime.update import UpdateStep
 

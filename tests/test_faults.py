@@ -30,7 +30,7 @@ from faultfs import FaultFS, adarl_under_faults, readonly_fs, remount, small_fs
 from test_kill_resume import _results
 
 from adarl.errors import AdaRLWarning, CheckpointError
-from adarl.runtime.run_dir import TRAINING_RECORDS, RunDir
+from adarl.runtime.run_folder.run_dir import TRAINING_RECORDS, RunDir
 
 # A few hundred frames: checkpoints at 100, 200 and the end, two rank events, best.pt before the second one.
 FAST = tiny(
@@ -281,7 +281,7 @@ def test_resume_refuses_a_folder_another_process_trains_in(finished, tmp_path):
         [
             sys.executable,
             "-c",
-            "import sys, time; from adarl.runtime.run_dir import RunDir; "
+            "import sys, time; from adarl.runtime.run_folder.run_dir import RunDir; "
             "RunDir(sys.argv[1]).lock(); print('locked', flush=True); time.sleep(120)",
             str(run),
         ],
@@ -326,7 +326,7 @@ def test_kill_9_before_the_first_checkpoint_resumes_from_frame_0(finished, tmp_p
 def test_kill_9_before_the_recipe_is_written_leaves_a_folder_adarl_run_takes(tmp_path):
     run = tmp_path / "run"
     claim_and_die = (
-        "import os, sys; from adarl.runtime.run_dir import RunDir; RunDir.create(sys.argv[1]); "
+        "import os, sys; from adarl.runtime.run_folder.run_dir import RunDir; RunDir.create(sys.argv[1]); "
         "os.kill(os.getpid(), 9)"  # killed between claiming the folder and writing recipe.yaml
     )
     proc = subprocess.run([sys.executable, "-c", claim_and_die, str(run)], env={**os.environ, "PYTHONPATH": str(REPO)})
@@ -572,7 +572,7 @@ _DUMP = """
 import sys, torch
 from tensordict import TensorDict
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
-import adarl.runtime.run_dir as rd
+import adarl.runtime.run_folder.run_dir as rd
 from adarl.errors import CheckpointError
 root, check = sys.argv[1], sys.argv[2] == "check"
 if not check:

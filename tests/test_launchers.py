@@ -632,7 +632,7 @@ def test_a_second_driver_on_the_same_output_is_refused_and_writes_nothing(tmp_pa
     finally:
         holder.kill()
         holder.wait()
-    from adarl.runtime.run_dir import exclusive_lock
+    from adarl.runtime.run_folder.run_dir import exclusive_lock
 
     with exclusive_lock(lock, RuntimeError):  # a killed holder holds it no more
         pass

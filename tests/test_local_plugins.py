@@ -120,7 +120,7 @@ def test_a_helper_module_the_plugin_imports_is_fingerprinted_and_a_change_refuse
     from adarl.experiments.report import collect_runs
     from adarl.runtime.fingerprint import differences
     from adarl.runtime.report import write_report
-    from adarl.runtime.run_dir import RunDir
+    from adarl.runtime.run_folder.run_dir import RunDir
 
     monkeypatch.delitem(sys.modules, "helper_of_algo", raising=False)
     monkeypatch.delitem(sys.modules, "helped_algo", raising=False)
@@ -169,7 +169,7 @@ def test_a_helper_module_the_plugin_imports_is_fingerprinted_and_a_change_refuse
 def test_a_module_plugin_found_on_the_path_is_checked_where_python_finds_it_now(tmp_path, monkeypatch):
     """Issue 46.6: a module plugin found on PYTHONPATH was shadowed at resume by another of the same name (the
     recorded path was hashed, not the one imported)."""
-    from adarl.runtime.run_dir import RunDir
+    from adarl.runtime.run_folder.run_dir import RunDir
 
     name = "shadowed_sac_plugin"
     monkeypatch.delitem(sys.modules, name, raising=False)
@@ -238,7 +238,7 @@ def test_a_comment_or_layout_edit_of_a_plugin_is_not_a_change_but_code_is(recipe
     is of the parsed code (comments and layout left out); a record of the file's bytes (older runs) still checks."""
     import json
 
-    from adarl.runtime.run_dir import RunDir
+    from adarl.runtime.run_folder.run_dir import RunDir
 
     loaded = load_recipe(recipe)
     run = RunDir.create(tmp_path / "run")

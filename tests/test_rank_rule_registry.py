@@ -17,7 +17,7 @@ from adarl.core.rank import EnergyRule, RankRule, make_rule
 from adarl.errors import AdaRLValueError, RecipeError
 from adarl.runtime.builders.sac import make_rank_rule
 from adarl.runtime.config import load_recipe, recipe_to_yaml, save_resolved
-from adarl.runtime.run_dir import RunDir
+from adarl.runtime.run_folder.run_dir import RunDir
 from adarl.runtime.trainers import OffPolicyTrainer
 
 

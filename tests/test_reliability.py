@@ -18,7 +18,7 @@ from _helpers import tiny
 from adarl.errors import CheckpointError, CheckpointFallbackWarning, RecipeError
 from adarl.runtime.config import load_recipe, save_resolved
 from adarl.runtime.guards import DeadLayerError, NonFiniteError, NonFiniteGuard, check_live_layers
-from adarl.runtime.run_dir import RunDir
+from adarl.runtime.run_folder.run_dir import RunDir
 from adarl.runtime.signals import GracefulInterrupt
 from adarl.runtime.trainers import OffPolicyTrainer
 
@@ -146,7 +146,7 @@ def test_disk_full_while_writing_keeps_the_previous_checkpoint(finished_run, tmp
     run = _copy_run(finished_run, tmp_path / "run")
     before = run.checkpoints()
     good = run.load_checkpoint(before[-1])
-    import adarl.runtime._file_safety as file_safety
+    import adarl.runtime.run_folder._file_safety as file_safety
 
     def full_disk(obj, fh, *a, **k):
         fh.write(b"PK\x03\x04partial")  # some bytes made it, then the disk filled up
@@ -186,7 +186,7 @@ def test_training_releases_the_run_folder_lock(finished_run):
     import subprocess
     import sys
 
-    code = "import sys; from adarl.runtime.run_dir import RunDir; RunDir(sys.argv[1]).lock()"
+    code = "import sys; from adarl.runtime.run_folder.run_dir import RunDir; RunDir(sys.argv[1]).lock()"
     proc = subprocess.run([sys.executable, "-c", code, str(finished_run)], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr[-2000:]
 

@@ -1,4 +1,4 @@
-"""Results at an fsspec URL (adarl.runtime.results) and the live progress board, without training anything.
+"""Results at an fsspec URL (adarl.runtime.run_folder.results) and the live progress board, without training anything.
 
 The URL tests use ``fakes3://`` (the ``fake_s3`` fixture of conftest.py): a local folder that behaves like an object
 store (a move is a copy then a delete, no append, no hard links; every write is logged), so that no code can lean on
@@ -18,7 +18,7 @@ from adarl.errors import AdaRLValueError
 from adarl.experiments.execute import _record_attempt, read_attempts, run_is_finished
 from adarl.experiments.progress import LiveBoard, ProgressBoard, read_progress, use_live
 from adarl.experiments.spec import PlannedRun
-from adarl.runtime.results import LATEST, RunMirror, filesystem, read_text, scratch_folder
+from adarl.runtime.run_folder.results import LATEST, RunMirror, filesystem, read_text, scratch_folder
 
 
 def _ckpt(folder: Path, frames: int, payload: bytes = b"weights", rb: bool = True) -> None:

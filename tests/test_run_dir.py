@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from adarl.errors import AdaRLError, CheckpointError
-from adarl.runtime.run_dir import LOCK_FILE, RunDir
+from adarl.runtime.run_folder.run_dir import LOCK_FILE, RunDir
 
 
 def test_create_refuses_existing_non_empty(tmp_path):
@@ -140,7 +140,7 @@ def test_lock_is_per_process_and_released_with_the_process(tmp_path):
     run = RunDir.create(tmp_path / "run")
     run.lock()  # re-entrant in the process that holds it
     RunDir(run.path).lock()
-    code = "import sys; from adarl.runtime.run_dir import RunDir; RunDir(sys.argv[1]).lock()"
+    code = "import sys; from adarl.runtime.run_folder.run_dir import RunDir; RunDir(sys.argv[1]).lock()"
     proc = subprocess.run([sys.executable, "-c", code, str(run.path)], capture_output=True, text=True)
     assert proc.returncode != 0 and "in use by another process" in proc.stderr
     assert f"pid {os.getpid()}" in proc.stderr
@@ -206,7 +206,7 @@ def test_a_kill_between_a_rewrites_two_renames_resumes_from_that_checkpoint(tmp_
     from tensordict import TensorDict
     from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
-    from adarl.runtime import _run_checkpoints
+    from adarl.runtime.run_folder import _checkpoints as _run_checkpoints
 
     def buffer(n=0):
         rb = TensorDictReplayBuffer(storage=LazyTensorStorage(100), batch_size=4)
@@ -288,7 +288,7 @@ def test_a_full_device_names_the_file_it_could_not_write(tmp_path):
 def test_a_deleted_run_folder_is_not_recreated(tmp_path):
     import shutil
 
-    from adarl.runtime.run_dir import RunFolderGone
+    from adarl.runtime.run_folder.run_dir import RunFolderGone
 
     run = RunDir.create(tmp_path / "run")
     run.save_checkpoint({"counters": {"frames": 1}}, frames=1)

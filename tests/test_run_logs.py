@@ -77,8 +77,8 @@ def test_metric_names_are_sb3s_where_sb3_has_the_quantity():
 
 def test_metric_files_have_a_header_and_files_without_one_still_read(tmp_path):
     from adarl.experiments.progress import read_progress
-    from adarl.runtime._run_loggers import Fanout as _Fanout
-    from adarl.runtime.run_dir import RunDir
+    from adarl.runtime.run_folder._loggers import Fanout as _Fanout
+    from adarl.runtime.run_folder.run_dir import RunDir
 
     run = RunDir(tmp_path)
     import torchrl.record.loggers as loggers
@@ -222,7 +222,7 @@ def test_reports_aggregates_and_progress_read_an_old_style_run_folder(tmp_path):
     from adarl.experiments.report import event_dips, write_aggregate_report
     from adarl.experiments.report._runs import _load_run
     from adarl.runtime.report import plot_returns, write_report
-    from adarl.runtime.run_dir import RunDir
+    from adarl.runtime.run_folder.run_dir import RunDir
 
     run = _old_style_run(tmp_path / "old")
     report = write_report(run).read_text()
@@ -323,7 +323,7 @@ def logged_run(tmp_path_factory):
     from tqdm import auto
 
     from adarl.runtime.config import load_recipe, save_resolved
-    from adarl.runtime.run_dir import RunDir
+    from adarl.runtime.run_folder.run_dir import RunDir
     from adarl.runtime.trainers import OffPolicyTrainer
 
     mp = pytest.MonkeyPatch()
@@ -451,7 +451,7 @@ def test_human_layer_names_in_csv_report_and_plots_with_paths_in_json(logged_run
 def test_rank_events_record_their_frames_and_ranks_png_is_on_frames(logged_run):
     """Issue 31, point 3: the rank plot's x axis is return.png's (frames), from each event's recorded frames."""
     from adarl.runtime.report import rank_axis
-    from adarl.runtime.run_dir import RunDir
+    from adarl.runtime.run_folder.run_dir import RunDir
 
     path = logged_run["path"]
     history = json.loads((path / "ranks.json").read_text())
@@ -473,7 +473,7 @@ def test_speed_png_and_the_aggregate_rank_figure_are_on_frames_too(logged_run, t
 
     from adarl.experiments.report import write_aggregate_report
     from adarl.runtime.report import plot_speed
-    from adarl.runtime.run_dir import RunDir
+    from adarl.runtime.run_folder.run_dir import RunDir
 
     path = logged_run["path"]
     frames = [ev["frames"] for ev in json.loads((path / "ranks.json").read_text())]
@@ -495,7 +495,7 @@ def test_speed_png_and_the_aggregate_rank_figure_are_on_frames_too(logged_run, t
 
 def test_rank_plot_of_an_older_history_converts_or_says_steps(tmp_path):
     from adarl.runtime.report import plot_ranks, rank_axis
-    from adarl.runtime.run_dir import RunDir
+    from adarl.runtime.run_folder.run_dir import RunDir
 
     layer = {"layer": ACTOR_PATH, "name": "actor.layer0", "old_rank": 64, "new_rank": 11}
     history = [{"step": 150, "index": 0, "layers": [layer]}]  # written before events recorded their frames

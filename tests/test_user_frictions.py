@@ -25,7 +25,7 @@ def test_a_mistyped_recipe_name_says_the_did_you_mean_before_a_short_list(capsys
 def test_a_run_folder_that_does_not_exist_is_named_so(tmp_path, capsys):
     """`adarl eval runs/nope` said "not an adarl run folder (no recipe.yaml in it)", exit 1, for a folder that does
     not exist: bad input (exit 2), said as it is; a folder without a recipe.yaml is still "not an adarl run folder"."""
-    from adarl.runtime.run_dir import RunDir
+    from adarl.runtime.run_folder.run_dir import RunDir
 
     with pytest.raises(AdaRLValueError, match=r"run folder '.*nope' does not exist"):
         RunDir.open(tmp_path / "nope")
@@ -65,7 +65,7 @@ def test_a_run_folder_holding_its_default_export_is_overwritten_like_any_run_fol
     did not write". The export's default files are adarl's own; a file adarl never writes still stops it."""
     from adarl.errors import AdaRLError
     from adarl.runtime.config import save_resolved
-    from adarl.runtime.run_dir import RunDir
+    from adarl.runtime.run_folder.run_dir import RunDir
 
     run = tmp_path / "q1"
     run.mkdir()

@@ -3,7 +3,8 @@
 It starts ``adarl run`` (or ``adarl resume`` when the run folder has a checkpoint) in a child process that dies with
 its launcher process, so a worker lost mid-run is retried from the run's last checkpoint and a finished run is never
 started again; each start and end is recorded in ``<output>/attempts/``. A run at an fsspec URL trains in a local
-scratch folder that is uploaded after each checkpoint (:class:`~adarl.runtime.results.RunMirror`). This module is a
+scratch folder that is uploaded after each checkpoint (:class:`~adarl.runtime.run_folder.results.RunMirror`). This
+module is a
 leaf of the experiment tooling: it knows a :class:`~adarl.experiments.spec.PlannedRun` and the run folder, nothing of
 launchers, progress boards or reports.
 """
@@ -31,7 +32,7 @@ from adarl.errors import AdaRLError
 from adarl.experiments.spec import PlannedRun
 from adarl.runtime.config import load_recipe
 from adarl.runtime.fingerprint import differences
-from adarl.runtime.results import (
+from adarl.runtime.run_folder.results import (
     LATEST,
     SYNC_INTERVAL_S,
     RunMirror,
@@ -43,7 +44,7 @@ from adarl.runtime.results import (
     scratch_folder,
     write_atomic,
 )
-from adarl.runtime.run_dir import RunDir
+from adarl.runtime.run_folder.run_dir import RunDir
 
 __all__ = [
     "execute_run",

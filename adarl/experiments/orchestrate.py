@@ -11,7 +11,8 @@ ones (``<run id>.rerun1``, ``.rerun2``...), which are kept, and ``experiment.jso
 call reuses whichever folder of a run matches the spec (the original first).
 
 The output may be an fsspec URL (``s3://bucket/exp``): runs then train in a local scratch folder and are copied to
-``<URL>/<run id>`` after each checkpoint (:mod:`adarl.runtime.results`); the finished-run check, ``experiment.json``,
+``<URL>/<run id>`` after each checkpoint (:mod:`adarl.runtime.run_folder.results`); the finished-run check,
+``experiment.json``,
 the attempt records, the progress board and the report read and write the URL.
 """
 
@@ -46,7 +47,7 @@ from adarl.experiments.spec import (
 from adarl.experiments.sweep import parse_sweep, sweep_run
 from adarl.runtime.config import load_recipe
 from adarl.runtime.fingerprint import differences
-from adarl.runtime.results import (
+from adarl.runtime.run_folder.results import (
     RunMirror,
     exists,
     filesystem,
@@ -57,7 +58,7 @@ from adarl.runtime.results import (
     upload_tree,
     write_atomic,
 )
-from adarl.runtime.run_dir import RunDir, exclusive_lock
+from adarl.runtime.run_folder.run_dir import RunDir, exclusive_lock
 from adarl.runtime.signals import silence_stdout, stdout_reader_gone, stop_as_on_a_signal
 
 __all__ = ["run_experiment", "EXPERIMENT_FILE"]
@@ -243,7 +244,8 @@ def run_experiment(
     """Run (or continue) the experiment in ``spec_path``; returns the runs with their status.
 
     ``output``: a folder, or an fsspec URL (``s3://bucket/exp``, ``file:///shared/exp``; see
-    :mod:`adarl.runtime.results`), where each run then trains in ``scratch`` (default: ``$TMPDIR/adarl-scratch`` of the
+    :mod:`adarl.runtime.run_folder.results`), where each run then trains in ``scratch`` (default:
+    ``$TMPDIR/adarl-scratch`` of the
     machine it runs on) and is uploaded after each checkpoint. ``launcher``: ``local`` (default), ``ray``, ``submitit``
     (see :mod:`adarl.experiments.launchers`; ``launcher_options`` go to
     :func:`~adarl.experiments.launchers.make_launcher`) or a :class:`~adarl.experiments.launchers.Launcher`.

@@ -25,7 +25,7 @@ from rich.table import Table
 from rich.text import Text
 
 from adarl.runtime import metrics
-from adarl.runtime.results import is_url, join, read_text
+from adarl.runtime.run_folder.results import is_url, join, read_text
 
 __all__ = ["RunProgress", "BoardTotals", "read_progress", "ProgressBoard", "LiveBoard", "use_live"]
 

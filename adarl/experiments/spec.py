@@ -36,7 +36,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from adarl.errors import AdaRLWarning, RecipeError, did_you_mean, one_of
 from adarl.experiments._paper_spec import PaperTable
 from adarl.runtime.config import EXPERIMENTS_DIR, recipes_dir
-from adarl.runtime.results import is_url
+from adarl.runtime.run_folder.results import is_url
 
 __all__ = [
     "AxisValue",

@@ -24,7 +24,7 @@ from adarl.envs.registry import env_parameters
 from adarl.errors import AdaRLValueError, did_you_mean
 from adarl.runtime.evaluation import EvalResult, evaluate_policy
 from adarl.runtime.report import pyplot
-from adarl.runtime.run_dir import RunDir
+from adarl.runtime.run_folder.run_dir import RunDir
 from adarl.runtime.trainers import BaseTrainer
 
 __all__ = ["parse_sweep", "SweepPoint", "SweepResult", "sweep_policy", "sweep_run", "read_sweep", "plot_sweep"]

@@ -6,7 +6,8 @@
 * :mod:`~adarl.runtime.update` - the update step (TorchRL's SAC step or the fused one; TD3's delayed actor step);
 * :mod:`~adarl.runtime.rank_events` - what a rank event sets off, in one place;
 * :mod:`~adarl.runtime.trainers` - the training loops on one base: SAC, TD3 and DDPG (off-policy), PPO;
-* :mod:`~adarl.runtime.run_dir` - the run folder (lock, logs, checkpoints, records); :mod:`~adarl.runtime.results`
+* :mod:`~adarl.runtime.run_folder.run_dir` - the run folder (lock, logs, checkpoints, records);
+  :mod:`~adarl.runtime.run_folder.results`
   the same at an fsspec URL;
 * :mod:`~adarl.runtime.guards`, :mod:`~adarl.runtime.signals`, :mod:`~adarl.runtime.state` - divergence guards,
   graceful interrupts, RNG and collector state;

@@ -39,7 +39,7 @@ from pathlib import Path
 import torch
 
 from adarl.errors import AdaRLWarning, ExportFileError
-from adarl.runtime._file_safety import why_unloadable
+from adarl.runtime.run_folder._file_safety import why_unloadable
 
 __all__ = ["METADATA_FILE", "MANIFEST_KEY", "ExportArchive", "seal", "read_export", "load_program", "is_export_file"]
 

@@ -25,7 +25,7 @@ from pathlib import Path
 
 from adarl.errors import RecipeError, command, did_you_mean, one_of
 from adarl.runtime.config import load_recipe
-from adarl.runtime.run_dir import RunDir, recipe_fingerprint
+from adarl.runtime.run_folder.run_dir import RunDir, recipe_fingerprint
 
 __all__ = ["RESUMABLE_KEYS", "continued_recipe", "already_complete", "schedule_totals", "retarget_schedules"]
 

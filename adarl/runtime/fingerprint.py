@@ -33,9 +33,9 @@ from pathlib import Path
 from typing import Any
 
 from adarl.errors import AdaRLError, RecipeError, describe_os_error
-from adarl.runtime._file_safety import atomic_write_text
 from adarl.runtime.config import load_recipe, local_plugins, validate_recipe
-from adarl.runtime.results import is_url, join, read_text
+from adarl.runtime.run_folder._file_safety import atomic_write_text
+from adarl.runtime.run_folder.results import is_url, join, read_text
 
 __all__ = [
     "FINGERPRINT_FILE",

@@ -155,7 +155,8 @@ def legacy_name(name: str) -> str:
 
 
 def series(scalars: Mapping[str, list], name: str) -> list:
-    """The rows of metric ``name`` in ``scalars`` (as :meth:`adarl.runtime.run_dir.RunDir.scalars` returns them), or
+    """The rows of metric ``name`` in ``scalars`` (as :meth:`adarl.runtime.run_folder.run_dir.RunDir.scalars` returns
+    them), or
     of its newest former name for a run folder written by an older adarl; ``[]`` when none was logged."""
     for candidate in (name, *former_names(name)):
         rows = scalars.get(candidate)

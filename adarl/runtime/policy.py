@@ -22,7 +22,7 @@ from adarl.errors import AdaRLValueError, CheckpointError
 from adarl.runtime._export_archive import is_export_file
 from adarl.runtime.builders.common import check_device, policy_specs, spec_env
 from adarl.runtime.families import family
-from adarl.runtime.run_dir import RunDir
+from adarl.runtime.run_folder.run_dir import RunDir
 
 __all__ = ["load_policy", "LoadedPolicy", "load_policy_with_info", "WHICH"]
 

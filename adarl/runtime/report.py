@@ -20,8 +20,8 @@ import yaml
 
 from adarl.runtime import metrics
 from adarl.runtime.config import local_plugins
-from adarl.runtime.results import download_results, is_url, join, upload_tree, write_atomic
-from adarl.runtime.run_dir import RunDir
+from adarl.runtime.run_folder.results import download_results, is_url, join, upload_tree, write_atomic
+from adarl.runtime.run_folder.run_dir import RunDir
 
 __all__ = [
     "write_report",
@@ -224,7 +224,8 @@ def plot_speed(run: RunDir, out: Path) -> Path | None:
 def write_report(path: str | os.PathLike) -> Path | str:
     """Write ``report.md`` and ``plots/*.png`` for the run folder at ``path``; returns the report's path.
 
-    ``path`` may be an fsspec URL (:mod:`adarl.runtime.results`): the report is made in a local copy of the run's files
+    ``path`` may be an fsspec URL (:mod:`adarl.runtime.run_folder.results`): the report is made in a local copy of
+    the run's files
     and
     uploaded beside them; the URL of ``report.md`` is returned."""
     if is_url(path):

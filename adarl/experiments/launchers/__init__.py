@@ -7,7 +7,8 @@ Every launcher runs the same thing: :func:`adarl.experiments.execute.execute_run
 worker that is lost mid-run is retried from the run's last checkpoint (Ray: ``max_retries``; submitit: resubmitted by
 the driver, and requeued from the checkpoint on preemption/timeout), and a finished run is never started again. Runs
 write into the experiment's output: a filesystem path that every worker sees (NFS, Lustre, ...), or an fsspec URL
-(``s3://...``) that each run uploads to from a local scratch folder (:mod:`adarl.runtime.results`). The launchers do not
+(``s3://...``) that each run uploads to from a local scratch folder (:mod:`adarl.runtime.run_folder.results`). The
+launchers do not
 stage code or install packages on workers: each worker needs ``adarl`` installed (and the URL's fsspec backend, e.g.
 ``s3fs``, with its credentials), or the output folder mounted at the same path.
 
@@ -26,7 +27,7 @@ from adarl.experiments.launchers._base import ExperimentInterrupted, Launcher
 from adarl.experiments.launchers._local import LocalLauncher
 from adarl.experiments.launchers._ray import RayLauncher
 from adarl.experiments.launchers._submitit import SubmititLauncher
-from adarl.runtime.results import is_url
+from adarl.runtime.run_folder.results import is_url
 
 __all__ = [
     "Launcher",

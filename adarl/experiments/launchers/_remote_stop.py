@@ -13,7 +13,7 @@ from adarl.experiments.execute import (
     run_is_finished,
 )
 from adarl.experiments.launchers._base import ExperimentInterrupted
-from adarl.runtime.results import is_url
+from adarl.runtime.run_folder.results import is_url
 from adarl.runtime.signals import GracefulInterrupt
 
 

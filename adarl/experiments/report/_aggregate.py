@@ -54,7 +54,7 @@ from adarl.experiments.report._runs import (
     aggregate_runs,
 )
 from adarl.experiments.report._sections import _rank_settling_blocks, _statistics_blocks, _table
-from adarl.runtime.results import download_results, exists, is_url, join, upload_tree
+from adarl.runtime.run_folder.results import download_results, exists, is_url, join, upload_tree
 
 __all__ = ["write_aggregate_report"]
 
@@ -69,7 +69,8 @@ def write_aggregate_report(
 ) -> Path | str:
     """Aggregate the runs in ``dirs`` and write the report folder; returns the path of its ``report.md``.
 
-    ``dirs`` and ``output`` may be fsspec URLs (:mod:`adarl.runtime.results`): the runs' files (not their checkpoints)
+    ``dirs`` and ``output`` may be fsspec URLs (:mod:`adarl.runtime.run_folder.results`): the runs' files (not their
+    checkpoints)
     are copied to a temporary folder, the report is made there and uploaded (default output: ``<URL>/report`` for one
     experiment at a URL); ``runs.csv`` names the runs by their URL, and the URL of ``report.md`` is returned.
     ``report``: keys of an experiment spec's ``report`` section over the experiments' own (``adarl report --set``;

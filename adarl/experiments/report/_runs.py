@@ -24,8 +24,8 @@ from adarl.experiments.sweep import read_sweep
 from adarl.runtime import metrics
 from adarl.runtime.config import local_plugins
 from adarl.runtime.report import layer_label, rank_axis
-from adarl.runtime.results import exists, is_url, join
-from adarl.runtime.run_dir import RunDir
+from adarl.runtime.run_folder.results import exists, is_url, join
+from adarl.runtime.run_folder.run_dir import RunDir
 
 
 def is_single_run(path: str | os.PathLike) -> bool:

@@ -29,7 +29,7 @@ from adarl.experiments.execute import run_is_finished
 from adarl.experiments.tune._spec import TuneSpec, override_value, trial_overrides
 from adarl.runtime.config import load_recipe
 from adarl.runtime.fingerprint import differences
-from adarl.runtime.run_dir import RunDir
+from adarl.runtime.run_folder.run_dir import RunDir
 
 __all__ = [
     "TRIAL_FILE",

@@ -64,7 +64,7 @@ from adarl.experiments.tune._spec import (
 )
 from adarl.runtime.config import load_recipe
 from adarl.runtime.fingerprint import recipe_values, revalidated
-from adarl.runtime.run_dir import exclusive_lock
+from adarl.runtime.run_folder.run_dir import exclusive_lock
 
 __all__ = [
     "run_tune",

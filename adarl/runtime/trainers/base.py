@@ -44,7 +44,7 @@ from adarl.runtime.evaluation import EvalResult, evaluate_policy
 from adarl.runtime.families import check_trainer, family
 from adarl.runtime.guards import NonFiniteError, NonFiniteGuard
 from adarl.runtime.report import write_report
-from adarl.runtime.run_dir import RunDir, null_logger, recipe_fingerprint
+from adarl.runtime.run_folder.run_dir import RunDir, null_logger, recipe_fingerprint
 from adarl.runtime.signals import FINISHING, GracefulInterrupt, RunInterrupted, stopped_after_the_end
 from adarl.runtime.state import rng_state, set_rng_state
 
@@ -178,7 +178,7 @@ class BaseTrainer:
         :class:`~adarl.errors.CheckpointFallbackWarning` naming it and why); ``"latest"``, the newest or a
         :class:`~adarl.errors.CheckpointError` (no fallback); ``"best"`` (the best nominal evaluation); or a
         checkpoint file (its replay buffer is looked for beside it). Every checkpoint is checked against the run's
-        recipe (:func:`~adarl.runtime.run_dir.recipe_fingerprint`) before any tensor is used.
+        recipe (:func:`~adarl.runtime.run_folder.run_dir.recipe_fingerprint`) before any tensor is used.
         ``read_only`` (default: ``not truncate_metrics``, i.e. loading to evaluate): nothing in the run folder is
         written, renamed or locked, and the replay buffer is not read; such a trainer evaluates, it does not train.
         ``overrides``: ``collector.total_frames=M`` continues the run (a finished one too) to ``M`` frames, and

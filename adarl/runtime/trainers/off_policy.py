@@ -42,7 +42,7 @@ class OffPolicyTrainer(BaseTrainer):
 
     >>> from tensordict import TensorDict
     >>> from adarl import load_policy, load_recipe
-    >>> from adarl.runtime.run_dir import RunDir
+    >>> from adarl.runtime.run_folder.run_dir import RunDir
     >>> recipe = load_recipe("quickstart", ["collector.total_frames=400", "collector.init_random_frames=200",
     ...                                     "collector.frames_per_batch=100", "replay.size=400",
     ...                                     "replay.warm_start.frames=100", "eval.episodes=1", "eval.max_steps=50"])

@@ -1,6 +1,7 @@
 """Safe writes and reads of a run folder's files: nothing half-written, nothing unsafe loaded, every error named.
 
-Behind :mod:`adarl.runtime.run_dir` (its only user). Writes go to a temporary file, are fsync'ed and renamed, so a
+Behind :mod:`adarl.runtime.run_folder.run_dir` (its only user). Writes go to a temporary file, are fsync'ed and
+renamed, so a
 crash or a full disk mid-write leaves the previous file intact; a write that cannot fit is refused before it starts;
 an ``OSError`` without a file name gets one. Loads accept regular files of tensors and plain containers only
 (``torch.load(weights_only=True)``), and say in our words why a file was refused. An older checkpoint's replay

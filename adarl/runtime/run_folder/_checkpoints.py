@@ -1,6 +1,7 @@
 """A run folder's checkpoints: ``checkpoints/ckpt-<frames>.pt``, its replay buffer ``rb-<frames>/`` and ``best.pt``.
 
-Part of :class:`adarl.runtime.run_dir.RunDir` (a mixin: the folder's layout is described there). Each checkpoint
+Part of :class:`adarl.runtime.run_folder.run_dir.RunDir` (a mixin: the folder's layout is described there). Each
+checkpoint
 is written to a temporary file, fsync'ed and renamed, so a crash or a full disk mid-write leaves the previous one
 intact; each names the recipe fingerprint it was written under (:func:`recipe_fingerprint`), checked before any of
 its tensors is used, and is loaded with ``weights_only=True`` (no code runs from the file).
@@ -21,7 +22,8 @@ from adarl.errors import (
     command,
     describe_os_error,
 )
-from adarl.runtime._file_safety import (
+from adarl.runtime.families import family
+from adarl.runtime.run_folder._file_safety import (
     NotAFile,
     UnsafeFile,
     atomic_torch_save,
@@ -33,7 +35,6 @@ from adarl.runtime._file_safety import (
     safe_load,
     why_unloadable,
 )
-from adarl.runtime.families import family
 
 CHECKPOINT_FORMAT = "adarl.checkpoint"
 CHECKPOINT_VERSION = 1
@@ -90,7 +91,7 @@ def _same_in_fingerprint(key: str, theirs: dict, ours: dict) -> bool:
 
 
 class RunCheckpoints:
-    """The checkpoints :class:`~adarl.runtime.run_dir.RunDir` writes and reads below ``self.path``."""
+    """The checkpoints :class:`~adarl.runtime.run_folder.run_dir.RunDir` writes and reads below ``self.path``."""
 
     path: Path
     _buffer_cache: tuple[Path, dict] | None

@@ -1,6 +1,7 @@
 """A run's scalar loggers: TorchRL's CSVLogger always, its tensorboard and wandb loggers on request, as one.
 
-Behind :mod:`adarl.runtime.run_dir` (``RunDir.make_logger``), which knows where each writes; this module knows how a
+Behind :mod:`adarl.runtime.run_folder.run_dir` (``RunDir.make_logger``), which knows where each writes; this module
+knows how a
 scalar reaches each of them (the CSV header row, a full disk's error named, a deleted run folder never recreated).
 """
 

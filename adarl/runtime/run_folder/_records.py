@@ -1,6 +1,7 @@
 """A run folder's training records: its loggers, ``eval.csv``, ``ranks.json``/``ranks.csv`` and JSON files.
 
-Part of :class:`adarl.runtime.run_dir.RunDir` (a mixin: the folder's layout is described there); what it writes is
+Part of :class:`adarl.runtime.run_folder.run_dir.RunDir` (a mixin: the folder's layout is described there); what it
+writes is
 written atomically or fsync'ed, so a crash leaves the previous records readable.
 """
 
@@ -16,19 +17,19 @@ from pathlib import Path
 from torchrl.record import loggers as torchrl_loggers
 
 from adarl.runtime import metrics
-from adarl.runtime._file_safety import (
+from adarl.runtime.config import recipe_to_yaml
+from adarl.runtime.run_folder._file_safety import (
     atomic_write_text,
     naming,
     plain,
 )
-from adarl.runtime._run_loggers import Fanout, logging_backends, tensorboard_logger
-from adarl.runtime.config import recipe_to_yaml
+from adarl.runtime.run_folder._loggers import Fanout, logging_backends, tensorboard_logger
 
 _EVAL_FIELDS = ["frames", "updates", "mean", "std", "ci95", "episodes", "returns", "ranks"]
 
 
 class RunRecords:
-    """The records :class:`~adarl.runtime.run_dir.RunDir` writes and reads below ``self.path``."""
+    """The records :class:`~adarl.runtime.run_folder.run_dir.RunDir` writes and reads below ``self.path``."""
 
     path: Path
 

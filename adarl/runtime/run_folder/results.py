@@ -1,7 +1,8 @@
 """Results at an fsspec URL (``s3://bucket/exp``, ``gs://...``, ``file:///shared/exp``): every run trains in a local
 scratch folder and is copied to ``<URL>/<run id>/``; everything else reads and writes the URL through fsspec.
 
-Why a scratch folder: a run's checkpoints are made safe by fsync + atomic rename (:mod:`adarl.runtime.run_dir`), and
+Why a scratch folder: a run's checkpoints are made safe by fsync + atomic rename
+(:mod:`adarl.runtime.run_folder.run_dir`), and
 object stores have neither rename (a "move" is a copy then a delete) nor append. So the run writes exactly as on a local
 disk, and :class:`RunMirror` copies its folder to the URL, in an order that keeps the URL consistent for a reader:
 

@@ -25,10 +25,11 @@ previous one intact; the last ``keep_last`` are kept. Each names the recipe fing
 
 One class, :class:`RunDir`, is the whole layout above; it keeps the folder itself (creating, claiming, locking,
 the recipe) and takes the rest from private modules behind it, as TorchRL's transforms hub does:
-:mod:`adarl.runtime._run_records` (loggers, ``eval.csv``, rank history, JSON files),
-:mod:`adarl.runtime._run_checkpoints` (checkpoints, replay buffer, ``best.pt``, the recipe fingerprint),
-:mod:`adarl.runtime._file_safety` (atomic renames, fsync, free-space checks, loads of tensors only),
-:mod:`adarl.runtime._folder_lock` (the kernel lock) and :mod:`adarl.runtime._run_loggers` (a scalar to each logger).
+:mod:`adarl.runtime.run_folder._records` (loggers, ``eval.csv``, rank history, JSON files),
+:mod:`adarl.runtime.run_folder._checkpoints` (checkpoints, replay buffer, ``best.pt``, the recipe fingerprint),
+:mod:`adarl.runtime.run_folder._file_safety` (atomic renames, fsync, free-space checks, loads of tensors only),
+:mod:`adarl.runtime.run_folder._lock` (the kernel lock) and :mod:`adarl.runtime.run_folder._loggers` (a scalar to
+each logger).
 """
 
 from __future__ import annotations
@@ -55,21 +56,21 @@ from adarl.errors import (
     describe_os_error,
 )
 from adarl.runtime import metrics
-from adarl.runtime._file_safety import (
-    atomic_write_text,
-    os_why,
-)
-from adarl.runtime._folder_lock import HELD_LOCKS, KERNEL_LOCKS, exclusive_lock, hold_lock, holder, release_lock
-from adarl.runtime._run_checkpoints import (
+from adarl.runtime.config import load_recipe, local_plugins, save_resolved
+from adarl.runtime.fingerprint import read_fingerprint, write_fingerprint
+from adarl.runtime.run_folder._checkpoints import (
     CHECKPOINT_FORMAT,
     CHECKPOINT_VERSION,
     RunCheckpoints,
     recipe_fingerprint,
 )
-from adarl.runtime._run_loggers import logging_backends, null_logger
-from adarl.runtime._run_records import RunRecords
-from adarl.runtime.config import load_recipe, local_plugins, save_resolved
-from adarl.runtime.fingerprint import read_fingerprint, write_fingerprint
+from adarl.runtime.run_folder._file_safety import (
+    atomic_write_text,
+    os_why,
+)
+from adarl.runtime.run_folder._lock import HELD_LOCKS, KERNEL_LOCKS, exclusive_lock, hold_lock, holder, release_lock
+from adarl.runtime.run_folder._loggers import logging_backends, null_logger
+from adarl.runtime.run_folder._records import RunRecords
 
 __all__ = [
     "RunDir",

@@ -1,7 +1,8 @@
 """The kernel lock on a run folder's ``.adarl.lock``: one process trains in a folder at a time; and
 :func:`exclusive_lock`, the same lock held over a block: one ``adarl experiment`` (or ``adarl tune``) per output folder.
 
-Behind :mod:`adarl.runtime.run_dir`, which re-exports :func:`exclusive_lock`. ``flock`` is dropped by the kernel when
+Behind :mod:`adarl.runtime.run_folder.run_dir`, which re-exports :func:`exclusive_lock`. ``flock`` is dropped by the
+kernel when
 its process dies (kill -9 included), so a crashed run never leaves a stale lock; the file says who holds it, for the
 message another process gets. On systems without ``fcntl`` folders are still created exclusively, but not locked while
 in use.
