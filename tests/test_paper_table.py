@@ -281,3 +281,26 @@ def test_runs_without_the_tables_row_axis_get_a_sentence(tmp_path):
     assert "report.paper_table needs runs whose axes are its rows (env) and the column axis (algorithm)" in md
     no_table = write_aggregate_report([root], tmp_path / "r2", report={"columns": "algorithm"}).read_text()
     assert "as the paper prints it" not in no_table and not (tmp_path / "r2" / "paper_table.csv").exists()
+
+
+def test_a_plateau_per_env_counts_each_rows_seeds_against_its_own_threshold(tmp_path):
+    """Issue 45's Table 1 protocol: a seed leaves its env's stand-still plateau above that env's threshold (1500 for
+    Hopper, Walker2d and Ant, 5500 for Humanoid), not one number for every env. Per-row counts, the statistics.csv
+    threshold of each row, and the spec's check that the mapping names every value of one axis."""
+    from adarl.experiments.spec import load_experiment
+
+    # best evaluations: hopper a 110/120/130, b 10/20/30; walker2d a 150/250/350, b 200/210/220
+    md, out = _report(tmp_path, plateau={"hopper": 100, "walker2d": 215, "ant": 1})
+    rows = {(r["env"], r["algorithm"]): r for r in csv.DictReader((out / "statistics.csv").open())}
+    assert {k: (r["above_plateau"], r["plateau"]) for k, r in rows.items()} == {
+        ("hopper", "a"): ("3", "100.0"),
+        ("hopper", "b"): ("0", "100.0"),
+        ("hopper", "x"): ("0", "100.0"),
+        ("walker2d", "a"): ("2", "215.0"),
+        ("walker2d", "b"): ("1", "215.0"),
+    }
+    assert "seeds with best eval > its plateau" in md and "3/3 (> 100)" in md and "1/3 (> 215)" in md
+    assert "hopper (100), walker2d (215), ant (1)" in md
+    with pytest.raises(RecipeError, match=r"report.plateau per value must name every value of one axis"):
+        load_experiment(_spec(tmp_path, report={"plateau": {"a": 1}}))  # the algo axis is [a, b]
+    assert load_experiment(_spec(tmp_path, report={"plateau": {"a": 1, "b": 2}})).report.plateau == {"a": 1, "b": 2}

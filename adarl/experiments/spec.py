@@ -160,10 +160,14 @@ class ReportSpec(_Model):
         description="A run's score is the mean of its last `score_last` nominal evaluations (issue 34's protocol: 3; "
         "1 = the last evaluation alone).",
     )
-    plateau: Annotated[float, Field(allow_inf_nan=False)] | None = Field(
+    plateau: (
+        Annotated[float, Field(allow_inf_nan=False)] | dict[str, Annotated[float, Field(allow_inf_nan=False)]] | None
+    ) = Field(
         None,
         description="A return threshold: the report counts, per setting, the seeds whose best nominal evaluation "
-        "exceeds it (Hopper's stand-still plateau: 1500 in issue 34's protocol).",
+        "exceeds it (Hopper's stand-still plateau: 1500 in issue 34's protocol). One for every setting, or one per "
+        "value of an axis (`{hopper: 1500, humanoid: 5500}`: each env's stand-still return + 500; every value of "
+        "that axis named).",
     )
     verdict_seeds: Annotated[int, Field(ge=2)] | dict[str, Annotated[int, Field(ge=2)]] | None = Field(
         None,
@@ -320,6 +324,13 @@ class ExperimentSpec(_Model):
         unknown = sorted({v for pair in self.report.pairs for v in pair if v not in known})
         if unknown:
             raise ValueError(f"report.pairs name {unknown}, not values of the column axis {col!r}: {known}")
+        if isinstance(self.report.plateau, dict):
+            keys = set(self.report.plateau)
+            if not any(keys == {v.name for v in vals} for vals in self.axes.values()):
+                raise ValueError(
+                    f"report.plateau per value must name every value of one axis once, got {sorted(keys)}; axes: "
+                    + "; ".join(f"{a}: {[v.name for v in vals]}" for a, vals in self.axes.items())
+                )
         need = self.report.verdict_seeds
         if isinstance(need, dict) and col is None:
             raise ValueError(

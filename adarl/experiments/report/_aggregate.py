@@ -208,7 +208,7 @@ def write_aggregate_report(
             ),
             Image(p.name, "learning curves"),
         ]
-    p = plot_setting_curves(agg, out, agg.report.get("plateau"))
+    p = plot_setting_curves(agg, out)
     if p is not None:
         blocks += [
             Heading(2, "Every seed's learning curve"),

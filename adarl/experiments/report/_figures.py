@@ -87,10 +87,11 @@ def plot_learning_curves(agg: Aggregate, out: Path) -> tuple[Path | None, str]:
     return out / "learning_curves.png", data
 
 
-def plot_setting_curves(agg: Aggregate, out: Path, plateau: float | None = None) -> Path | None:
+def plot_setting_curves(agg: Aggregate, out: Path) -> Path | None:
     """One panel per setting: every seed's nominal evaluations against frames (thin), their mean (bold), each
-    seed's rank events or restarts (dotted verticals) and the plateau threshold (dashed), so that what an event does
-    to each run can be read off. Data: learning_curves_by_seed.csv."""
+    seed's rank events or restarts (dotted verticals) and the setting's plateau threshold (dashed; one for every
+    setting or its env's: ``agg.plateau_of``), so that what an event does to each run can be read off. Data:
+    learning_curves_by_seed.csv."""
     groups = [g for g in sorted(agg.groups, key=lambda g: [_num_key(v) for _, v in g.key]) if g.scored]
     if not groups:
         return None
@@ -100,6 +101,7 @@ def plot_setting_curves(agg: Aggregate, out: Path, plateau: float | None = None)
     rows = []
     top = max(m for g in groups for r in g.scored for _, m in r.evals)
     for ax, g in zip(axs, groups):
+        plateau = agg.plateau_of(g)  # the report's threshold for this setting (one, or its env's)
         for i, r in enumerate(g.scored):
             color = cmap(i % 10)
             ax.plot([f for f, _ in r.evals], [m for _, m in r.evals], "-", lw=0.8, alpha=0.7, color=color)

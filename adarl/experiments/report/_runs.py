@@ -138,6 +138,17 @@ class Aggregate:
     sources: list[str]
     info: dict
 
+    def plateau_of(self, g: Group) -> float | None:
+        """The report's plateau threshold for ``g``: one for every setting, or the one of ``g``'s value of the axis
+        the report names per value (``{hopper: 1500, humanoid: 5500}``); None without one."""
+        plateau = self.report.get("plateau")
+        if not isinstance(plateau, dict):
+            return None if plateau is None else float(plateau)
+        for _, value in g.key:
+            if str(value) in plateau:
+                return float(plateau[str(value)])
+        return None
+
     def group(self, **axes: str) -> Group:
         for g in self.groups:
             if dict(g.key) == {k: str(v) for k, v in axes.items()}:

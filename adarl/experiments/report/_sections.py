@@ -214,9 +214,10 @@ def _statistics_blocks(agg: Aggregate, out: Path) -> list[Block]:
         return next((h for h in agg.groups if dict(h.key) == want), None)
 
     plateau, need = agg.report.get("plateau"), agg.report.get("verdict_seeds")
+    per_value = isinstance(plateau, dict)  # one threshold per value of an axis (each env's stand-still + 500)
     header = ["setting", "n", "mean ± std", "mean [95% CI]", "IQM [95% CI]"]
     if plateau is not None:
-        header.append(f"seeds with best eval > {plateau:g}")
+        header.append("seeds with best eval > its plateau" if per_value else f"seeds with best eval > {plateau:g}")
     if ref is not None:
         header += [f"P({ref} > setting) [95% CI]", "verdict (95% interval against 0.5)"]
     rows, csv_rows = [], []
@@ -225,8 +226,13 @@ def _statistics_blocks(agg: Aggregate, out: Path) -> list[Block]:
         m = interval_estimate(f, "mean")
         q = interval_estimate(f, "iqm")
         row = [g.label, str(len(f)), f"{g.mean:.1f} ± {g.std:.1f}" if f else "–", _ci(*m), _ci(*q)]
+        threshold = agg.plateau_of(g)
         if plateau is not None:
-            row.append(f"{g.plateau_count(plateau)}/{len(f)}")
+            row.append(
+                "–"
+                if threshold is None
+                else f"{g.plateau_count(threshold)}/{len(f)}" + (f" (> {threshold:g})" if per_value else "")
+            )
         p, said = (math.nan,) * 3, ""
         h = partner(g)
         if ref is not None:
@@ -246,8 +252,8 @@ def _statistics_blocks(agg: Aggregate, out: Path) -> list[Block]:
                 *m,
                 *q,
                 *p,
-                g.plateau_count(plateau) if plateau is not None else "",
-                "" if plateau is None else plateau,
+                g.plateau_count(threshold) if threshold is not None else "",
+                "" if threshold is None else threshold,
                 g.score_last,
                 said,
             ]
@@ -291,8 +297,11 @@ def _statistics_blocks(agg: Aggregate, out: Path) -> list[Block]:
                 else ""
             )
             + (
-                f"; seeds with best eval > {plateau:g}: the runs whose best nominal evaluation exceeds the plateau "
-                "threshold"
+                "; seeds with best eval > its plateau: the runs whose best nominal evaluation exceeds the threshold of "
+                "their " + ", ".join(f"{k} ({v:g})" for k, v in plateau.items())
+                if per_value
+                else f"; seeds with best eval > {plateau:g}: the runs whose best nominal evaluation exceeds the "
+                "plateau threshold"
                 if plateau is not None
                 else ""
             )
