@@ -109,3 +109,22 @@ def test_the_composition_guides_first_example_sets_up_without_torchrls_warnings(
         [sys.executable, *strict, str(tmp_path / "example.py")], capture_output=True, text=True, timeout=600
     )
     assert done.returncode == 0, done.stderr[-3000:]
+
+
+def test_the_tune_history_plot_has_whole_trial_ticks(tmp_path, monkeypatch):
+    """optimization_history.png of a 3-trial study had fractional trial ticks (0.5, 1.5, ...)."""
+    import matplotlib.pyplot as plt
+    import optuna
+
+    from adarl.experiments.tune import _outputs
+    from adarl.experiments.tune._spec import load_tune_spec
+
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    study = optuna.create_study(direction="maximize")
+    for value in (1.0, 3.0, 2.0):
+        study.add_trial(optuna.trial.create_trial(value=value))
+    ticks = []
+    close = plt.close
+    monkeypatch.setattr(plt, "close", lambda fig=None: (ticks.extend(fig.axes[0].get_xticks()), close(fig)))
+    _outputs._plot_history(study, load_tune_spec("cartpole_beta"), tmp_path / "history.png")
+    assert ticks and all(float(t).is_integer() for t in ticks), ticks

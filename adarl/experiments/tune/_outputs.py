@@ -124,6 +124,9 @@ def _plot_history(study, spec: TuneSpec, path: Path) -> None:
         ax.step(xs, ys, where="post", color="tab:green", label="best so far")
     for state, colour in _COLOURS.items():
         ax.scatter([], [], color=colour, label=state.lower())
+    from matplotlib.ticker import MaxNLocator
+
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))  # trials are numbered: no 0.5 ticks (issue 48.6)
     ax.set_xlabel("trial")
     ax.set_ylabel(f"objective ({spec.objective.metric})")
     ax.set_title(f"{spec.name}: optimisation history")
