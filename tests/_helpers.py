@@ -76,6 +76,35 @@ TINY_PPO = (
 )
 
 
+#: components built, not trained (the update tests): quickstart at 2000 frames, a 2000-frame buffer, batch 64
+BUILT = (
+    "collector.total_frames=2000",
+    "collector.init_random_frames=500",
+    "replay.size=2000",
+    "algorithm.batch_size=64",
+)
+
+
+def filled_sac(*overrides: str):
+    """quickstart's SAC components on TorchRL's path (``max_grad_norm`` 1) with 200 frames in the buffer, a
+    non-trivial alpha and targets that differ from the online critics, and one sampled batch: what the fused update
+    is compared with. Returns ``(components, batch)``."""
+    import torch
+
+    from adarl.runtime.builders.sac import build_sac_components
+    from adarl.runtime.config import load_recipe
+
+    recipe = load_recipe("quickstart", [*BUILT, "algorithm.fused=false", "algorithm.max_grad_norm=1.0", *overrides])
+    c = build_sac_components(recipe)
+    torch.manual_seed(3)
+    c.replay_buffer.extend(c.env.rollout(200, break_when_any_done=False).reshape(-1))
+    with torch.no_grad():
+        c.modules.loss.log_alpha.fill_(-0.7)  # a non-trivial alpha and alpha loss
+        for p in c.modules.loss.target_qvalue_network_params.flatten_keys().values():
+            p.add_(0.01 * torch.randn_like(p))  # targets differ from the online critics
+    return c, c.replay_buffer.sample()
+
+
 def _merged(base: tuple[str, ...], overrides: tuple[str, ...], drop) -> list[str]:
     out = {o.split("=", 1)[0]: o for o in base}
     for o in overrides:

@@ -7,6 +7,7 @@ import warnings
 
 import pytest
 import torch
+from _helpers import BUILT
 from pydantic import BaseModel, ConfigDict, Field
 
 from adarl import plugins
@@ -17,8 +18,6 @@ from adarl.runtime.builders.sac import FusedFallbackWarning, build_sac_component
 from adarl.runtime.config import load_recipe, recipe_to_yaml
 from adarl.runtime.trainers import OffPolicyTrainer, trainer_class
 from adarl.runtime.update import FusedStep, LossStep
-
-OVR = ["collector.total_frames=2000", "collector.init_random_frames=500", "replay.size=2000", "algorithm.batch_size=64"]
 
 
 class ShiftOptions(BaseModel):
@@ -64,7 +63,7 @@ def test_builtins_and_unknown_names():
 
 
 def test_options_are_validated_recipe_keys_recorded_in_full(registered):
-    recipe = load_recipe("quickstart", [*OVR, "algorithm.name=shifted_sac"])
+    recipe = load_recipe("quickstart", [*BUILT, "algorithm.name=shifted_sac"])
     assert recipe.algorithm.options == {"kappa": 0.5}  # the default, spelled out
     assert "kappa: 0.5" in recipe_to_yaml(recipe)
     assert trainer_class(recipe) is OffPolicyTrainer
@@ -74,11 +73,11 @@ def test_options_are_validated_recipe_keys_recorded_in_full(registered):
         ("algorithm.options.kappa=abc", r"algorithm.options.kappa.*number"),
     ):
         with pytest.raises(RecipeError, match=words):
-            load_recipe("quickstart", [*OVR, "algorithm.name=shifted_sac", bad])
+            load_recipe("quickstart", [*BUILT, "algorithm.name=shifted_sac", bad])
 
 
 def test_a_target_shift_keeps_the_fused_update_and_computes_what_the_loss_computes(registered):
-    recipe = load_recipe("quickstart", [*OVR, "algorithm.name=shifted_sac", "algorithm.options.kappa=0.3"])
+    recipe = load_recipe("quickstart", [*BUILT, "algorithm.name=shifted_sac", "algorithm.options.kappa=0.3"])
     c = build_sac_components(recipe)
     assert isinstance(c.update, FusedStep) and type(c.modules.loss) is ShiftedSAC and c.modules.loss.kappa == 0.3
     torch.manual_seed(3)
@@ -102,7 +101,7 @@ def test_a_target_shift_keeps_the_fused_update_and_computes_what_the_loss_comput
 
 
 def test_another_override_falls_back_in_one_line_and_its_metrics_are_returned(registered, tmp_path):
-    recipe = load_recipe("quickstart", [*OVR, "algorithm.name=own_forward_sac"])
+    recipe = load_recipe("quickstart", [*BUILT, "algorithm.name=own_forward_sac"])
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         c = build_sac_components(recipe)

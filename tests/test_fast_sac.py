@@ -7,6 +7,7 @@ import re
 
 import pytest
 import torch
+from _helpers import BUILT, filled_sac
 from torchrl.objectives import ValueEstimators
 
 from adarl.baselines.parseval import ParsevalRegularizer
@@ -17,21 +18,10 @@ from adarl.runtime.builders.sac import build_sac_components
 from adarl.runtime.config import load_recipe
 from adarl.runtime.update import FusedStep, LossStep
 
-OVR = ["collector.total_frames=2000", "collector.init_random_frames=500", "replay.size=2000", "algorithm.batch_size=64"]
-
 
 @pytest.fixture(scope="module")
 def filled():
-    recipe = load_recipe("quickstart", OVR + ["algorithm.fused=false", "algorithm.max_grad_norm=1.0"])
-    c = build_sac_components(recipe)
-    torch.manual_seed(3)
-    c.replay_buffer.extend(c.env.rollout(200, break_when_any_done=False).reshape(-1))
-    with torch.no_grad():
-        c.modules.loss.log_alpha.fill_(-0.7)  # a non-trivial alpha and alpha loss
-        for p in c.modules.loss.target_qvalue_network_params.flatten_keys().values():
-            p.add_(0.01 * torch.randn_like(p))  # targets differ from the online critics
-    batch = c.replay_buffer.sample()
-    return c, batch
+    return filled_sac()
 
 
 def _grads(params):
@@ -83,7 +73,7 @@ def test_losses_and_gradients_match_sacloss(config):
     """Both backwards (hand-written and autograd) give SACLoss's five outputs and its gradients on the same batch
     and RNG state, over activations, critic losses, action boxes and truncated ranks."""
     overrides = CONFIGS[config]
-    c = build_sac_components(load_recipe("quickstart", OVR + ["algorithm.fused=false"] + overrides))
+    c = build_sac_components(load_recipe("quickstart", [*BUILT, "algorithm.fused=false", *overrides]))
     torch.manual_seed(3)
     c.replay_buffer.extend(c.env.rollout(120, break_when_any_done=False).reshape(-1))
     loss = c.modules.loss
@@ -244,7 +234,7 @@ def test_fused_update_refuses_a_loss_term_that_reads_the_batch(filled):
 
 def test_a_parseval_recipe_keeps_the_fused_update():
     """algorithm.parseval on the quickstart networks: the update is the fused step and logs loss_parseval."""
-    recipe = load_recipe("quickstart", OVR + ["algorithm.parseval.enabled=true"])
+    recipe = load_recipe("quickstart", [*BUILT, "algorithm.parseval.enabled=true"])
     c = build_sac_components(recipe)
     assert isinstance(c.update, FusedStep)
     c.replay_buffer.extend(c.env.rollout(100, break_when_any_done=False).reshape(-1))
@@ -317,7 +307,7 @@ def test_compile_without_fused_is_a_recipe_error():
 
 
 def test_memmap_storage_and_threads(tmp_path):
-    recipe = load_recipe("quickstart", OVR + ["replay.storage=memmap", "algorithm.num_threads=1"])
+    recipe = load_recipe("quickstart", [*BUILT, "replay.storage=memmap", "algorithm.num_threads=1"])
     before = torch.get_num_threads()
     try:
         c = build_sac_components(recipe, scratch_dir=tmp_path / "rb")

@@ -7,15 +7,13 @@ import warnings
 
 import pytest
 import torch
+from _helpers import filled_sac
 
 from adarl.errors import TorchFallbackWarning
 from adarl.fast import _torch_private as private
 from adarl.fast.adam import DirectAdamStep, make_adam
 from adarl.fast.sac import FusedSACUpdate
-from adarl.runtime.builders.sac import build_sac_components
-from adarl.runtime.config import load_recipe
 
-OVR = ["collector.total_frames=2000", "collector.init_random_frames=500", "replay.size=2000", "algorithm.batch_size=64"]
 KEYS = ("actor_network_params", "qvalue_network_params", "target_qvalue_network_params")
 
 
@@ -28,15 +26,7 @@ def unknown_torch(monkeypatch):
 
 @pytest.fixture(scope="module")
 def filled():
-    recipe = load_recipe("quickstart", OVR + ["algorithm.fused=false", "algorithm.max_grad_norm=1.0"])
-    c = build_sac_components(recipe)
-    torch.manual_seed(3)
-    c.replay_buffer.extend(c.env.rollout(200, break_when_any_done=False).reshape(-1))
-    with torch.no_grad():
-        c.modules.loss.log_alpha.fill_(-0.7)
-        for p in c.modules.loss.target_qvalue_network_params.flatten_keys().values():
-            p.add_(0.01 * torch.randn_like(p))
-    return c, c.replay_buffer.sample()
+    return filled_sac()
 
 
 def _snapshot(loss):

@@ -6,17 +6,16 @@ from __future__ import annotations
 
 import pytest
 import torch
+from _helpers import BUILT
 
 from adarl.core.product_polyak import ProductSoftUpdate, averaged_factors, factor_pairs, product_polyak_
 from adarl.runtime.builders.sac import build_sac_components
 from adarl.runtime.config import load_recipe
 from adarl.runtime.update import FusedStep, LossStep
 
-OVR = ["collector.total_frames=2000", "collector.init_random_frames=500", "replay.size=2000", "algorithm.batch_size=64"]
-
 
 def _filled(overrides):
-    c = build_sac_components(load_recipe("quickstart", OVR + overrides))
+    c = build_sac_components(load_recipe("quickstart", [*BUILT, *overrides]))
     torch.manual_seed(3)
     c.replay_buffer.extend(c.env.rollout(200, break_when_any_done=False).reshape(-1))
     with torch.no_grad():

@@ -10,6 +10,7 @@ import copy
 
 import pytest
 import torch
+from _helpers import BUILT
 from tensordict import TensorDict
 from torch import nn
 from torch.func import functional_call, grad, stack_module_state, vmap
@@ -277,14 +278,12 @@ def test_scripted_and_exported_layers_are_the_dense_form(monkeypatch):
 
 # ------------------------------------------------------------------------------ one SAC update, TorchRL's path
 
-OVR = ["collector.total_frames=2000", "collector.init_random_frames=500", "replay.size=2000", "algorithm.batch_size=64"]
-
 
 def _components():
     from adarl.runtime.builders.sac import build_sac_components
     from adarl.runtime.config import load_recipe
 
-    c = build_sac_components(load_recipe("baselines/hopper_sparse", OVR))
+    c = build_sac_components(load_recipe("baselines/hopper_sparse", list(BUILT)))
     torch.manual_seed(3)
     c.replay_buffer.extend(c.env.rollout(200, break_when_any_done=False).reshape(-1))
     return c
