@@ -20,6 +20,7 @@ __all__ = [
     "AdaRLWarning",
     "CheckpointFallbackWarning",
     "TorchFallbackWarning",
+    "FusedFallbackWarning",
     "STORAGE_ERRNOS",
     "describe_os_error",
     "describe_name_too_long",
@@ -91,6 +92,11 @@ class CheckpointFallbackWarning(AdaRLWarning):
 
 class TorchFallbackWarning(AdaRLWarning):
     """The installed torch is not one :mod:`adarl.fast`'s private kernels were tested on: its public paths are used."""
+
+
+class FusedFallbackWarning(AdaRLWarning):
+    """A registered algorithm's ``SACLoss`` runs TorchRL's (slower) path instead of the fused update, and why (said
+    when a run that trains is built; a run loaded to evaluate does no update and does not say it)."""
 
 
 # Failures of the file system rather than of adarl: the CLI reports these in one line instead of a traceback.

@@ -12,9 +12,9 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from adarl import plugins
 from adarl.core.target_shift import TargetShiftSACLoss
-from adarl.errors import AdaRLValueError, RecipeError
+from adarl.errors import AdaRLValueError, FusedFallbackWarning, RecipeError
 from adarl.fast.sac import FusedSACUpdate, fused_fallback_reason, wants_fused
-from adarl.runtime.builders.sac import FusedFallbackWarning, build_sac_components
+from adarl.runtime.builders.sac import build_sac_components
 from adarl.runtime.config import load_recipe, recipe_to_yaml
 from adarl.runtime.trainers import OffPolicyTrainer, trainer_class
 from adarl.runtime.update import FusedStep, LossStep

@@ -39,7 +39,7 @@ from adarl import plugins
 from adarl.baselines import registry
 from adarl.core.ensemble import reinit_low_rank_ensemble
 from adarl.core.product_polyak import ProductSoftUpdate, factor_keys
-from adarl.errors import AdaRLValueError, AdaRLWarning
+from adarl.errors import AdaRLValueError, FusedFallbackWarning
 from adarl.fast.adam import make_adam
 from adarl.fast.sac import FusedSACUpdate, fused_fallback_reason, wants_fused
 from adarl.runtime.builders.common import action_spec, is_discrete, make_mlp, make_sac_critic
@@ -65,7 +65,6 @@ __all__ = [
     "build_sac_components",
     "SACParts",
     "sac_parameters",
-    "FusedFallbackWarning",
     "update_after",
     "planned_updates",
     "make_rank_rule",
@@ -227,10 +226,6 @@ class SACComponents(OffPolicyComponents):
 
     def guarded_parameters(self) -> dict[str, torch.Tensor]:
         return sac_parameters(self.modules.loss, self.recipe.algorithm.fixed_alpha)
-
-
-class FusedFallbackWarning(AdaRLWarning):
-    """A registered algorithm's ``SACLoss`` runs TorchRL's (slower) path instead of the fused update, and why."""
 
 
 def sac_parameters(loss, fixed_alpha: bool = False) -> dict[str, torch.Tensor]:

@@ -35,10 +35,9 @@ import torch
 from tensordict import TensorDictBase
 from tqdm import auto as tqdm_auto
 
-from adarl.errors import AdaRLError, CheckpointError, command
+from adarl.errors import AdaRLError, CheckpointError, FusedFallbackWarning, command
 from adarl.runtime import metrics
 from adarl.runtime.builders.common import RunComponents
-from adarl.runtime.builders.sac import FusedFallbackWarning
 from adarl.runtime.continuing import continued_recipe, retarget_schedules, schedule_totals
 from adarl.runtime.evaluation import EvalResult, evaluate_policy
 from adarl.runtime.families import check_trainer, family
