@@ -208,6 +208,13 @@ class ResourcesSpec(_Model):
     )
 
 
+def run_own_key(override: str) -> str | None:
+    """The recipe key of ``override`` (``key=value``, or a bare key) when it is one each run sets itself after every
+    override (its ``seed``, its ``output`` folder): an experiment's and a tune study's spec refuse it (issue 46)."""
+    key = override.split("=", 1)[0].strip().lstrip("+~")
+    return key if key in ("seed", "output") or key.startswith("output.") else None
+
+
 def _refuse_run_own_keys(spec: ExperimentSpec) -> None:
     """An override of a key each run sets itself (``seed`` from ``seeds``, ``output`` from the run's folder) would be
     recorded in the spec yet overridden by the run's own, appended last: refused by name (issue 46)."""
@@ -220,8 +227,7 @@ def _refuse_run_own_keys(spec: ExperimentSpec) -> None:
     ]
     places += [(f"budget {b!r} overrides", o) for b, budget in spec.budgets.items() for o in budget.overrides]
     for where, override in places:
-        key = override.split("=", 1)[0].strip().lstrip("+~")
-        if key in ("seed", "output") or key.startswith("output."):
+        if key := run_own_key(override):
             raise ValueError(
                 f"{where}: {override!r} sets {key!r}, which each run sets itself (its seed from the spec's `seeds`, "
                 f"a budget's `seeds` or a value's `seeds`; its folder under the experiment's output), after these "

@@ -36,7 +36,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from adarl.envs.registry import env_parameters
 from adarl.errors import RecipeError, did_you_mean
-from adarl.experiments.spec import SweepSpec
+from adarl.experiments.spec import SweepSpec, run_own_key
 from adarl.experiments.sweep import parse_sweep
 from adarl.runtime.config import TUNE_DIR, load_recipe, recipes_dir
 
@@ -171,11 +171,6 @@ _TRIAL_SETS = (
 )
 
 
-def _set_by_the_trial(key: str) -> bool:
-    """Whether a recipe key is one each trial sets itself (:func:`trial_overrides`, the run's ``-o``)."""
-    return key == "seed" or key == "output" or key.startswith("output.")
-
-
 class TuneSpec(_Model):
     """A hyperparameter search: ``n_trials`` runs of ``recipe`` + ``overrides`` + a point of ``space``."""
 
@@ -214,10 +209,10 @@ class TuneSpec(_Model):
             if len(set(self.seeds)) != len(self.seeds):
                 raise ValueError(f"seeds must be distinct, got {self.seeds}")
         for key in self.space:
-            if _set_by_the_trial(key):
+            if run_own_key(key):  # each trial sets it itself (trial_overrides: its seed, its run's -o)
                 raise ValueError(f"space {key!r}: {_TRIAL_SETS}")
         for override in self.overrides:
-            if _set_by_the_trial(override.partition("=")[0].strip()):
+            if run_own_key(override):
                 raise ValueError(f"override {override!r}: {_TRIAL_SETS}")
         if self.sampler.name == "grid":
             bad = [k for k, p in self.space.items() if p.type == "float" and p.step is None]
