@@ -4,14 +4,19 @@
 # folder alone (git commit --only), so that a lost machine costs only the runs in flight.
 cd /work/main || exit 1
 while true; do
-  for name in mechanism-pilot; do
-    src=/work/exp/$name
+  # report folder:experiment folder (decisive_sac's runs join stage 2's report)
+  for pair in mechanism-pilot:mechanism-pilot table1-decisive:table1-decisive_sac table1-hopper:table1-hopper \
+      parseval_lambda-laptop_walker2d:parseval_lambda-laptop_walker2d parseval_lambda-laptop_ant:parseval_lambda-laptop_ant \
+      parseval_lambda-laptop_humanoid:parseval_lambda-laptop_humanoid; do
+    name=${pair%%:*}
+    src=/work/exp/${pair#*:}
     [ -d "$src" ] || continue
     dest=docs/reports/$name
+    wt=wt-t; [ "$name" = mechanism-pilot ] && wt=wt-m  # the worktree (its commit) the runs were made from
     new=$(.venv/bin/python docs/reports/issue34/export_runs.py "$src" "$dest")
     if [ -n "$new" ] || [ -n "$(git status --porcelain -- "$dest/runs")" ]; then
       bash docs/reports/issue45/make_report.sh "$name" || echo "$(date -u +%FT%TZ) report of $dest failed"
-      git add "$dest" && git commit -q -m "Issue 45 runs landed ($name, runs at 862724f): $(echo $new | tr '\n' ' ')" --only -- "$dest" \
+      git add "$dest" && git commit -q -m "Issue 45 runs landed ($name, runs at $(git -C /work/exp/$wt rev-parse --short HEAD)): $(echo $new | tr '\n' ' ')" --only -- "$dest" \
         && echo "$(date -u +%FT%TZ) committed $name: $new"
     fi
   done

@@ -39,6 +39,28 @@ if [ -d "$MAIN/docs/reports/mechanism-pilot/runs" ]; then
   done
 fi
 echo "restored $(ls -d $into/env=* | wc -l) runs into $into"
+# the experiments after the mechanism arms run from the worktree wt-t at WT_T (queue.sh)
+WT_T=${ISSUE45_WT_T:-COMMIT_T}
+[ -d $EXP/wt-t ] || git worktree add $EXP/wt-t $WT_T
+if [ ! -x $EXP/wt-t/.venv/bin/adarl ]; then
+  python3 -m venv $EXP/wt-t/.venv
+  $EXP/wt-t/.venv/bin/pip install -q --upgrade pip
+  $EXP/wt-t/.venv/bin/pip install -q torch==2.13.0
+  (cd $EXP/wt-t && .venv/bin/pip install -q -c constraints.txt .)
+fi
+# each committed run back into its experiment folder (a finished one is skipped by the driver, checked by content)
+restore() {  # restore REPORT_FOLDER EXPERIMENT_FOLDER [GLOB]
+  [ -d "$MAIN/docs/reports/$1/runs" ] || return 0
+  mkdir -p "$EXP/$2"
+  for run in "$MAIN"/docs/reports/$1/runs/${3:-*}/; do
+    [ -d "$run" ] && { [ -e "$EXP/$2/$(basename "$run")" ] || cp -a "$run" "$EXP/$2/"; }
+  done
+  return 0
+}
+restore table1-decisive table1-decisive_sac "*algorithm=sac_full*"
+for arm in adarl sac_full parseval; do restore table1-pilot table1-hopper "env=hopper__algorithm=${arm}__seed=*"; done
+restore table1-hopper table1-hopper
+for env in walker2d ant humanoid; do restore parseval_lambda-laptop_$env parseval_lambda-laptop_$env; done
 [ "${1:-}" = --restore-only ] && exit 0
 if pgrep -f "adarl experiment" >/dev/null || pgrep -f "queue[0-9]*.sh" >/dev/null; then
   echo "an experiment driver or queue runs already: not starting another"

@@ -1,12 +1,27 @@
 #!/usr/bin/env bash
-# Issue 45's runs, in the pre-registered order, from the worktree at 862724f (non-editable install in wt-m/.venv).
-# Re-running this script resumes: finished runs are skipped, interrupted ones resumed exactly from their checkpoints.
+# Issue 45's runs, in the pre-registered order (docs/reproduction.md, "Issue 45": "Order and cost"). The mechanism
+# arms run from the worktree at 862724f (wt-m), everything after them from the worktree at WT_T (wt-t; its commit is
+# the one fresh_machine.sh names), each with its own non-editable install. Re-running this script resumes: finished
+# runs are skipped (by content: a folder made from another resolved recipe is "changed", never reused), interrupted
+# ones resumed exactly from their checkpoints.
 set -u
 cd /work/exp
-A=/work/exp/wt-m/.venv/bin/adarl
-SPECS=/work/exp/wt-m/recipes/experiments
+M=/work/exp/wt-m/.venv/bin/adarl
+T=/work/exp/wt-t/.venv/bin/adarl
+SPECS_M=/work/exp/wt-m/recipes/experiments
+SPECS_T=/work/exp/wt-t/recipes/experiments
 export MUJOCO_GL=egl
 run() { echo "=== $(date -u +%FT%TZ) $*"; "$@" --workers 2 --no-live --progress 600 || echo "!!! failed: $*"; }
-# the mechanism arms (docs/reproduction.md, "Issue 45"): 40 runs; the bases adarl and sac_restarts are the pilot's
-run $A experiment $SPECS/mechanism.yaml --budget pilot -o /work/exp/mechanism-pilot
+# the mechanism arms: 40 runs; the bases adarl and sac_restarts are the pilot's
+run $M experiment $SPECS_M/mechanism.yaml --budget pilot -o /work/exp/mechanism-pilot
+# Fig. 3 at 1e6: full-rank SAC, 8 seeds, stage 2's budget (its report: docs/reports/table1-decisive)
+run $T experiment $SPECS_T/table1.yaml --budget decisive_sac -o /work/exp/table1-decisive_sac
+# Table 1's Hopper row: the pilot's AdaRL, SAC and Parseval (copied in by fresh_machine.sh, checked by content) and
+# the three missing baselines, 5 seeds each
+run $T experiment $SPECS_T/table1.yaml --budget table1_hopper -o /work/exp/table1-hopper
+# Parseval's lambda per env (the paper's selection, seeds 100-101), before each row's Parseval arm: the selected
+# values go into table1.yaml by a commit before the Walker2d, Ant and Humanoid rows run (a new worktree then)
+for env in walker2d ant humanoid; do
+  run $T experiment $SPECS_T/parseval_lambda.yaml --budget laptop_$env -o /work/exp/parseval_lambda-laptop_$env
+done
 echo "=== $(date -u +%FT%TZ) queue done"
