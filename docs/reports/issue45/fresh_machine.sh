@@ -40,7 +40,7 @@ if [ -d "$MAIN/docs/reports/mechanism-pilot/runs" ]; then
 fi
 echo "restored $(ls -d $into/env=* | wc -l) runs into $into"
 # the experiments after the mechanism arms run from the worktree wt-t at WT_T (queue.sh)
-WT_T=${ISSUE45_WT_T:-COMMIT_T}
+WT_T=${ISSUE45_WT_T:-fa38c5c}
 [ -d $EXP/wt-t ] || git worktree add $EXP/wt-t $WT_T
 if [ ! -x $EXP/wt-t/.venv/bin/adarl ]; then
   python3 -m venv $EXP/wt-t/.venv
