@@ -189,6 +189,23 @@ def check_statistics(folder: Path, statistics_csv: Path | None = None) -> tuple[
                 if not (math.isnan(_f(row[lo_col])) and math.isnan(_f(row[hi_col]))):
                     problems.append(f"{name}: {lo_col} and {hi_col} give an interval from {x.size} seed")
                 continue
+            if min(s.size for s in samples) < 2:  # P against one seed: that seed resamples to itself, the other arm
+                (one,), other = [s for s in samples if s.size < 2], [s for s in samples if s.size >= 2]
+                if not other:  # one seed a side: every resample is the point
+                    samples, statistic = (
+                        (np.repeat(samples[0], 2),),
+                        (lambda y, p=point, axis=-1: np.full(y.shape[:-1], p)),
+                    )
+                elif samples[0].size < 2:
+                    samples, statistic = (
+                        (other[0],),
+                        (lambda y, a=one, axis=-1: _poi(np.full(y.shape[:-1] + (1,), a), y)),
+                    )
+                else:
+                    samples, statistic = (
+                        (other[0],),
+                        (lambda y, b=one, axis=-1: _poi(y, np.full(y.shape[:-1] + (1,), b))),
+                    )
             boot = _bootstrap(samples, statistic, f"{name} {point_col}")
             alpha = (1 - CONFIDENCE) / 2
             mine = np.quantile(boot, [alpha, 1 - alpha])

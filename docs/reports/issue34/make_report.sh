@@ -8,6 +8,8 @@
 #   bash docs/reports/issue34/make_report.sh table1-pilot
 # Prints nothing for a report this protocol does not make (the loop in commit_landed.sh calls it for every folder).
 # verdict_seeds: each spec's planned seeds per arm; while its runs land one by one, a verdict waits for them all.
+# Committed reports keep PNG figures alone (formats=[png]): a PDF and an SVG of every figure, re-made at each landing,
+# would grow the repository by megabytes; `adarl report` over the committed runs/ writes them where wanted.
 set -eu
 extra=()
 case "$1" in
@@ -23,5 +25,5 @@ case "$1" in
 esac
 d=docs/reports/$1
 [ -d "$d/runs" ] || exit 0
-.venv/bin/adarl report "$d/runs" --spec "recipes/experiments/$spec.yaml" "${extra[@]}" -o "$d" >/dev/null
+.venv/bin/adarl report "$d/runs" --spec "recipes/experiments/$spec.yaml" "${extra[@]}" --set "formats=[png]" -o "$d" >/dev/null
 echo "$d"

@@ -4,6 +4,8 @@
 # evaluations, per-env plateau, the reference and pairs), with no verdict before each arm has its planned seeds
 # (verdict_seeds). Prints nothing for a folder it does not make (commit_landed.sh calls it for every folder).
 #   bash docs/reports/issue45/make_report.sh mechanism-pilot
+# Committed reports keep PNG figures alone (formats=[png]): a PDF and an SVG of every figure, re-made at each landing,
+# would grow the repository by megabytes; `adarl report` over the committed runs/ writes them where wanted.
 set -eu
 extra=()
 case "$1" in
@@ -20,5 +22,5 @@ case "$1" in
 esac
 d=docs/reports/$1
 [ -d "$d/runs" ] || exit 0
-.venv/bin/adarl report "$d/runs" --spec "recipes/experiments/$spec.yaml" "${extra[@]}" -o "$d" >/dev/null
+.venv/bin/adarl report "$d/runs" --spec "recipes/experiments/$spec.yaml" "${extra[@]}" --set "formats=[png]" -o "$d" >/dev/null
 echo "$d"
