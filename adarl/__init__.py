@@ -62,6 +62,8 @@ _EXPORTS: dict[str, str] = {
     **dict.fromkeys(
         ["register_algorithm", "algorithm_names", "register_rank_rule", "rank_rule_names"], "adarl.plugins"
     ),
+    **dict.fromkeys(["register_callback", "callback_names"], "adarl.plugins"),
+    "Callback": "adarl.runtime.callbacks",
     **dict.fromkeys(["register_env", "register_parameter"], "adarl.envs.registration"),
     "ParameterInfo": "adarl.envs.registry",
     **dict.fromkeys(

@@ -154,6 +154,9 @@ def _print_summary(summary: dict, path: Path) -> None:
     )
     if ev:
         print(f"nominal-dynamics evaluation: {ev['mean']:.1f} ± {ev['std']:.1f} over {ev['episodes']} episodes")
+    stop = summary.get("stopped_early")
+    if stop:
+        print(f"stopped early at {stop['frames']} frames by callback {stop['callback']!r}: {stop['reason']}")
     print(f"results: {path}  (report: {path / 'report.md'})")
 
 
@@ -162,7 +165,8 @@ def cmd_resume(args) -> int:
     from adarl.runtime.trainers import BaseTrainer
 
     trainer = BaseTrainer.resume(args.run_dir, quiet=args.quiet, checkpoint=args.checkpoint, overrides=args.overrides)
-    done = already_complete(args.run_dir, trainer.frames, trainer.recipe.collector.total_frames)
+    total = trainer.recipe.collector.total_frames
+    done = already_complete(args.run_dir, trainer.frames, total, stopped=trainer.stopped_early)
     if done is not None:  # its latest checkpoint is at the end: say so (exit 0) instead of finishing it again
         trainer.close()
         print(done)
@@ -173,12 +177,20 @@ def cmd_resume(args) -> int:
 
 
 def cmd_recipes(args) -> int:
-    from adarl.runtime.config import list_recipes
+    from adarl.runtime.config import EXPERIMENTS_DIR, TUNE_DIR, list_recipes
+    from adarl.runtime.config.discovery import list_specs
 
-    rows = list_recipes()
-    width = max((len(n) for n, _ in rows), default=10)
-    for name, desc in rows:
-        print(f"{name:<{width}}  {desc}")
+    sections = [
+        ("", list_recipes()),  # the recipes first, unheaded: `adarl recipes | head` shows recipes
+        ("experiment specs (adarl experiment NAME)", list_specs(EXPERIMENTS_DIR)),
+        ("tune specs (adarl tune NAME; or adarl tune RECIPE: its default search space)", list_specs(TUNE_DIR)),
+    ]
+    width = max((len(n) for _, rows in sections for n, _ in rows), default=10)
+    for title, rows in sections:
+        if title:
+            print(f"\n{title}:")
+        for name, desc in rows:
+            print(f"{name:<{width}}  {desc}")
     return 0
 
 
@@ -283,8 +295,8 @@ def cmd_report(args) -> int:
         spec_values = {axis: {v.name for v in values} for axis, values in spec.axes.items()}  # its pairs name these
     given = report_options(args.report_options)
     options.update(given)
-    if len(dirs) == 1 and is_single_run(dirs[0]) and not args.output and not options:
-        print(write_report(dirs[0]))  # one run folder: its own report, as before
+    if len(dirs) == 1 and is_single_run(dirs[0]) and not args.output and set(options) <= {"formats"}:
+        print(write_report(dirs[0], **options))  # one run folder: its own report, as before (--set formats=...)
         return 0
     # --set pairs=... (or verdict_seeds per arm): each value must be the column axis's, of a run found or of the
     # spec (a typo is refused)
@@ -389,8 +401,9 @@ def build_parser() -> argparse.ArgumentParser:
         "resume",
         help="continue a run from its latest checkpoint, or a finished one to more frames",
         description="Continue the run in RUN_DIR from its latest loadable checkpoint. A finished run is "
-        "continued to more frames with collector.total_frames=M (the one key a resume may change: the budget, "
-        "raised; recipe.yaml records it); without it, a finished run is reported as already complete.",
+        "continued to more frames with collector.total_frames=M (the budget, raised; recipe.yaml records it); "
+        "without it, a finished run is reported as already complete. The other key a resume may change is "
+        "callbacks (callbacks=[] lets a run a callback stopped early train on; docs/callbacks.md).",
     )
     rs.add_argument("run_dir")
     rs.add_argument("overrides", nargs="*", metavar="collector.total_frames=M")
@@ -404,7 +417,12 @@ def build_parser() -> argparse.ArgumentParser:
     rs.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
     rs.set_defaults(func=cmd_resume)
 
-    ls = sub.add_parser("recipes", help="list the shipped recipes", description="List the shipped recipes.")
+    ls = sub.add_parser(
+        "recipes",
+        help="list the shipped recipes, experiment specs and tune specs",
+        description="List the recipes (adarl run NAME), then the experiment specs (adarl experiment NAME) and the "
+        "tune specs (adarl tune NAME) of the recipe folders ($ADARL_RECIPES_PATH, then the shipped ones).",
+    )
     ls.set_defaults(func=cmd_recipes)
 
     sh = sub.add_parser(
@@ -506,9 +524,10 @@ def build_parser() -> argparse.ArgumentParser:
     rp = sub.add_parser(
         "report",
         help="write a run's report, or aggregate many runs into one report",
-        description="One run folder: (re)write its report.md and plots/*.png. Several folders (run "
-        "folders, experiment folders, or folders holding runs), or --output: aggregate "
-        "them across seeds into report.md/report.html, PNG plots and CSV tables.",
+        description="One run folder: (re)write its report.md and plots/ (each figure as PNG, PDF and SVG; "
+        "--set formats=[png] for PNG alone). Several folders (run folders, experiment folders, or folders holding "
+        "runs), or --output: aggregate them across seeds into report.md/report.html, figures (PNG, PDF, SVG) and "
+        "CSV tables.",
     )
     rp.add_argument("run_dir", nargs="+", metavar="DIR", help="a folder, or an fsspec URL (s3://bucket/exp, ...)")
     rp.add_argument(
@@ -551,8 +570,9 @@ def build_parser() -> argparse.ArgumentParser:
     ex = sub.add_parser(
         "experiment",
         help="run a multi-run experiment spec (axes x seeds), resumably",
-        description="Run every run of the experiment SPEC (a YAML file with kind: experiment, see "
-        "recipes/experiments/) one after another or in worker processes; finished runs "
+        description="Run every run of the experiment SPEC (a YAML file with kind: experiment, or a shipped spec's "
+        "name: `adarl recipes` lists them under 'experiment specs') one after another or in worker processes; "
+        "finished runs "
         "are skipped, interrupted ones resumed; then write the aggregate report.",
     )
     ex.add_argument("spec")

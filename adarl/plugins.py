@@ -1,5 +1,6 @@
-"""Extension points by name: the generic :class:`Registry`, the ``adarl.plugins`` entry-point group, and the two
-registries recipes validate against: algorithms and rank rules (docs/custom-loss.md). No torch, nor TorchRL, here.
+"""Extension points by name: the generic :class:`Registry`, the ``adarl.plugins`` entry-point group, and the three
+registries recipes validate against: algorithms, rank rules (docs/custom-loss.md) and training callbacks
+(docs/callbacks.md). No torch, nor TorchRL, here.
 
 Every name-based extension point of adarl is a :class:`Registry` (here; env ids in :mod:`adarl.envs.registry`; the
 baselines' variants, init schemes and loss terms in :mod:`adarl.baselines.registry`; the training loops in
@@ -11,7 +12,8 @@ A recipe's ``algorithm.name`` is looked up here. Each name is *declared* with :f
 training loop it runs on (``base``: ``"sac"``, ``"ppo"`` or ``"td3"``), its TorchRL loss class (a class, or a lazy
 ``"module:Class"`` path), and a pydantic model of its own options (the recipe's ``algorithm.options``,
 validated like every other key, written into the run's recipe.yaml). adarl's own algorithms (``sac``, ``td3``,
-``ddpg``, ``ppo`` and the RNAC baselines ``rnac_ipm`` and ``rnac_ds``, PPO with a hook each) are declared with the
+``ddpg``, ``ppo``, the RNAC baselines ``rnac_ipm`` and ``rnac_ds`` (PPO with a hook each), and ``tqc``, ``crossq``
+and ``redq`` (TorchRL's TQCLoss, CrossQLoss and REDQLoss on the ``sac`` loop) are declared with the
 same call at the end of their section.
 
 A package adds names by declaring an entry point in the group ``adarl.plugins`` (pip's and pytest's habit), e.g.
@@ -25,7 +27,7 @@ registered names are listed): a recipe never imports code that is not installed,
 no longer installed is refused by name (``adarl resume`` included) instead of being rebuilt as another one.
 
 >>> sorted(algorithm_names(load=False))
-['ddpg', 'ppo', 'rnac_ds', 'rnac_ipm', 'sac', 'td3']
+['crossq', 'ddpg', 'ppo', 'redq', 'rnac_ds', 'rnac_ipm', 'sac', 'td3', 'tqc']
 >>> algorithm("sac").base, algorithm("sac").loss_path
 ('sac', 'torchrl.objectives:SACLoss')
 >>> algorithm("sca")
@@ -34,7 +36,7 @@ Traceback (most recent call last):
 adarl.errors.UnknownNameError: unknown algorithm.name 'sca'; allowed: ...; did you mean 'sac'? (no installed plugin ...
 
 Long because: one extension API, read in one place and imported without torch: the registry, plugin loading, and
-the two registries recipes validate against with adarl's own entries.
+the three registries recipes validate against with adarl's own entries.
 """
 
 from __future__ import annotations
@@ -47,7 +49,7 @@ from importlib import metadata
 from importlib.metadata import entry_points
 from typing import Any, Generic, TypeVar
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
 from adarl.errors import AdaRLValueError, UnknownNameError, did_you_mean, one_of
 
@@ -65,9 +67,14 @@ __all__ = [
     "NoOptions",
     "RNACIPMOptions",
     "RNACDSOptions",
+    "TQCOptions",
+    "CrossQOptions",
+    "REDQOptions",
     "register_algorithm",
     "algorithm",
     "algorithm_names",
+    "SAC_VARIANTS",
+    "sac_variant",
     "HOW_TO_REGISTER",
     "ALGORITHMS",
     "BUILTIN_RANK_RULES",
@@ -78,6 +85,14 @@ __all__ = [
     "register_rank_rule",
     "rank_rule",
     "rank_rule_names",
+    "BUILTIN_CALLBACKS",
+    "HOW_TO_REGISTER_CALLBACK",
+    "CALLBACKS",
+    "CallbackSpec",
+    "StopOnReturnOptions",
+    "register_callback",
+    "callback",
+    "callback_names",
 ]
 
 #: the entry-point group installed packages declare their plugins in
@@ -260,7 +275,7 @@ BASES = ("sac", "ppo", "td3")
 #: the TorchRL losses each base builds and trains: ``{base: class names}``; a registered loss class must subclass one
 #: of its base's (checked by name along its MRO, so that this module imports no torch)
 BASE_LOSSES: dict[str, tuple[str, ...]] = {
-    "sac": ("SACLoss",),
+    "sac": ("SACLoss", "CrossQLoss", "REDQLoss"),
     "ppo": ("PPOLoss",),
     "td3": ("TD3Loss", "DDPGLoss"),
 }
@@ -333,6 +348,75 @@ class RNACDSOptions(BaseModel):
     noise: float = Field(5e-3, ge=0, allow_inf_nan=False, description="actuation noise half-width, U[-noise, noise]")
 
 
+class TQCOptions(BaseModel):
+    """``algorithm.options`` of ``tqc``: Kuznetsov et al. (2020)'s defaults (5 critics of 25 atoms, 2 dropped per
+    critic: 10 of the 125 pooled target atoms)."""
+
+    model_config = ConfigDict(extra="forbid")
+    num_critics: int = Field(5, ge=1, strict=True, description="N: quantile critics (sets algorithm.num_qvalue_nets)")
+    num_quantiles: int = Field(25, ge=1, strict=True, description="M: atoms (quantiles) each critic outputs")
+    top_quantiles_to_drop_per_net: int = Field(
+        2, ge=0, strict=True, description="d: largest pooled target atoms dropped per critic (d * N in all)"
+    )
+
+    @field_validator("top_quantiles_to_drop_per_net")
+    @classmethod
+    def _keeps_an_atom(cls, v: int, info: ValidationInfo) -> int:
+        atoms = info.data.get("num_quantiles")
+        if atoms is not None and v >= atoms:
+            raise ValueError(f"must be < num_quantiles ({atoms}): the target keeps N * (num_quantiles - d) atoms")
+        return v
+
+
+class CrossQOptions(BaseModel):
+    """``algorithm.options`` of ``crossq``: Bhatt et al. (2024)'s defaults (Batch Renormalization in critic and
+    actor, no target network, Adam with beta1 = 0.5 at 1e-3, the actor updated every 3rd critic step)."""
+
+    model_config = ConfigDict(extra="forbid")
+    lr: float = Field(
+        1e-3,
+        gt=0,
+        allow_inf_nan=False,
+        description="Adam learning rate of actor, critic and alpha (sets algorithm.lr and algorithm.alpha_lr)",
+    )
+    adam_beta1: float = Field(0.5, ge=0, lt=1, description="Adam's beta1 (the authors' 0.5; Adam's own is 0.9)")
+    adam_beta2: float = Field(0.999, ge=0, lt=1, description="Adam's beta2")
+    policy_delay: int = Field(3, ge=1, strict=True, description="critic steps per actor (and alpha) step")
+    actor_batch_norm: bool = Field(True, description="Batch Renormalization in the actor too (the authors' default)")
+    batch_norm_momentum: float = Field(
+        0.01, gt=0, le=1, description="running-statistics rate of BatchRenorm1d (the authors' 0.99 in flax's terms)"
+    )
+    renorm_warmup_steps: int = Field(
+        100_000, ge=0, strict=True, description="BatchRenorm1d's steps of plain batch norm before renormalising"
+    )
+
+
+class REDQOptions(BaseModel):
+    """``algorithm.options`` of ``redq``: Chen et al. (2021)'s defaults (N = 10 critics, a random M = 2 of them in
+    each target, G = 20 updates per frame, the actor once per frame)."""
+
+    model_config = ConfigDict(extra="forbid")
+    ensemble_size: int = Field(10, ge=2, strict=True, description="N: critics (sets algorithm.num_qvalue_nets)")
+    subset_size: int = Field(2, ge=1, strict=True, description="M: critics drawn for each target's minimum")
+    utd_ratio: float = Field(
+        20.0, gt=0, allow_inf_nan=False, description="G: updates per collected frame (sets algorithm.utd_ratio)"
+    )
+    policy_delay: int = Field(
+        20, ge=1, strict=True, description="critic steps per actor (and alpha) step (the authors' code: 20 = G)"
+    )
+
+    @field_validator("subset_size")
+    @classmethod
+    def _subset_of_ensemble(cls, v: int, info: ValidationInfo) -> int:
+        n = info.data.get("ensemble_size")
+        if n is not None and v >= n:
+            raise ValueError(
+                f"must be < ensemble_size ({n}): TorchRL's REDQLoss draws at most N - 1 critics (it would cut M "
+                "down silently)"
+            )
+        return v
+
+
 @dataclass(frozen=True)
 class Algorithm:
     """A registered ``algorithm.name``.
@@ -343,7 +427,9 @@ class Algorithm:
     loss, ``SACLoss``, ``TD3Loss``/``DDPGLoss`` or ``ClipPPOLoss``, plus the options), or a ``"module:Class"`` path
     imported when a run is built (and refused there if it fits no base). ``options``: a pydantic model of
     ``algorithm.options`` (unknown keys, types and ranges are its job; give it ``extra="forbid"``).
-    ``provider``: the distribution whose entry point registered it (None for adarl's own)."""
+    ``provider``: the distribution whose entry point registered it (None for adarl's own). ``sets``: the
+    ``algorithm`` keys its options decide, ``{key: option}`` (REDQ's ``utd_ratio``: the loop reads the key, the
+    recipe states it once, as an option; the recipe validation copies it and refuses a key set to another value)."""
 
     name: str
     base: str
@@ -356,6 +442,7 @@ class Algorithm:
     advantage: Any = None
     env_transform: Any = None
     simulator_steps_per_frame: Callable[[dict], int] | None = None
+    sets: dict[str, str] = field(default_factory=dict)
 
     @property
     def loss_path(self) -> str:
@@ -421,6 +508,7 @@ def register_algorithm(
     advantage: Any = None,
     env_transform: Any = None,
     simulator_steps_per_frame: Callable[[dict], int] | None = None,
+    sets: dict[str, str] | None = None,
 ):
     """Register ``algorithm.name: <name>``; usable as a class decorator on the loss::
 
@@ -433,7 +521,8 @@ def register_algorithm(
     Hooks of the PPO loop (a callable or a ``"module:function"`` path, imported when a run is built):
     ``advantage(recipe, critic) -> ValueEstimator`` replaces GAE (RNAC-IPM's shifted GAE);
     ``env_transform(recipe, critic) -> Transform | None`` is appended to the training env (RNAC-DS's double
-    sampling); ``simulator_steps_per_frame(options) -> int`` is the simulator's cost per collected frame."""
+    sampling); ``simulator_steps_per_frame(options) -> int`` is the simulator's cost per collected frame.
+    ``sets={"utd_ratio": "utd_ratio"}``: ``algorithm`` keys whose value an option gives (:class:`Algorithm`)."""
     if not isinstance(name, str) or not name.isidentifier():
         raise AdaRLValueError(f"algorithm name must be an identifier (letters, digits, _), got {name!r}")
     if base not in BASES:
@@ -461,6 +550,7 @@ def register_algorithm(
             advantage=advantage,
             env_transform=env_transform,
             simulator_steps_per_frame=simulator_steps_per_frame,
+            sets=dict(sets or {}),
         )
         ALGORITHMS.register(name, entry, replace=replace)
         return cls
@@ -468,6 +558,22 @@ def register_algorithm(
     if loss is None:
         return _register
     return _register(loss)
+
+
+#: the TorchRL losses the ``sac`` loop builds besides SACLoss (adarl.runtime.builders.sac_variants), by class name
+SAC_VARIANTS = ("TQCLoss", "CrossQLoss", "REDQLoss")
+
+
+def sac_variant(name: str) -> str | None:
+    """Which of :data:`SAC_VARIANTS` the loss of ``algorithm.name`` ``name`` is or subclasses (None: SAC's own or
+    another loop's), read from its class path and, for a class, its MRO (nothing imported).
+
+    >>> sac_variant("tqc"), sac_variant("sac"), sac_variant("td3")
+    ('TQCLoss', None, None)
+    """
+    spec = algorithm(name)
+    names = {k.__name__ for k in getattr(spec.loss, "__mro__", ())} | {spec.loss_path.rpartition(":")[2]}
+    return next((v for v in SAC_VARIANTS if v in names), None)
 
 
 def algorithm_names(*, load: bool = True) -> list[str]:
@@ -524,6 +630,35 @@ register_algorithm(
     env_transform="adarl.baselines.rnac:make_double_sampling",
     simulator_steps_per_frame=lambda options: int(options["num_candidates"]) + 1,
     description="RNAC-DS: PPO collecting the worst of m noisy next states w.p. 1/(m+1) (adarl.baselines.rnac)",
+)
+# TorchRL's TQC, CrossQ and REDQ losses on the SAC loop (adarl.runtime.builders.sac_variants builds their networks,
+# loss and update step): the authors' hyperparameters are their options, the loop's own keys copied from them.
+register_algorithm(
+    "tqc",
+    "torchrl.objectives:TQCLoss",
+    base="sac",
+    options=TQCOptions,
+    options_to_loss=False,
+    sets={"num_qvalue_nets": "num_critics"},
+    description="TQC (Kuznetsov et al., 2020): TorchRL's TQCLoss, quantile critics, the top target atoms dropped",
+)
+register_algorithm(
+    "crossq",
+    "torchrl.objectives:CrossQLoss",
+    base="sac",
+    options=CrossQOptions,
+    options_to_loss=False,
+    sets={"lr": "lr", "alpha_lr": "lr"},
+    description="CrossQ (Bhatt et al., 2024): TorchRL's CrossQLoss, Batch Renormalization, no target network",
+)
+register_algorithm(
+    "redq",
+    "torchrl.objectives:REDQLoss",
+    base="sac",
+    options=REDQOptions,
+    options_to_loss=False,
+    sets={"num_qvalue_nets": "ensemble_size", "utd_ratio": "utd_ratio"},
+    description="REDQ (Chen et al., 2021): TorchRL's REDQLoss, N critics, targets on a random M, G updates per frame",
 )
 
 
@@ -685,3 +820,150 @@ for _name, _cls, _what in (
     ("policy_fit", "PolicyFitRule", "fit/penalty trade-off of Eq. 8 (rank.lam)"),
 ):
     register_rank_rule(_name, f"adarl.core.rank:{_cls}", description=_what)
+
+
+# =====================================================================================================================
+# Training callbacks by name: each entry of a recipe's ``callbacks`` list is looked up as ``algorithm.name`` is, and
+# its ``options`` validated by the callback's pydantic model. A callback is a TorchRL ``TrainerHookBase``-style
+# object (:class:`adarl.runtime.callbacks.Callback`), built with its options as keyword arguments (docs/callbacks.md).
+# =====================================================================================================================
+
+#: adarl's own callbacks (their names cannot be registered again)
+BUILTIN_CALLBACKS = ("stop_on_return",)
+HOW_TO_REGISTER_CALLBACK = (
+    "register one with adarl.register_callback(...) in a module the recipe's plugins list names, or in a package "
+    f"that declares an {ENTRY_POINT_GROUP!r} entry point (docs/callbacks.md)"
+)
+
+
+class StopOnReturnOptions(BaseModel):
+    """``options`` of the ``stop_on_return`` callback (SB3's ``StopTrainingOnRewardThreshold``)."""
+
+    model_config = ConfigDict(extra="forbid")
+    threshold: float = Field(
+        allow_inf_nan=False, description="stop after the first evaluation whose mean return is >= this"
+    )
+    min_frames: int = Field(0, ge=0, description="no stop before this many frames, whatever the return")
+
+
+@dataclass(frozen=True)
+class CallbackSpec:
+    """A registered callback name (an entry of a recipe's ``callbacks``).
+
+    ``callback``: the class (a subclass of :class:`adarl.runtime.callbacks.Callback`, or any TorchRL
+    ``TrainerHookBase`` with ``register``, ``state_dict`` and ``load_state_dict``), or a ``"module:Class"`` path
+    imported when a run is built (this module imports no torch). ``options``: a pydantic model of the entry's
+    ``options``, which the class is built with as keyword arguments. ``provider``: the distribution whose entry point
+    registered it (None for adarl's own and for a recipe's local module, which plugins.json records by sha256)."""
+
+    name: str
+    callback: Any
+    options: type[BaseModel] = NoOptions
+    description: str = ""
+    provider: str | None = None
+    builtin: bool = False
+
+    @property
+    def callback_path(self) -> str:
+        return _path_of(self.callback)
+
+    def callback_class(self) -> type:
+        """The callback class (a ``"module:Class"`` path is imported now; a failure is an error naming it)."""
+        try:
+            return _resolve(self.callback)
+        except (ImportError, AttributeError) as err:
+            raise AdaRLValueError(
+                f"callback {self.name!r} (from {self.provider or 'adarl'}) names {self.callback!r}, which cannot be "
+                f"imported: {type(err).__name__}: {err}"
+            ) from err
+
+    def provenance(self) -> dict:
+        """Where this name came from (the run folder's plugins.json): the class, the package and its version."""
+        return {"name": self.name, "callback": self.callback_path, **provenance(self.provider)}
+
+
+_callbacks: dict[str, CallbackSpec] = {}
+CALLBACKS: Registry[CallbackSpec] = Registry(
+    "callbacks.name",
+    what="callback",
+    how=HOW_TO_REGISTER_CALLBACK,
+    order=list,
+    entries=lambda: _callbacks,
+    describe=lambda old: f"class {old.callback_path}, from {old.provider or 'adarl'}",
+    same=lambda old, new: old.callback_path == new.callback_path,
+    protected=BUILTIN_CALLBACKS,
+)
+
+
+def register_callback(
+    name: str,
+    callback: Any = None,
+    *,
+    options: type[BaseModel] | None = None,
+    description: str = "",
+    replace: bool = False,
+):
+    """Register a recipe's ``callbacks: [{name: <name>, options: {...}}]``; usable as a class decorator::
+
+        class EveryNOptions(BaseModel):
+            model_config = ConfigDict(extra="forbid")
+            n: int = Field(100, ge=1)
+
+        @register_callback("every_n", options=EveryNOptions)
+        class EveryN(Callback):
+            def __init__(self, n: int = 100): ...
+            def post_optim(self, losses): ...
+
+    A name registered twice is an error (``replace=True`` to override on purpose); adarl's own cannot be replaced."""
+    if not isinstance(name, str) or not name.isidentifier():
+        raise AdaRLValueError(f"callback name must be an identifier (letters, digits, _), got {name!r}")
+    if options is not None and not (isinstance(options, type) and issubclass(options, BaseModel)):
+        raise AdaRLValueError(
+            f"register_callback({name!r}): options must be a pydantic BaseModel class, got {options!r}"
+        )
+
+    def _register(cls):
+        if not isinstance(cls, (str, type)):
+            raise AdaRLValueError(
+                f"register_callback({name!r}): callback must be a class or a 'module:Class' path, got {cls!r}"
+            )
+        entry = CallbackSpec(
+            name=name,
+            callback=cls,
+            options=options or NoOptions,
+            description=description,
+            provider=current_provider(),
+            builtin=name in BUILTIN_CALLBACKS,
+        )
+        CALLBACKS.register(name, entry, replace=replace)
+        return cls
+
+    if callback is None:
+        return _register
+    return _register(callback)
+
+
+def callback_names(*, load: bool = True) -> list[str]:
+    """The registered callback names, adarl's own first (``load``: installed plugins first)."""
+    return CALLBACKS.names(load=load)
+
+
+def callback(name: str) -> CallbackSpec:
+    """The :class:`CallbackSpec` registered as ``name``; installed plugins are loaded when it is not known yet.
+
+    >>> callback("stop_on_return").callback_path
+    'adarl.runtime.callbacks:StopOnReturn'
+    >>> callback("stop_on_retrun")
+    Traceback (most recent call last):
+        ...
+    adarl.errors.UnknownNameError: unknown callbacks.name 'stop_on_retrun'; allowed: 'stop_on_return'; did you mean ...
+    """
+    return CALLBACKS.get(name)
+
+
+register_callback(
+    "stop_on_return",
+    "adarl.runtime.callbacks:StopOnReturn",
+    options=StopOnReturnOptions,
+    description="stop training after the evaluation whose mean return reaches options.threshold",
+)

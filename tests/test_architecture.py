@@ -55,6 +55,7 @@ LAZY_ADARL_IMPORTS = {
 #: onnx (``adarl export --format onnx`` only, when it is installed)
 LAZY_THIRD_PARTY = {
     "onnx",
+    "pandas",  # heavy; the run folder's progress.csv alone needs it in a training process
     "mujoco",
     "gymnasium",
     "matplotlib",

@@ -228,7 +228,10 @@ def test_foreign_checkpoint_without_fingerprint_is_one_line(finished, tmp_path):
         (["eval", "--checkpoint", "best", "--episodes", "1"], {"eval_nominal.json"}),
         (["eval", "--episodes", "1"], {"eval_nominal.json"}),
         (["eval", "--sweep", "torso_length=0.3:0.5:2", "--episodes", "1"], {"sweeps/"}),
-        (["report"], {"report.md", "plots/return.png", "plots/ranks.png", "plots/speed.png"}),
+        (
+            ["report"],
+            {"report.md", *(f"plots/{f}.{x}" for f in ("return", "ranks", "speed") for x in ("png", "pdf", "svg"))},
+        ),
     ],
 )
 def test_eval_and_report_leave_training_records_unchanged(finished, tmp_path, command, allowed):

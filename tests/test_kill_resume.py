@@ -16,6 +16,7 @@ import subprocess
 import time
 from pathlib import Path
 
+import pandas as pd
 import pytest
 from _helpers import checkpoints, start_adarl, tiny, tiny_ppo, wait_for
 
@@ -69,6 +70,12 @@ def _results(run: Path) -> dict[str, str]:
         if p.relative_to(root).parts[0] != "time"
     }  # time/fps: wall clock
     assert "metrics/rollout/ep_rew_mean.csv" in out
+    # SB3's wide progress.csv agrees with the per-metric files after every resume (timing columns left out)
+    progress = pd.read_csv(run / "metrics" / "progress.csv")
+    assert list(progress.columns[:1]) == ["time/total_timesteps"] and "time/time_elapsed" in progress
+    assert "eval/mean_ep_length" in progress and "eval/mean_reward" in progress
+    timing = [c for c in progress.columns if c.startswith("time/") and c != "time/total_timesteps"]
+    out["metrics/progress.csv"] = progress.drop(columns=timing).to_csv(index=False)
     out["eval.csv"] = (run / "eval.csv").read_text()
     if (run / "ranks.json").is_file():  # rank records (AdaRL); the PPO loop has none
         out["ranks.json"] = (run / "ranks.json").read_text()

@@ -120,9 +120,26 @@ def test_wheel_ships_recipes_and_runs_from_another_folder(tmp_path: Path):
     assert Path(recipes) == Path(module_file).parent / "recipes"  # adarl/recipes in the installed package
     proc = subprocess.run([adarl, "recipes"], cwd=elsewhere, capture_output=True, text=True, env=env, timeout=120)
     assert proc.returncode == 0, proc.stderr
-    listed = {line.split()[0] for line in proc.stdout.splitlines() if line.strip()}
+    recipes_part, _, specs_part = proc.stdout.partition("\n\n")  # the recipes, then the spec sections (headed)
+    listed = {line.split()[0] for line in recipes_part.splitlines() if line.strip()}
     specs = ("experiments/", "tune/")  # experiment and tune specs, not recipes
     assert {r[: -len(".yaml")] for r in RECIPES if not r.startswith(specs)} == listed
+    for kind in specs:  # listed under their sections, and found by name from the installed package (issue 48.3)
+        names = {r[len(kind) : -len(".yaml")] for r in RECIPES if r.startswith(kind)}
+        assert names and all(f"\n{n} " in specs_part for n in names), (kind, specs_part)
+    proc = subprocess.run(
+        [
+            str(py),
+            "-c",
+            "from adarl.experiments.tune import load_tune_spec; print(load_tune_spec('hopper_tune').recipe)",
+        ],
+        cwd=elsewhere,
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=120,
+    )
+    assert (proc.returncode, proc.stdout.strip()) == (0, "hopper_adarl"), proc.stderr[-2000:]
 
     run_env = {**env, "OMP_NUM_THREADS": "1", "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
     proc = subprocess.run(

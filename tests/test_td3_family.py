@@ -56,7 +56,10 @@ def registered(monkeypatch):
 
 # ---------------------------------------------------------------------------------------------------- registration
 def test_a_loss_class_that_fits_no_base_is_refused_at_registration_with_the_list_of_bases(registered):
-    bases = r"'sac' \(SACLoss and subclasses\); 'ppo' \(PPOLoss and subclasses\); 'td3' \(TD3Loss or DDPGLoss"
+    bases = (
+        r"'sac' \(SACLoss or CrossQLoss or REDQLoss and subclasses\); 'ppo' \(PPOLoss and subclasses\); "
+        r"'td3' \(TD3Loss or DDPGLoss"
+    )
     with pytest.raises(AdaRLValueError, match=rf"IQLLoss fits no base.*bases: {bases}.*docs/custom-loss.md"):
         plugins.register_algorithm("my_iql", IQLLoss, base="td3")
     # a TD3Loss registered without its base (the default is 'sac'): the base it fits is named

@@ -88,6 +88,13 @@ BAD = {
         ["space 'output.dir'", "each trial sets it itself"],
     ),
     "a name that is no folder name": ({"name": ".."}, ["name", "'..'"]),  # issue 46.5: it wrote into runs/
+    # issue 48.3: `space: default` (or none) is the default space; an empty one or another word is refused
+    "an empty space": ({"space": {}}, ["space is empty", "or `default`"]),
+    "a space that is a word": ({"space": "defualt"}, ["space must be a mapping of recipe keys, or `default`"]),
+    "an override of a space key": (
+        {"overrides": [*TINY, "rank.beta=0.9"]},
+        ["override 'rank.beta=0.9' sets a key of the search space"],
+    ),
 }
 
 
@@ -230,7 +237,14 @@ def test_the_shipped_tune_specs_validate_and_are_not_recipes():
     from adarl.runtime.config import list_recipes
 
     specs = sorted((REPO / "recipes" / "tune").glob("*.yaml"))
-    assert [p.stem for p in specs] == ["cartpole_beta"]
+    assert [p.stem for p in specs] == [
+        "ant_tune",
+        "cartpole_beta",
+        "cartpole_tune",
+        "hopper_tune",
+        "humanoid_tune",
+        "walker2d_tune",
+    ]  # one per paper env (tests/test_tune_defaults.py), and the rank knobs on the linear CartPole
     assert not any(name.startswith("tune/") for name, _ in list_recipes())
     for p in specs:
         assert check_space(load_tune_spec(p.stem)) > 0

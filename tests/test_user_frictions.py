@@ -128,3 +128,31 @@ def test_the_tune_history_plot_has_whole_trial_ticks(tmp_path, monkeypatch):
     monkeypatch.setattr(plt, "close", lambda fig=None: (ticks.extend(fig.axes[0].get_xticks()), close(fig)))
     _outputs._plot_history(study, load_tune_spec("cartpole_beta"), tmp_path / "history.png")
     assert ticks and all(float(t).is_integer() for t in ticks), ticks
+
+
+def test_progress_csv_is_one_wide_table_of_every_scalar_that_follows_a_resumes_truncation(tmp_path):
+    """SB3's progress.csv: a row per logged step, time/total_timesteps first, a column per metric, blank where a
+    metric was not logged; made from the per-metric files, so a resume's truncation reaches it too."""
+    import pandas as pd
+
+    from adarl.runtime.run_folder.run_dir import RunDir
+
+    run = RunDir(tmp_path)
+    scalars = tmp_path / "metrics" / "scalars"
+    rows = {
+        "rollout/ep_rew_mean": [(100, 1.5), (200, 2.5), (300, 3.5)],
+        "eval/mean_reward": [(200, 10.0)],
+        "eval/mean_ep_length": [(200, 50.0)],
+        "time/time_elapsed": [(100, 0.25), (200, 0.5), (300, 0.75)],
+    }
+    for name, values in rows.items():
+        (scalars / name).parent.mkdir(parents=True, exist_ok=True)
+        (scalars / f"{name}.csv").write_text("step,value\n" + "".join(f"{s},{v}\n" for s, v in values))
+    table = pd.read_csv(run.write_progress())
+    assert list(table.columns) == ["time/total_timesteps", *sorted(rows)]
+    assert table["time/total_timesteps"].tolist() == [100, 200, 300]
+    assert table["rollout/ep_rew_mean"].tolist() == [1.5, 2.5, 3.5]
+    assert table["eval/mean_reward"].isna().tolist() == [True, False, True] and table["eval/mean_reward"][1] == 10.0
+    run.truncate_metrics(200)  # what a resume from the checkpoint at 200 frames does first
+    table = pd.read_csv(run.write_progress())
+    assert table["time/total_timesteps"].tolist() == [100, 200]

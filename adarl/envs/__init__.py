@@ -7,6 +7,8 @@ validates against, import without TorchRL or MuJoCo.
 * :mod:`adarl.envs.schedules` - episode schedules and their grammar (``{kind: sinusoid | uniform | fixed | list}``);
 * :mod:`adarl.envs.registry` - env ids, which parameters each env has and their ranges, presets by name, the envs'
   data (:func:`intrinsic_rank`);
+* :mod:`adarl.envs.declared` - any gymnasium id, and the parameters a recipe declares on MuJoCo model fields;
+* :mod:`adarl.envs.obs_norm` - observation normalisation with TorchRL's ``VecNormV2`` (checkpoint, freeze, export);
 * :mod:`adarl.envs.registration` - :func:`register_env` / :func:`register_parameter` for installed packages;
 * :mod:`adarl.envs.presets` - the presets' schedules (the paper's, Table 2's boxes, ours);
 * :mod:`adarl.envs.mujoco_appliers` - the appliers that put parameter values into a live env (MuJoCo, CartPole);
@@ -58,6 +60,8 @@ _EXPORTS: dict[str, str] = {
             "ACTION_DIMS",
             "ParameterInfo",
             "check_env_id",
+            "check_any_env_id",
+            "parameters_for",
             "env_parameters",
             "validate_values",
             "validate_schedule",
@@ -71,6 +75,19 @@ _EXPORTS: dict[str, str] = {
         "adarl.envs.registry",
     ),
     "PRESETS": "adarl.envs.presets",
+    **dict.fromkeys(["MODEL_FIELDS", "FieldParameter", "declared_parameters"], "adarl.envs.declared"),
+    **dict.fromkeys(
+        [
+            "make_observation_norm",
+            "find_observation_norm",
+            "share_observation_norm",
+            "obs_norm_state_dict",
+            "load_obs_norm_state_dict",
+            "ObservationAffine",
+            "observation_affine",
+        ],
+        "adarl.envs.obs_norm",
+    ),
     **dict.fromkeys(["register_env", "register_parameter"], "adarl.envs.registration"),
     **dict.fromkeys(
         ["DynamicsApplier", "MujocoDynamics", "CartPoleDynamics", "LinearCartPoleDynamics", "make_applier"],

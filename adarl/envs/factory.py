@@ -9,7 +9,10 @@ and for ``num_envs > 1`` the perturbation lives inside each worker::
     TransformedEnv(SerialEnv|ParallelEnv([TransformedEnv(GymEnv, PerturbedDynamicsEnvTransform)] * n),
                    Compose(DoubleToFloat, StepCounter, RewardSum))
 
-``RewardSum`` writes ``"episode_reward"``; the drawn dynamics are under ``(dynamics_key, <param>)``.
+``RewardSum`` writes ``"episode_reward"``; the drawn dynamics are under ``(dynamics_key, <param>)``. With
+``normalize_observations=True`` TorchRL's ``VecNormV2`` on ``"observation"`` comes last
+(:mod:`adarl.envs.obs_norm`). ``env_id`` may be any id in gymnasium's registry: without adarl's presets, its
+schedule sets the parameters declared in ``parameters`` (:mod:`adarl.envs.declared`).
 """
 
 from __future__ import annotations
@@ -22,11 +25,13 @@ from torchrl.envs import Compose, DoubleToFloat, EnvBase, ParallelEnv, RewardSum
 from torchrl.envs.batched_envs import BatchedEnvBase
 from torchrl.envs.libs.gym import GymEnv
 
+from adarl.envs.declared import declared_dict
 from adarl.envs.linear_cartpole import LINEAR_CARTPOLE_ID, LinearCartPoleEnv
+from adarl.envs.obs_norm import make_observation_norm
 from adarl.envs.perturbation import PerturbedDynamicsEnvTransform
 from adarl.envs.presets import PRESETS
 from adarl.envs.registry import (
-    check_env_id,
+    check_any_env_id,
     check_mode,
     make_schedule,
     preset_names,
@@ -53,7 +58,7 @@ def resolve_schedule(
 
     Returns None for plain dynamics (preset ``"none"``).
     """
-    env_id = check_env_id(env_id)
+    env_id = check_any_env_id(env_id)
     if isinstance(schedule, str):  # a preset name given as the schedule
         preset, schedule = schedule, None
     if schedule is not None:
@@ -74,9 +79,10 @@ def _worker_parts(
     max_episode_steps: int | None,
     worker_index: int,
     num_workers: int,
+    parameters: dict | None = None,
 ) -> tuple[EnvBase, PerturbedDynamicsEnvTransform | None]:
     kwargs = {"max_episode_steps": max_episode_steps} if max_episode_steps is not None else {}
-    check_env_id(env_id)  # in a fresh worker process: an installed plugin registers its env id with gymnasium
+    check_any_env_id(env_id)  # in a fresh worker process: an installed plugin registers its env id with gymnasium
     if env_id == LINEAR_CARTPOLE_ID:  # adarl's own TorchRL env, no gymnasium underneath
         base = LinearCartPoleEnv(device=device, **kwargs)
     else:
@@ -85,14 +91,20 @@ def _worker_parts(
     if schedule is None:
         return base, None
     transform = PerturbedDynamicsEnvTransform(
-        env_id, schedule, mode=mode, out_key=dynamics_key, worker_index=worker_index, num_workers=num_workers
+        env_id,
+        schedule,
+        mode=mode,
+        out_key=dynamics_key,
+        worker_index=worker_index,
+        num_workers=num_workers,
+        parameters=parameters,
     )
     return base, transform
 
 
-def _worker_env(*args: Any) -> EnvBase:
+def _worker_env(*args: Any, **kwargs: Any) -> EnvBase:
     """One worker: GymEnv (+ the perturbation). Module-level and picklable, for ParallelEnv's workers."""
-    base, transform = _worker_parts(*args)
+    base, transform = _worker_parts(*args, **kwargs)
     return base if transform is None else TransformedEnv(base, transform)
 
 
@@ -109,12 +121,14 @@ def make_env(
     device: Any = "cpu",
     max_episode_steps: int | None = None,
     perturb: bool = True,
+    parameters: Mapping[str, Any] | None = None,
+    normalize_observations: bool = False,
 ) -> TransformedEnv:
     """A TorchRL env whose dynamics change every episode.
 
     Args:
-        env_id: a gymnasium id from :data:`adarl.envs.SUPPORTED_ENVS` (e.g. ``"Hopper-v5"``) or one registered
-            with :func:`adarl.register_env`.
+        env_id: a gymnasium id from :data:`adarl.envs.SUPPORTED_ENVS` (e.g. ``"Hopper-v5"``), one registered
+            with :func:`adarl.register_env`, or any other id in gymnasium's registry (presets: ``"none"`` only).
         preset: ``"paper"``, ``"low"``, ``"high"``, ``"nominal"`` or ``"none"`` (see :func:`make_schedule`).
         schedule: a :class:`Schedule` or its dict; overrides ``preset``.
         mode: ``"consistent"`` (mass/inertia follow geometry) or ``"ompo"`` (geometry only, as the paper).
@@ -124,14 +138,18 @@ def make_env(
         device: the env's device.
         max_episode_steps: overrides gymnasium's time limit.
         perturb: False for plain dynamics (same as ``preset="none"``).
+        parameters: parameters declared on MuJoCo model fields, ``{name: {field, index?, low?, high?}}`` (a
+            recipe's ``env.parameters``), which ``schedule`` may set.
+        normalize_observations: TorchRL's ``VecNormV2`` on ``"observation"``, last (:mod:`adarl.envs.obs_norm`).
 
     >>> env = make_env("Hopper-v5", preset="paper", seed=0)
     >>> sorted(env.rollout(3)["next", "dynamics"].keys())  # the dynamics each step ran under
     ['episode', 'foot_length', 'torso_length']
     >>> env.close()
     """
-    env_id = check_env_id(env_id)
+    env_id = check_any_env_id(env_id)
     mode = check_mode(mode)
+    declared = declared_dict(parameters)
     if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
         raise AdaRLValueError(f"num_envs must be an integer >= 1, got {num_envs!r}")
     if max_episode_steps is not None and (
@@ -143,16 +161,20 @@ def make_env(
     sched = resolve_schedule(env_id, preset, schedule) if perturb else None
     if sched is not None:
         # Validate here (in the main process) rather than inside a worker.
-        PerturbedDynamicsEnvTransform(env_id, sched, mode=mode, out_key=dynamics_key)
+        PerturbedDynamicsEnvTransform(env_id, sched, mode=mode, out_key=dynamics_key, parameters=declared)
     sched_dict = sched.to_dict() if sched is not None else None
 
     args = (env_id, sched_dict, mode, dynamics_key, device, max_episode_steps)
     common = [DoubleToFloat(), StepCounter(), RewardSum()]
+    if normalize_observations:
+        common.append(make_observation_norm())
     if num_envs == 1:
-        base, transform = _worker_parts(*args, 0, 1)
+        base, transform = _worker_parts(*args, 0, 1, declared)
         env = TransformedEnv(base, Compose(*([transform] if transform is not None else []), *common))
+        if transform is not None and declared:
+            transform.applier  # noqa: B018 - declared fields are resolved against the model now, not at a reset
     else:
-        factories = [functools.partial(_worker_env, *args, w, num_envs) for w in range(num_envs)]
+        factories = [functools.partial(_worker_env, *args, w, num_envs, parameters=declared) for w in range(num_envs)]
         cls = ParallelEnv if parallel else SerialEnv
         env = TransformedEnv(cls(num_envs, factories, device=device), Compose(*common))
     if seed is not None:
@@ -171,9 +193,9 @@ def make_eval_env(
 
     ``schedule_or_preset`` is a preset name, a :class:`Schedule`, a schedule dict (``{"kind": ...}``) or a plain
     ``{param: value}`` dict; ``values`` (for sweeps) overrides it. ``"none"`` gives the plain environment.
-    Other keyword arguments go to :func:`make_env`.
+    Other keyword arguments go to :func:`make_env` (``parameters``: the declared parameters ``values`` may set).
     """
-    env_id = check_env_id(env_id)
+    env_id = check_any_env_id(env_id)
     for key in ("preset", "schedule", "perturb"):
         if key in kwargs:
             raise AdaRLValueError(f"make_eval_env: {key!r} is not accepted; pass schedule_or_preset or values")
@@ -194,7 +216,7 @@ def make_eval_env(
                 f"make_eval_env: expected a preset name {preset_names(env_id)}, a Schedule, a schedule dict or a "
                 f"{{parameter: value}} dict, got {schedule_or_preset!r}"
             )
-    values = validate_values(env_id, values)
+    values = validate_values(env_id, values, kwargs.get("parameters"))
     return make_env(env_id, schedule=FixedSchedule(values), **kwargs)
 
 

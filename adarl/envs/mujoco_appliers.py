@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from adarl.envs.declared import FieldSlot, declared_parameters, resolve_field
 from adarl.envs.registry import (
     _BODY_MASS_PREFIX,
     _GEOMETRY,
@@ -26,10 +27,11 @@ from adarl.envs.registry import (
     AIR_VISCOSITY,
     _known_envs,
     _unknown,
-    check_env_id,
+    check_any_env_id,
     check_mode,
     default_xml_path,
     env_parameters,
+    parameters_for,
     quiet_mujoco,
 )
 from adarl.errors import AdaRLValueError
@@ -188,15 +190,19 @@ class _SpecEditor:
 #: Bound on the number of recompiled models kept per environment in ``consistent`` mode.
 COMPILE_CACHE_SIZE = 256
 
+LINEAR_ID = "LinearCartPole-v0"
+
 
 class MujocoDynamics(DynamicsApplier):
-    """Edits a live ``mujoco.MjModel`` of a gymnasium v5 environment.
+    """Edits a live ``mujoco.MjModel`` of a gymnasium MuJoCo environment.
 
     Every :meth:`apply` first restores the defaults captured at construction (so nothing compounds), then:
     geometry (``consistent``: an ``MjSpec`` of the XML is edited, compiled - cached per value set - and its
     geometry, mass and inertia arrays copied in; ``ompo``: the live arrays are edited as OMPO does), mass and
-    friction scales, gravity and wind, and finally ``mj_setConst`` on a scratch ``MjData`` (fresh bounding
-    radii, so contacts stay valid, and consistent derived constants; the env's own data is untouched).
+    friction scales, gravity and wind, the parameters a recipe declares (``declared``: ``env.parameters``, each
+    one entry of a model field, set absolutely; resolved against this model here, so a bad index or name fails
+    when the env is built), and finally ``mj_setConst`` on a scratch ``MjData`` (fresh bounding radii, so
+    contacts stay valid, and consistent derived constants; the env's own data is untouched).
     """
 
     def __init__(
@@ -206,16 +212,20 @@ class MujocoDynamics(DynamicsApplier):
         params: tuple[str, ...],
         mode: str = "consistent",
         xml_path: str | None = None,
+        declared: Mapping[str, Any] | None = None,
     ) -> None:
         import mujoco
 
         self._mujoco = mujoco
-        self.env_id = check_env_id(env_id)
+        self.env_id = check_any_env_id(env_id)
         self.mode = check_mode(mode)
         self.model = model
         self.params = tuple(params)
-        self.xml_path = xml_path or default_xml_path(env_id)
-        allowed = env_parameters(env_id, require=params)
+        self.xml_path = xml_path or (default_xml_path(env_id) if env_id in _MUJOCO_XML else None)
+        allowed = parameters_for(env_id, declared, require=params)
+        fields = {n: p for n, p in declared_parameters(declared).items() if n in self.params}
+        self._declared: dict[str, FieldSlot] = {n: resolve_field(model, p) for n, p in fields.items()}
+        self._declared_defaults = {n: slot.get() for n, slot in self._declared.items()}
         live_bodies = {model.body(i).name for i in range(1, model.nbody)} - {""}
         self._body_ids: dict[str, int] = {}
         for name in self.params:
@@ -346,6 +356,8 @@ class MujocoDynamics(DynamicsApplier):
             model.opt.density = AIR_DENSITY
             model.opt.viscosity = AIR_VISCOSITY
             model.opt.wind[:] = (-float(values.get("wind", 0.0)), 0.0, 0.0)
+        for name, slot in self._declared.items():  # restored first (outside the fields above), then set
+            slot.set(float(values.get(name, self._declared_defaults[name])))
         mujoco.mj_setConst(model, self._scratch)
 
 
@@ -378,20 +390,33 @@ class _LiveEnvDynamics(DynamicsApplier):
                 ) from err
 
 
-def make_applier(env_id: str, unwrapped: Any, params: tuple[str, ...], mode: str = "consistent") -> DynamicsApplier:
-    """The applier for a live (unwrapped) gymnasium environment."""
-    env_id = check_env_id(env_id)
+def make_applier(
+    env_id: str,
+    unwrapped: Any,
+    params: tuple[str, ...],
+    mode: str = "consistent",
+    declared: Mapping[str, Any] | None = None,
+) -> DynamicsApplier:
+    """The applier for a live (unwrapped) gymnasium environment; ``declared``: the recipe's ``env.parameters``
+    (MuJoCo model fields: the env must simulate with MuJoCo)."""
+    env_id = check_any_env_id(env_id)
     check_mode(mode)
+    model = getattr(unwrapped, "model", None)
+    if declared and (model is None or not hasattr(model, "body_mass") or env_id in ("CartPole-v1", LINEAR_ID)):
+        raise AdaRLValueError(
+            f"env.parameters {sorted(declared)} map onto MuJoCo model fields, but {env_id}'s live environment "
+            f"{type(unwrapped).__name__} has no MuJoCo model (`.model`); declared parameters need a MuJoCo env "
+            "(e.g. a gymnasium '-v5' MuJoCo env)"
+        )
     if env_id == "CartPole-v1":
         return CartPoleDynamics(unwrapped, env_id)
-    if env_id == "LinearCartPole-v0":
+    if env_id == LINEAR_ID:
         return LinearCartPoleDynamics(unwrapped, env_id)
     if env_id in _REGISTERED and env_id not in _MUJOCO_XML:
         return _LiveEnvDynamics(unwrapped, env_id, params)
-    model = getattr(unwrapped, "model", None)
     if model is None or not hasattr(model, "body_mass"):
         raise AdaRLValueError(
             f"{env_id}: the live environment {type(unwrapped).__name__} has no MuJoCo model (`.model`); "
             f"supported: {list(_known_envs())}"
         )
-    return MujocoDynamics(model, env_id, params, mode, xml_path=getattr(unwrapped, "fullpath", None))
+    return MujocoDynamics(model, env_id, params, mode, xml_path=getattr(unwrapped, "fullpath", None), declared=declared)

@@ -33,12 +33,13 @@ from torchrl.data import Composite, Unbounded
 from torchrl.envs import EnvBase, Transform, TransformedEnv
 from torchrl.envs.batched_envs import BatchedEnvBase
 
+from adarl.envs.declared import declared_dict
 from adarl.envs.mujoco_appliers import DynamicsApplier, make_applier
 from adarl.envs.registry import (
-    check_env_id,
+    check_any_env_id,
     check_mode,
-    env_parameters,
     make_schedule,
+    parameters_for,
     validate_schedule,
     validate_values,
 )
@@ -98,6 +99,8 @@ class PerturbedDynamicsEnvTransform(Transform):
         out_key: where the values go (``(out_key, param)``); a string or a tuple for a nested key.
         seed: seeds the transform's own generator now (else it follows the wrapped gymnasium env's seed).
         worker_index, num_workers: this env's place among the workers of a batched env (see module docs).
+        parameters: parameters declared on the env's MuJoCo model fields (a recipe's ``env.parameters``:
+            ``{name: {field, index?, low?, high?}}``, :mod:`adarl.envs.declared`), which ``schedule`` may set.
 
     >>> from torchrl.envs import GymEnv
     >>> env = TransformedEnv(GymEnv("Hopper-v5"), PerturbedDynamicsEnvTransform("Hopper-v5", "paper", seed=0))
@@ -119,12 +122,14 @@ class PerturbedDynamicsEnvTransform(Transform):
         seed: int | None = None,
         worker_index: int = 0,
         num_workers: int = 1,
+        parameters: Mapping[str, Any] | None = None,
     ) -> None:
-        env_id = check_env_id(env_id)
+        env_id = check_any_env_id(env_id)
         mode = check_mode(mode)
+        declared = declared_dict(parameters)
         if isinstance(schedule, str):
             schedule = make_schedule(env_id, schedule)
-        schedule = validate_schedule(env_id, as_schedule(schedule))
+        schedule = validate_schedule(env_id, as_schedule(schedule), declared)
         for what, value, least in (("worker_index", worker_index, 0), ("num_workers", num_workers, 1)):
             if isinstance(value, bool) or not isinstance(value, int) or value < least:
                 raise AdaRLValueError(f"{what} must be an integer >= {least}, got {value!r}")
@@ -138,6 +143,7 @@ class PerturbedDynamicsEnvTransform(Transform):
         super().__init__(in_keys=[], out_keys=[unravel_key((*out_key, p)) for p in (*params, EPISODE_KEY)])
         self.env_id = env_id
         self.mode = mode
+        self.declared = declared
         self.schedule = schedule
         self.params: tuple[str, ...] = params
         self.worker_index = worker_index
@@ -213,7 +219,7 @@ class PerturbedDynamicsEnvTransform(Transform):
                     f"PerturbedDynamicsEnvTransform was built for {self.env_id!r} but wraps {live_id!r}; "
                     f"pass env_id={live_id!r} (supported ids: see adarl.envs.SUPPORTED_ENVS)"
                 )
-            self._applier = make_applier(self.env_id, unwrapped, self.params, self.mode)
+            self._applier = make_applier(self.env_id, unwrapped, self.params, self.mode, self.declared)
         return self._applier
 
     @property
@@ -224,8 +230,8 @@ class PerturbedDynamicsEnvTransform(Transform):
     @property
     def values(self) -> dict[str, float]:
         """The current episode's parameter values (the env defaults before the first reset)."""
-        if self._values is None:
-            defaults = env_parameters(self.env_id)
+        if self._values is None:  # a declared parameter's default is the model's own, nan before the first reset
+            defaults = parameters_for(self.env_id, self.declared)
             return {p: defaults[p].default for p in self.params}
         return dict(self._values)
 
@@ -237,7 +243,7 @@ class PerturbedDynamicsEnvTransform(Transform):
         self._sync_seed()
         episode = self._episode
         values = self.schedule.sample(self.schedule_index(episode), self._rng)
-        values = validate_values(self.env_id, values)
+        values = validate_values(self.env_id, values, self.declared)
         self.applier.apply(values)
         self._values = values
         self._current_episode = episode

@@ -25,7 +25,12 @@ every MuJoCo env            ``friction_scale``            every geom's friction 
 
 Installed packages add env ids (:func:`register_env`) and parameters (:func:`register_parameter`, e.g. a body's
 length on Hopper-v5) through the ``adarl.plugins`` entry-point group, loaded when an id or a parameter name is
-not known yet (docs/adding-a-component.md).
+not known yet (docs/adding-a-component.md). Any other id in gymnasium's registry is accepted too
+(:func:`check_any_env_id`): no presets but ``none``, and the parameters a recipe declares (:mod:`adarl.envs.declared`).
+
+Long because: every lookup of an env id and its parameters answers for adarl's envs, the plugins' and gymnasium's
+plain ones in one place (ids, parameters with the declared ones, presets, validation), which the schema, the
+appliers and the registration all read.
 """
 
 from __future__ import annotations
@@ -42,6 +47,7 @@ from typing import Any
 import numpy as np
 
 from adarl import plugins
+from adarl.envs.declared import FieldParameter, declared_parameters, gymnasium_entry_point, gymnasium_ids
 from adarl.envs.presets import PRESETS, generic_presets, paper_env_presets
 from adarl.envs.schedules import FixedSchedule, Schedule
 from adarl.errors import AdaRLValueError, UnknownNameError, did_you_mean
@@ -58,6 +64,9 @@ __all__ = [
     "ParameterInfo",
     "ParameterApply",
     "check_env_id",
+    "check_any_env_id",
+    "env_provenance",
+    "parameters_for",
     "check_mode",
     "is_mujoco",
     "default_xml_path",
@@ -182,7 +191,7 @@ class ParameterInfo:
         if not self.contains(value):
             raise AdaRLValueError(
                 f"{what or self.name!s}{where}: value {value!r} is outside its allowed range; allowed: "
-                f"{self.allowed()} (default {self.default:g})"
+                f"{self.allowed()}" + (f" (default {self.default:g})" if math.isfinite(self.default) else "")
             )
         return value
 
@@ -335,6 +344,71 @@ def check_env_id(env_id: Any) -> str:
     return env_id
 
 
+def check_any_env_id(env_id: Any) -> str:
+    """``env_id`` if adarl knows it (:func:`check_env_id`, installed plugins loaded) or gymnasium's registry has it
+    (a plain gymnasium env: no presets, the parameters a recipe declares); else
+    :class:`~adarl.errors.UnknownNameError` with a did-you-mean over both."""
+    if not isinstance(env_id, str):
+        raise AdaRLValueError(f"env id must be a string, got {env_id!r}; supported: {list(_known_envs())}")
+    if env_id in _REGISTERED:
+        return env_id
+    try:
+        return check_env_id(env_id)
+    except UnknownNameError:
+        gym_ids = gymnasium_ids()
+        if env_id in gym_ids:
+            return env_id
+        known = _known_envs()
+        raise UnknownNameError(
+            f"unknown env id {env_id!r}: neither adarl nor gymnasium registers it"
+            f"{did_you_mean(env_id, (*known, *gym_ids))}; adarl's own (with perturbation presets): {list(known)}; "
+            "any id in gymnasium's registry runs too, with env.perturbation.preset: none or parameters declared in "
+            f"env.parameters (gymnasium.pprint_registry() lists them; an env of your own: gymnasium.register, or "
+            f"{HOW_TO_REGISTER_ENV})",
+            kind=ENV_IDS.key,
+            name=env_id,
+            allowed=known,
+        ) from None
+
+
+def env_provenance(env_id: str) -> dict:
+    """Where ``env_id`` came from, for the run folder's plugins.json: adarl or the plugin that registered it, or,
+    for a plain gymnasium env, gymnasium's version and the env's entry point."""
+    env_id = check_any_env_id(env_id)
+    if env_id in _REGISTERED:
+        return ENV_IDS.provenance(env_id)
+    return {**plugins.provenance("gymnasium"), "entry_point": gymnasium_entry_point(env_id)}
+
+
+def _declared_info(p: FieldParameter) -> ParameterInfo:
+    return ParameterInfo(
+        p.name,
+        math.nan,  # the model's own value, known once the env is built
+        -_INF if p.low is None else p.low,
+        _INF if p.high is None else p.high,
+        description=f"{p.field}{list(p.index) if p.index else ''} (declared in env.parameters)",
+    )
+
+
+def parameters_for(
+    env_id: str, declared: Mapping[str, Any] | None = None, *, require: Iterable[Any] = ()
+) -> dict[str, ParameterInfo]:
+    """The parameters a recipe's env has: adarl's registered ones (:func:`env_parameters`; none for a plain
+    gymnasium env) and those it declares in ``env.parameters`` (``declared``: ``{name: {field, index?, low?,
+    high?}}``, :mod:`adarl.envs.declared`). A declared name that the env already has is refused."""
+    env_id = check_any_env_id(env_id)
+    spec = declared_parameters(declared)
+    own = env_parameters(env_id, require=[n for n in require if n not in spec]) if env_id in _REGISTERED else {}
+    for name, p in spec.items():
+        if name in own:
+            raise AdaRLValueError(
+                f"env.parameters.{name}: {env_id} already has a parameter named {name!r} ({own[name].description}); "
+                "pick another name for the declared one"
+            )
+        own[name] = _declared_info(p)
+    return own
+
+
 def check_mode(mode: Any) -> str:
     if mode not in MODES:
         raise AdaRLValueError(f"unknown physics mode {mode!r}; allowed modes: {list(MODES)}")
@@ -342,7 +416,11 @@ def check_mode(mode: Any) -> str:
 
 
 def is_mujoco(env_id: str) -> bool:
-    return check_env_id(env_id) in _MUJOCO_XML
+    """Whether ``env_id`` simulates with MuJoCo (adarl's own MuJoCo ids, and gymnasium's MuJoCo envs)."""
+    env_id = check_any_env_id(env_id)
+    if env_id in _REGISTERED:
+        return env_id in _MUJOCO_XML
+    return gymnasium_entry_point(env_id).startswith("gymnasium.envs.mujoco")
 
 
 def _gymnasium_assets() -> str:
@@ -420,15 +498,19 @@ def env_parameters(env_id: str, *, require: Iterable[Any] = ()) -> dict[str, Par
 def _unknown(env_id: str, name: Any, allowed: Mapping) -> AdaRLValueError:
     return AdaRLValueError(
         f"unknown parameter {name!r} for {env_id}; allowed: {list(allowed)}{did_you_mean(str(name), allowed)} "
-        "(to add one: adarl.register_parameter(...) in an installed plugin, docs/adding-a-component.md)"
+        "(to add one: declare it in the recipe's env.parameters, or adarl.register_parameter(...) in an installed "
+        "plugin, docs/adding-a-component.md)"
     )
 
 
-def validate_values(env_id: str, values: Mapping[str, Any]) -> dict[str, float]:
-    """Check names and values against the registry; returns ``{name: float}`` in sorted order."""
+def validate_values(
+    env_id: str, values: Mapping[str, Any], declared: Mapping[str, Any] | None = None
+) -> dict[str, float]:
+    """Check names and values against the registry (and the parameters ``declared`` in ``env.parameters``);
+    returns ``{name: float}`` in sorted order."""
     if not isinstance(values, Mapping):
         raise AdaRLValueError(f"dynamics values for {env_id} must be a mapping {{parameter: value}}, got {values!r}")
-    allowed = env_parameters(env_id, require=values)
+    allowed = parameters_for(env_id, declared, require=values)
     out = {}
     for name in sorted(values, key=str):
         if name not in allowed:
@@ -447,9 +529,10 @@ def _check_schedule(env_id: str, schedule: Schedule, allowed: Mapping[str, Param
     return schedule
 
 
-def validate_schedule(env_id: str, schedule: Schedule) -> Schedule:
-    """Check that every parameter of ``schedule`` exists for ``env_id`` and every value it can produce is valid."""
-    return _check_schedule(env_id, schedule, env_parameters(env_id, require=schedule.params))
+def validate_schedule(env_id: str, schedule: Schedule, declared: Mapping[str, Any] | None = None) -> Schedule:
+    """Check that every parameter of ``schedule`` exists for ``env_id`` (or is ``declared`` in ``env.parameters``)
+    and every value it can produce is valid."""
+    return _check_schedule(env_id, schedule, parameters_for(env_id, declared, require=schedule.params))
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -510,8 +593,20 @@ for _env_id in SUPPORTED_ENVS:  # adarl's own ids, registered as a plugin's are;
 
 
 def preset_names(env_id: str) -> list[str]:
-    """The presets available for ``env_id`` (``none`` always is)."""
-    return [*_PRESET_TABLE[check_env_id(env_id)], "none"]
+    """The presets available for ``env_id`` (``none`` always is; it is the only one of a plain gymnasium env)."""
+    return [*_PRESET_TABLE.get(check_any_env_id(env_id), {}), "none"]
+
+
+def _written_for(env_id: str) -> str:
+    """For a gymnasium id of another version of one of adarl's envs: which one the presets are written for."""
+    family = env_id.rsplit("-v", 1)[0].lower()
+    same = [k for k in _known_envs() if k.rsplit("-v", 1)[0].lower() == family]
+    return (
+        f"; the presets are written for the {same[0].rsplit('-', 1)[1]} model (its XML bodies and geoms): use "
+        f"{same[0]!r}"
+        if same
+        else ""
+    )
 
 
 def make_schedule(env_id: str, preset: str = "paper") -> Schedule:
@@ -519,6 +614,11 @@ def make_schedule(env_id: str, preset: str = "paper") -> Schedule:
     available = preset_names(env_id)
     if preset == "none":
         return FixedSchedule({})
+    if env_id not in _PRESET_TABLE:
+        raise AdaRLValueError(
+            f"preset {preset!r} is not available for {env_id!r}, a gymnasium env adarl has no presets for; allowed "
+            f"presets: {available} (or a schedule over parameters declared in env.parameters){_written_for(env_id)}"
+        )
     if preset not in _PRESET_TABLE[env_id]:
         ENV_IDS.load()  # an installed plugin may register env ids and presets not loaded yet
         available = preset_names(env_id)

@@ -155,26 +155,26 @@ class StopAsked:
 
 
 def run_is_finished(path: str | os.PathLike) -> bool:
-    """A run folder (or URL) whose summary shows its whole frame budget spent."""
+    """A run folder (or URL) whose summary shows its whole frame budget spent, or a callback's early stop that
+    still holds under its recipe.yaml (docs/callbacks.md)."""
     if is_url(path):
         summary, recipe = read_text(join(path, "summary.json")), read_text(join(path, "recipe.yaml"))
         if summary is None or recipe is None:
             return False
-        try:
-            total = int(yaml.safe_load(recipe)["collector"]["total_frames"])
-            return int(json.loads(summary).get("frames", -1)) >= total
-        except (ValueError, KeyError, TypeError, AttributeError, yaml.YAMLError, json.JSONDecodeError):
+    else:
+        p = Path(path)
+        if not ((p / "summary.json").is_file() and (p / "recipe.yaml").is_file()):
             return False
-    p = Path(path)
-    summary, recipe = p / "summary.json", p / "recipe.yaml"
-    if not (summary.is_file() and recipe.is_file()):
-        return False
+        summary, recipe = (p / "summary.json").read_text(), (p / "recipe.yaml").read_text()
     try:
-        frames = int(json.loads(summary.read_text()).get("frames", -1))
-        total = int(yaml.safe_load(recipe.read_text())["collector"]["total_frames"])
-    except (ValueError, KeyError, TypeError, yaml.YAMLError, json.JSONDecodeError):
+        done, resolved = json.loads(summary), yaml.safe_load(recipe)
+        total = int(resolved["collector"]["total_frames"])
+        stop = done.get("stopped_early")
+        if isinstance(stop, dict) and stop.get("total_frames") == total:
+            return stop.get("callbacks") == (resolved.get("callbacks") or [])
+        return int(done.get("frames", -1)) >= total
+    except (ValueError, KeyError, TypeError, AttributeError, yaml.YAMLError, json.JSONDecodeError):
         return False
-    return frames >= total
 
 
 def _cli(*args: str) -> list[str]:

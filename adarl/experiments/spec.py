@@ -184,6 +184,18 @@ class ReportSpec(_Model):
         "(normalised scores, IQM, optimality gap, performance profile). Keys: title, source, rows, columns, labels, "
         "extra_columns, values, normalise {random, random_from, reference}.",
     )
+    formats: list[Literal["png", "pdf", "svg"]] = Field(
+        default_factory=lambda: ["png", "pdf", "svg"],
+        description="Files each report figure is written as, side by side under one name: PNG (which report.md "
+        "links; always among them), PDF and SVG (vector, for a paper).",
+    )
+
+    @field_validator("formats")
+    @classmethod
+    def _formats_include_png(cls, formats: list[str]) -> list[str]:
+        if "png" not in formats or len(set(formats)) != len(formats):
+            raise ValueError("distinct values of png, pdf, svg with png among them (the report links the PNG)")
+        return formats
 
     @field_validator("pairs")
     @classmethod

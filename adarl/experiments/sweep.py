@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from adarl.envs.factory import make_eval_env, resolve_schedule
-from adarl.envs.registry import env_parameters
+from adarl.envs.registry import parameters_for
 from adarl.errors import AdaRLValueError, did_you_mean
 from adarl.runtime.evaluation import EvalResult, evaluate_policy
 from adarl.runtime.report import pyplot
@@ -167,11 +167,13 @@ def sweep_policy(
     names = [n for n, _ in axes]
     if len(set(names)) != len(names):
         raise AdaRLValueError(f"sweep parameters must differ, got {names}")
-    allowed = env_parameters(env_id, require=names)  # a plugin's parameter: its package is loaded first
+    # a plugin's parameter: its package is loaded first; a recipe's own (env.parameters) come in env_kwargs
+    allowed = parameters_for(env_id, env_kwargs.get("parameters"), require=names)
     for n in names:
         if n not in allowed:
             raise AdaRLValueError(
                 f"unknown sweep parameter {n!r} for {env_id}; allowed: {list(allowed)}{did_you_mean(n, allowed)}"
+                + ("" if allowed else " (it has none: a MuJoCo env can declare some in env.parameters)")
             )
     if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 1:
         raise AdaRLValueError(f"episodes must be an integer >= 1, got {episodes!r}")
@@ -205,19 +207,21 @@ def sweep_run(
     :meth:`~adarl.runtime.trainers.base.BaseTrainer.resume` takes it); writes ``sweeps/<name>.{csv,json,png}`` there
     and nothing else (the run is loaded read-only)."""
     # Check the grid against the run's env before loading anything heavy.
-    env_id = RunDir.open(run_dir).load_recipe().env.id
-    allowed = env_parameters(env_id, require=[n for n, _ in axes])
+    env = RunDir.open(run_dir).load_recipe().env
+    env_id = env.id
+    allowed = parameters_for(env_id, env.declared(), require=[n for n, _ in axes])
     for n, _ in axes:
         if n not in allowed:
             raise AdaRLValueError(
                 f"unknown sweep parameter {n!r} for {env_id}; allowed: {list(allowed)}{did_you_mean(n, allowed)}"
+                + ("" if allowed else " (it has none: a MuJoCo env can declare some in env.parameters)")
             )
     trainer = BaseTrainer.resume(run_dir, quiet=True, read_only=True, checkpoint=checkpoint)
     try:
         recipe = trainer.recipe
         e = recipe.env
         result = sweep_policy(
-            trainer.c.modules.actor,
+            trainer.c.raw_observation_actor(),  # the sweep's envs are built without the run's normaliser
             e.id,
             axes,
             nominal=_nominal_values(recipe),
@@ -227,6 +231,7 @@ def sweep_run(
             mode=e.perturbation.mode,
             device=recipe.device,
             max_episode_steps=e.max_episode_steps,
+            parameters=e.declared(),
         )
     finally:
         trainer.close()

@@ -19,6 +19,7 @@ from adarl.baselines.mlp import BaselineMLP
 from adarl.baselines.normalization import RunningObsNorm
 from adarl.baselines.policy import ClippedNormal
 from adarl.core.lowrank import LowRankLinear
+from adarl.envs.obs_norm import ObservationAffine
 from adarl.errors import AdaRLValueError, one_of
 
 __all__ = ["deterministic_program", "Program", "LayerChoice", "LAYER_FORMS", "CALL_COST_MACS"]
@@ -341,6 +342,11 @@ def deterministic_program(actor, layers: str = "auto") -> Program:
             obs_norm = {"kind": "running mean/std (baked in)", "count": count, "eps": leaf.eps}
             if count > 0:  # the live module is the identity until its first update
                 out.append(_ObsNorm(leaf))
+        elif isinstance(leaf, ObservationAffine):  # env.normalize_observations (load_policy puts it first)
+            if i != 0:
+                raise AdaRLValueError(f"cannot export an observation normaliser inside the network (at {name!r})")
+            obs_norm = {"kind": "VecNorm mean/std (frozen, env.normalize_observations)"}
+            out.append(copy.deepcopy(leaf))
         elif isinstance(leaf, nn.Linear) and type(leaf) is nn.Linear:
             lin = nn.Linear(leaf.in_features, leaf.out_features, bias=leaf.bias is not None, dtype=leaf.weight.dtype)
             lin.weight.data = leaf.weight.detach().clone()
@@ -426,6 +432,8 @@ def _observation_dim(module: nn.Module) -> int:
     for m in module.modules():
         if isinstance(m, _ObsNorm):
             return int(m.mean.shape[-1])
+        if isinstance(m, ObservationAffine):
+            return int(m.loc.shape[-1])
         if isinstance(m, nn.Linear):
             return int(m.in_features)
     raise AdaRLValueError("cannot tell the actor's observation size: its network has no linear layer")

@@ -29,8 +29,9 @@ from adarl.runtime.run_folder.run_dir import RunDir, recipe_fingerprint
 
 __all__ = ["RESUMABLE_KEYS", "continued_recipe", "already_complete", "schedule_totals", "retarget_schedules"]
 
-#: the recipe keys ``adarl resume RUN key=value`` may change: the frame budget only (raised)
-RESUMABLE_KEYS = ("collector.total_frames",)
+#: the recipe keys ``adarl resume RUN key=value`` may change: the frame budget (raised only) and the callbacks (what
+#: a run stopped early by one needs to train on: docs/callbacks.md), the whole list or a key under it
+RESUMABLE_KEYS = ("collector.total_frames", "callbacks")
 
 #: the attributes of a learning-rate lambda that hold its schedule's length over the run (``WarmupCosine``'s
 #: ``total_steps``, PPO's ``LinearDecay.total``)
@@ -47,7 +48,7 @@ def continued_recipe(run_dir: RunDir, recipe, overrides: Sequence[str]):
     raised. Returns ``recipe`` itself when ``overrides`` is empty."""
     if not overrides:
         return recipe
-    refused = [o for o in overrides if _key(o) not in RESUMABLE_KEYS]
+    refused = [o for o in overrides if _key(o).split(".")[0] != "callbacks" and _key(o) not in RESUMABLE_KEYS]
     if refused:
         key = _key(refused[0])
         raise RecipeError(
@@ -67,11 +68,14 @@ def continued_recipe(run_dir: RunDir, recipe, overrides: Sequence[str]):
     return new
 
 
-def already_complete(path: str | os.PathLike, frames: int, total: int) -> str | None:
+def already_complete(path: str | os.PathLike, frames: int, total: int, *, stopped: dict | None = None) -> str | None:
     """The line ``adarl resume`` prints for a run whose latest loadable checkpoint is at ``frames`` >= its budget
-    ``total`` (the one the overrides set, when given) and whose end was written (``summary.json`` at that budget),
-    or None when there is something left to do: training, or the end of a run stopped after its last checkpoint
-    (its final evaluation, summary and report, which resuming it writes)."""
+    ``total`` (the one the overrides set, when given), or that a callback stopped early (``stopped``: the trainer's
+    :attr:`~adarl.runtime.trainers.base.BaseTrainer.stopped_early`, a stop that still holds), and whose end was
+    written (``summary.json`` at those frames), or None when there is something left to do: training, or the end of a
+    run stopped after its last checkpoint (its final evaluation, summary and report, which resuming it writes)."""
+    if stopped is not None:
+        return _stopped_line(path, frames, total, stopped)
     if frames < total:
         return None
     try:
@@ -83,6 +87,21 @@ def already_complete(path: str | os.PathLike, frames: int, total: int) -> str | 
         f"run {str(path)!r} is already complete: {frames} frames of collector.total_frames={total} "
         f"(its report: {Path(path) / 'report.md'}); to train it further, raise the budget: "
         f"`{command('adarl', 'resume', path)} collector.total_frames=N` with N > {frames}"
+    )
+
+
+def _stopped_line(path: str | os.PathLike, frames: int, total: int, stop: dict) -> str | None:
+    try:
+        summary = json.loads((Path(path) / "summary.json").read_text())
+        if int(summary["frames"]) != frames or summary.get("stopped_early") != stop:
+            return None
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return (
+        f"run {str(path)!r} is complete: callback {stop.get('callback')!r} stopped it early at {stop.get('frames')} "
+        f"frames of collector.total_frames={total} ({stop.get('reason')}; its report: {Path(path) / 'report.md'}); "
+        f"to train it further, raise the budget (`{command('adarl', 'resume', path)} collector.total_frames=N`, N > "
+        f"{total}) or drop or change the callbacks (`{command('adarl', 'resume', path)} callbacks=[]`)"
     )
 
 

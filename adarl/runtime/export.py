@@ -43,6 +43,7 @@ from torch import nn
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 import adarl
+from adarl.envs.obs_norm import ObservationAffine
 from adarl.errors import AdaRLError, AdaRLValueError, ExportFileError, one_of
 from adarl.runtime._export_archive import load_program, read_export, seal
 from adarl.runtime._export_program import (  # noqa: F401  (CALL_COST_MACS: part of this module's interface)
@@ -87,6 +88,9 @@ def _check_observations(program: Program, n: int = CHECK_OBSERVATIONS) -> torch.
     norm = next((m for m in program.module if isinstance(m, _ObsNorm)), None)
     if norm is not None:
         obs = norm.mean + norm.denominator * obs
+    affine = next((m for m in program.module if isinstance(m, ObservationAffine)), None)
+    if affine is not None:  # env.normalize_observations
+        obs = affine.loc + affine.scale * obs
     return obs
 
 

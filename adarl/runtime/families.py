@@ -163,6 +163,7 @@ register_family(
     builder="adarl.runtime.builders.sac:build_sac_components",
     trainer=_OFF_POLICY,
     actor="adarl.runtime.builders.sac:make_recipe_actor",
+    checks="adarl.runtime.config.schema:sac_problems",  # TQC, CrossQ, REDQ (adarl.runtime.builders.sac_variants)
     owns=("polyak", "factor_lr_scale"),  # SAC's factorised critics (Polyak on the products, the factors' LR)
 )
 register_family(

@@ -40,6 +40,8 @@ from adarl.runtime.run_folder.results import is_url, join, read_text
 __all__ = [
     "FINGERPRINT_FILE",
     "EXCLUDED",
+    "NOT_TRAINING",
+    "training_values",
     "recipe_values",
     "revalidated",
     "fingerprint",
@@ -65,6 +67,21 @@ EXCLUDED = {
     "into the log",
 }
 
+#: flat recipe keys a fingerprint keeps (a run is resumed or reused only with the same values) that change neither
+#: what the run learns nor what its evaluations measure, and why; with :data:`EXCLUDED` they are the keys in which
+#: seeds of one setting may differ (:func:`training_values`: ``adarl report`` pools loose run folders so)
+NOT_TRAINING = {
+    "checkpoint.interval": "where a run can resume from (it changes training only through a rollback: counted "
+    "under guards.on_nonfinite: rollback)",
+    "checkpoint.keep_last": "how many checkpoints stay on disk",
+    "checkpoint.replay_buffer": "whether a checkpoint holds the replay buffer (an exact resume needs it)",
+    "checkpoint.keep_best": "whether the best evaluation's policy is kept",
+    "eval.interval": "how often the policy is evaluated, on an env of its own (counted when a callback, which may "
+    "stop the run on an evaluation, is listed)",
+    "eval.episodes": "how many episodes an evaluation averages: its precision, not what it measures (counted with a "
+    "callback, as eval.interval)",
+}
+
 
 def _flat(d: dict, prefix: str = "") -> dict[str, Any]:
     out: dict[str, Any] = {}
@@ -80,6 +97,22 @@ def recipe_values(recipe) -> dict[str, Any]:
     """The fingerprinted keys of a validated recipe, flat (``rank.beta``), as JSON values."""
     data = recipe.model_dump(mode="json")
     return {k: v for k, v in _flat(data).items() if k.split(".")[0] not in EXCLUDED}
+
+
+def training_values(recipe: dict) -> dict[str, Any]:
+    """The keys of a recipe mapping (a run folder's recipe.yaml as read) that make its setting, flat
+    (``rank.beta``): all but :data:`EXCLUDED`'s sections and :data:`NOT_TRAINING`'s keys, each of the latter kept
+    where the recipe makes it matter (``checkpoint.interval`` with ``guards.on_nonfinite: rollback``, the
+    evaluation keys with ``callbacks``). The seed is among them (it changes what a run learns)."""
+    flat = _flat(recipe)
+    counted = set()
+    if (recipe.get("guards") or {}).get("on_nonfinite") == "rollback":
+        counted.add("checkpoint.interval")
+    if recipe.get("callbacks"):
+        counted |= {"eval.interval", "eval.episodes"}
+    return {
+        k: v for k, v in flat.items() if k.split(".")[0] not in EXCLUDED and (k not in NOT_TRAINING or k in counted)
+    }
 
 
 def revalidated(values: dict[str, Any]) -> dict[str, Any] | None:

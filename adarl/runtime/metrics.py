@@ -14,8 +14,11 @@ this name                       SB3's                           what
 ``rollout/ep_len_mean``         ``rollout/ep_len_mean``         their mean length
 ``time/episodes``               ``time/episodes``               episodes finished so far
 ``time/fps``                    ``time/fps``                    frames per second of this process
+``time/time_elapsed``           ``time/time_elapsed``           wall-clock seconds of training, summed over the run's
+                                                                processes (SB3's restarts at each ``learn()``)
 ``eval/mean_reward``            ``eval/mean_reward``            mean return of the nominal-dynamics evaluation
 ``eval/std_reward``             ``std_reward``                  its standard deviation (SB3's ``evaluate_policy``)
+``eval/mean_ep_length``         ``eval/mean_ep_length``         mean length of its episodes
 ``train/actor_loss``            ``train/actor_loss``            SAC's actor loss (TorchRL's ``loss_actor``)
 ``train/critic_loss``           ``train/critic_loss``           SAC's Q loss (``loss_qvalue``)
 ``train/ent_coef``              ``train/ent_coef``              SAC's temperature (``alpha``)
@@ -28,6 +31,9 @@ this name                       SB3's                           what
 ``train/n_updates``             ``train/n_updates``             optimisation steps so far
 ``train/learning_rate``         ``train/learning_rate``         the actor's learning rate
 ==============================  ==============================  ========================================================
+
+Every scalar is also in one wide table, ``metrics/progress.csv`` (SB3's ``progress.csv``: a row per logged step,
+``time/total_timesteps`` first), rewritten from these files at every checkpoint and at the end of the run.
 
 Losses are averaged over ``logging.log_interval`` frames; any other loss term keeps TorchRL's name under
 ``train/`` (``train/entropy``, ``train/loss_parseval``, ...). adarl's own, which SB3 does not have:
@@ -59,6 +65,8 @@ __all__ = [
     "TRAIN_LR",
     "EVAL_RETURN",
     "EVAL_RETURN_STD",
+    "EVAL_LENGTH",
+    "TIME_ELAPSED",
     "WARM_START_FRAMES",
     "FPS",
     "UPDATES_PER_S",
@@ -83,6 +91,8 @@ TRAIN_UPDATES = "train/n_updates"
 TRAIN_LR = "train/learning_rate"
 EVAL_RETURN = "eval/mean_reward"
 EVAL_RETURN_STD = "eval/std_reward"
+EVAL_LENGTH = "eval/mean_ep_length"
+TIME_ELAPSED = "time/time_elapsed"
 WARM_START_FRAMES = "warm_start/frames"
 FPS = "time/fps"
 UPDATES_PER_S = "time/updates_per_s"

@@ -26,7 +26,7 @@ from torchrl.envs.libs.gym import GymWrapper
 from adarl.envs.factory import make_env, resolve_schedule
 from adarl.envs.linear_cartpole import LINEAR_CARTPOLE_ID
 from adarl.envs.perturbation import PerturbedDynamicsEnvTransform
-from adarl.envs.registry import quiet_mujoco, validate_values
+from adarl.envs.registry import is_mujoco, quiet_mujoco, validate_values
 from adarl.envs.schedules import FixedSchedule
 from adarl.errors import AdaRLError, AdaRLValueError, MissingExtraError
 from adarl.runtime.evaluation import evaluate_policy
@@ -72,7 +72,7 @@ def _dynamics(recipe, perturb: dict[str, float]) -> dict[str, float]:
     sched = resolve_schedule(recipe.env.id, p.preset, p.schedule) if recipe.eval.nominal else None
     values = dict(sched.nominal()) if sched is not None else {}
     values.update(perturb)
-    return validate_values(recipe.env.id, values) if values else {}
+    return validate_values(recipe.env.id, values, recipe.env.declared()) if values else {}
 
 
 def _recording_env(recipe, values: dict[str, float], folder: Path, size: tuple[int, int]):
@@ -83,7 +83,7 @@ def _recording_env(recipe, values: dict[str, float], folder: Path, size: tuple[i
     kwargs = {"render_mode": "rgb_array"}
     if recipe.env.max_episode_steps is not None:
         kwargs["max_episode_steps"] = recipe.env.max_episode_steps
-    if env_id != "CartPole-v1":
+    if is_mujoco(env_id):  # MuJoCo's renderer takes a size; gymnasium's other renderers do not
         kwargs.update(width=size[0], height=size[1])
     with quiet_mujoco():
         base = gym.make(env_id, **kwargs)
@@ -122,14 +122,23 @@ def _recording_env(recipe, values: dict[str, float], folder: Path, size: tuple[i
     transforms = []
     if values:
         p = recipe.env.perturbation
-        transforms.append(PerturbedDynamicsEnvTransform(env_id, FixedSchedule(values), mode=p.mode, out_key=p.key))
+        transforms.append(
+            PerturbedDynamicsEnvTransform(
+                env_id, FixedSchedule(values), mode=p.mode, out_key=p.key, parameters=recipe.env.declared()
+            )
+        )
     env = TransformedEnv(GymWrapper(recorder), Compose(*transforms, DoubleToFloat(), StepCounter(), RewardSum()))
     return env, recorder
 
 
 def _plain_env(recipe, values: dict[str, float]):
     p = recipe.env.perturbation
-    common = dict(mode=p.mode, dynamics_key=p.key, max_episode_steps=recipe.env.max_episode_steps)
+    common = dict(
+        mode=p.mode,
+        dynamics_key=p.key,
+        max_episode_steps=recipe.env.max_episode_steps,
+        parameters=recipe.env.declared(),
+    )
     if values:
         return make_env(recipe.env.id, schedule=FixedSchedule(values), **common)
     return make_env(recipe.env.id, perturb=False, **common)

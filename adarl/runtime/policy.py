@@ -17,6 +17,7 @@ import torch
 
 from adarl.core.lowrank import LowRankLinear
 from adarl.envs.linear_cartpole import LINEAR_CARTPOLE_ID, LinearCartPoleEnv
+from adarl.envs.obs_norm import observation_affine, with_observation_norm
 from adarl.envs.registry import quiet_mujoco
 from adarl.errors import AdaRLValueError, CheckpointError
 from adarl.runtime._export_archive import is_export_file
@@ -140,6 +141,8 @@ def load_policy_with_info(
             f"{str(ckpt)!r}: the actor's tensors do not fit the network recipe.yaml describes: "
             f"{str(err).splitlines()[0]}"
         ) from None
+    if state.get("obs_norm") is not None:  # env.normalize_observations: the checkpoint's statistics, frozen
+        with_observation_norm(actor, observation_affine(state["obs_norm"]).to(dev))
     actor.eval().requires_grad_(False)
     return LoadedPolicy(actor, recipe, run.path, ckpt, int(state["counters"]["frames"]))
 
@@ -152,6 +155,8 @@ def load_policy(run_dir_or_checkpoint: str | os.PathLike, which: str = "latest",
     Layers a rank event truncated get the checkpoint's ranks. No env, replay buffer or collector is built.
 
     The actor reads ``"observation"`` (float32) and writes ``"action"``; outside ``set_exploration_type`` it acts
-    deterministically (the distribution's mode), as the evaluations do. Its parameters do not require grad.
+    deterministically (the distribution's mode), as the evaluations do. Its parameters do not require grad. A run
+    with ``env.normalize_observations`` gives an actor reading raw observations: its network starts with the
+    checkpoint's statistics, frozen (:class:`adarl.envs.ObservationAffine`).
     """
     return load_policy_with_info(run_dir_or_checkpoint, which, device=device).actor

@@ -13,8 +13,9 @@ report; :mod:`~adarl.experiments.report._runs` (run folders to records and group
 :mod:`~adarl.experiments.report._figures` (plots), :mod:`~adarl.experiments.report._blocks` (Markdown, HTML and CSV).
 
 Outputs in the report folder: ``report.md``, ``report.html``, ``table.csv``, ``runs.csv``, ``statistics.csv``, and
-per figure a PNG with the CSV it was drawn from: ``learning_curves``, ``learning_curves_by_seed``, ``ranks``,
-``return_vs_<axis>`` (Fig. 1), ``sweep_<name>`` (Fig. 8); with ``report.paper_table``
+per figure a PNG, a PDF and an SVG (``report.formats``; the report links the PNG) with the CSV it was drawn from:
+``learning_curves``, ``learning_curves_by_seed``, ``ranks``, ``return_vs_<axis>`` (Fig. 1), ``sweep_<name>``
+(Fig. 8); with ``report.paper_table``
 (:mod:`~adarl.experiments.report._paper_table`), ``paper_table.csv`` and the normalised aggregate (``normalised_*``).
 """
 
@@ -40,6 +41,11 @@ from adarl.experiments.report._blocks import (
     render_markdown,
 )
 from adarl.experiments.report._figures import (
+    CI_BAND,
+    CI_BAND_HOW,
+    STD_BAND,
+    STD_BARS,
+    figure_formats,
     plot_learning_curves,
     plot_rank_trajectories,
     plot_return_vs,
@@ -85,6 +91,7 @@ def write_aggregate_report(
     if pair_values is not None:
         _check_pair_values(agg, pair_values)
     _check_verdict_seeds(agg, pair_values)
+    formats = figure_formats(agg)  # a bad report.formats is refused before anything is written
     if output is None:
         only = Path(dirs[0]) if len(dirs) == 1 else None
         output = only / "report" if only is not None and (only / "experiment.json").is_file() else Path("report")
@@ -185,6 +192,7 @@ def write_aggregate_report(
                 "rliable's figures (Agarwal et al. 2021) from the same scores: mean and IQM with 95% stratified-"
                 "bootstrap intervals, the share of runs scoring above each threshold, and the probability that the "
                 "reference improves on each setting (dashed line: 0.5, no difference). Data in rliable.csv."
+                + _formats_note(formats)
             ),
             Image(p.name, "interval estimates, performance profile, probability of improvement"),
         ]
@@ -194,7 +202,10 @@ def write_aggregate_report(
         if p is not None:
             blocks += [
                 Heading(2, f"Score vs {x_axis}"),
-                Paragraph("Mean ± std across seeds (error bars); data in " + p.with_suffix(".csv").name + "."),
+                Paragraph(
+                    f"Final return, mean over seeds ({STD_BARS}); data in {p.with_suffix('.csv').name}."
+                    + _formats_note(formats)
+                ),
                 Image(p.name, f"score vs {x_axis}"),
             ]
     p, _ = plot_learning_curves(agg, out)
@@ -202,9 +213,11 @@ def write_aggregate_report(
         blocks += [
             Heading(2, "Learning curves"),
             Paragraph(
-                "Nominal-dynamics evaluation against environment frames: mean across seeds, shaded ± std; "
-                "dotted lines mark rank events (and the restarts of a control that restarts without truncating). "
-                "Data in learning_curves.csv."
+                f"Nominal-dynamics evaluation against environment frames: mean across seeds; {CI_BAND} "
+                f"({CI_BAND_HOW}). Each evaluation is placed at the end of its eval.interval bin so that the seeds "
+                "line up; dotted lines mark the first seed's rank events (and the restarts of a control that restarts "
+                "without truncating). Data in learning_curves.csv (with the std over seeds as well)."
+                + _formats_note(formats)
             ),
             Image(p.name, "learning curves"),
         ]
@@ -213,10 +226,12 @@ def write_aggregate_report(
         blocks += [
             Heading(2, "Every seed's learning curve"),
             Paragraph(
-                "One panel per setting: each seed's nominal evaluations (thin), their mean (black), each seed's "
-                "rank events or restarts (dotted, the seed's colour)"
+                "One panel per setting: each seed's nominal evaluations (thin; a seed has the same colour in every "
+                "panel, named in the legend), their mean (black), each seed's rank events or restarts (dotted, the "
+                "seed's colour)"
                 + (", the plateau threshold (dashed)" if agg.report.get("plateau") is not None else "")
                 + ". Data in learning_curves_by_seed.csv."
+                + _formats_note(formats)
             ),
             Image(p.name, "learning curves by seed"),
         ]
@@ -226,8 +241,9 @@ def write_aggregate_report(
             Heading(2, "Rank trajectories"),
             Paragraph(
                 f"Rank of each factorised layer over {rank_x_label(agg)}, every seed; the red dashed line is "
-                "the intrinsic rank (2*d_a+1, Tiwari et al. 2025; or the spec's report.intrinsic_rank). "
-                "Data in ranks.csv."
+                "the intrinsic rank (2*d_a+1, Tiwari et al. 2025; or the spec's report.intrinsic_rank). Each layer "
+                "has its own colour, line style and marker, named in the legend; the layers drawn first are wider, "
+                "so that two layers at the same rank both show. Data in ranks.csv." + _formats_note(formats)
             ),
             Image(p.name, "ranks"),
         ]
@@ -236,8 +252,11 @@ def write_aggregate_report(
         blocks += [
             Heading(2, f"Robustness sweep: {name}"),
             Paragraph(
-                "Per grid point: mean across seeds of the per-point mean return, shaded ± std across seeds; "
-                "red stars: worst single episode over all seeds. Data in " + path.with_suffix(".csv").name
+                f"Per grid point: mean across seeds of the per-point mean return ({STD_BAND}); dotted: the worst "
+                "single episode at each point over all seeds; red stars: each setting's worst case. Data in "
+                + path.with_suffix(".csv").name
+                + "."
+                + _formats_note(formats)
             ),
             Table(
                 ["group", "seeds", "average over grid", "worst mean", "worst case"],
@@ -248,6 +267,12 @@ def write_aggregate_report(
     (out / "report.md").write_text(render_markdown(blocks))
     (out / "report.html").write_text(render_html(blocks))
     return out / "report.md"
+
+
+def _formats_note(formats: tuple[str, ...]) -> str:
+    """The sentence that says where the figure's vector copies are (none when the report writes PNG only)."""
+    others = [f.upper() for f in formats if f != "png"]
+    return f" The figure is also written as {' and '.join(others)} beside the PNG (same name)." if others else ""
 
 
 def _option_text(key: str, value) -> str:

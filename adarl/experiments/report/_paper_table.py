@@ -24,7 +24,7 @@ from scipy.stats import mannwhitneyu
 from adarl.errors import RecipeError
 from adarl.experiments._paper_spec import PaperTable
 from adarl.experiments.report._blocks import Block, Bold, Heading, Image, Paragraph, Table, csv_text
-from adarl.experiments.report._figures import plot_normalised_aggregate
+from adarl.experiments.report._figures import figure_formats, plot_normalised_aggregate
 from adarl.experiments.report._runs import Aggregate, Group
 from adarl.experiments.report._sections import _planned_seeds, verdict
 from adarl.experiments.report.stats import interval_estimate, performance_profile, poi_estimate
@@ -215,7 +215,7 @@ def paper_table_blocks(agg: Aggregate, out: Path) -> list[Block]:
         Table(p_header, p_rows),
     ]
     if table.normalise is not None:
-        blocks += _aggregate_blocks(table, by, row_axis, out)
+        blocks += _aggregate_blocks(table, by, row_axis, out, figure_formats(agg))
     return blocks
 
 
@@ -226,8 +226,9 @@ def _ci(est: tuple[float, float, float]) -> str:
     return f"{pt:.2f}" if math.isnan(lo) else f"{pt:.2f} [{lo:.2f}, {hi:.2f}]"
 
 
-def _aggregate_blocks(table: PaperTable, by: dict, row_axis: str, out: Path) -> list[Block]:
-    """rliable's aggregate across the table's rows on normalised scores; writes its CSVs and figure."""
+def _aggregate_blocks(table: PaperTable, by: dict, row_axis: str, out: Path, formats: tuple[str, ...]) -> list[Block]:
+    """rliable's aggregate across the table's rows on normalised scores; writes its CSVs and figure (in
+    ``formats``)."""
     norm = table.normalise
     heading = Heading(2, f"{table.title} across {', '.join(table.values)}: normalised aggregate")
     methods = [m for m in (*table.columns, *table.extra_columns) if any((r, m) in by for r in table.values)]
@@ -271,7 +272,7 @@ def _aggregate_blocks(table: PaperTable, by: dict, row_axis: str, out: Path) -> 
     everything = [x for m in methods for t in tasks[m] for x in t]
     taus = np.linspace(min(0.0, min(everything)), max(1.25, max(everything)), 81)
     profiles = {name: performance_profile(tasks[m], taus) for name, m in zip(estimates, methods)}
-    png = plot_normalised_aggregate(estimates, taus, profiles, out)
+    png = plot_normalised_aggregate(estimates, taus, profiles, out, formats=formats)
     (out / "normalised_scores.csv").write_text(csv_text(per_run, [row_axis, "method", "seed", "score", "normalised"]))
     (out / "normalised_aggregate.csv").write_text(
         csv_text(

@@ -23,6 +23,7 @@ from adarl.experiments.execute import run_is_finished
 from adarl.experiments.sweep import read_sweep
 from adarl.runtime import metrics
 from adarl.runtime.config import local_plugins
+from adarl.runtime.fingerprint import training_values
 from adarl.runtime.report import layer_label, rank_axis
 from adarl.runtime.run_folder.results import exists, is_url, join
 from adarl.runtime.run_folder.run_dir import RunDir
@@ -253,29 +254,18 @@ def collect_runs(dirs: list[str | os.PathLike]) -> tuple[list[RunRecord], dict]:
     return runs, info
 
 
-def _flat(d: dict, prefix: str = "") -> dict:
-    out = {}
-    for k, v in d.items():
-        if isinstance(v, dict):
-            out.update(_flat(v, f"{prefix}{k}."))
-        else:
-            out[f"{prefix}{k}"] = v
-    return out
-
-
-# Keys that differ between the seeds of one setting (or do not change what is learned).
-_NOT_A_SETTING = ("seed", "name", "description", "output.")
-
-
 def _split_loose_variants(runs: list[RunRecord]) -> None:
     """Loose run folders are grouped by recipe name; runs of one name with different settings (other than the
-    seed) would then pool as replicates of one setting. Give those a ``variant`` axis naming the keys that differ."""
+    seed) would then pool as replicates of one setting. Give those a ``variant`` axis naming the keys that differ.
+    What a setting is, is the fingerprint's (:func:`adarl.runtime.fingerprint.training_values`): keys that only
+    name, place, log, checkpoint or evaluate a run more or less often (``logging.*``, ``output.*``,
+    ``checkpoint.interval``, ``eval.episodes``, ...) never split seeds into variants."""
     by_name: dict[str, list[RunRecord]] = {}
     for r in runs:
         if set(r.axes) == {"recipe"}:
             by_name.setdefault(r.axes["recipe"], []).append(r)
     for group in by_name.values():
-        flats = [{k: v for k, v in _flat(r.recipe).items() if not k.startswith(_NOT_A_SETTING)} for r in group]
+        flats = [{k: v for k, v in training_values(r.recipe).items() if k != "seed"} for r in group]
         keys = sorted({k for f in flats for k in f if len({repr(g.get(k)) for g in flats}) > 1})
         if not keys:
             continue

@@ -13,15 +13,26 @@ __all__ = ["HELP", "DESCRIPTION", "add_arguments", "cli"]
 
 HELP = "hyperparameter search over recipe keys (Optuna), resumable"
 DESCRIPTION = (
-    "Run (or continue) the hyperparameter search of the tune SPEC (a YAML file with kind: tune, or a shipped spec "
-    "name, see recipes/tune/): each trial a run folder under DIR/trials/, the study in DIR/study.db; killed and "
-    "started again it continues; the trials' runs train here (-j N trials at a time) or on Ray or SLURM (--launcher). "
-    "Writes DIR/best_recipe.yaml, DIR/trials.csv and DIR/report.md."
+    "Run (or continue) the hyperparameter search of TARGET: a tune spec (a YAML file with kind: tune, or a shipped "
+    "spec's name: `adarl recipes` lists them under 'tune specs'), or a recipe (a name or a .yaml path) searched over "
+    "the default space of its algorithm (sac, td3, ddpg, ppo; after rl-baselines3-zoo's) and of its rank rule, "
+    "20 trials unless --n-trials. key=value overrides apply to every trial (a small budget: "
+    "collector.total_frames=N); a key they set is left out of a default space. Each trial is a run folder under "
+    "DIR/trials/, the study is DIR/study.db; killed and started again it continues; the trials' runs train here "
+    "(-j N trials at a time) or on Ray or SLURM (--launcher). Writes DIR/best_recipe.yaml, DIR/trials.csv, "
+    "DIR/report.md and DIR/tune_spec.yaml (the spec as run, its space included)."
 )
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("spec")
+    p.add_argument("spec", metavar="TARGET", help="a tune spec (file or shipped name) or a recipe (name or path)")
+    p.add_argument("overrides", nargs="*", metavar="key=value", help="recipe overrides for every trial")
+    p.add_argument(
+        "--n-trials",
+        type=int,
+        default=None,
+        help="the study's trial budget (default: the spec's n_trials; 20 for a recipe)",
+    )
     p.add_argument("--output", "-o", default=None, help="output folder (default: the spec's, or runs/tune/<name>)")
     p.add_argument(
         "--workers",
@@ -34,7 +45,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def cli(args) -> int:
+    from adarl.errors import AdaRLValueError
+
+    if args.n_trials is not None and args.n_trials < 1:
+        raise AdaRLValueError(f"--n-trials must be >= 1, got {args.n_trials}")
+    bad = [o for o in args.overrides if "=" not in o]
+    if bad:
+        raise AdaRLValueError(f"overrides are key=value, got {' '.join(bad)!r}")
     try:
+        from adarl.experiments.tune._spec import tune_target
         from adarl.experiments.tune._study import run_tune
     except ImportError as err:
         if getattr(err, "name", "") != "optuna":
@@ -42,7 +61,7 @@ def cli(args) -> int:
         print("adarl: error: adarl tune needs Optuna: pip install 'adarl[tune]'", file=sys.stderr)
         return 1
     result = run_tune(
-        args.spec,
+        tune_target(args.spec, args.overrides, args.n_trials),
         output=args.output,
         workers=args.workers,
         launcher=args.launcher,

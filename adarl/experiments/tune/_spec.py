@@ -1,7 +1,7 @@
 """Hyperparameter-search specs (``adarl tune``): a base recipe, a search space over recipe keys, the objective, the
 trial budget, the sampler and the pruner; validated in full before any trial runs.
 
-A spec is a YAML file with ``kind: tune`` (the shipped ones are in ``recipes/tune/``)::
+A spec is a YAML file with ``kind: tune`` (the shipped ones: ``adarl recipes`` lists them, by name)::
 
     kind: tune
     name: cartpole_beta
@@ -18,6 +18,10 @@ A spec is a YAML file with ``kind: tune`` (the shipped ones are in ``recipes/tun
     sampler: {name: tpe, seed: 0}
     pruner: {name: median}
 
+``space: default`` (or no ``space``) is the default space of the recipe's algorithm (and rank rule):
+:mod:`adarl.experiments.tune._defaults`, resolved against the recipe by :func:`resolve_space`; :func:`tune_target`
+also makes a spec of a bare recipe (``adarl tune RECIPE``).
+
 :func:`load_tune_spec` reads the file and checks its own keys (did-you-mean for a misspelt one, allowed values for a
 name); :func:`check_space` checks every search-space key against the recipe: the key must exist and each end of its
 range (each choice) must validate as a value of it, by building the recipe with it. Nothing here imports Optuna:
@@ -26,19 +30,22 @@ range (each choice) must validate as a value of it, by building the recipe with 
 
 from __future__ import annotations
 
+import copy
 import math
 import os
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, field_validator, model_validator
 
-from adarl.envs.registry import env_parameters
+from adarl.envs.registry import parameters_for
 from adarl.errors import RecipeError, did_you_mean
 from adarl.experiments.spec import SweepSpec, run_own_key
 from adarl.experiments.sweep import parse_sweep
-from adarl.runtime.config import TUNE_DIR, load_recipe, recipes_dir
+from adarl.experiments.tune._defaults import default_space
+from adarl.runtime.config import EXPERIMENTS_DIR, TUNE_DIR, list_recipes, load_recipe, recipes_dir, validate_recipe
+from adarl.runtime.config.loader import follow_option_overrides
 
 __all__ = [
     "SAMPLERS",
@@ -49,6 +56,9 @@ __all__ = [
     "PrunerSpec",
     "TuneSpec",
     "load_tune_spec",
+    "resolve_space",
+    "tune_target",
+    "shipped_tune_specs",
     "check_space",
     "override_value",
     "trial_overrides",
@@ -185,7 +195,11 @@ class TuneSpec(_Model):
         description="Several seeds per trial instead of `seed`: one run each, at the same time; the trial's value "
         "(and what the pruner sees) is the mean over seeds.",
     )
-    space: dict[str, Param] = Field(min_length=1, description="Recipe key -> range or choices.")
+    space: dict[str, Param] = Field(
+        default_factory=dict,
+        description="Recipe key -> range or choices; `default` (or no space): the default space of the recipe's "
+        "algorithm and rank rule (resolve_space).",
+    )
     objective: Objective = Field(default_factory=Objective)
     direction: Literal["maximize", "minimize"] = "maximize"
     n_trials: Annotated[int, Field(ge=1)]
@@ -193,6 +207,19 @@ class TuneSpec(_Model):
     pruner: PrunerSpec = Field(default_factory=PrunerSpec)
     workers: Annotated[int, Field(ge=1)] = Field(1, description="Trials at a time (each in its own process).")
     output: str | None = Field(None, description="Output folder (default: runs/tune/<name>).")
+    #: what the space is made of when it is a default one (resolve_space), for the log line and the report
+    _space_from: str = PrivateAttr("")
+
+    @field_validator("space", mode="before")
+    @classmethod
+    def _default_space(cls, v: Any) -> Any:
+        if v is None or v == "default":
+            return {}  # resolved against the recipe by resolve_space
+        if isinstance(v, str):
+            raise ValueError("space must be a mapping of recipe keys, or `default`")
+        if isinstance(v, dict) and not v:
+            raise ValueError("space is empty: give recipe keys with their ranges, or `default`")
+        return v
 
     @model_validator(mode="after")
     def _check(self) -> TuneSpec:
@@ -214,6 +241,12 @@ class TuneSpec(_Model):
         for override in self.overrides:
             if run_own_key(override):
                 raise ValueError(f"override {override!r}: {_TRIAL_SETS}")
+            key = override.split("=", 1)[0].strip()
+            if any(key == k or k.startswith(key + ".") for k in self.space):
+                raise ValueError(  # the trial's point comes after the overrides: the override would never train
+                    f"override {override!r} sets a key of the search space, which each trial sets after the "
+                    "overrides; drop it from the overrides, or the key from the space"
+                )
         if self.sampler.name == "grid":
             bad = [k for k, p in self.space.items() if p.type == "float" and p.step is None]
             if bad:
@@ -259,6 +292,7 @@ def _format_validation(err: ValidationError, label: str) -> str:
 
 
 def shipped_tune_specs() -> list[str]:
+    """The names of the tune specs in the recipe folders (``adarl recipes`` lists them)."""
     return sorted({f.stem for d in recipes_dir() for f in (d / TUNE_DIR).glob("*.yaml")})
 
 
@@ -272,7 +306,8 @@ def _find(name: str) -> Path:
             if candidate.is_file():
                 return candidate
     raise RecipeError(
-        f"tune spec {name!r} not found (a .yaml path, or a shipped spec name: {', '.join(shipped_tune_specs())})"
+        f"tune spec {name!r} not found{did_you_mean(name, shipped_tune_specs())} (a .yaml path, or a shipped spec "
+        f"name: {', '.join(shipped_tune_specs())}; `adarl recipes` lists them)"
     )
 
 
@@ -300,7 +335,110 @@ def load_tune_spec(path: str | os.PathLike) -> TuneSpec:
                 f"path is read from the spec's folder)"
             )
         spec = spec.model_copy(update={"recipe": str(beside)})
-    return spec
+    return resolve_space(spec)
+
+
+def resolve_space(spec: TuneSpec, recipe=None) -> TuneSpec:
+    """The spec itself when its space is given; else the spec with the default space of its recipe (built with the
+    spec's overrides: its algorithm's keys, the rank rule's when it adapts ranks, less the keys the overrides set;
+    :func:`adarl.experiments.tune._defaults.default_space`), validated as a written space is."""
+    if spec.space:
+        return spec
+    if recipe is None:  # else: the caller's, loaded with the same overrides
+        recipe = load_recipe(spec.recipe, [*spec.overrides, f"seed={spec.trial_seeds[0]}"])
+    space, what = default_space(recipe, spec.overrides)
+    data = spec.model_dump()
+    data["space"] = space
+    if spec.seeds is not None:
+        data.pop("seed")
+    try:
+        out = TuneSpec.model_validate(data)
+    except ValidationError as err:
+        raise RecipeError(_format_validation(err, f"{spec.name!r} (with {what})")) from None
+    out._space_from = what
+    return out
+
+
+def _recipe_name(target: str) -> str:
+    """A study name for a recipe: its file's stem, or its name with ``/`` as ``-`` (``baselines-hopper_td3``)."""
+    stem = Path(target).stem if target.endswith((".yaml", ".yml")) else target.replace("/", "-").replace("\\", "-")
+    name = "".join(c if c in _NAME_CHARS else "_" for c in stem).strip(".")
+    return name or "recipe"
+
+
+def tune_target(target: str | os.PathLike, overrides: list[str] = (), n_trials: int | None = None) -> TuneSpec:
+    """What ``adarl tune TARGET`` searches: a tune spec (a ``kind: tune`` file, or a shipped spec name: spec names
+    come first), else a recipe (a name or a path) searched over its default space (:func:`resolve_space`) with
+    rl-zoo's study defaults (TPE, median pruner after a third of the budget, 20 trials). ``overrides`` go after the
+    spec's (every trial's recipe), ``n_trials`` replaces its budget."""
+    text = os.fspath(target)
+    overrides, shipped = list(overrides), shipped_tune_specs()
+    is_spec = text in shipped or (Path(text).is_file() and _kind(Path(text)) == "tune")
+    if text.endswith((".yaml", ".yml")) and not Path(text).is_file():
+        raise RecipeError(f"no file {text!r} (`adarl tune` takes a tune spec or a recipe: a name, or a .yaml path)")
+    if is_spec:
+        spec = load_tune_spec(text)
+        if overrides or n_trials is not None:
+            data = spec.model_dump()
+            data["overrides"] = [*spec.overrides, *overrides]
+            data["n_trials"] = n_trials if n_trials is not None else spec.n_trials
+            if spec.seeds is not None:
+                data.pop("seed")
+            if spec._space_from:
+                data["space"] = "default"  # derived again, with the overrides
+            try:
+                spec = TuneSpec.model_validate(data)
+            except ValidationError as err:
+                raise RecipeError(_format_validation(err, repr(text))) from None
+            spec = resolve_space(spec)
+        return spec
+    kind = _kind(Path(text)) if Path(text).is_file() else None
+    if kind is None and text in _experiment_names():
+        kind = "experiment"
+    if kind not in (None, "tune"):
+        raise RecipeError(
+            f"{text!r} is {'an' if kind[:1] in 'aeiou' else 'a'} {kind} spec, not a tune spec or a recipe"
+            + (f" (run it with `adarl experiment {text}`)" if kind == "experiment" else "")
+        )
+    try:
+        recipe = load_recipe(text, [*overrides, "seed=0"])
+    except RecipeError:
+        if Path(text).is_file() or any((d / f"{text}.yaml").is_file() for d in recipes_dir()):
+            raise  # a recipe with a bad override or key: its own error
+        names = shipped + [n for n, _ in list_recipes()]
+        raise RecipeError(
+            f"no tune spec or recipe named {text!r}{did_you_mean(text, names)} (`adarl tune` takes a tune spec: a "
+            f"kind: tune file or a shipped name, {', '.join(shipped) or 'none'}; or a recipe: a name or a .yaml "
+            "path; `adarl recipes` lists both)"
+        ) from None
+    data = {
+        "kind": "tune",
+        "name": _recipe_name(text),
+        "description": f"adarl tune {text}: the default search space of its algorithm",
+        "recipe": str(Path(text).resolve()) if text.endswith((".yaml", ".yml")) else text,
+        "overrides": overrides,
+        "n_trials": n_trials if n_trials is not None else 20,
+        "sampler": {"name": "tpe", "seed": 0, "n_startup_trials": 10},
+        "pruner": {"name": "median", "n_startup_trials": 5, "n_warmup_steps": recipe.collector.total_frames // 3},
+    }
+    try:
+        spec = TuneSpec.model_validate(data)
+    except ValidationError as err:
+        raise RecipeError(_format_validation(err, f"made of the recipe {text!r}")) from None
+    return resolve_space(spec, recipe)
+
+
+def _experiment_names() -> set[str]:
+    return {f.stem for d in recipes_dir() for f in (d / EXPERIMENTS_DIR).glob("*.yaml")}
+
+
+def _kind(path: Path) -> str | None:
+    """A YAML file's ``kind`` (None: none, or not a mapping: a recipe has none)."""
+    try:
+        data = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError):
+        return None
+    return str(data.get("kind")) if isinstance(data, dict) and data.get("kind") is not None else None
 
 
 def override_value(value: Choice) -> str:
@@ -329,16 +467,18 @@ def check_space(spec: TuneSpec) -> int:
     built with it. Raises :class:`RecipeError` naming the key (with the recipe's did-you-mean or allowed values).
     Returns the base recipe's frame budget."""
     base = load_recipe(spec.recipe, [*spec.overrides, f"seed={spec.trial_seeds[0]}"])
+    resolved = base.model_dump(mode="json")
     problems = []
     for key, param in spec.space.items():
-        for value in param.ends():
+        for i, value in enumerate(param.ends()):
             try:
-                load_recipe(spec.recipe, [*spec.overrides, f"{key}={override_value(value)}"])
+                if i == 0 or not _check_in(resolved, key, value, spec.recipe):
+                    load_recipe(spec.recipe, [*spec.overrides, f"{key}={override_value(value)}"])
             except RecipeError as err:
                 problems.append(f"  space {key!r} = {value!r}: {str(err).splitlines()[0]}")
                 break
     if spec.objective.sweep is not None:
-        allowed = env_parameters(base.env.id)
+        allowed = parameters_for(base.env.id, base.env.declared())  # a plain gymnasium env: the declared ones
         for text in spec.objective.sweep.params:
             try:
                 name, _ = parse_sweep(text)
@@ -355,6 +495,26 @@ def check_space(spec: TuneSpec) -> int:
             f"tune spec {spec.name!r}: the search space does not validate (nothing was run):\n" + "\n".join(problems)
         )
     return base.collector.total_frames
+
+
+def _check_in(resolved: dict, key: str, value: Choice, recipe: str) -> bool:
+    """Validate ``key = value`` in the resolved base recipe (a copy), without reading its files again: the later
+    ends of a key whose first end went through :func:`load_recipe` (which checked the key itself). False: the key is
+    not a plain one of the resolved recipe (load it instead)."""
+    parts = key.split(".")
+    node = resolved
+    for part in parts[:-1]:
+        node = node.get(part) if isinstance(node, dict) else None
+    if not isinstance(node, dict) or parts[-1] not in node or isinstance(node[parts[-1]], (dict, list)):
+        return False
+    data = copy.deepcopy(resolved)
+    target = data
+    for part in parts[:-1]:
+        target = target[part]
+    target[parts[-1]] = value
+    follow_option_overrides(data, [f"{key}={override_value(value)}"])  # as load_recipe does with the override
+    validate_recipe(data, label=f"{recipe!r} with {key}={override_value(value)}")
+    return True
 
 
 def grid_values(param: Param) -> list[Choice]:

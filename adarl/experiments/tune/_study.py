@@ -60,6 +60,7 @@ from adarl.experiments.tune._spec import (
     check_space,
     grid_values,
     load_tune_spec,
+    resolve_space,
     trial_overrides,
 )
 from adarl.runtime.config import load_recipe
@@ -429,6 +430,18 @@ class _Study:
                 trial.report(score, step=frames)
             return bool(known or new) and bool(trial.should_prune())
 
+    def _report_rest(self, trial, paths: list[Path]) -> None:
+        """Report the evaluations the watcher had not seen when the runs ended (the last one, at the end of training,
+        lands after the last poll), so that the trial's reported steps are the evaluations its value used (issue
+        48.6: trials.csv said last_step 1750, evaluations 2 of a value that included the evaluation at 2000). The
+        pruner is not asked: a trial that trained to its end is complete."""
+        scores = mean_scores([_scores(p, self.spec.objective.score_last) for p in paths])
+        with self.mutex:
+            known = self.storage.get_trial(trial._trial_id).intermediate_values
+            for frames, score in scores:
+                if frames not in known:
+                    trial.report(score, step=frames)
+
     def _finish(self, trial, runs: list[PlannedRun], folder: Path, params: dict, pruned_at) -> None:
         number = trial.number
         if pruned_at is not None:
@@ -450,6 +463,7 @@ class _Study:
                     break
         if not failed:
             value = sum(values.values()) / len(values)  # the mean over seeds
+            self._report_rest(trial, [Path(r.path) for r in runs])
             extra = {}
             if len(runs) > 1:
                 extra["seed_values"] = {str(s): v for s, v in values.items()}
@@ -494,7 +508,7 @@ class _Study:
 
 
 def run_tune(
-    spec_path: str | os.PathLike,
+    spec_path: str | os.PathLike | TuneSpec,
     *,
     output: str | os.PathLike | None = None,
     workers: int | None = None,
@@ -503,7 +517,9 @@ def run_tune(
     launcher_options: dict | None = None,
 ) -> TuneResult:
     """Run (or continue) the study of the tune spec ``spec_path``; write ``best_recipe.yaml``, ``trials.csv`` and
-    ``report.md`` in the output folder (default: the spec's ``output``, else ``runs/tune/<name>``).
+    ``report.md`` in the output folder (default: the spec's ``output``, else ``runs/tune/<name>``). ``spec_path``:
+    a spec file or shipped name, or a :class:`TuneSpec` (:func:`~adarl.experiments.tune.tune_target` makes one of a
+    recipe); a spec without a space searches the default one (:func:`~adarl.experiments.tune.resolve_space`).
 
     ``workers`` trials at a time (default: the spec's), each trial's seeds at once. ``launcher``: where the runs
     train, as for ``adarl experiment``: ``local`` (default), ``ray``, ``submitit`` (``launcher_options`` go to
@@ -512,7 +528,7 @@ def run_tune(
 
     The spec and its search space are validated before anything is written (:class:`RecipeError`; a launcher whose
     extra is not installed: :class:`~adarl.errors.MissingExtraError`)."""
-    spec = load_tune_spec(spec_path)
+    spec = resolve_space(spec_path) if isinstance(spec_path, TuneSpec) else load_tune_spec(spec_path)
     check_space(spec)
     if workers is not None and workers < 1:
         raise AdaRLValueError(f"workers must be >= 1, got {workers}")
@@ -538,9 +554,12 @@ def run_tune(
         driver = _Study(spec, out, n_trials, workers, log, launcher)  # refuses another study's folder first
         dumped = spec.model_dump(mode="json")
         dumped.pop("seed" if spec.seeds is not None else "seeds")  # the file is a spec `adarl tune` accepts
-        (out / "tune_spec.yaml").write_text(yaml.safe_dump(dumped, sort_keys=False))
+        head = f"# space: {spec._space_from}\n" if spec._space_from else ""
+        (out / "tune_spec.yaml").write_text(head + yaml.safe_dump(dumped, sort_keys=False))
         finished = sum(t.state in _FINISHED for t in driver.study.trials)
         where = "" if launcher.name == "local" else f" (runs on {launcher.name})"
+        if spec._space_from:
+            log(f"space: {spec._space_from}: {', '.join(spec.space)} ({out / 'tune_spec.yaml'})")
         log(
             f"tune {spec.name}: {finished} of {n_trials} trials done, {len(driver.orphans)} interrupted to resume "
             f"-> {out}{where}"

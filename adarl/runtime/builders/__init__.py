@@ -8,6 +8,9 @@
   collector, rank adapter, warm start, rank events, :class:`OffPolicyComponents` (their checkpoint state);
 * :mod:`~adarl.runtime.builders.sac` - SAC's actor and ``SACLoss``; :func:`build_sac_components` for AdaRL-SAC and
   the SAC baselines;
+* :mod:`~adarl.runtime.builders.sac_variants` - TorchRL's TQC, CrossQ and REDQ losses on the SAC loop
+  (``algorithm.name`` ``tqc``, ``crossq``, ``redq``): their networks, loss and update step
+  (:class:`~adarl.runtime.builders.sac_variants.VariantParts`);
 * :mod:`~adarl.runtime.builders.td3` - TD3's (and DDPG's) deterministic actor, exploration and loss;
   :func:`build_td3_components`;
 * :mod:`~adarl.runtime.builders.ppo` - the RNAC baselines' PPO modules; :func:`build_ppo_components`.
@@ -40,6 +43,7 @@ from adarl.runtime.builders.sac import (
     reinit_low_rank_ensemble,
     update_after,
 )
+from adarl.runtime.builders.sac_variants import VariantComponents, VariantParts  # registers VARIANT_PARTS
 from adarl.runtime.builders.td3 import TD3Components, TD3Modules, build_td3_components, make_td3_modules
 
 __all__ = [
@@ -54,6 +58,8 @@ __all__ = [
     "make_sac_critic",
     "make_sac_loss",
     "make_recipe_actor",
+    "VariantComponents",
+    "VariantParts",
     "make_sac_modules",
     "reinit_low_rank_ensemble",
     "SACModules",

@@ -8,6 +8,7 @@ registered baseline asks for a variant (:mod:`adarl.baselines.registry`), that v
 
 from __future__ import annotations
 
+import copy
 import functools
 from collections.abc import Callable, Sequence
 from types import SimpleNamespace
@@ -21,6 +22,14 @@ from torchrl.modules import MLP, ValueOperator
 from adarl.baselines import registry
 from adarl.core.lowrank import low_rank_mlp
 from adarl.envs.factory import dynamics_state_dict, load_dynamics_state_dict, make_env, make_eval_env
+from adarl.envs.obs_norm import (
+    find_observation_norm,
+    load_obs_norm_state_dict,
+    obs_norm_state_dict,
+    observation_affine,
+    share_observation_norm,
+    with_observation_norm,
+)
 from adarl.envs.state import env_state_dict, gym_rng_state_dict, load_env_state_dict, load_gym_rng_state_dict
 from adarl.errors import AdaRLValueError
 from adarl.fast.collector import LeanCollector
@@ -39,6 +48,7 @@ __all__ = [
     "make_sac_critic",
     "train_env_factory",
     "make_envs",
+    "check_spaces",
     "policy_specs",
     "spec_env",
 ]
@@ -181,7 +191,14 @@ def make_sac_critic(env, obs_key="observation", **mlp_kwargs) -> ValueOperator:
 def _env_kwargs(recipe) -> dict:
     e = recipe.env
     p = e.perturbation
-    return dict(mode=p.mode, dynamics_key=p.key, device=recipe.device, max_episode_steps=e.max_episode_steps)
+    return dict(
+        mode=p.mode,
+        dynamics_key=p.key,
+        device=recipe.device,
+        max_episode_steps=e.max_episode_steps,
+        parameters=e.declared(),
+        normalize_observations=e.normalize_observations,
+    )
 
 
 def train_env_factory(recipe) -> Callable[[], TransformedEnv]:
@@ -199,13 +216,58 @@ def train_env_factory(recipe) -> Callable[[], TransformedEnv]:
     )
 
 
+def check_spaces(recipe, env) -> None:
+    """Refuse, naming why, an env whose spaces the recipe's networks cannot read or act in (any gymnasium id
+    reaches here): one flat vector ``"observation"``, and a 1-D box of actions (a discrete one on the ``sac`` loop,
+    DiscreteSACLoss, only)."""
+    e = recipe.env
+    obs = env.observation_spec["observation"] if "observation" in env.observation_spec.keys() else None
+    if obs is None or len(obs.shape) - len(env.batch_size) != 1:
+        found = {str(k): list(v.shape) for k, v in env.observation_spec.items() if str(k) != e.perturbation.key}
+        raise AdaRLValueError(
+            f"env.id {e.id!r}: adarl's networks read one flat vector 'observation' (a 1-D Box observation space); "
+            f"this env's observations are {found} (flatten them with a gymnasium wrapper in an env of your own, "
+            "gymnasium.register)"
+        )
+    spec = action_spec(env)
+    base = recipe.algorithm.base
+    if is_discrete(spec):
+        if base != "sac":
+            raise AdaRLValueError(
+                f"env.id {e.id!r} has discrete actions ({type(spec).__name__}, {int(spec.space.n)} choices); "
+                f"algorithm.name {recipe.algorithm.name!r} (the {base!r} loop) needs a continuous (Box) action space; "
+                "allowed for discrete actions: algorithm.name: sac (DiscreteSACLoss)"
+            )
+        if len(spec.shape) != 1:
+            raise AdaRLValueError(f"env.id {e.id!r}: only a single Discrete action space is supported, got {spec}")
+        return
+    if not isinstance(spec, Bounded) or len(spec.shape) != 1:
+        raise AdaRLValueError(
+            f"env.id {e.id!r}: its action space ({type(spec).__name__}, shape {list(spec.shape)}) is neither a 1-D "
+            "Box nor a Discrete; adarl's actors act in a bounded 1-D box (or, on the sac loop, one Discrete)"
+        )
+
+
 def make_envs(recipe) -> tuple:
-    """The training env (perturbed per episode) and the evaluation env (fixed at the nominal dynamics)."""
+    """The training env (perturbed per episode) and the evaluation env (fixed at the nominal dynamics). With
+    ``env.normalize_observations`` the evaluation env's normaliser reads the training statistics, frozen."""
     e, p = recipe.env, recipe.env.perturbation
+    if e.normalize_observations and recipe.collector.overlap == "process":
+        raise AdaRLValueError(
+            "env.normalize_observations: true with collector.overlap: 'process': the worker process would keep "
+            "observation statistics of its own; allowed with normalisation: collector.overlap false or 'thread'"
+        )
     env = train_env_factory(recipe)()
-    # Evaluation runs on the nominal dynamics: the centre of the training schedule (or the plain env).
-    nominal = (p.schedule if p.schedule is not None else p.preset) if recipe.eval.nominal else "none"
-    eval_env = make_eval_env(e.id, nominal, seed=recipe.seed + 10_000, **_env_kwargs(recipe))
+    try:
+        check_spaces(recipe, env)
+        # Evaluation runs on the nominal dynamics: the centre of the training schedule (or the plain env).
+        nominal = (p.schedule if p.schedule is not None else p.preset) if recipe.eval.nominal else "none"
+        eval_env = make_eval_env(e.id, nominal, seed=recipe.seed + 10_000, **_env_kwargs(recipe))
+    except BaseException:
+        env.close()
+        raise
+    if e.normalize_observations:
+        share_observation_norm(env, eval_env)
     return env, eval_env
 
 
@@ -256,6 +318,14 @@ class RunComponents:
         """The stochastic policy the collector runs (the same parameter objects as the loss's actor)."""
         return self.modules.actor
 
+    def raw_observation_actor(self):
+        """The actor for raw observations: ``modules.actor`` itself, or, with ``env.normalize_observations``, a
+        copy whose network first applies the training statistics as they are now (frozen: what
+        :func:`adarl.load_policy` gives), for an env without the normaliser (sweeps, your own code)."""
+        if find_observation_norm(self.env) is None:
+            return self.modules.actor
+        return with_observation_norm(copy.deepcopy(self.modules.actor), observation_affine(self.env))
+
     def close(self) -> None:
         """Shut the collector down and close the envs (each only once)."""
         for closable in (self.collector, self.env, self.eval_env):
@@ -298,6 +368,7 @@ class RunComponents:
             "collector": collector_state_dict(self.collector),
             "eval_rng": gym_rng_state_dict(self.eval_env),
             "policy_specs": policy_specs(self.env),
+            "obs_norm": obs_norm_state_dict(self.env),
         }
 
     def load_state_dict(self, state: dict, *, fill_replay_buffer: Callable[[object], None] | None = None) -> None:
@@ -313,6 +384,7 @@ class RunComponents:
         if fill_replay_buffer is not None and self.replay_buffer is not None:
             fill_replay_buffer(self.replay_buffer)
         load_dynamics_state_dict(self.env, state["dynamics"])
+        load_obs_norm_state_dict(self.env, state.get("obs_norm"))  # in place: the evaluation env shares them
         live_episode = load_env_state_dict(self.env, state.get("env_state"))
         if state.get("collector") is not None:
             load_collector_state_dict(self.collector, state["collector"], carrier=live_episode)

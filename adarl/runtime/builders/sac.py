@@ -42,6 +42,7 @@ from adarl.core.product_polyak import ProductSoftUpdate, factor_keys
 from adarl.errors import AdaRLValueError, FusedFallbackWarning
 from adarl.fast.adam import make_adam
 from adarl.fast.sac import FusedSACUpdate, fused_fallback_reason, wants_fused
+from adarl.runtime.builders._crossq_nets import make_crossq_actor
 from adarl.runtime.builders.common import action_spec, is_discrete, make_mlp, make_sac_critic
 from adarl.runtime.builders.off_policy import (
     OffPolicyComponents,
@@ -159,9 +160,20 @@ class SACModules:
     target_updater: SoftUpdate
 
 
+#: the TQC / CrossQ / REDQ skeleton parts, ``{"parts": VariantParts}``: registered by
+#: :mod:`~adarl.runtime.builders.sac_variants` (which builds on this module; the ``adarl.runtime.builders`` package
+#: imports it, so it is registered before any builder runs)
+VARIANT_PARTS: dict[str, type] = {}
+
+
 def make_recipe_actor(recipe, env: EnvBase) -> ProbabilisticActor:
     """The SAC actor of a recipe's ``network.actor`` section, for ``env``'s specs (any object with
-    ``observation_spec`` and ``action_spec``: :func:`adarl.load_policy` passes the specs a checkpoint saved)."""
+    ``observation_spec`` and ``action_spec``: :func:`adarl.load_policy` passes the specs a checkpoint saved);
+    CrossQ's has Batch Renormalization layers (:func:`~adarl.runtime.builders.sac_variants.make_crossq_actor`)."""
+    if plugins.sac_variant(recipe.algorithm.name) == "CrossQLoss":
+        actor = make_crossq_actor(recipe, env)
+        if actor is not None:
+            return actor
     a = recipe.network.actor
     spec = action_spec(env)
     action_dim = spec.space.n if is_discrete(spec) else spec.shape[-1]
@@ -335,7 +347,10 @@ def build_sac_components(
     With ``algorithm.fused`` the update step is a :class:`~adarl.runtime.update.FusedStep` (same parameters, losses
     and optimisers as the plain path). ``scratch_dir`` holds a memmap replay storage. A recipe on another loop
     (RNAC's PPO, TD3) is refused, naming its builder (:func:`adarl.runtime.families.check_builder`). The skeleton:
-    :func:`~adarl.runtime.builders.off_policy.build_off_policy_components`."""
+    :func:`~adarl.runtime.builders.off_policy.build_off_policy_components`. TQC, CrossQ and REDQ
+    (``algorithm.name`` ``tqc``, ``crossq``, ``redq``) build their own networks, loss and step
+    (:mod:`~adarl.runtime.builders.sac_variants`)."""
+    parts = SACParts() if plugins.sac_variant(recipe.algorithm.name) is None else VARIANT_PARTS["parts"]()
     return build_off_policy_components(
-        recipe, build_sac_components, SACParts(), init_random_frames=init_random_frames, scratch_dir=scratch_dir
+        recipe, build_sac_components, parts, init_random_frames=init_random_frames, scratch_dir=scratch_dir
     )

@@ -1,5 +1,7 @@
 """Finding recipes: the folders searched for a recipe name (``$ADARL_RECIPES_PATH``, then the shipped
-``recipes/``), a name or path resolved to a file, and the list ``adarl recipes`` prints.
+``recipes/``), a name or path resolved to a file, and the lists ``adarl recipes`` prints: the recipes, and the
+experiment and tune specs of the same folders (their ``experiments/`` and ``tune/`` subfolders, found by name by
+``adarl experiment`` and ``adarl tune``, in a source checkout and in an installed wheel alike).
 """
 
 from __future__ import annotations
@@ -12,7 +14,7 @@ from adarl.errors import RecipeError, did_you_mean
 from adarl.runtime.config.files import _read_file
 from adarl.runtime.config.schema import _show
 
-__all__ = ["RECIPES_PATH_ENV", "EXPERIMENTS_DIR", "TUNE_DIR", "recipes_dir", "list_recipes"]
+__all__ = ["RECIPES_PATH_ENV", "EXPERIMENTS_DIR", "TUNE_DIR", "recipes_dir", "list_recipes", "list_specs"]
 
 #: Extra recipe folders, searched before the shipped ``recipes/`` (``os.pathsep``-separated).
 RECIPES_PATH_ENV = "ADARL_RECIPES_PATH"
@@ -127,3 +129,25 @@ def _scan_recipes(with_descriptions: bool = True) -> list[tuple[str, str]]:
 def list_recipes() -> list[tuple[str, str]]:
     """``(name, description)`` of every recipe in :func:`recipes_dir` (subfolders give names like ``a/b``)."""
     return _scan_recipes(with_descriptions=True)
+
+
+def list_specs(kind: str) -> list[tuple[str, str]]:
+    """``(name, description)`` of every spec in the ``kind`` subfolder (:data:`EXPERIMENTS_DIR` or :data:`TUNE_DIR`)
+    of :func:`recipes_dir`, by the name ``adarl experiment`` / ``adarl tune`` finds it by (earlier folders shadow)."""
+    if kind not in (EXPERIMENTS_DIR, TUNE_DIR):
+        raise RecipeError(f"spec kind must be {EXPERIMENTS_DIR!r} or {TUNE_DIR!r}, got {kind!r}")
+    found: dict[str, str] = {}
+    for d in recipes_dir():
+        try:
+            files = sorted((d / kind).glob("*.yaml")) if (d / kind).is_dir() else []
+        except OSError:
+            continue
+        for p in files:
+            if p.name.startswith(".") or p.stem in found:
+                continue
+            try:
+                d_ = _read_file(p).get("description", "")
+                found[p.stem] = " ".join(str(d_).split()) if d_ is not None else ""
+            except RecipeError as err:
+                found[p.stem] = f"(unreadable: {err})"
+    return sorted(found.items())

@@ -17,6 +17,7 @@ from omegaconf.errors import MissingMandatoryValue, OmegaConfBaseException
 from omegaconf.grammar_parser import OmegaConfGrammarParser, parse
 from pydantic import BaseModel
 
+from adarl import plugins
 from adarl.errors import NO_VALUE, RecipeError, did_you_mean
 from adarl.runtime.config.discovery import _available_names, _find_by_name, _is_path_like, _locate, recipes_dir
 from adarl.runtime.config.files import _check_version, _one_line, _parse_yaml, _read_file
@@ -289,4 +290,22 @@ def load_recipe(name_or_path: str | os.PathLike, overrides: Sequence[str] = ()) 
         raise RecipeError(f"invalid recipe {label}: nested too deeply") from None
     except Exception as err:  # nothing raw escapes (an OmegaConf corner we did not foresee)
         raise RecipeError(f"invalid recipe {label}: {type(err).__name__}: {_one_line(err)}") from None
+    follow_option_overrides(data, overrides or ())
     return validate_recipe(data, label=label)
+
+
+def follow_option_overrides(data: dict, overrides: Sequence[str]) -> None:
+    """An override of an algorithm option that sets an ``algorithm`` key (CrossQ's ``options.lr`` sets
+    ``algorithm.lr``) carries that key with it, unless an override sets the key too (then the two are checked against
+    each other): a resolved recipe spells both out, and the key's old value would otherwise refuse the new option."""
+    alg = data.get("algorithm")
+    if not isinstance(alg, dict) or not isinstance(alg.get("options"), dict):
+        return
+    try:
+        sets = plugins.algorithm(alg.get("name")).sets
+    except Exception:  # an unknown name: validation says so
+        return
+    given = {ov.split("=", 1)[0].strip() for ov in overrides if isinstance(ov, str)}
+    for key, option in sets.items():
+        if f"algorithm.options.{option}" in given and f"algorithm.{key}" not in given and option in alg["options"]:
+            alg[key] = alg["options"][option]

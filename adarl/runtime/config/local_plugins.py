@@ -1,7 +1,8 @@
 """A recipe's ``plugins``: local Python modules imported before the recipe is validated, without packaging them.
 
 As pytest's ``pytest_plugins`` or Hydra's ``_target_`` reach code by module name, a recipe lists modules whose
-import registers what it names (``register_algorithm``, ``register_env``, ``register_rank_rule``)::
+import registers what it names (``register_algorithm``, ``register_env``, ``register_rank_rule``,
+``register_callback``)::
 
     plugins: [my_algo]             # my_algo.py beside this recipe, else a module on PYTHONPATH
     # or: plugins: [./lib/my_algo.py]   a path, relative to this recipe file

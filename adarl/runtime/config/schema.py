@@ -17,11 +17,12 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from adarl import plugins
+from adarl.envs.declared import declared_parameters, gymnasium_entry_point, gymnasium_ids
 from adarl.envs.registry import (
     HOW_TO_REGISTER_ENV,
-    check_env_id,
-    env_parameters,
+    check_any_env_id,
     is_mujoco,
+    parameters_for,
     preset_names,
     validate_schedule,
 )
@@ -40,6 +41,7 @@ __all__ = [
     "Recipe",
     "EnvConfig",
     "PerturbationConfig",
+    "DeclaredParameterConfig",
     "NetworkConfig",
     "MLPConfig",
     "AlgorithmConfig",
@@ -58,6 +60,7 @@ __all__ = [
     "CheckpointConfig",
     "GuardsConfig",
     "OutputConfig",
+    "CallbackConfig",
     "ppo_problems",
     "td3_problems",
 ]
@@ -119,7 +122,7 @@ class PerturbationConfig(_Section):
         None,
         description="Explicit per-episode schedule that replaces the preset: {kind: sinusoid, center, amplitude, "
         "frequency, phase?} | {kind: uniform, low, high} | {kind: fixed, values} | {kind: list, values: [...], "
-        "cycle?}; parameter names and ranges come from adarl.envs.env_parameters(env.id).",
+        "cycle?}; parameter names and ranges come from adarl.envs.env_parameters(env.id) and env.parameters.",
     )
     mode: Literal["consistent", "ompo"] = Field(
         "ompo",
@@ -145,11 +148,49 @@ class PerturbationConfig(_Section):
         return schedule_parameter_names(self.schedule) if self.schedule else set()
 
 
+def _declared_problem(err: AdaRLValueError) -> tuple[str, Any, str]:
+    """An ``env.parameters.<name>: message`` error as a problem of the env section (key relative to it)."""
+    where, _, message = str(err).partition(": ")
+    if where.startswith("env.parameters") and message:
+        return (where[len("env.") :], NO_VALUE, message)
+    return ("parameters", NO_VALUE, str(err))
+
+
+def _perturbation_shorthand(v: Any) -> Any:
+    # `env.perturbation: none` (the section as one word) is `env.perturbation.preset: none`
+    return {"preset": "none"} if v == "none" else v
+
+
+class DeclaredParameterConfig(_Section):
+    """One parameter a recipe declares on a MuJoCo model field (``env.parameters.<name>``)."""
+
+    field: str = Field(
+        description="MuJoCo model field the value is written to (absolutely, at every reset): body_mass, "
+        "body_inertia, body_pos, geom_size, geom_pos, geom_friction, dof_damping, dof_armature, dof_frictionloss, "
+        "jnt_stiffness, jnt_range, actuator_gear, actuator_ctrlrange, opt.gravity, opt.wind, opt.timestep, "
+        "opt.density, opt.viscosity.",
+        json_schema_extra={"allowed": "a name in adarl.envs.MODEL_FIELDS"},
+    )
+    index: int | str | list[int | str] | None = Field(
+        None,
+        description="Which entry: one per dimension of the field (body_mass: a body's index or name; geom_size: "
+        "[geom, axis]; opt.gravity: 0-2; none for a scalar such as opt.timestep). Checked against the model when "
+        "the env is built.",
+    )
+    low: Float | None = Field(None, description="Smallest value a schedule may set (null: unbounded).")
+    high: Float | None = Field(None, description="Largest value a schedule may set (null: unbounded).")
+
+
 class EnvConfig(_Section):
     id: str = Field(
         description="Environment id: Hopper-v5, Walker2d-v5, Ant-v5, Humanoid-v5 (paper), CartPole-v1 (discrete), "
-        "or another id in adarl.envs.SUPPORTED_ENVS, or one an installed plugin registers (adarl.register_env).",
-        json_schema_extra={"allowed": "a supported env id (adarl.envs.supported_envs(): adarl's own and registered)"},
+        "another id in adarl.envs.SUPPORTED_ENVS or one an installed plugin registers (adarl.register_env), all "
+        "with presets; or any other id in gymnasium's registry (Pendulum-v1, ...: perturbation preset 'none', or a "
+        "schedule over env.parameters).",
+        json_schema_extra={
+            "allowed": "a supported env id (adarl.envs.supported_envs(): adarl's own and registered) or any id in "
+            "gymnasium's registry"
+        },
     )
     num_envs: PosInt = Field(1, description="Envs stepped together by the collector (a batched env when > 1).")
     parallel: bool = Field(
@@ -158,27 +199,71 @@ class EnvConfig(_Section):
     max_episode_steps: PosInt | None = Field(
         None, description="Episode time limit; null keeps the env's own (1000 for MuJoCo, 500 for CartPole-v1)."
     )
-    perturbation: PerturbationConfig = Field(
-        default_factory=PerturbationConfig, description="Dynamics uncertainty applied during training."
+    normalize_observations: bool = Field(
+        False,
+        description="Running mean/std normalisation of 'observation' (TorchRL's VecNorm, new API; SB3's "
+        "VecNormalize without its reward part), off-policy loops: statistics checkpointed, frozen during "
+        "evaluation, applied by load_policy and adarl export.",
+    )
+    parameters: dict[str, DeclaredParameterConfig] = Field(
+        default_factory=dict,
+        description="Perturbation parameters declared on the MuJoCo model's fields, {name: {field, index, low?, "
+        "high?}}, which perturbation.schedule may then set (any MuJoCo env; docs/perturbed-dynamics.md).",
+    )
+    perturbation: Annotated[PerturbationConfig, BeforeValidator(_perturbation_shorthand)] = Field(
+        default_factory=PerturbationConfig,
+        description="Dynamics uncertainty applied during training ('none' is short for {preset: none}).",
     )
 
     @field_validator("id")
     @classmethod
     def _check_id(cls, v: str) -> str:
         try:
-            check_env_id(v)  # adarl's own ids, and those installed plugins register (adarl.register_env)
+            check_any_env_id(v)  # adarl's own ids, installed plugins' (adarl.register_env), and gymnasium's
         except UnknownNameError as err:
             allowed = err.allowed
-            msg = f"must be a supported env: {one_of(allowed)}{did_you_mean(v, allowed)} (or {HOW_TO_REGISTER_ENV})"
+            msg = (
+                f"must be a supported env: {one_of(allowed)}{did_you_mean(v, (*allowed, *gymnasium_ids()))} (or any "
+                f"id in gymnasium's registry, with env.perturbation: none; or {HOW_TO_REGISTER_ENV})"
+            )
             raise _Problems([("", v, msg)]) from None
         except AdaRLValueError as err:  # an installed plugin failed to load (named)
             raise _Problems([("", v, str(err))]) from None
         return v
 
+    @field_validator("parameters")
+    @classmethod
+    def _check_parameters(cls, v: dict) -> dict:
+        problems = []
+        for name, p in v.items():
+            try:
+                declared_parameters({name: p.model_dump(exclude_none=True)})
+            except AdaRLValueError as err:
+                problems.append((str(name), NO_VALUE, str(err).split(": ", 1)[-1]))
+        if problems:
+            raise _Problems(problems)
+        return v
+
+    def declared(self) -> dict[str, dict] | None:
+        """``env.parameters`` as plain dicts (what adarl.envs takes), None when there are none."""
+        return {n: p.model_dump(exclude_none=True) for n, p in self.parameters.items()} or None
+
     @model_validator(mode="after")
     def _check_perturbation(self) -> EnvConfig:
         pert = self.perturbation
         sched = pert.schedule
+        if self.parameters and (
+            self.id in ("CartPole-v1", "LinearCartPole-v0")
+            or (not is_mujoco(self.id) and gymnasium_entry_point(self.id).startswith("gymnasium.envs."))
+        ):
+            raise _Problems(
+                [("parameters", NO_VALUE, f"declares MuJoCo model fields, but {self.id} does not simulate with MuJoCo")]
+            )
+        if self.parameters and sched is None:
+            try:
+                parameters_for(self.id, self.declared())
+            except AdaRLValueError as err:  # a declared name the env already has
+                raise _Problems([_declared_problem(err)]) from None
         if sched is None:
             available = [str(p) for p in preset_names(self.id)]
             if pert.preset not in available:
@@ -188,12 +273,22 @@ class EnvConfig(_Section):
                             "perturbation.preset",
                             pert.preset,
                             f"not available for {self.id}; allowed: "
-                            f"{one_of(available)} (or give an explicit perturbation.schedule)",
+                            f"{one_of(available)} (or give an explicit perturbation.schedule)"
+                            + (
+                                f" ({self.id} is a gymnasium env adarl has no presets for: env.perturbation: none "
+                                "runs it with plain dynamics)"
+                                if available == ["none"]
+                                else ""
+                            ),
                         )
                     ]
                 )
             return self
-        known = [str(k) for k in env_parameters(self.id, require=schedule_parameter_names(sched))]
+        try:
+            params = parameters_for(self.id, self.declared(), require=schedule_parameter_names(sched))
+        except AdaRLValueError as err:  # a declared name the env already has
+            raise _Problems([_declared_problem(err)]) from None
+        known = [str(k) for k in params]
         problems = [
             (
                 f"perturbation.schedule.{where}",
@@ -207,7 +302,7 @@ class EnvConfig(_Section):
         if not problems:
             # adarl.envs is the authority on schedules: build it, then check every value it can produce
             try:
-                validate_schedule(self.id, schedule_from_dict(_plain_copy(sched)))
+                validate_schedule(self.id, schedule_from_dict(_plain_copy(sched)), self.declared())
             except (ValueError, TypeError) as err:  # AdaRLValueError, or a value no schedule can take
                 problems.append(("perturbation.schedule", NO_VALUE, f"rejected by adarl.envs: {err}"))
         if problems:
@@ -470,18 +565,19 @@ class AlgorithmConfig(_Section):
         "the 'adarl.plugins' entry-point group): 'sac' as in the paper (DiscreteSAC for discrete-action envs); "
         "'ppo' = TorchRL's ClipPPOLoss + GAE, the RNAC baselines' base (continuous actions; SAC-only keys are "
         "ignored); 'td3' / 'ddpg' = TorchRL's TD3Loss / DDPGLoss on the off-policy loop with rank control "
-        "(algorithm.td3; continuous actions; SAC's alpha keys are ignored); a plugin's name runs its loss on the "
-        "loop of its base (docs/custom-loss.md).",
+        "(algorithm.td3; continuous actions; SAC's alpha keys are ignored); 'tqc' / 'crossq' / 'redq' = TorchRL's "
+        "TQCLoss / CrossQLoss / REDQLoss on the SAC loop with rank control (their authors' hyperparameters in "
+        "algorithm.options); a plugin's name runs its loss on the loop of its base (docs/custom-loss.md).",
         json_schema_extra={
-            "allowed": "a registered algorithm name ('sac', 'ppo', 'td3', 'ddpg', 'rnac_ipm', 'rnac_ds', or one an "
-            "installed plugin adds)"
+            "allowed": "a registered algorithm name ('sac', 'ppo', 'td3', 'ddpg', 'tqc', 'crossq', 'redq', "
+            "'rnac_ipm', 'rnac_ds', or one an installed plugin adds)"
         },
     )
     options: dict[str, Any] = Field(
         default_factory=dict,
         description="The registered algorithm's own options (its pydantic model: unknown keys, types and ranges are "
         "checked like every other key; every default is written into the run's recipe.yaml). 'sac' and 'ppo' "
-        "have none.",
+        "have none; those of 'tqc', 'crossq' and 'redq' are their authors' hyperparameters (docs/custom-loss.md).",
     )
     gamma: Annotated[Float, Field(gt=0, le=1)] = Field(0.99, description="Discount factor.")
     tau: Annotated[Float, Field(gt=0, le=1)] = Field(0.005, description="Polyak rate of the target critics.")
@@ -588,6 +684,16 @@ class AlgorithmConfig(_Section):
     def _check_options(self) -> AlgorithmConfig:
         spec = plugins.algorithm(self.name)
         self.options = _validated_options(spec.options, self.options, "options", f"algorithm {self.name!r}")
+        # keys the algorithm's options decide (REDQ's G is algorithm.utd_ratio): copied, unless set to another value
+        for key, option in spec.sets.items():
+            value, current = self.options[option], getattr(self, key)
+            if current not in (value, AlgorithmConfig.model_fields[key].default):
+                msg = (
+                    f"is set by algorithm.options.{option} ({value!r}) with algorithm.name {self.name!r}; set that "
+                    f"option instead (or this key to {value!r})"
+                )
+                raise _Problems([(key, current, msg)])
+            setattr(self, key, type(current)(value))
         return self
 
     @property
@@ -832,6 +938,40 @@ class OutputConfig(_Section):
     )
 
 
+class CallbackConfig(_Section):
+    """One entry of ``callbacks``: a registered callback and its options (docs/callbacks.md)."""
+
+    name: str = Field(
+        description="Callback, a registered name (adarl.register_callback, in a module the recipe's plugins list "
+        "names or an installed package): 'stop_on_return' = stop after the evaluation whose mean return reaches "
+        "options.threshold (SB3's StopTrainingOnRewardThreshold).",
+        json_schema_extra={"allowed": "a registered callback name ('stop_on_return', or one a plugin adds)"},
+    )
+    options: dict[str, Any] = Field(
+        default_factory=dict,
+        description="The callback's own keyword arguments (its pydantic model: unknown keys, types and ranges are "
+        "checked like every other key; every default is written into the run's recipe.yaml).",
+    )
+
+    @field_validator("name")
+    @classmethod
+    def _check_name(cls, v: str) -> str:
+        try:
+            plugins.callback(v)
+        except UnknownNameError as err:
+            msg = f"not a registered callback; allowed: {one_of(err.allowed)}{did_you_mean(v, err.allowed)}{err.hint}"
+            raise _Problems([("", v, msg)]) from None
+        except AdaRLValueError as err:  # an installed plugin failed to load (named)
+            raise _Problems([("", v, str(err))]) from None
+        return v
+
+    @model_validator(mode="after")
+    def _check_options(self) -> CallbackConfig:
+        spec = plugins.callback(self.name)
+        self.options = _validated_options(spec.options, self.options, "options", f"callback {self.name!r}")
+        return self
+
+
 # ---- the recipe
 
 
@@ -857,9 +997,9 @@ class Recipe(_Section):
     plugins: list[Annotated[str, Field(min_length=1)]] = Field(
         default_factory=list,
         description="Local Python modules imported before the recipe is validated, whose import registers what it "
-        "names (register_algorithm, register_env, register_rank_rule): a module name (beside the recipe file, else "
-        "on PYTHONPATH) or a path to a .py file relative to the recipe. Recorded with each file's sha256 in the run "
-        "folder's plugins.json: resume refuses a changed or missing module (docs/custom-loss.md).",
+        "names (register_algorithm, register_env, register_rank_rule, register_callback): a module name (beside the "
+        "recipe file, else on PYTHONPATH) or a path to a .py file relative to the recipe. Recorded with each file's "
+        "sha256 in the run folder's plugins.json: resume refuses a changed or missing module (docs/custom-loss.md).",
         json_schema_extra={"allowed": "a list of module names or .py paths"},
     )
     seed: Annotated[Int, Field(ge=0, le=2**32 - 1)] = Field(0, description="Seed of Python, NumPy, torch and the envs.")
@@ -880,6 +1020,12 @@ class Recipe(_Section):
     logging: LoggingConfig = Field(default_factory=LoggingConfig, description="Metric loggers.")
     checkpoint: CheckpointConfig = Field(default_factory=CheckpointConfig, description="Checkpoints for resume.")
     guards: GuardsConfig = Field(default_factory=GuardsConfig, description="What to do when training diverges.")
+    callbacks: list[CallbackConfig] = Field(
+        default_factory=list,
+        description="Training callbacks, called at the trainer's hook points in this order; any may stop the run "
+        "early, which the run folder records (docs/callbacks.md).",
+        json_schema_extra={"allowed": "a list of {name: <registered callback>, options: {...}}"},
+    )
     output: OutputConfig = Field(default_factory=OutputConfig, description="Where the run folder goes.")
 
     @field_validator("plugins", mode="before")
@@ -1010,6 +1156,15 @@ def ppo_problems(recipe: Recipe) -> list[tuple[str, Any, str]]:
         )
     if env.id == "CartPole-v1":
         p.append(("algorithm.name", alg.name, f"needs a continuous-action env; {env.id} is discrete (use 'sac')"))
+    if env.normalize_observations:
+        p.append(
+            (
+                "env.normalize_observations",
+                True,
+                f"is the off-policy loops' option; algorithm.name {alg.name!r} runs on the PPO loop, which "
+                "normalises inside its networks: algorithm.ppo.obs_norm (allowed here: false)",
+            )
+        )
     if alg.ppo.minibatch_size > recipe.collector.frames_per_batch:
         p.append(
             (
@@ -1041,6 +1196,51 @@ def td3_problems(recipe: Recipe) -> list[tuple[str, Any, str]]:
                     f"{alg.name!r} runs on the 'td3' loop, TorchRL's plain path; allowed: {allowed}",
                 )
             )
+    return p
+
+
+def sac_problems(recipe: Recipe) -> list[tuple[str, Any, str]]:
+    """The ``sac`` family's combinations for TQC, CrossQ and REDQ (adarl.runtime.builders.sac_variants): box actions,
+    TorchRL's plain path (the fused update computes SACLoss only), and what their losses have no use for."""
+    p: list[tuple[str, Any, str]] = []
+    alg, env = recipe.algorithm, recipe.env
+    variant = plugins.sac_variant(alg.name)
+    if variant is None:
+        return p
+    if env.id in ("CartPole-v1", "LinearCartPole-v0"):
+        p.append(("algorithm.name", alg.name, f"needs a continuous-action env; {env.id} is discrete (use 'sac')"))
+    for key, value, allowed in (
+        ("algorithm.fused", alg.fused, "'auto' or false"),
+        ("algorithm.compile", alg.compile, "false"),
+        ("algorithm.backward", alg.backward, "'auto'"),
+    ):
+        if value is True or (key == "algorithm.backward" and value != "auto"):
+            p.append(
+                (
+                    key,
+                    value,
+                    f"is the fused SAC update's, which computes SACLoss only; algorithm.name {alg.name!r} runs "
+                    f"TorchRL's {variant} on its plain path; allowed: {allowed}",
+                )
+            )
+    if variant == "TQCLoss" and alg.loss_function != "l2":
+        p.append(
+            (
+                "algorithm.loss_function",
+                alg.loss_function,
+                "is not used by TQCLoss, whose critic loss is the quantile Huber loss; allowed: 'l2' (the default)",
+            )
+        )
+    if variant == "CrossQLoss":
+        for key, default in (("polyak", "factors"), ("tau", AlgorithmConfig.model_fields["tau"].default)):
+            if getattr(alg, key) != default:
+                p.append(
+                    (
+                        f"algorithm.{key}",
+                        getattr(alg, key),
+                        f"moves target critics, and CrossQ has none; allowed: {default!r} (the default)",
+                    )
+                )
     return p
 
 

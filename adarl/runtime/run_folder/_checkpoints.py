@@ -51,6 +51,7 @@ def recipe_fingerprint(recipe) -> dict:
         "algorithm.options": dict(recipe.algorithm.options),
         "env.id": recipe.env.id,
         "env.num_envs": recipe.env.num_envs,
+        "env.normalize_observations": recipe.env.normalize_observations,  # what the buffer and networks were fed
         "algorithm.num_qvalue_nets": recipe.algorithm.num_qvalue_nets,
         "algorithm.fixed_alpha": recipe.algorithm.fixed_alpha,
         "algorithm.parseval.diagonal": recipe.algorithm.parseval.diagonal,

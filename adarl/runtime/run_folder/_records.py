@@ -176,6 +176,27 @@ class RunRecords:
                         os.fsync(fd.fileno())
                 except ValueError:  # closed file; an OSError (a full disk) propagates: the checkpoint would lie
                     pass
+        self.write_progress()
+
+    def write_progress(self) -> Path:
+        """``metrics/progress.csv``: every scalar of the run in one wide table, as SB3's ``progress.csv`` (one row
+        per logged step, ``time/total_timesteps`` first, a column per metric, blank where a metric was not logged at
+        that step). Made from the per-metric CSV files (the records resume truncates), at every checkpoint and at the
+        end of the run, so it always agrees with them (none before the first scalar); pandas writes it."""
+        import pandas as pd
+
+        scalars = {name: rows for name, rows in self.scalars().items() if rows}
+        path = self.path / "metrics" / "progress.csv"
+        if not scalars:  # nothing logged (yet, or after a resume to frame 0): no table, and no stale one
+            path.unlink(missing_ok=True)
+            return path
+        table = pd.DataFrame(
+            {name: pd.Series(dict(rows), dtype=float) for name, rows in sorted(scalars.items()) if rows}
+        ).sort_index()
+        table.insert(0, "time/total_timesteps", table.index.astype("int64"))
+        path.parent.mkdir(exist_ok=True)
+        atomic_write_text(path, table.to_csv(index=False, float_format="%.10g"))
+        return path
 
     def read_eval(self) -> list[dict]:
         path = self.path / "eval.csv"

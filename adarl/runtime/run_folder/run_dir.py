@@ -46,7 +46,7 @@ from pathlib import Path
 import yaml
 
 from adarl import plugins
-from adarl.envs.registry import ENV_IDS, supported_envs
+from adarl.envs.registry import env_provenance, supported_envs
 from adarl.errors import (
     AdaRLError,
     AdaRLValueError,
@@ -329,8 +329,9 @@ class RunDir(RunRecords, RunCheckpoints):
         save_resolved(recipe, self.recipe_path)
         record = {
             "algorithm": plugins.algorithm(recipe.algorithm.name).provenance(),
-            "env": {"name": recipe.env.id, **ENV_IDS.provenance(recipe.env.id)},
+            "env": {"name": recipe.env.id, **env_provenance(recipe.env.id)},
             "rank_rule": {"name": recipe.rank.rule, **plugins.RANK_RULES.provenance(recipe.rank.rule)},
+            "callbacks": [{**plugins.callback(c.name).provenance(), "options": c.options} for c in recipe.callbacks],
             "modules": local_plugins.record(recipe.plugins),
         }
         try:
@@ -340,20 +341,22 @@ class RunDir(RunRecords, RunCheckpoints):
         write_fingerprint(self.path, recipe)
 
     def load_recipe(self):
-        """The run's recipe.yaml, validated. A run whose algorithm, env or rank rule is no longer registered (its
-        plugin package is not installed here) is refused, naming the package and version plugins.json recorded; a
+        """The run's recipe.yaml, validated. A run whose algorithm, env, rank rule or callback is no longer registered
+        (its plugin package is not installed here) is refused, naming the package and version plugins.json recorded; a
         run whose local plugin module (the recipe's ``plugins``) is missing or changed, naming the module."""
         recorded = self.recorded_plugins()
         local_plugins.check_recorded(self.plugin_modules(recorded), str(self.path))
         try:
             return load_recipe(str(self.recipe_path))
         except RecipeError as err:
-            for kind, what, names in (
-                ("algorithm", "algorithm", plugins.algorithm_names),
-                ("env", "env", supported_envs),
-                ("rank_rule", "rank rule", plugins.rank_rule_names),
+            callbacks = recorded.get("callbacks") if isinstance(recorded.get("callbacks"), list) else []
+            for what, names, used in (
+                ("algorithm", plugins.algorithm_names, recorded.get("algorithm")),
+                ("env", supported_envs, recorded.get("env")),
+                ("rank rule", plugins.rank_rule_names, recorded.get("rank_rule")),
+                *(("callback", plugins.callback_names, c) for c in callbacks),
             ):
-                used = recorded.get(kind) or {}
+                used = used if isinstance(used, dict) else {}
                 if used.get("package") in (None, "adarl") or used.get("name") in names():
                     continue
                 version = f" {used['version']}" if used.get("version") else ""

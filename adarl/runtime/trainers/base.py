@@ -38,6 +38,7 @@ from tqdm import auto as tqdm_auto
 from adarl.errors import AdaRLError, CheckpointError, FusedFallbackWarning, command
 from adarl.runtime import metrics
 from adarl.runtime.builders.common import RunComponents
+from adarl.runtime.callbacks import TrainerHooks, build_callbacks, stop_holds
 from adarl.runtime.continuing import continued_recipe, retarget_schedules, schedule_totals
 from adarl.runtime.evaluation import EvalResult, evaluate_policy
 from adarl.runtime.families import check_trainer, family
@@ -106,6 +107,9 @@ class BaseTrainer:
                 run_dir.save_recipe(recipe)  # a run started from Python resumes and loads like any
         # _log_from: the frames a resumed run's logs continue from (None: a new run, or evaluation only)
         self.logger = null_logger() if _read_only else run_dir.make_logger(recipe, step=_log_from)
+        self.hooks = TrainerHooks()  # the recipe's callbacks (adarl.runtime.callbacks), before a checkpoint loads
+        for name, callback in build_callbacks(recipe):
+            callback.register(self, name)
         with warnings.catch_warnings():
             if _read_only:  # loaded to evaluate: no update runs, so the update path's cost is no news (issue 48.6)
                 warnings.simplefilter("ignore", FusedFallbackWarning)
@@ -130,6 +134,25 @@ class BaseTrainer:
         """The rank adapter of the run (None: no rank adaptation)."""
         return self.c.adapter
 
+    # ------------------------------------------------------------------ callbacks (TorchRL Trainer's names)
+    def register_op(self, dest: str, op) -> None:
+        """Call ``op`` at the hook point ``dest`` (:data:`adarl.runtime.callbacks.HOOK_POINTS`)."""
+        self.hooks.register_op(dest, op)
+
+    def register_module(self, name: str, module) -> None:
+        """Checkpoint ``module``'s ``state_dict`` (a TorchRL ``TrainerHookBase``) as ``name``."""
+        self.hooks.register_module(name, module)
+
+    def request_stop(self, reason: str, *, by: str | None = None) -> None:
+        """Stop this run at the end of the current batch, as a finished one ends; the first request is kept and
+        recorded (summary.json's ``stopped_early``, and every checkpoint from here on)."""
+        self.hooks.request_stop(reason, by=by, frames=self.frames, updates=self.updates, recipe=self.recipe)
+
+    @property
+    def stopped_early(self) -> dict | None:
+        """The stop a callback asked for, while it still ends this run (None: none, or a resume trains past it)."""
+        return self.hooks.stop if stop_holds(self.hooks.stop, self.recipe) else None
+
     # ------------------------------------------------------------------ construction
     def _build(self, state: dict | None) -> None:
         """Build the components (fresh, or to continue from checkpoint ``state``), this run's records of their rank
@@ -137,6 +160,8 @@ class BaseTrainer:
         self.c = self._build_components(state)
         if self.c.rank_events is not None:
             self.c.rank_events.record_run(self)
+            if self.hooks.wants("post_rank_event"):
+                self.c.rank_events.after_event.append(lambda event: self.hooks.call("post_rank_event", event))
         self.guard = NonFiniteGuard(self.c.guarded_parameters())
         if state is not None:
             totals = schedule_totals(self.c.schedulers)  # as this recipe's total plans them
@@ -233,11 +258,12 @@ class BaseTrainer:
         )
         self._bar = bar
         self._clock = (time.perf_counter(), self.frames, self.updates)  # time/fps counts this process's work only
+        self.hooks.on_resume(self.recipe, quiet=self.quiet)  # a stopped run: complete, or trains on (said)
         try:
             with GracefulInterrupt(quiet=self.quiet) as interrupt:
                 if not self.run_dir.checkpoints():
                     self.save_checkpoint()  # frame 0: a run killed at any later moment can be resumed
-                while True:
+                while self.hooks.stop is None:  # a run a callback stopped is complete
                     try:
                         self._train_batches(bar, interrupt)
                         break
@@ -248,10 +274,13 @@ class BaseTrainer:
                 self._log_losses([], flush=True)  # the last partial logging interval
                 if self.last_eval_frames != self.frames:
                     self._evaluate()
+                if self.frames >= total:
+                    self.hooks.stop = None  # the budget was spent: no early stop
                 last = self.save_checkpoint()
                 interrupt.notice = FINISHING  # a signal from here on stops once the summary and report are written
                 summary = self._write_summary(self._wall_time())
-                write_report(self.run_dir.path)
+                # the plots a user opens at once; `adarl report RUN` adds their PDF and SVG (about 1.5 s more)
+                write_report(self.run_dir.path, formats=("png",))
         finally:
             self._sync_bar()
             bar.close()
@@ -269,6 +298,8 @@ class BaseTrainer:
             if losses is not None:
                 self._log_losses(losses)
             self._sync_bar()  # the batch and any warm-start frames that count towards the budget
+            if self.hooks.wants("post_steps"):
+                self.hooks.call("post_steps", batch)
             if self.frames - self.last_eval_frames >= rc.eval.interval:
                 self._evaluate()
             saved = None
@@ -289,7 +320,7 @@ class BaseTrainer:
                     signum=interrupt.requested,
                     checkpoint=path,
                 )
-            if self.frames >= total:
+            if self.frames >= total or self.hooks.stop is not None:
                 break
 
     def _sync_bar(self) -> None:
@@ -408,6 +439,7 @@ class BaseTrainer:
         if elapsed > 0 and self.frames > frames0:
             self.logger.log_scalar(metrics.FPS, (self.frames - frames0) / elapsed, step=self.frames)
             self.logger.log_scalar(metrics.UPDATES_PER_S, (self.updates - updates0) / elapsed, step=self.frames)
+        self.logger.log_scalar(metrics.TIME_ELAPSED, self._wall_time(), step=self.frames)
 
     def _evaluate(self) -> EvalResult:
         e = self.recipe.eval
@@ -415,6 +447,7 @@ class BaseTrainer:
         self.last_eval_frames = self.frames
         self.logger.log_scalar(metrics.EVAL_RETURN, result.mean, step=self.frames)
         self.logger.log_scalar(metrics.EVAL_RETURN_STD, result.std, step=self.frames)
+        self.logger.log_scalar(metrics.EVAL_LENGTH, sum(result.lengths) / len(result.lengths), step=self.frames)
         self.run_dir.append_eval(self.frames, self.updates, result, ranks=self.adapter.ranks if self.adapter else {})
         if result.mean > self.best_eval:
             self.best_eval = result.mean
@@ -422,6 +455,9 @@ class BaseTrainer:
                 self.run_dir.save_best(
                     self.state_dict(), frames=self.frames, score=result.mean, fingerprint=self.fingerprint
                 )
+        if self.hooks.wants("post_eval"):
+            what = {metrics.EVAL_RETURN: result.mean, metrics.EVAL_RETURN_STD: result.std}
+            self.hooks.call("post_eval", {"frames": self.frames, "updates": self.updates, **what})
         return result
 
     # ------------------------------------------------------------------ checkpoints
@@ -447,7 +483,7 @@ class BaseTrainer:
         (the replay buffer is dumped beside it when configured)."""
         counters = self._counters()
         components = self.c.state_dict()  # first: a lean collector's prefetched batch is finished before the RNGs
-        return {"counters": counters, **components, "rng": rng_state()}
+        return {"counters": counters, **components, "callbacks": self.hooks.state_dict(), "rng": rng_state()}
 
     def _replay_buffer_to_save(self):
         """The replay buffer saved beside a checkpoint (None: none, or ``checkpoint.replay_buffer`` is false)."""
@@ -488,6 +524,7 @@ class BaseTrainer:
         for name, (kind, default) in self.counters.items():
             setattr(self, name, kind(cnt[name] if default is None else cnt.get(name, default)))
         self.c.load_state_dict(state, fill_replay_buffer=lambda rb: self._load_replay_buffer(rb, state))
+        self.hooks.load_state_dict(state.get("callbacks"))
         if self.adapter is not None and not self.read_only:  # the rank history as of the checkpoint resumed
             self.run_dir.write_rank_history(self.adapter.history, frames=self.frames)
         set_rng_state(state["rng"])  # last: nothing after it may draw random numbers
@@ -527,6 +564,8 @@ class BaseTrainer:
             "rank_events": len(adapter.history) if adapter is not None else 0,
             "final_eval": self.run_dir.last_eval(),
             "best_eval_mean": self.best_eval,
+            "stopped_early": self.hooks.stop,  # a callback's stop: frames, updates, callback, reason (None: none)
+            "earlier_stops": self.hooks.earlier,
         }
 
     def _write_summary(self, elapsed: float) -> dict:

@@ -97,6 +97,7 @@ class OffPolicyTrainer(BaseTrainer):
         """One optimisation step of the family's update step (guarded), then (maybe) a rank event."""
         out = self.c.update(self.guard, update=self.updates)
         self.updates += 1
+        self.hooks.post_optim(out)  # the callbacks' post_optim hook point (adarl.runtime.callbacks)
         if self.c.adapter is not None:
             self.c.adapter.step()
         return out

@@ -128,6 +128,7 @@ class PPOTrainer(BaseTrainer):
                 and v.numel() == 1
                 and v.is_floating_point()
             )
+        self.hooks.post_optim(out)  # the callbacks' post_optim hook point (adarl.runtime.callbacks)
         return out
 
     # ------------------------------------------------------------------ summary
