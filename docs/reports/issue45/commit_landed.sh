@@ -16,7 +16,7 @@ while true; do
     new=$(.venv/bin/python docs/reports/issue34/export_runs.py "$src" "$dest")
     if [ -n "$new" ] || [ -n "$(git status --porcelain -- "$dest/runs")" ]; then
       bash docs/reports/issue45/make_report.sh "$name" || echo "$(date -u +%FT%TZ) report of $dest failed"
-      git add "$dest" && git commit -q -m "Issue 45 runs landed ($name, runs at $(git -C /work/exp/$wt rev-parse --short HEAD)): $(echo $new | tr '\n' ' ')" --only -- "$dest" \
+      git add "$dest" && git commit -q -m "Issue 45 runs landed ($name; the queue runs at $(git -C /work/exp/$wt rev-parse --short HEAD), runs copied in by fresh_machine.sh keep their own commit, named in runs.csv and the report): $(echo $new | tr '\n' ' ')" --only -- "$dest" \
         && echo "$(date -u +%FT%TZ) committed $name: $new"
     fi
   done
