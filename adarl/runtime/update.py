@@ -25,7 +25,7 @@ from adarl.fast.replay import UniformTensorSampler
 from adarl.fast.sac import FusedSACUpdate
 from adarl.runtime.guards import NonFiniteGuard
 
-__all__ = ["UpdateStep", "LossStep", "FusedStep", "DelayedActorStep", "SAC_LOSSES"]
+__all__ = ["UpdateStep", "LossStep", "FusedStep", "DelayedActorStep", "delayed_optimisation", "SAC_LOSSES"]
 
 #: the losses every SAC step checks and returns (with ``alpha``, and ``loss_<term>`` per loss term)
 SAC_LOSSES = ("loss_actor", "loss_qvalue", "loss_alpha")
@@ -128,6 +128,30 @@ class FusedStep(UpdateStep):
         self.fused.on_rank_event(event)
 
 
+def delayed_optimisation(step, losses: dict, stepped: list, guard: NonFiniteGuard | None, update: int) -> None:
+    """What a delayed-policy step (TD3's, TQC/CrossQ/REDQ's) does with its losses: backward of their sum (the guard's
+    checks around it), per-optimiser gradient clipping (``step.max_grad_norm``), the ``stepped`` optimisers, every
+    gradient cleared, and every LR schedule stepped (each update, though a delayed optimiser steps only every k-th:
+    torch's warning about a schedule stepped before its optimiser says nothing here)."""
+    if guard is not None:
+        guard.check_losses(losses, update)
+    sum(losses.values()).backward()
+    if guard is not None:
+        guard.check_grads(update)
+    if step.max_grad_norm is not None:
+        for opt in stepped:
+            for group in opt.param_groups:
+                torch.nn.utils.clip_grad_norm_(group["params"], step.max_grad_norm)
+    for opt in stepped:
+        opt.step()
+    for opt in step.optimizers.values():
+        opt.zero_grad(set_to_none=True)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=r"Detected call of `lr_scheduler.step\(\)` before")
+        for sched in step.schedulers:
+            sched.step()
+
+
 class DelayedActorStep(UpdateStep):
     """TD3's step with TorchRL's pieces (TorchRL's TD3 example, one loss call): ``loss(rb.sample())``, backward of
     the sum of its ``loss_*`` entries, per-optimiser gradient clipping, the critic's optimiser every step, the actor's
@@ -177,27 +201,9 @@ class DelayedActorStep(UpdateStep):
                 f"'loss_actor' and 'loss_qvalue' (TD3Loss) or 'loss_value' (DDPGLoss), and may add more loss_* "
                 "entries and metrics"
             )
-        if guard is not None:
-            guard.check_losses(losses, update)
-        sum(losses.values()).backward()
-        if guard is not None:
-            guard.check_grads(update)
         actor_too = self.updates_actor(update)
         stepped = [self.optimizers["critic"]] + ([self.optimizers["actor"]] if actor_too else [])
-        if self.max_grad_norm is not None:
-            for opt in stepped:
-                for group in opt.param_groups:
-                    torch.nn.utils.clip_grad_norm_(group["params"], self.max_grad_norm)
-        for opt in stepped:
-            opt.step()
-        for opt in self.optimizers.values():
-            opt.zero_grad(set_to_none=True)
-        with warnings.catch_warnings():
-            # the actor's schedule moves with every update, its optimiser only every delay-th: torch's warning
-            # about a schedule stepped before its optimiser (the first update) says nothing here
-            warnings.filterwarnings("ignore", message=r"Detected call of `lr_scheduler.step\(\)` before")
-            for sched in self.schedulers:
-                sched.step()
+        delayed_optimisation(self, losses, stepped, guard, update)
         if actor_too:
             self.target_updater.step()
         if guard is not None:

@@ -29,7 +29,6 @@ switches them to train mode for the loss and back.
 
 from __future__ import annotations
 
-import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
@@ -60,7 +59,7 @@ from adarl.runtime.builders.common import action_spec, is_discrete, make_mlp
 from adarl.runtime.builders.off_policy import OffPolicyParts
 from adarl.runtime.builders.sac import VARIANT_PARTS, SACComponents, make_recipe_actor
 from adarl.runtime.guards import NonFiniteGuard
-from adarl.runtime.update import SAC_LOSSES, UpdateStep
+from adarl.runtime.update import SAC_LOSSES, UpdateStep, delayed_optimisation
 
 __all__ = [
     "VARIANTS",
@@ -214,26 +213,9 @@ class DelayedPolicyStep(UpdateStep):
                 f"{type(self.loss).__name__}'s output lacks {missing}; a loss on the SAC loop returns "
                 f"{list(SAC_LOSSES)} (and may add more loss_* entries and metrics)"
             )
-        if guard is not None:
-            guard.check_losses(losses, update)
-        sum(losses.values()).backward()
-        if guard is not None:
-            guard.check_grads(update)
         policy_too = self.updates_policy(update)
         stepped = [o for name, o in self.optimizers.items() if policy_too or name == "critic"]
-        if self.max_grad_norm is not None:
-            for opt in stepped:
-                for group in opt.param_groups:
-                    torch.nn.utils.clip_grad_norm_(group["params"], self.max_grad_norm)
-        for opt in stepped:
-            opt.step()
-        for opt in self.optimizers.values():
-            opt.zero_grad(set_to_none=True)
-        with warnings.catch_warnings():
-            # the actor's schedule moves every update, its optimiser every delay-th (torch warns at the first one)
-            warnings.filterwarnings("ignore", message=r"Detected call of `lr_scheduler.step\(\)` before")
-            for sched in self.schedulers:
-                sched.step()
+        delayed_optimisation(self, losses, stepped, guard, update)
         if self.target_updater is not None:
             self.target_updater.step()
         if guard is not None:
