@@ -98,6 +98,8 @@ def cmd_run(args) -> int:
     recipe = load_recipe(args.recipe, args.overrides)  # validates everything before anything is written
     logging_backends(recipe)  # a logging extra that is not installed: refused before any folder is made
     path = _run_folder(recipe, args.output)
+    if args.pack_seeds:
+        return _run_pack(recipe, args.pack_seeds, path, overwrite=args.overwrite, quiet=args.quiet)
     existed = path.exists()
     parents = _missing_parents(path)
     run_dir = RunDir.create(path, overwrite=args.overwrite)
@@ -117,6 +119,40 @@ def cmd_run(args) -> int:
     summary = _train(trainer)
     _print_summary(summary, run_dir.path)
     return 0
+
+
+def _run_pack(recipe, seeds, path: Path, *, overwrite: bool, quiet: bool) -> int:
+    """``adarl run RECIPE --pack-seeds S ...``: the seeds side by side in this process (adarl.runtime.trainers.packed),
+    one run folder each (``PATH/seed=S``)."""
+    from adarl.runtime.trainers.packed import create_pack
+
+    pack = create_pack(recipe, seeds, path, overwrite=overwrite, quiet=quiet)
+    return _finish_pack(pack)
+
+
+def _finish_pack(pack) -> int:
+    from adarl.runtime.trainers.packed import finish
+
+    GracefulInterrupt.stopped_at_once = None
+    summaries = finish(pack.train())
+    for folder, summary in summaries.items():
+        _print_summary(summary, Path(folder))
+    return 0
+
+
+def _resume_pack(args) -> int:
+    """``adarl resume PACK``: every seed of a pack folder that has not finished, side by side again."""
+    from adarl.runtime.trainers.packed import resume_pack
+
+    if args.overrides:
+        raise AdaRLError(
+            f"a pack folder resumes to its recipe's frames; overrides {args.overrides} are not taken (continue each "
+            "seed's run folder on its own to more frames)"
+        )
+    pack, said = resume_pack(args.run_dir, checkpoint=args.checkpoint, quiet=args.quiet)
+    for line in said:
+        print(line)
+    return 0 if pack is None else _finish_pack(pack)
 
 
 def _train(trainer) -> dict:
@@ -163,6 +199,10 @@ def _print_summary(summary: dict, path: Path) -> None:
 def cmd_resume(args) -> int:
     from adarl.runtime.continuing import already_complete
     from adarl.runtime.trainers import BaseTrainer
+    from adarl.runtime.trainers.packed import is_pack_folder
+
+    if is_pack_folder(args.run_dir):
+        return _resume_pack(args)
 
     trainer = BaseTrainer.resume(args.run_dir, quiet=args.quiet, checkpoint=args.checkpoint, overrides=args.overrides)
     total = trainer.recipe.collector.total_frames
@@ -395,6 +435,14 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--output", "-o", help="run folder (default: output.dir, or output.root/<name>-<time>)")
     r.add_argument("--overwrite", action="store_true", help="replace an existing run folder")
     r.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
+    r.add_argument(
+        "--pack-seeds",
+        nargs="+",
+        type=int,
+        metavar="SEED",
+        help="train these seeds of the recipe side by side in this process, their SAC updates as one batched "
+        "program (one run folder each, OUTPUT/seed=S; `adarl resume OUTPUT` continues them; docs/performance.md)",
+    )
     r.set_defaults(func=cmd_run)
 
     rs = sub.add_parser(

@@ -7,6 +7,7 @@ Each module names the TorchRL piece it mirrors and the test that proves the two 
 * :mod:`adarl.fast.manual_backward` - the fused step's gradients written out by hand;
 * :mod:`adarl.fast.kernels` - the affine map and fresh-code ``torch.compile`` the two share;
 * :mod:`adarl.fast.adam` - fused Adam's ``step()`` without its per-call Python;
+* :mod:`adarl.fast.packed` - :class:`~adarl.fast.packed.PackedSACUpdate`: N seeds' fused updates as one batched step;
 * :mod:`adarl.fast.replay` - :class:`~adarl.fast.replay.UniformTensorSampler`: ``rb.sample()`` into tensors;
 * :mod:`adarl.fast.collector` - :class:`~adarl.fast.collector.LeanCollector`: TorchRL's ``Collector`` for one env;
 * :mod:`adarl.fast.direct_env` - a ``make_env`` env's ``step_and_maybe_reset`` without TorchRL's wrapper;

@@ -5,7 +5,9 @@
   trainer, :mod:`adarl.runtime.families`);
 * :mod:`~adarl.runtime.trainers.off_policy` - :class:`OffPolicyTrainer`: every off-policy family (AdaRL-SAC and the
   SAC baselines, TD3, DDPG, a family of your own), its components built by ``family(recipe).build(...)``;
-* :mod:`~adarl.runtime.trainers.ppo` - :class:`PPOTrainer`: the RNAC baselines' PPO loop.
+* :mod:`~adarl.runtime.trainers.ppo` - :class:`PPOTrainer`: the RNAC baselines' PPO loop;
+* :mod:`~adarl.runtime.trainers.packed` - :class:`~adarl.runtime.trainers.packed.SeedPack`: seeds of one SAC recipe
+  side by side in one process, their updates batched (``adarl run --pack-seeds``).
 """
 
 from adarl.runtime.trainers.base import BaseTrainer, trainer_class

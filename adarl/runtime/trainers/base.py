@@ -260,7 +260,7 @@ class BaseTrainer:
         self._clock = (time.perf_counter(), self.frames, self.updates)  # time/fps counts this process's work only
         self.hooks.on_resume(self.recipe, quiet=self.quiet)  # a stopped run: complete, or trains on (said)
         try:
-            with GracefulInterrupt(quiet=self.quiet) as interrupt:
+            with self._interrupt() as interrupt:
                 if not self.run_dir.checkpoints():
                     self.save_checkpoint()  # frame 0: a run killed at any later moment can be resumed
                 while self.hooks.stop is None:  # a run a callback stopped is complete
@@ -289,6 +289,11 @@ class BaseTrainer:
         if interrupt.requested is not None:
             raise stopped_after_the_end(interrupt.requested, self.frames, last, self.run_dir.path)
         return summary
+
+    def _interrupt(self) -> GracefulInterrupt:
+        """What turns a signal into a stop after the current batch: this run's own handler (the seeds of a pack share
+        their pack's, :mod:`adarl.runtime.trainers.packed`)."""
+        return GracefulInterrupt(quiet=self.quiet)
 
     def _train_batches(self, bar, interrupt: GracefulInterrupt) -> None:
         rc = self.recipe

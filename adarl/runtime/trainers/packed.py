@@ -1,0 +1,402 @@
+"""Seeds of one recipe trained side by side in one process, their SAC updates as one batched program.
+
+Why: every experiment here is many seeds of the same recipe, and at (64, 64) one seed's update is bound by per-call
+overhead, not arithmetic (docs/performance.md). :class:`SeedPack` runs N seeds' ordinary
+:class:`~adarl.runtime.trainers.off_policy.OffPolicyTrainer` loops, each in its own run folder, and hands their
+updates to one :class:`~adarl.fast.packed.PackedSACUpdate`, so that each of the update's ~700 operations is one call
+for all the seeds.
+
+How: each seed's ``train()`` runs unchanged in a greenlet (a coroutine on the main thread: switches happen only where
+this module switches, so signals, RNG states and ordering stay deterministic). A seed runs its loop (collection,
+replay, episodes' logs, evaluation, checkpoints, rank events, callbacks) exactly as alone until it needs an update;
+then it draws its batch and noise as the fused step would (its sampler, its RNG) and yields to the pack. Once every
+live seed has yielded, the pack steps them all at once and resumes each with its own losses. Each seed's global RNGs
+(torch, NumPy, Python) are switched in and out with it, so every seed draws the numbers it draws alone.
+
+Before a seed's rank adapter acts, and before a checkpoint, the pack is *unpacked* (each seed owns its tensors and its
+optimisers hold its Adam state, as alone); it packs again at the next update. A seed whose training fails (a
+divergence that stops it, an error) ends alone: the others go on, re-packed without it. A seed's run folder is file
+for file a solo run's, with ``packed_with`` (the pack's run folders) in its summary.json.
+
+Mirrors: N ``OffPolicyTrainer(recipe_i, run_dir_i).train()`` one after another.
+Equality: ``tests/test_packed_trainer.py`` (a packed seed's losses and the ranks of its first event against its solo
+run's; a diverging seed stopped alone; a signal stops every seed at a checkpoint, and the pack resumes).
+"""
+
+from __future__ import annotations
+
+import random
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import torch
+import tqdm
+
+from adarl.errors import AdaRLValueError
+from adarl.fast.packed import PackedSACUpdate
+from adarl.runtime.signals import GracefulInterrupt
+from adarl.runtime.trainers.off_policy import OffPolicyTrainer
+from adarl.runtime.update import FusedStep
+
+__all__ = ["PackedSeedTrainer", "SeedPack", "recipe_without_seed"]
+
+
+def recipe_without_seed(recipe) -> dict:
+    """The recipe as a dict without its ``seed``: what the seeds of one pack must share."""
+    data = recipe.model_dump(mode="json")
+    data.pop("seed", None)
+    return data
+
+
+class _RNG:
+    """A seed's global RNG states (torch, NumPy, Python), switched in and out with its greenlet."""
+
+    __slots__ = ("torch", "numpy", "python")
+
+    def __init__(self) -> None:
+        self.save()
+
+    def save(self) -> None:
+        self.torch, self.numpy, self.python = torch.get_rng_state(), np.random.get_state(), random.getstate()
+
+    def load(self) -> None:
+        torch.set_rng_state(self.torch)
+        np.random.set_state(self.numpy)
+        random.setstate(self.python)
+
+
+class _SharedInterrupt:
+    """A seed's view of its pack's :class:`~adarl.runtime.signals.GracefulInterrupt`: one handler for the process,
+    every seed sees its request and stops after its current batch."""
+
+    def __init__(self, pack: SeedPack) -> None:
+        self.pack = pack
+
+    def __enter__(self) -> _SharedInterrupt:
+        return self
+
+    def __exit__(self, *exc) -> bool:
+        return False
+
+    @property
+    def requested(self) -> int | None:
+        return self.pack.interrupt.requested if self.pack.interrupt is not None else None
+
+    @property
+    def notice(self) -> str:
+        return self.pack.interrupt.notice if self.pack.interrupt is not None else ""
+
+    @notice.setter
+    def notice(self, value: str) -> None:  # the pack's notice is the pack's: one seed finishing is not the stop's end
+        pass
+
+    def stopping(self, what: str) -> None:
+        if self.pack.interrupt is not None and self.pack.interrupt.stopping_since is None:
+            self.pack.interrupt.stopping(f"every seed {what.split(', then', 1)[0]}")
+
+
+class PackedSeedTrainer(OffPolicyTrainer):
+    """One seed of a :class:`SeedPack`: an :class:`OffPolicyTrainer` whose updates the pack computes.
+
+    Outside a pack (``pack`` None) it trains as an ``OffPolicyTrainer``."""
+
+    pack: SeedPack | None = None
+
+    def _update(self) -> dict[str, torch.Tensor]:
+        if self.pack is None:
+            return super()._update()
+        step = self.c.update
+        batch = step.sampler()  # the indices, then the noise: as FusedStep -> FusedSACUpdate.step draws them
+        noise = step.fused.draw_noise(batch[0], batch[1])
+        out = self.pack.request(self, batch, noise)
+        self.guard.check_losses({k: v for k, v in out.items() if k.startswith("loss_")}, self.updates)
+        self.guard.check_params(self.updates)
+        self.updates += 1
+        self.hooks.post_optim(out)
+        adapter = self.c.adapter
+        if adapter is not None:
+            if (adapter.step_count + 1) % adapter.interval == 0:
+                self.pack.unpack()  # the adapter reads and replaces this seed's tensors and Adam state
+            adapter.step()
+        return out
+
+    def save_checkpoint(self, *, scheduled: bool = True) -> Path:
+        if self.pack is not None:
+            self.pack.unpack()  # the optimisers' state is saved: the seeds' own
+        return super().save_checkpoint(scheduled=scheduled)
+
+    def _interrupt(self):
+        return _SharedInterrupt(self.pack) if self.pack is not None else super()._interrupt()
+
+    def _summary(self, elapsed: float) -> dict:
+        summary = super()._summary(elapsed)
+        if self.pack is not None:
+            summary["packed_with"] = [str(t.run_dir.path) for t in self.pack.trainers]
+        return summary
+
+
+class SeedPack:
+    """N seeds of one recipe (:class:`PackedSeedTrainer`, each in its own run folder) trained in one process.
+
+    ``SeedPack.build(recipe, seeds, run_dirs)`` makes the trainers (each seed's RNGs as its build leaves them);
+    :func:`resume_pack` continues a pack folder's seeds from their checkpoints; :meth:`train` trains them all and
+    returns ``{run folder: summary or the exception that ended it}`` (:func:`finish` turns it into the outcome).
+
+    >>> from adarl.runtime.config import load_recipe
+    >>> recipe = load_recipe("quickstart", ["collector.total_frames=300", "collector.init_random_frames=200",
+    ...                                     "collector.frames_per_batch=100", "algorithm.batch_size=32",
+    ...                                     "eval.episodes=1", "eval.max_steps=20"])
+    >>> pack = create_pack(recipe, [0, 1], "runs/pack", quiet=True)  # runs/pack/seed=0, runs/pack/seed=1
+    >>> summaries = finish(pack.train())
+    >>> sorted(s["frames"] for s in summaries.values())
+    [300, 300]
+    """
+
+    def __init__(self, trainers: Sequence[PackedSeedTrainer], rngs: Sequence[_RNG], *, quiet: bool = False) -> None:
+        self.trainers = list(trainers)
+        if not self.trainers:
+            raise AdaRLValueError("a seed pack needs at least one seed")
+        first = recipe_without_seed(self.trainers[0].recipe)
+        for t in self.trainers[1:]:
+            if recipe_without_seed(t.recipe) != first:
+                diff = sorted(k for k in first if first[k] != recipe_without_seed(t.recipe).get(k))
+                raise AdaRLValueError(
+                    f"{t.run_dir.path} differs from {self.trainers[0].run_dir.path} in {diff}: the seeds of a pack "
+                    "share their recipe but for the seed"
+                )
+        paths = [t.run_dir.path for t in self.trainers]
+        if len(set(paths)) != len(paths):
+            raise AdaRLValueError(f"the seeds of a pack need run folders of their own, got {[str(p) for p in paths]}")
+        for t in self.trainers:
+            if not isinstance(t, PackedSeedTrainer):
+                raise AdaRLValueError(f"a seed pack trains PackedSeedTrainer, got {type(t).__name__}")
+            if not isinstance(t.c.update, FusedStep):
+                raise AdaRLValueError(
+                    f"{t.run_dir.path}: packing needs the fused SAC update (algorithm.fused), this recipe runs "
+                    f"{type(t.c.update).__name__}"
+                )
+            adapter = t.c.adapter
+            if adapter is not None and not (hasattr(adapter, "interval") and hasattr(adapter, "step_count")):
+                raise AdaRLValueError(f"packing does not know when {type(adapter).__name__} acts (no interval)")
+            t.pack = self
+        self.rngs = list(rngs)
+        self.quiet = quiet
+        self.interrupt: GracefulInterrupt | None = None
+        self._update: PackedSACUpdate | None = None
+        self._members: list[int] = []
+        self._requests: dict[int, tuple] = {}
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def build(cls, recipe, seeds: Sequence[int], run_dirs: Sequence, *, quiet: bool = False) -> SeedPack:
+        """A new pack: ``recipe`` with each of ``seeds``, in the run folders ``run_dirs`` (RunDir, one per seed)."""
+        if len(seeds) != len(run_dirs):
+            raise AdaRLValueError(f"one run folder per seed: {len(seeds)} seeds, {len(run_dirs)} folders")
+        if len(set(seeds)) != len(seeds):
+            raise AdaRLValueError(f"the seeds of a pack differ from each other, got {list(seeds)}")
+        trainers, rngs = [], []
+        for seed, run_dir in zip(seeds, run_dirs, strict=True):
+            trainers.append(PackedSeedTrainer(recipe.model_copy(update={"seed": int(seed)}), run_dir, quiet=True))
+            rngs.append(_RNG())  # the RNGs as this seed's build left them, as in its own process
+        return cls(trainers, rngs, quiet=quiet)
+
+    # ------------------------------------------------------------------ what the seeds call
+    def request(self, trainer: PackedSeedTrainer, batch: tuple, noise: tuple) -> dict[str, torch.Tensor]:
+        """A seed's next update: wait (yield to the pack) until every live seed has asked, then get its losses."""
+        import greenlet
+
+        self._requests[self.trainers.index(trainer)] = (batch, noise)
+        return greenlet.getcurrent().parent.switch()
+
+    def unpack(self) -> None:
+        """Every seed owns its tensors and Adam state again (until the next update packs them)."""
+        if self._update is not None:
+            self._update.unpack()
+
+    # ------------------------------------------------------------------ the loop
+    def _packed(self, members: list[int]) -> PackedSACUpdate:
+        fused = [self.trainers[i].c.update.fused for i in members]
+        u = self._update
+        if u is not None and (members != self._members or any(a is not b for a, b in zip(u.updates, fused))):
+            u.unpack()  # a seed left the pack, or rebuilt its components (a rollback)
+            u = None
+        if u is None:
+            u = PackedSACUpdate(fused)
+            self._members = members
+        elif not u.packed:
+            u.pack()
+        self._update = u
+        return u
+
+    def train(self) -> dict[str, dict | BaseException]:
+        """Train every seed to its end; a seed that fails ends alone. Returns each run folder's summary (or error)."""
+        import greenlet
+
+        results: dict[int, dict | BaseException] = {}
+        lets = [greenlet.greenlet(t.train) for t in self.trainers]
+        live = set(range(len(self.trainers)))
+        outputs: dict[int, dict] = {}
+        main_rng = _RNG()
+        total = sum(t.recipe.collector.total_frames for t in self.trainers)
+        bar = tqdm.tqdm(
+            total=total,
+            initial=sum(t.frames for t in self.trainers),
+            unit="frame",
+            disable=self.quiet,
+            dynamic_ncols=True,
+            desc=f"{self.trainers[0].recipe.name} x{len(self.trainers)} seeds",
+        )
+        with bar, GracefulInterrupt(quiet=self.quiet) as interrupt:
+            self.interrupt = interrupt
+            try:
+                while live:
+                    for i in sorted(live):
+                        self.rngs[i].load()
+                        try:
+                            value = lets[i].switch(outputs.pop(i, None)) if i in outputs else lets[i].switch()
+                        except KeyboardInterrupt:  # a second signal: every seed stops at once
+                            raise
+                        except BaseException as err:  # noqa: BLE001 - one seed's end, whatever it is, is its own
+                            value, results[i] = None, err
+                        finally:
+                            self.rngs[i].save()
+                        if lets[i].dead:
+                            live.discard(i)
+                            results.setdefault(i, value)
+                            self._requests.pop(i, None)
+                    if not self._requests:
+                        continue
+                    members = sorted(self._requests)
+                    update = self._packed(members)
+                    batches = [self._requests[i][0] for i in members]
+                    noises = [self._requests[i][1] for i in members]
+                    self._requests.clear()
+                    out = update.step(batches, noises)
+                    for k, i in enumerate(members):
+                        outputs[i] = {name: v[k] for name, v in out.items()}
+                    bar.update(sum(t.frames for t in self.trainers) - bar.n)
+            finally:
+                self.interrupt = None
+                main_rng.load()
+                if self._update is not None:
+                    self._update.unpack()
+                for i in live:  # a stop at once, or an error in the pack itself: end what still runs
+                    if lets[i]:
+                        try:
+                            lets[i].throw(greenlet.GreenletExit)
+                        except BaseException:  # noqa: BLE001 - ending it is all that is asked
+                            pass
+                    try:
+                        self.trainers[i].close()
+                    except Exception:  # noqa: BLE001 - already closed by its own loop
+                        pass
+        report = {str(self.trainers[i].run_dir.path): results.get(i) for i in range(len(self.trainers))}
+        if not self.quiet:
+            for path, res in report.items():
+                said = "finished" if isinstance(res, dict) else f"ended: {type(res).__name__}: {res}"
+                print(f"adarl: {path} {said}", file=sys.stderr)
+        return report
+
+
+# ---------------------------------------------------------------------- the pack folder (`adarl run --pack-seeds`)
+#: the file naming a pack's seeds and run folders, in the pack folder (``adarl resume PACK`` reads it)
+PACK_FILE = "pack.json"
+
+
+def seed_folder(seed: int) -> str:
+    """A seed's run folder inside its pack folder."""
+    return f"seed={int(seed)}"
+
+
+def is_pack_folder(path) -> bool:
+    return (Path(path) / PACK_FILE).is_file()
+
+
+def create_pack(recipe, seeds: Sequence[int], folder, *, overwrite: bool = False, quiet: bool = False) -> SeedPack:
+    """A new pack folder ``folder`` (``pack.json`` and one run folder per seed, ``seed=S``) and its pack."""
+    import json
+
+    from adarl.runtime.run_folder.run_dir import RunDir
+
+    seeds = [int(s) for s in seeds]
+    if not seeds or len(set(seeds)) != len(seeds):
+        raise AdaRLValueError(f"--pack-seeds takes distinct seeds, got {seeds}")
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise AdaRLValueError(f"{str(folder)!r} exists and is not a folder")
+    if folder.is_dir() and any(folder.iterdir()) and not overwrite:
+        raise AdaRLValueError(f"the pack folder {str(folder)!r} is not empty (--overwrite replaces it)")
+    folder.mkdir(parents=True, exist_ok=True)
+    run_dirs = []
+    try:
+        for s in seeds:
+            run_dirs.append(RunDir.create(folder / seed_folder(s), overwrite=overwrite))
+        for run_dir, s in zip(run_dirs, seeds, strict=True):
+            run_dir.save_recipe(recipe.model_copy(update={"seed": s}))
+        (folder / PACK_FILE).write_text(json.dumps({"seeds": seeds, "runs": [seed_folder(s) for s in seeds]}) + "\n")
+        return SeedPack.build(recipe, seeds, run_dirs, quiet=quiet)
+    except BaseException:
+        for run_dir in run_dirs:
+            run_dir.discard()
+        (folder / PACK_FILE).unlink(missing_ok=True)
+        raise
+
+
+def pack_runs(folder) -> list[Path]:
+    """The run folders of a pack folder, as its ``pack.json`` names them (checked)."""
+    import json
+
+    folder = Path(folder)
+    try:
+        data = json.loads((folder / PACK_FILE).read_text())
+        runs = [folder / str(r) for r in data["runs"]]
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        raise AdaRLValueError(f"{str(folder / PACK_FILE)!r} does not name a pack's runs: {err}") from None
+    if not runs or any(r.parent != folder or r.name in ("", ".", "..") for r in runs):
+        raise AdaRLValueError(f"{str(folder / PACK_FILE)!r} must name run folders inside the pack folder, got {runs}")
+    return runs
+
+
+def finish(report: dict) -> dict[str, dict]:
+    """The pack's outcome: every seed's summary, or the first signal's stop (every seed then saved a checkpoint),
+    or an error naming each seed that failed (after the others finished)."""
+    from adarl.errors import AdaRLError
+    from adarl.runtime.signals import RunInterrupted
+
+    stops = [r for r in report.values() if isinstance(r, RunInterrupted)]
+    failed = {p: r for p, r in report.items() if isinstance(r, BaseException) and not isinstance(r, RunInterrupted)}
+    if stops:
+        folder = Path(next(iter(report))).parent
+        raise RunInterrupted(
+            f"stopped on a signal: every seed saved a checkpoint; continue them with `adarl resume {folder}`"
+            + (f" (failed before: {sorted(failed)})" if failed else ""),
+            signum=stops[0].signum,
+            checkpoint=stops[0].checkpoint,
+        )
+    if failed:
+        lines = "; ".join(
+            f"{p}: {type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}" for p, e in failed.items()
+        )
+        raise AdaRLError(f"{len(failed)} of {len(report)} packed seeds failed (the others finished): {lines}")
+    return {p: r for p, r in report.items()}
+
+
+def resume_pack(folder, *, checkpoint=None, quiet: bool = False) -> tuple[SeedPack | None, list[str]]:
+    """The pack of a pack folder's seeds that have not finished (each from its latest checkpoint, its RNGs as the
+    checkpoint saved them), and a line for each seed already complete (None: every seed is)."""
+    from adarl.runtime.continuing import already_complete
+
+    trainers, rngs, said = [], [], []
+    for run in pack_runs(folder):
+        trainer = PackedSeedTrainer.resume(run, quiet=True, checkpoint=checkpoint)
+        total = trainer.recipe.collector.total_frames
+        done = already_complete(run, trainer.frames, total, stopped=trainer.stopped_early)
+        if done is not None:
+            trainer.close()
+            said.append(done)
+            continue
+        trainers.append(trainer)
+        rngs.append(_RNG())
+    return (SeedPack(trainers, rngs, quiet=quiet) if trainers else None), said

@@ -1,0 +1,169 @@
+"""Seeds packed in one process (adarl.runtime.trainers.packed): each seed trains as its solo run does, in a run folder
+of its own, file for file; a diverging seed stops alone; a signal and a kill -9 leave a pack that resumes."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import re
+import signal
+
+import pytest
+import torch
+from _helpers import adarl, start_adarl, tiny, wait_for
+
+from adarl.errors import AdaRLError
+from adarl.runtime.config import load_recipe
+from adarl.runtime.guards import NonFiniteError
+from adarl.runtime.run_folder.run_dir import RunDir
+from adarl.runtime.trainers.off_policy import OffPolicyTrainer
+from adarl.runtime.trainers.packed import create_pack, finish
+
+#: 800 frames, updates from 200, rank events at updates 200 and 400 (both change ranks), checkpoints every 200
+OVERRIDES = tiny(
+    "collector.total_frames=800",
+    "logging.log_interval=100",
+    "rank.interval=200",
+    "checkpoint.interval=200",
+    "algorithm.fused=true",
+)
+
+
+def _recipe():
+    return load_recipe("quickstart", OVERRIDES)
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    """Seeds 0 and 1 alone, and packed with a seed 2 that diverges at its 120th update."""
+    root = tmp_path_factory.mktemp("packed")
+    recipe = _recipe()
+    torch.set_num_threads(1)
+    for s in (0, 1):
+        OffPolicyTrainer(recipe.model_copy(update={"seed": s}), RunDir.create(root / f"solo{s}"), quiet=True).train()
+    pack = create_pack(recipe, [0, 1, 2], root / "pack", quiet=True)
+    poisoned = pack.trainers[2]
+
+    def poison(_losses):
+        if poisoned.updates == 120:
+            with torch.no_grad():
+                next(iter(poisoned.c.update.fused.actor_params.values())).view(-1)[0] = float("nan")
+
+    poisoned.register_op("post_optim", poison)
+    return root, pack.train()
+
+
+def _rows(path):
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def _close(a: str, b: str) -> bool:
+    """Equal, numbers within fp noise (also inside ``rank:value;...`` lists, JSON lists and maps)."""
+    ta, tb = re.split(r"[;:,\[\]{}\"\s]+", a), re.split(r"[;:,\[\]{}\"\s]+", b)
+    if len(ta) != len(tb):
+        return False
+    for x, y in zip(ta, tb, strict=True):
+        try:
+            fx, fy = float(x), float(y)
+        except ValueError:
+            if x != y:
+                return False
+            continue
+        if abs(fx - fy) > 1e-4 * max(1.0, abs(fx), abs(fy)):
+            return False
+    return True
+
+
+def _same_run(solo, packed, *, checkpoints: bool = True) -> None:
+    """A packed seed's run folder against its solo run's: the same files; the same ranks at every event and the same
+    evaluations and training losses, up to the fp noise of the batched update (rounding, not chaos: 500 updates)."""
+
+    def files(p):
+        out = (str(f.relative_to(p)) for f in p.rglob("*") if f.is_file() and f.name != ".adarl.lock")
+        return sorted(f for f in out if checkpoints or not f.startswith("checkpoints"))
+
+    assert files(packed) == files(solo)
+    for name in (
+        "ranks.csv",
+        "eval.csv",
+        "metrics/scalars/train/critic_loss.csv",
+        "metrics/scalars/train/actor_loss.csv",
+    ):
+        want, got = _rows(solo / name), _rows(packed / name)
+        assert len(got) == len(want) > 0, name
+        for w, g in zip(want, got, strict=True):
+            assert w.keys() == g.keys()
+            bad = {k: (w[k], g[k]) for k in w if not _close(w[k], g[k]) and k not in ("reason", "candidates")}
+            assert not bad, (name, bad)
+    solo_summary = json.loads((solo / "summary.json").read_text())
+    packed_summary = json.loads((packed / "summary.json").read_text())
+    assert set(packed_summary) - set(solo_summary) == {"packed_with"}
+    assert packed_summary["ranks"] == solo_summary["ranks"] and packed_summary["rank_events"] == 2
+
+
+def test_packed_seeds_train_as_their_solo_runs_and_a_diverging_seed_stops_alone(runs):
+    root, report = runs
+    outcome = {os.path.basename(k): v for k, v in report.items()}
+    assert isinstance(outcome["seed=2"], NonFiniteError)
+    for s in (0, 1):
+        assert isinstance(outcome[f"seed={s}"], dict), outcome[f"seed={s}"]
+        _same_run(root / f"solo{s}", root / "pack" / f"seed={s}")
+        summary = json.loads((root / "pack" / f"seed={s}" / "summary.json").read_text())
+        assert [os.path.basename(p) for p in summary["packed_with"]] == ["seed=0", "seed=1", "seed=2"]
+    # the diverged seed stopped at its own divergence, with its last good checkpoint kept; the pack says which failed
+    assert "training diverged" in str(outcome["seed=2"])
+    assert not (root / "pack" / "seed=2" / "summary.json").exists()
+    with pytest.raises(
+        AdaRLError, match=r"1 of 3 packed seeds failed \(the others finished\): .*seed=2: NonFiniteError"
+    ):
+        finish(report)
+
+
+def test_a_packed_run_stopped_by_a_signal_and_killed_resumes_to_its_solo_runs(runs, tmp_path):
+    """From the user's side: `adarl run --pack-seeds` stopped by SIGTERM (every seed saves a checkpoint, exit 143),
+    resumed, killed with -9 mid-run, resumed again: each seed ends as its solo run does."""
+    root, _ = runs
+    pack = tmp_path / "pack"
+
+    def checkpoints_at(frames):
+        return all((pack / f"seed={s}" / "checkpoints" / f"ckpt-{frames:012d}.pt").exists() for s in (0, 1))
+
+    # checkpoints fall at 0, 200, 400, 700 (the warm start of the event at update 400 adds 100 frames), 800
+    proc = start_adarl("run", "quickstart", *OVERRIDES, "--pack-seeds", "0", "1", "-o", str(pack), "--quiet")
+    assert wait_for(lambda: checkpoints_at(200), proc), proc.communicate()[1]
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=300)
+    assert proc.returncode == 128 + signal.SIGTERM, err
+    assert f"adarl resume {pack}" in err
+    assert json.loads((pack / "pack.json").read_text())["runs"] == ["seed=0", "seed=1"]
+
+    proc = start_adarl("resume", str(pack), "--quiet")
+    assert wait_for(lambda: checkpoints_at(400), proc), proc.communicate()[1]
+    proc.kill()
+    proc.wait(timeout=60)
+    assert not any((pack / f"seed={s}" / "summary.json").exists() for s in (0, 1))
+
+    done = adarl("resume", str(pack), "--quiet")
+    assert done.returncode == 0, done.stderr
+    for s in (0, 1):
+        _same_run(root / f"solo{s}", pack / f"seed={s}", checkpoints=False)
+    again = adarl("resume", str(pack))
+    assert again.returncode == 0 and again.stdout.count("already complete") == 2, again.stdout + again.stderr
+
+
+def test_pack_input_is_checked_before_anything_runs(tmp_path):
+    bad = adarl("run", "quickstart", *OVERRIDES, "--pack-seeds", "1", "1", "-o", str(tmp_path / "p"))
+    assert bad.returncode != 0 and "distinct seeds" in bad.stderr
+    assert not (tmp_path / "p" / "seed=1").exists()
+    (tmp_path / "full").mkdir()
+    (tmp_path / "full" / "keep.txt").write_text("mine")
+    refused = adarl("run", "quickstart", *OVERRIDES, "--pack-seeds", "0", "-o", str(tmp_path / "full"))
+    assert refused.returncode != 0 and "not empty" in refused.stderr
+    assert (tmp_path / "full" / "keep.txt").read_text() == "mine"
+    ppo = adarl(
+        "run", "quickstart", *OVERRIDES, "algorithm.fused=false", "--pack-seeds", "0", "1", "-o", str(tmp_path / "q")
+    )
+    assert ppo.returncode != 0 and "packing needs the fused SAC update" in ppo.stderr
+    assert not (tmp_path / "q" / "seed=0").exists() and not (tmp_path / "q" / "pack.json").exists()
