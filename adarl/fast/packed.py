@@ -459,6 +459,15 @@ class PackedSACUpdate:
             out["target_shift"] = shift
         return out
 
+    @torch.no_grad()
+    def params_finite(self) -> torch.Tensor:
+        """Per seed ``[N]``, whether every trained tensor is finite: one pass over the flat buffers (a seed's
+        :class:`~adarl.runtime.guards.NonFiniteGuard` then names the tensor only where one is not)."""
+        ok = torch.ones(self.n, dtype=torch.bool)
+        for group in self.groups:
+            ok &= torch.isfinite(group.param.view(self.n, -1)).all(1)
+        return ok
+
     def _adam(self, group: _Group, grads: dict[str, torch.Tensor]) -> None:
         """Clip (per seed, the group's norm) and take one Adam step for every seed, each at its own rates."""
         n = self.n

@@ -110,9 +110,10 @@ class PackedSeedTrainer(OffPolicyTrainer):
         step = self.c.update
         batch = step.sampler()  # the indices, then the noise: as FusedStep -> FusedSACUpdate.step draws them
         noise = step.fused.draw_noise(batch[0], batch[1])
-        out = self.pack.request(self, batch, noise)
+        out, finite = self.pack.request(self, batch, noise)
         self.guard.check_losses({k: v for k, v in out.items() if k.startswith("loss_")}, self.updates)
-        self.guard.check_params(self.updates)
+        if not finite:  # the pack checked every seed's parameters in one pass; the guard names what is not finite
+            self.guard.check_params(self.updates)
         self.updates += 1
         self.hooks.post_optim(out)
         adapter = self.c.adapter
@@ -203,8 +204,9 @@ class SeedPack:
         return cls(trainers, rngs, quiet=quiet)
 
     # ------------------------------------------------------------------ what the seeds call
-    def request(self, trainer: PackedSeedTrainer, batch: tuple, noise: tuple) -> dict[str, torch.Tensor]:
-        """A seed's next update: wait (yield to the pack) until every live seed has asked, then get its losses."""
+    def request(self, trainer: PackedSeedTrainer, batch: tuple, noise: tuple) -> tuple[dict[str, torch.Tensor], bool]:
+        """A seed's next update: wait (yield to the pack) until every live seed has asked, then get its losses and
+        whether its parameters are all finite."""
         import greenlet
 
         self._requests[self.trainers.index(trainer)] = (batch, noise)
@@ -274,8 +276,9 @@ class SeedPack:
                     noises = [self._requests[i][1] for i in members]
                     self._requests.clear()
                     out = update.step(batches, noises)
+                    finite = update.params_finite().tolist()
                     for k, i in enumerate(members):
-                        outputs[i] = {name: v[k] for name, v in out.items()}
+                        outputs[i] = ({name: v[k] for name, v in out.items()}, finite[k])
                     bar.update(sum(t.frames for t in self.trainers) - bar.n)
             finally:
                 self.interrupt = None
