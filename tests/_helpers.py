@@ -5,6 +5,8 @@
   place, a key the base lacks is appended) or drops keys (``drop=("rank.interval",)``).
 * :func:`adarl` / :func:`start_adarl`: ``python -m adarl.cli ARGS`` (one torch thread, this checkout first on
   ``PYTHONPATH``, an installed plugin's folder after it), run to its end or started in the background;
+  :func:`adarl_calls`: several quick ``adarl`` command lines (show, eval, export, refusals) one after another in one
+  such process, each with its own exit status and output, so that the torch import is paid once;
   :func:`wait_for` polls a condition while such a process runs; :func:`checkpoints` names a run's checkpoints.
 * :func:`install_plugin`: a plugin package pip-installed into a folder of its own (``pip install --target``, so the
   test venv is left as it was); put that folder on ``PYTHONPATH`` (``site=``) to use it.
@@ -148,6 +150,66 @@ def adarl(
         text=True,
         timeout=timeout,
     )
+
+
+#: run by :func:`adarl_calls` in its subprocess: each command line as ``python -m adarl.cli`` runs it (``sys.argv``
+#: set, ``main()`` called as ``sys.exit(main())`` would be), its stdout and stderr captured apart, its exit status
+#: what the process's would be
+_CALLS = """
+import contextlib, io, json, sys, traceback
+from adarl.cli import main
+
+where, calls, results = sys.argv[1], json.loads(sys.argv[2]), []
+for args in calls:
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        sys.argv = [sys.argv[0], *args]
+        try:
+            code = main()
+        except SystemExit as stop:
+            code = stop.code
+        except Exception:  # uncaught: as a process, the traceback on stderr and status 1
+            traceback.print_exc()
+            code = 1
+        if code is not None and not isinstance(code, int):  # sys.exit("message"): printed, status 1
+            print(code, file=sys.stderr)
+            code = 1
+    results.append({"args": args, "returncode": code or 0, "stdout": out.getvalue(), "stderr": err.getvalue()})
+with open(where, "w") as fh:
+    json.dump(results, fh)
+"""
+
+
+def adarl_calls(
+    *calls: list[str] | tuple[str, ...],
+    cwd: Path | None = None,
+    site: Path | None = None,
+    timeout: float = 600,
+    env: dict | None = None,
+) -> list[subprocess.CompletedProcess]:
+    """Each of ``calls`` (``adarl`` command lines) run in turn, in ONE subprocess (the environment of :func:`adarl`):
+    one :class:`~subprocess.CompletedProcess` each, as :func:`adarl` gives it (exit status, stdout, stderr).
+
+    For quick commands whose outcome does not depend on a fresh process (``show``, ``eval``, ``export``, refusals
+    before anything trains): a later call sees the modules an earlier one imported and the warnings it already
+    showed. Not for training runs, signal or fault-injection tests, or checks of a warning."""
+    import json
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="adarl-calls-") as tmp:
+        results = Path(tmp) / "results.json"
+        proc = subprocess.run(
+            [sys.executable, "-c", _CALLS, str(results), json.dumps([list(c) for c in calls])],
+            cwd=cwd or REPO,
+            env={**adarl_env(site), **(env or {})},
+            capture_output=True,
+            text=True,
+            timeout=timeout,
+        )
+        assert proc.returncode == 0 and results.is_file(), proc.stdout[-2000:] + proc.stderr[-3000:]
+        done = json.loads(results.read_text())
+    assert len(done) == len(calls), done
+    return [subprocess.CompletedProcess(["adarl", *r["args"]], r["returncode"], r["stdout"], r["stderr"]) for r in done]
 
 
 def start_adarl(*args: str, cwd: Path | None = None, site: Path | None = None) -> subprocess.Popen:

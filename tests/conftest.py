@@ -3,7 +3,8 @@ runs the files on pytest-xdist workers, one per core).
 
 On a 2-core machine two threads per process collapse as soon as anything else runs (see docs/performance.md);
 one thread is also what the exact-resume guarantee is stated for. The ``fake_s3`` fixture gives ``fakes3://`` URLs:
-a local folder with an object store's semantics, for the results-at-a-URL tests.
+a local folder with an object store's semantics, for the results-at-a-URL tests. ``rank_events_run`` is the tiny
+run with rank events that three test files read, trained once per process instead of once per file.
 """
 
 import os
@@ -50,6 +51,21 @@ class FakeS3(LocalFileSystem):
         raise NotImplementedError("object stores have no links")
 
     symlink = link
+
+
+@pytest.fixture(scope="session")
+def rank_events_run(tmp_path_factory):
+    """``adarl run quickstart tiny(*RANK_EVENTS) --quiet`` (1600 frames, rank events that truncate the actor's second
+    layer), trained once per test process for the three files that read it, each as its module's tiny run:
+    test_cli_e2e.py (the run folder, eval), test_policy.py (load_policy, play) and test_export.py. Returns the run
+    folder and the finished ``adarl run`` process. (Only test_cli_e2e writes eval_nominal.json into it and only
+    test_export the default policy.pt; nothing else a test of these files writes there is read by another.)"""
+    from _helpers import RANK_EVENTS, adarl, tiny
+
+    out = tmp_path_factory.mktemp("rank_events") / "run"
+    proc = adarl("run", "quickstart", *tiny(*RANK_EVENTS), "-o", str(out), "--quiet")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return out, proc
 
 
 @pytest.fixture

@@ -20,9 +20,11 @@ def _steps(csv_path: Path) -> list[int]:
 
 
 @pytest.fixture(scope="module")
-def tiny_run(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("runs") / "tiny"
-    proc = adarl("run", "quickstart", *TINY, "-o", str(out), "--quiet")
+def tiny_run(rank_events_run) -> Path:
+    """``adarl run quickstart TINY -o OUT --quiet``: conftest's rank_events_run (made once for this file,
+    test_policy.py and test_export.py)."""
+    out, proc = rank_events_run
+    assert proc.args[3:] == ["run", "quickstart", *TINY, "-o", str(out), "--quiet"], proc.args
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert str(out) in proc.stdout
     return out

@@ -50,9 +50,11 @@ def python(code: str, cwd: Path | None = None, pythonpath: bool = True):
 
 
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
-    out = tmp_path_factory.mktemp("export") / "run"
-    proc = cli("run", "quickstart", *TINY, "-o", str(out), "--quiet")
+def tiny(rank_events_run):
+    """``adarl run quickstart TINY -o OUT --quiet``: conftest's rank_events_run (made once for this file,
+    test_cli_e2e.py and test_policy.py)."""
+    out, proc = rank_events_run
+    assert proc.args[3:] == ["run", "quickstart", *TINY, "-o", str(out), "--quiet"], proc.args
     assert proc.returncode == 0, proc.stderr[-3000:]
     return out
 

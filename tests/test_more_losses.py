@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from _helpers import REPO, adarl, tiny
+from _helpers import REPO, adarl, adarl_calls, tiny
 
 from adarl import plugins
 from adarl.errors import RecipeError
@@ -113,16 +113,16 @@ def test_crossq_evaluates_loads_and_exports_with_its_batch_renorm_layers(runs, t
     from adarl import ExportedPolicy, load_policy
 
     run = runs["crossq"]
-    proc = adarl("eval", str(run), "--episodes", "1")
+    out = tmp_path / "policy.pt"
+    # `adarl eval` and `adarl export` in one process (each pays the torch import otherwise)
+    proc, exported = adarl_calls(("eval", str(run), "--episodes", "1"), ("export", str(run), "-o", str(out)))
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert json.loads((run / "eval_nominal.json").read_text())["episodes"] == 1
     policy = load_policy(run)
     norms = [m for m in policy.modules() if type(m).__name__ == "BatchRenormLayer"]
     assert len(norms) == 3 and not policy.training  # evaluation reads the running statistics
     assert all(bool((m.running_var != 1).any()) for m in norms)  # the trained statistics were loaded
-    out = tmp_path / "policy.pt"
-    proc = adarl("export", str(run), "-o", str(out))
-    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert exported.returncode == 0, exported.stderr[-3000:]
     obs = torch.randn(5, 11)
     with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
         want = policy(TensorDict(observation=obs, batch_size=[5]))["action"]

@@ -25,7 +25,7 @@ import textwrap
 from pathlib import Path
 
 import pytest
-from _helpers import adarl, checkpoints, install_plugin, start_adarl, tiny, wait_for
+from _helpers import adarl, adarl_calls, checkpoints, install_plugin, start_adarl, tiny, wait_for
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -149,17 +149,20 @@ def test_a_plugin_loss_runs_resumes_and_goes_into_an_experiment(plugin: Path, tm
         "algorithm:\n  name: robust_sac\n  options: {kappa: 0.002}\n"
     )
 
-    # show: the plugin's options are recipe keys, validated, with their defaults spelled out
-    shown = adarl("show", str(recipe), site=plugin, cwd=elsewhere)
-    assert shown.returncode == 0, shown.stderr[-3000:]
-    assert "name: robust_sac" in shown.stdout and "kappa: 0.002" in shown.stdout
-    for bad, words in (
+    # show: the plugin's options are recipe keys, validated, with their defaults spelled out (the five command lines
+    # in one process: each pays the plugin's torch import otherwise)
+    bads = (
         ("algorithm.options.kapa=1", ["kapa", "kappa"]),
         ("algorithm.options.kappa=-1", ["kappa", "greater than or equal to 0"]),
         ("algorithm.options.kappa=big", ["kappa", "number"]),
         ("algorithm.name=robust_sca", ["robust_sca", "robust_sac", "adarl.plugins"]),
-    ):
-        proc = adarl("show", str(recipe), bad, site=plugin, cwd=elsewhere)
+    )
+    shown, *refused = adarl_calls(
+        ("show", str(recipe)), *[("show", str(recipe), bad) for bad, _ in bads], site=plugin, cwd=elsewhere
+    )
+    assert shown.returncode == 0, shown.stderr[-3000:]
+    assert "name: robust_sac" in shown.stdout and "kappa: 0.002" in shown.stdout
+    for (bad, words), proc in zip(bads, refused, strict=True):
         assert proc.returncode != 0 and all(w in proc.stderr for w in words), (bad, proc.stderr[-2000:])
     # without the package the name is unknown, and the error says how to get one
     proc = adarl("show", str(recipe), cwd=elsewhere)
@@ -223,8 +226,8 @@ def test_a_plugin_loss_runs_resumes_and_goes_into_an_experiment(plugin: Path, tm
     # the local module changed, then went missing: resume and eval refuse the run by name, nothing written
     before = _snapshot(run)
     (elsewhere / "my_rule.py").write_text(textwrap.dedent(LOCAL_RULE) + "\nCHANGED = True\n")  # code: a comment is none
-    for command in (("resume", str(run)), ("eval", str(run))):
-        line = _error_line(adarl(*command, site=plugin, cwd=elsewhere))
+    for proc in adarl_calls(("resume", str(run)), ("eval", str(run)), site=plugin, cwd=elsewhere):
+        line = _error_line(proc)
         assert "local plugin module 'my_rule'" in line and "has changed" in line, line
     (elsewhere / "my_rule.py").unlink()
     line = _error_line(adarl("resume", str(run), "--quiet", site=plugin, cwd=elsewhere))

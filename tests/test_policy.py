@@ -22,9 +22,11 @@ TINY = _helpers.tiny(*_helpers.RANK_EVENTS)
 
 
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory):
-    out = tmp_path_factory.mktemp("policy") / "run"
-    proc = adarl("run", "quickstart", *TINY, "-o", str(out), "--quiet")
+def tiny(rank_events_run):
+    """``adarl run quickstart TINY -o OUT --quiet``: conftest's rank_events_run (made once for this file,
+    test_cli_e2e.py and test_export.py)."""
+    out, proc = rank_events_run
+    assert proc.args[3:] == ["run", "quickstart", *TINY, "-o", str(out), "--quiet"], proc.args
     assert proc.returncode == 0, proc.stderr[-3000:]
     return out, proc
 
