@@ -44,9 +44,6 @@ from adarl.fast.sac import FusedSACUpdate
 
 __all__ = ["PackedSACUpdate", "packing_refusal"]
 
-#: the stacked losses and metrics a packed step returns, each ``[N]``
-PACKED_OUTPUTS = ("loss_actor", "loss_qvalue", "loss_alpha", "alpha", "entropy")
-
 
 def packing_refusal(update: FusedSACUpdate) -> str | None:
     """Why one seed's :class:`~adarl.fast.sac.FusedSACUpdate` cannot be packed (None: it can)."""
@@ -91,8 +88,9 @@ class _Group:
     """One optimiser group of every seed as flat buffers ``[N * rows, T]``: parameters, gradients, Adam moments,
     targets (critics), and per seed and parameter the Adam step count."""
 
-    def __init__(self, name: str, index: int, rows: int, slots: list[_Slot], n: int, dtype) -> None:
-        self.name, self.index, self.rows, self.slots, self.n = name, index, rows, slots, n
+    def __init__(self, opt_index: int, group_index: int, rows: int, slots: list[_Slot], n: int, dtype) -> None:
+        self.opt_index, self.group_index = opt_index, group_index  # where in each seed's optimisers it lives
+        self.rows, self.slots, self.n = rows, slots, n
         width = sum(s.numel for s in slots)
         self.param = torch.zeros(n * rows, width, dtype=dtype)
         self.exp_avg = torch.zeros_like(self.param)
@@ -205,7 +203,7 @@ class PackedSACUpdate:
         return out
 
     @staticmethod
-    def _lowrank_role(u: FusedSACUpdate, key: str) -> str | None:
+    def _lowrank_role(key: str) -> str | None:
         name = key.split(":", 1)[-1]
         if name.endswith(".w1"):
             return "w1"
@@ -239,7 +237,7 @@ class PackedSACUpdate:
                         f"optimiser {oi} group {gi} mixes {sorted(nets)}: packing needs one per group"
                     )
                 seen.update(keys)
-                self.groups.append(self._make_group(f"{oi}.{gi}", oi, gi, keys, keyed, dtype))
+                self.groups.append(self._make_group(oi, gi, keys, keyed, dtype))
         missing = sorted(set(keyed[0]) - seen)
         if missing and missing != ["log_alpha"]:
             raise AdaRLValueError(f"the optimisers do not step {missing}: packing steps every trained tensor")
@@ -249,13 +247,13 @@ class PackedSACUpdate:
         self._bind()
         self.packed = True
 
-    def _make_group(self, name, oi, gi, keys, keyed, dtype) -> _Group:
+    def _make_group(self, oi, gi, keys, keyed, dtype) -> _Group:
         rows = 2 if keys[0].startswith("critic:") else 1
         slots: list[_Slot] = []
         offset = 0
         for k in keys:
             shapes = [tuple(kd[k][0].shape) for kd in keyed]
-            role = self._lowrank_role(self.updates[0], k)
+            role = self._lowrank_role(k)
             padded = list(shapes[0])
             for s in shapes[1:]:
                 if len(s) != len(padded) or (role is None and s != tuple(padded)):
@@ -272,8 +270,7 @@ class PackedSACUpdate:
             slot.seed_targets = [kd[k][1] for kd in keyed]
             slots.append(slot)
             offset += numel
-        group = _Group(name, (oi, gi), rows, slots, self.n, dtype)
-        group.opt_index, group.group_index = oi, gi
+        group = _Group(oi, gi, rows, slots, self.n, dtype)
         for i, u in enumerate(self.updates):
             state = u.optimizers[oi].state
             for j, slot in enumerate(slots):

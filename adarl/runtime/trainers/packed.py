@@ -92,9 +92,9 @@ class _SharedInterrupt:
     def notice(self, value: str) -> None:  # the pack's notice is the pack's: one seed finishing is not the stop's end
         pass
 
-    def stopping(self, what: str) -> None:
+    def stopping(self, what: str) -> None:  # the first seed to stop says it for the pack
         if self.pack.interrupt is not None and self.pack.interrupt.stopping_since is None:
-            self.pack.interrupt.stopping(f"every seed {what.split(', then', 1)[0]}")
+            self.pack.interrupt.stopping("every seed saves its checkpoint, then the pack exits")
 
 
 class PackedSeedTrainer(OffPolicyTrainer):
