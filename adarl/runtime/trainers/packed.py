@@ -51,7 +51,10 @@ def recipe_without_seed(recipe) -> dict:
 
 
 class _RNG:
-    """A seed's global RNG states (torch, NumPy, Python), switched in and out with its greenlet."""
+    """A seed's global RNG states (torch, NumPy, Python), switched in and out with its greenlet.
+
+    The same three states :func:`adarl.runtime.state.rng_state` checkpoints, kept as the objects the RNGs hand out
+    instead of converted for a file: this runs at every switch, twice per seed and update."""
 
     __slots__ = ("torch", "numpy", "python")
 
