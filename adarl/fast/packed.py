@@ -37,6 +37,7 @@ from dataclasses import dataclass, field
 
 import torch
 
+from adarl.core._surgery import _erase_loss_caches
 from adarl.core.target_shift import TargetShiftSACLoss
 from adarl.errors import AdaRLValueError
 from adarl.fast.manual_backward import ManualSACStep, _Net, backward, forward
@@ -493,6 +494,5 @@ class PackedSACUpdate:
 
 
 def _erase_caches(loss) -> None:
-    from adarl.core._surgery import _erase_loss_caches
 
     _erase_loss_caches(loss)

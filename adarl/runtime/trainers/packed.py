@@ -25,18 +25,22 @@ run's; a diverging seed stopped alone; a signal stops every seed at a checkpoint
 
 from __future__ import annotations
 
+import json
 import random
 import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+import greenlet
 import numpy as np
 import torch
 import tqdm
 
-from adarl.errors import AdaRLValueError
+from adarl.errors import AdaRLError, AdaRLValueError
 from adarl.fast.packed import PackedSACUpdate
-from adarl.runtime.signals import GracefulInterrupt
+from adarl.runtime.continuing import already_complete
+from adarl.runtime.run_folder.run_dir import RunDir
+from adarl.runtime.signals import GracefulInterrupt, RunInterrupted
 from adarl.runtime.trainers.off_policy import OffPolicyTrainer
 from adarl.runtime.update import FusedStep
 
@@ -210,7 +214,6 @@ class SeedPack:
     def request(self, trainer: PackedSeedTrainer, batch: tuple, noise: tuple) -> tuple[dict[str, torch.Tensor], bool]:
         """A seed's next update: wait (yield to the pack) until every live seed has asked, then get its losses and
         whether its parameters are all finite."""
-        import greenlet
 
         self._requests[self.trainers.index(trainer)] = (batch, noise)
         return greenlet.getcurrent().parent.switch()
@@ -237,7 +240,6 @@ class SeedPack:
 
     def train(self) -> dict[str, dict | BaseException]:
         """Train every seed to its end; a seed that fails ends alone. Returns each run folder's summary (or error)."""
-        import greenlet
 
         results: dict[int, dict | BaseException] = {}
         lets = [greenlet.greenlet(t.train) for t in self.trainers]
@@ -322,9 +324,6 @@ def is_pack_folder(path) -> bool:
 
 def create_pack(recipe, seeds: Sequence[int], folder, *, overwrite: bool = False, quiet: bool = False) -> SeedPack:
     """A new pack folder ``folder`` (``pack.json`` and one run folder per seed, ``seed=S``) and its pack."""
-    import json
-
-    from adarl.runtime.run_folder.run_dir import RunDir
 
     seeds = [int(s) for s in seeds]
     if not seeds or len(set(seeds)) != len(seeds):
@@ -352,7 +351,6 @@ def create_pack(recipe, seeds: Sequence[int], folder, *, overwrite: bool = False
 
 def pack_runs(folder) -> list[Path]:
     """The run folders of a pack folder, as its ``pack.json`` names them (checked)."""
-    import json
 
     folder = Path(folder)
     try:
@@ -368,8 +366,6 @@ def pack_runs(folder) -> list[Path]:
 def finish(report: dict) -> dict[str, dict]:
     """The pack's outcome: every seed's summary, or the first signal's stop (every seed then saved a checkpoint),
     or an error naming each seed that failed (after the others finished)."""
-    from adarl.errors import AdaRLError
-    from adarl.runtime.signals import RunInterrupted
 
     stops = [r for r in report.values() if isinstance(r, RunInterrupted)]
     failed = {p: r for p, r in report.items() if isinstance(r, BaseException) and not isinstance(r, RunInterrupted)}
@@ -392,7 +388,6 @@ def finish(report: dict) -> dict[str, dict]:
 def resume_pack(folder, *, checkpoint=None, quiet: bool = False) -> tuple[SeedPack | None, list[str]]:
     """The pack of a pack folder's seeds that have not finished (each from its latest checkpoint, its RNGs as the
     checkpoint saved them), and a line for each seed already complete (None: every seed is)."""
-    from adarl.runtime.continuing import already_complete
 
     trainers, rngs, said = [], [], []
     for run in pack_runs(folder):
