@@ -124,14 +124,14 @@ def cmd_run(args) -> int:
 def _run_pack(recipe, seeds, path: Path, *, overwrite: bool, quiet: bool) -> int:
     """``adarl run RECIPE --pack-seeds S ...``: the seeds side by side in this process (adarl.runtime.trainers.packed),
     one run folder each (``PATH/seed=S``)."""
-    from adarl.runtime.trainers.packed import create_pack
+    from adarl.runtime.trainers.pack_folder import create_pack
 
     pack = create_pack(recipe, seeds, path, overwrite=overwrite, quiet=quiet)
     return _finish_pack(pack)
 
 
 def _finish_pack(pack) -> int:
-    from adarl.runtime.trainers.packed import finish
+    from adarl.runtime.trainers.pack_folder import finish
 
     GracefulInterrupt.stopped_at_once = None
     summaries = finish(pack.train())
@@ -142,7 +142,7 @@ def _finish_pack(pack) -> int:
 
 def _resume_pack(args) -> int:
     """``adarl resume PACK``: every seed of a pack folder that has not finished, side by side again."""
-    from adarl.runtime.trainers.packed import resume_pack
+    from adarl.runtime.trainers.pack_folder import resume_pack
 
     if args.overrides:
         raise AdaRLError(
@@ -199,7 +199,7 @@ def _print_summary(summary: dict, path: Path) -> None:
 def cmd_resume(args) -> int:
     from adarl.runtime.continuing import already_complete
     from adarl.runtime.trainers import BaseTrainer
-    from adarl.runtime.trainers.packed import is_pack_folder
+    from adarl.runtime.trainers.pack_folder import is_pack_folder
 
     if is_pack_folder(args.run_dir):
         return _resume_pack(args)
@@ -371,6 +371,7 @@ def cmd_experiment(args) -> int:
             scratch=args.scratch,
             live=live,
             rerun_changed=args.rerun_changed,
+            pack=args.pack,
         )
     except KeyboardInterrupt:  # stopped at once (a second signal, or a launcher that stops its runs so)
         _err(
@@ -641,6 +642,14 @@ def build_parser() -> argparse.ArgumentParser:
         "$TMPDIR/adarl-scratch on the machine the run lands on)",
     )
     ex.add_argument("--workers", "-j", type=int, default=None, help="runs at a time (default: the spec's workers)")
+    ex.add_argument(
+        "--pack",
+        type=int,
+        default=None,
+        metavar="N",
+        help="train the seeds of one arm N at a time in one process, their SAC updates one batched program (default: "
+        "the spec's pack, 1; docs/performance.md, 'Packed seeds'); an arm that cannot be packed runs solo, said why",
+    )
     ex.add_argument("--dry-run", action="store_true", help="list the runs and their status; run nothing")
     ex.add_argument("--no-report", action="store_true", help="do not write the aggregate report")
     ex.add_argument(

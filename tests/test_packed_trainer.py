@@ -1,5 +1,6 @@
 """Seeds packed in one process (adarl.runtime.trainers.packed): each seed trains as its solo run does, in a run folder
-of its own, file for file; a diverging seed stops alone; a signal and a kill -9 leave a pack that resumes."""
+of its own, file for file; a diverging seed stops alone; a signal and a kill -9 leave a pack that resumes; an
+experiment packs an arm's seeds (adarl.experiments.packing) into the run folders it plans."""
 
 from __future__ import annotations
 
@@ -11,14 +12,18 @@ import signal
 
 import pytest
 import torch
+import yaml
 from _helpers import adarl, start_adarl, tiny, wait_for
 
-from adarl.errors import AdaRLError
+from adarl.errors import AdaRLError, AdaRLValueError
+from adarl.experiments.execute import read_attempts
+from adarl.experiments.packing import PlannedPack, check_packable_launch, members, plan_packs
+from adarl.experiments.spec import load_experiment, plan_runs
 from adarl.runtime.config import load_recipe
 from adarl.runtime.guards import NonFiniteError
 from adarl.runtime.run_folder.run_dir import RunDir
 from adarl.runtime.trainers.off_policy import OffPolicyTrainer
-from adarl.runtime.trainers.packed import create_pack, finish
+from adarl.runtime.trainers.pack_folder import create_pack, finish, resume_pack
 
 #: 800 frames, updates from 200, rank events at updates 200 and 400 (both change ranks), checkpoints every 200
 OVERRIDES = tiny(
@@ -165,5 +170,109 @@ def test_pack_input_is_checked_before_anything_runs(tmp_path):
     ppo = adarl(
         "run", "quickstart", *OVERRIDES, "algorithm.fused=false", "--pack-seeds", "0", "1", "-o", str(tmp_path / "q")
     )
-    assert ppo.returncode != 0 and "packing needs the fused SAC update" in ppo.stderr
+    assert ppo.returncode != 0 and "packing runs the fused SAC update" in ppo.stderr
     assert not (tmp_path / "q" / "seed=0").exists() and not (tmp_path / "q" / "pack.json").exists()
+
+
+def _spec(tmp_path, **extra):
+    spec = tmp_path / "packed.yaml"
+    spec.write_text(
+        yaml.safe_dump(
+            {"kind": "experiment", "name": "packed", "recipe": "quickstart", "overrides": list(OVERRIDES), **extra}
+        )
+    )
+    return spec
+
+
+def test_an_experiment_packs_an_arms_seeds_stops_on_sigterm_and_resumes_to_their_solo_runs(runs, tmp_path):
+    """From the user's side: `adarl experiment` with the spec's `pack: 2` trains seeds 0 and 1 in one process, each in
+    the run folder the experiment plans; SIGTERM to the driver stops the pack at a checkpoint (exit 143, both runs
+    interrupted); the same command resumes it; each run ends as its solo run does, and says the pack it trained in."""
+    root, _ = runs
+    spec, out = _spec(tmp_path, seeds=[0, 1], pack=2), tmp_path / "exp"
+    cmd = ("experiment", str(spec), "-o", str(out), "--no-live", "--progress", "0", "--no-report")
+
+    def checkpoints_at(frames):
+        return all((out / f"seed={s}" / "checkpoints" / f"ckpt-{frames:012d}.pt").exists() for s in (0, 1))
+
+    proc = start_adarl(*cmd)
+    assert wait_for(lambda: checkpoints_at(200), proc), proc.communicate()
+    proc.send_signal(signal.SIGTERM)
+    said, err = proc.communicate(timeout=300)
+    assert proc.returncode == 128 + signal.SIGTERM, said + err
+    pack_id = re.search(r"\[pack\] (pack-[0-9a-f]+): recipe quickstart, seeds 0, 1", said).group(1)
+    state = {r["run_id"]: r for r in json.loads((out / "experiment.json").read_text())["runs"]}
+    assert {k: (r["status"], r["pack"]) for k, r in state.items()} == {
+        "seed=0": ("interrupted", pack_id),
+        "seed=1": ("interrupted", pack_id),
+    }
+
+    done = adarl(*cmd)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "[finished] seed=0" in done.stdout and "[finished] seed=1" in done.stdout
+    for s in (0, 1):
+        run = out / f"seed={s}"
+        _same_run(root / f"solo{s}", run, checkpoints=False)
+        assert json.loads((run / "summary.json").read_text())["packed_with"] == [
+            str(out / "seed=0"),
+            str(out / "seed=1"),
+        ]
+        attempts = [(e["event"], e.get("action"), e.get("status"), e["pack"]) for e in read_attempts(out, f"seed={s}")]
+        assert attempts == [
+            ("start", "ran", None, pack_id),
+            ("end", "ran", "interrupted", pack_id),
+            ("start", "resumed", None, pack_id),
+            ("end", "resumed", "finished", pack_id),
+        ]
+    assert json.loads((out / "packs" / pack_id / "pack.json").read_text())["runs"] == ["../../seed=0", "../../seed=1"]
+
+
+def test_an_arm_that_cannot_pack_runs_solo_said_by_name_and_what_packing_does_not_run_is_refused(tmp_path):
+    """Packs are planned per arm (recipes equal but for the seed), `pack` seeds at a time, in seed order; an arm of
+    TorchRL's update path runs solo, said why; another launcher or an output at a URL is refused before anything."""
+    spec = _spec(
+        tmp_path,
+        seeds=[0, 1, 2],
+        axes={"path": [{"name": "fused"}, {"name": "torchrl", "overrides": ["algorithm.fused=false"]}]},
+    )
+    runs = plan_runs(load_experiment(spec), str(tmp_path / "exp"))
+    recipes = {r.run_id: load_recipe(r.recipe, r.overrides) for r in runs}
+    said = []
+    units = plan_packs(runs, recipes, 2, str(tmp_path / "exp"), said.append)
+    assert [[m.run_id for m in members(u)] for u in units] == [
+        ["path=fused__seed=0", "path=fused__seed=1"],
+        ["path=fused__seed=2"],
+        ["path=torchrl__seed=0"],
+        ["path=torchrl__seed=1"],
+        ["path=torchrl__seed=2"],
+    ]
+    assert isinstance(units[0], PlannedPack) and units[0].path == str(tmp_path / "exp" / "packs" / units[0].run_id)
+    assert said[0] == f"[pack] {units[0].run_id}: path=fused, seeds 0, 1"
+    assert said[1].startswith("[solo] path=torchrl: 3 runs, each in its own process (cannot pack: LossStep")
+    assert plan_packs(runs, recipes, 1, str(tmp_path / "exp"), said.append) == runs
+    for pack, output, launcher, match in (
+        (0, tmp_path, "local", ">= 1, got 0"),
+        (2, tmp_path, "ray", "local launcher only"),
+        (2, "s3://bucket/exp", "local", "not an fsspec URL"),
+    ):
+        with pytest.raises(AdaRLValueError, match=match):
+            check_packable_launch(pack, output, launcher)
+    bad = adarl("experiment", str(spec), "-o", str(tmp_path / "exp"), "--pack", "2", "--launcher", "submitit")
+    assert bad.returncode != 0 and "local launcher only" in bad.stderr and not (tmp_path / "exp").exists()
+
+
+def test_a_pack_killed_before_its_first_checkpoint_starts_its_seeds_afresh(tmp_path):
+    """A seed with a recipe.yaml and no checkpoint (the pack was killed while it built) starts afresh on resume; a
+    pack.json that names a folder outside the pack (or an experiment's runs) is refused by name."""
+    pack = create_pack(_recipe(), [3, 4], tmp_path / "p", quiet=True)
+    for t in pack.trainers:  # as a kill before the first checkpoint leaves them (locks released with the process)
+        t.close()
+    again, said = resume_pack(tmp_path / "p")
+    try:
+        assert said == [] and [(t.recipe.seed, t.frames) for t in again.trainers] == [(3, 0), (4, 0)]
+    finally:
+        for t in again.trainers:
+            t.close()
+    (tmp_path / "p" / "pack.json").write_text(json.dumps({"seeds": [3], "runs": ["../elsewhere"]}))
+    with pytest.raises(AdaRLValueError, match="neither inside the pack folder nor an experiment's run"):
+        resume_pack(tmp_path / "p")

@@ -33,6 +33,7 @@ from typing import Any
 from adarl.errors import AdaRLError, AdaRLValueError, RecipeError
 from adarl.experiments.execute import OutputFolderGone, holds_training, run_is_finished
 from adarl.experiments.launchers import ExperimentInterrupted, Launcher, make_launcher
+from adarl.experiments.packing import PlannedPack, check_packable_launch, members, plan_packs
 from adarl.experiments.progress import LiveBoard, ProgressBoard
 from adarl.experiments.report import write_aggregate_report
 from adarl.experiments.spec import (
@@ -240,6 +241,7 @@ def run_experiment(
     live: bool = False,
     console=None,
     rerun_changed: bool = False,
+    pack: int | None = None,
 ) -> list[PlannedRun]:
     """Run (or continue) the experiment in ``spec_path``; returns the runs with their status.
 
@@ -254,7 +256,10 @@ def run_experiment(
 
     A finished or resumable run folder made from another recipe than the spec plans now is refused by name
     (:class:`~adarl.errors.AdaRLError` listing the keys that changed, before anything is written; a dry run shows
-    it as ``changed``); ``rerun_changed`` trains such runs again into new folders beside the old ones."""
+    it as ``changed``); ``rerun_changed`` trains such runs again into new folders beside the old ones.
+
+    ``pack`` (default: the spec's ``pack``, 1): runs of one arm that differ only in the seed train that many at a time
+    in one process (:mod:`adarl.experiments.packing`; the local launcher, a local output folder)."""
     spec = load_experiment(spec_path)
     budget, _ = resolve_budget(spec, budget)
     out = output if output is not None else default_output(spec, budget)
@@ -268,7 +273,10 @@ def run_experiment(
                 r.scratch = str(scratch)
         else:
             log(f"note: --scratch is ignored: results at a local path ({out}) are written in place")
-    changed = _place(runs, _check_recipes(runs), rerun_changed)
+    pack = spec.pack if pack is None else pack
+    check_packable_launch(pack, out, launcher if isinstance(launcher, str) else launcher.name)
+    recipes = _check_recipes(runs)
+    changed = _place(runs, recipes, rerun_changed)
     if changed and not dry_run:
         raise _refuse_changed(spec, out, changed)
     todo = []
@@ -297,6 +305,7 @@ def run_experiment(
         + (f", {len(changed)} made from another recipe (refused)" if changed else "")
         + f" -> {out}"
     )
+    units = plan_packs(todo, recipes, pack, out, log)  # says which arms pack, and why one cannot
     if dry_run:
         for r in runs:
             frames = RunDir(r.path).latest_checkpoint_frames() if r in todo and not is_url(r.path) else None
@@ -342,14 +351,20 @@ def run_experiment(
                 if not stop_as_on_a_signal(signal.SIGPIPE, "its output was closed"):
                     raise  # no launcher's stop to ask (never in a launch): exit 141 now, never go on unseen
 
-        def done(r: PlannedRun) -> None:
-            say(f"[{r.status}] {r.run_id} ({r.wall_time_s:.0f} s){'' if r.status == 'finished' else ': ' + r.message}")
+        def done(unit) -> None:  # a run, or a pack of runs (each said)
+            for r in members(unit):
+                if r.status == "pending":  # asked to stop before it started
+                    continue
+                said = "" if r.status == "finished" else ": " + r.message
+                say(f"[{r.status}] {r.run_id} ({r.wall_time_s:.0f} s){said}")
             _write_state(out, spec, budget, runs, command)
             if screen is not None:
                 screen.update()
 
+        packs = {u.run_id: u.member_ids for u in units if isinstance(u, PlannedPack)}
+
         def tick(running: set) -> None:
-            board.running = running
+            board.running = {m for i in running for m in packs.get(i, [i])}
             if progress_interval > 0 and time.monotonic() - last_tick[0] >= progress_interval:
                 last_tick[0] = time.monotonic()
                 if screen is not None:
@@ -362,9 +377,9 @@ def run_experiment(
             try:
                 if screen is not None:
                     with screen:
-                        launcher.launch(todo, done, tick=tick)
+                        launcher.launch(units, done, tick=tick)
                 else:
-                    launcher.launch(todo, done, tick=tick)
+                    launcher.launch(units, done, tick=tick)
             except ExperimentInterrupted:  # SIGINT/SIGTERM: the state as it stands, no report; the same command resumes
                 _write_state(out, spec, budget, runs, command)
                 raise

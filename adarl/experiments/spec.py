@@ -264,6 +264,11 @@ class ExperimentSpec(_Model):
         description="Output folder or fsspec URL, e.g. s3://bucket/exp (default: runs/experiments/<name>[-<budget>]).",
     )
     workers: Annotated[int, Field(ge=1)] = Field(1, description="Runs at a time (each in its own process).")
+    pack: Annotated[int, Field(ge=1)] = Field(
+        1,
+        description="Seeds of one arm trained side by side in one process, their SAC updates one batched program "
+        "(adarl.experiments.packing; local launcher). 1: each run in its own process.",
+    )
     resources: ResourcesSpec = Field(default_factory=ResourcesSpec)
     sweeps: list[SweepSpec] = Field(default_factory=list)
     report: ReportSpec = Field(default_factory=ReportSpec)
@@ -384,12 +389,14 @@ class PlannedRun:
     # the experiment's (or study's) output folder, which holds the run folder: a run never creates it, so one deleted
     # or moved while the experiment runs stops the runs instead of coming back half-filled (None: created as needed)
     output: str | None = None
+    pack: str | None = None  # the pack it trained in (adarl experiment --pack; adarl.experiments.packing)
 
     def as_dict(self) -> dict:
         d = asdict(self)
         del d["output"]  # experiment.json is in it
-        if d["scratch"] is None:
-            del d["scratch"]
+        for key in ("scratch", "pack"):
+            if d[key] is None:
+                del d[key]
         return d
 
 

@@ -12,6 +12,7 @@ from adarl.experiments.execute import (
     signal_live_trainings,
 )
 from adarl.experiments.launchers._base import ExperimentInterrupted, Launcher
+from adarl.experiments.packing import execute_unit, members
 from adarl.runtime.signals import GracefulInterrupt
 
 
@@ -44,7 +45,7 @@ class LocalLauncher(Launcher):
                 return r
             running.add(r.run_id)
             try:
-                return execute_run(r, self.threads)
+                return execute_unit(r, self.threads)  # a run, or a pack of runs (adarl.experiments.packing)
             except BaseException:  # (its output folder went, ...): this thread must not take the next queued run
                 broken[0] = True
                 raise
@@ -86,8 +87,9 @@ class LocalLauncher(Launcher):
                     if run is not None and run.status != "pending":
                         on_done(run)
         if interrupt.requested is not None:
-            stopped = [r.run_id for r in runs if r.status == "interrupted"]
-            never = sum(r.status == "pending" for r in runs)
+            each = [m for r in runs for m in members(r)]
+            stopped = [r.run_id for r in each if r.status == "interrupted"]
+            never = sum(r.status == "pending" for r in each)
             raise ExperimentInterrupted(interrupt.requested, stopped, never, at_once=at_once)
 
     def run_watched(self, run, watch):

@@ -25,7 +25,6 @@ run's; a diverging seed stopped alone; a signal stops every seed at a checkpoint
 
 from __future__ import annotations
 
-import json
 import random
 import sys
 from collections.abc import Sequence
@@ -36,15 +35,14 @@ import numpy as np
 import torch
 import tqdm
 
-from adarl.errors import AdaRLError, AdaRLValueError
-from adarl.fast.packed import PackedSACUpdate
-from adarl.runtime.continuing import already_complete
-from adarl.runtime.run_folder.run_dir import RunDir
-from adarl.runtime.signals import GracefulInterrupt, RunInterrupted
+from adarl.errors import AdaRLValueError
+from adarl.fast.packed import PackedSACUpdate, packing_refusal
+from adarl.runtime.families import family
+from adarl.runtime.signals import GracefulInterrupt
 from adarl.runtime.trainers.off_policy import OffPolicyTrainer
 from adarl.runtime.update import FusedStep
 
-__all__ = ["PackedSeedTrainer", "SeedPack", "recipe_without_seed"]
+__all__ = ["PackedSeedTrainer", "SeedPack", "SeedRNG", "recipe_without_seed", "pack_refusal", "components_refusal"]
 
 
 def recipe_without_seed(recipe) -> dict:
@@ -54,7 +52,35 @@ def recipe_without_seed(recipe) -> dict:
     return data
 
 
-class _RNG:
+def components_refusal(c) -> str | None:
+    """Why a seed with the built components ``c`` cannot train in a pack (None: it can)."""
+    if not isinstance(c.update, FusedStep):
+        return f"{type(c.update).__name__} (packing runs the fused SAC update, algorithm.fused)"
+    reason = packing_refusal(c.update.fused)
+    if reason is not None:
+        return reason
+    adapter = c.adapter
+    if adapter is not None and not (hasattr(adapter, "interval") and hasattr(adapter, "step_count")):
+        return f"the rank adapter {type(adapter).__name__} (packing needs to know when it acts: no interval)"
+    return None
+
+
+def pack_refusal(recipe) -> str | None:
+    """Why the seeds of ``recipe`` cannot train in a pack (None: they can), decided as :class:`SeedPack` decides it:
+    the recipe's loop must be :class:`OffPolicyTrainer`'s and its components (built here once, then closed) must pass
+    :func:`components_refusal`. ``adarl experiment --pack`` asks it once per arm before anything runs."""
+    fam = family(recipe)
+    loop = fam.trainer_class()
+    if loop is not OffPolicyTrainer:
+        return f"the {loop.__name__} loop of algorithm.base {recipe.algorithm.base!r} (packing runs OffPolicyTrainer's)"
+    c = fam.build(recipe)
+    try:
+        return components_refusal(c)
+    finally:
+        c.close()
+
+
+class SeedRNG:
     """A seed's global RNG states (torch, NumPy, Python), switched in and out with its greenlet.
 
     The same three states :func:`adarl.runtime.state.rng_state` checkpoints, kept as the objects the RNGs hand out
@@ -149,10 +175,12 @@ class SeedPack:
     """N seeds of one recipe (:class:`PackedSeedTrainer`, each in its own run folder) trained in one process.
 
     ``SeedPack.build(recipe, seeds, run_dirs)`` makes the trainers (each seed's RNGs as its build leaves them);
-    :func:`resume_pack` continues a pack folder's seeds from their checkpoints; :meth:`train` trains them all and
-    returns ``{run folder: summary or the exception that ended it}`` (:func:`finish` turns it into the outcome).
+    :mod:`~adarl.runtime.trainers.pack_folder` makes and continues the pack folders of ``adarl run --pack-seeds`` and
+    ``adarl experiment --pack``; :meth:`train` trains them all and returns ``{run folder: summary or the exception
+    that ended it}`` (:func:`~adarl.runtime.trainers.pack_folder.finish` turns it into the outcome).
 
     >>> from adarl.runtime.config import load_recipe
+    >>> from adarl.runtime.trainers.pack_folder import create_pack, finish
     >>> recipe = load_recipe("quickstart", ["collector.total_frames=300", "collector.init_random_frames=200",
     ...                                     "collector.frames_per_batch=100", "algorithm.batch_size=32",
     ...                                     "eval.episodes=1", "eval.max_steps=20"])
@@ -162,7 +190,7 @@ class SeedPack:
     [300, 300]
     """
 
-    def __init__(self, trainers: Sequence[PackedSeedTrainer], rngs: Sequence[_RNG], *, quiet: bool = False) -> None:
+    def __init__(self, trainers: Sequence[PackedSeedTrainer], rngs: Sequence[SeedRNG], *, quiet: bool = False) -> None:
         self.trainers = list(trainers)
         if not self.trainers:
             raise AdaRLValueError("a seed pack needs at least one seed")
@@ -180,14 +208,9 @@ class SeedPack:
         for t in self.trainers:
             if not isinstance(t, PackedSeedTrainer):
                 raise AdaRLValueError(f"a seed pack trains PackedSeedTrainer, got {type(t).__name__}")
-            if not isinstance(t.c.update, FusedStep):
-                raise AdaRLValueError(
-                    f"{t.run_dir.path}: packing needs the fused SAC update (algorithm.fused), this recipe runs "
-                    f"{type(t.c.update).__name__}"
-                )
-            adapter = t.c.adapter
-            if adapter is not None and not (hasattr(adapter, "interval") and hasattr(adapter, "step_count")):
-                raise AdaRLValueError(f"packing does not know when {type(adapter).__name__} acts (no interval)")
+            reason = components_refusal(t.c)
+            if reason is not None:
+                raise AdaRLValueError(f"{t.run_dir.path}: packed seeds do not implement {reason}; train it unpacked")
             t.pack = self
         self.rngs = list(rngs)
         self.quiet = quiet
@@ -207,7 +230,7 @@ class SeedPack:
         trainers, rngs = [], []
         for seed, run_dir in zip(seeds, run_dirs, strict=True):
             trainers.append(PackedSeedTrainer(recipe.model_copy(update={"seed": int(seed)}), run_dir, quiet=True))
-            rngs.append(_RNG())  # the RNGs as this seed's build left them, as in its own process
+            rngs.append(SeedRNG())  # the RNGs as this seed's build left them, as in its own process
         return cls(trainers, rngs, quiet=quiet)
 
     # ------------------------------------------------------------------ what the seeds call
@@ -245,7 +268,7 @@ class SeedPack:
         lets = [greenlet.greenlet(t.train) for t in self.trainers]
         live = set(range(len(self.trainers)))
         outputs: dict[int, dict] = {}
-        main_rng = _RNG()
+        main_rng = SeedRNG()
         total = sum(t.recipe.collector.total_frames for t in self.trainers)
         bar = tqdm.tqdm(
             total=total,
@@ -306,98 +329,3 @@ class SeedPack:
                 said = "finished" if isinstance(res, dict) else f"ended: {type(res).__name__}: {res}"
                 print(f"adarl: {path} {said}", file=sys.stderr)
         return report
-
-
-# ---------------------------------------------------------------------- the pack folder (`adarl run --pack-seeds`)
-#: the file naming a pack's seeds and run folders, in the pack folder (``adarl resume PACK`` reads it)
-PACK_FILE = "pack.json"
-
-
-def seed_folder(seed: int) -> str:
-    """A seed's run folder inside its pack folder."""
-    return f"seed={int(seed)}"
-
-
-def is_pack_folder(path) -> bool:
-    return (Path(path) / PACK_FILE).is_file()
-
-
-def create_pack(recipe, seeds: Sequence[int], folder, *, overwrite: bool = False, quiet: bool = False) -> SeedPack:
-    """A new pack folder ``folder`` (``pack.json`` and one run folder per seed, ``seed=S``) and its pack."""
-
-    seeds = [int(s) for s in seeds]
-    if not seeds or len(set(seeds)) != len(seeds):
-        raise AdaRLValueError(f"--pack-seeds takes distinct seeds, got {seeds}")
-    folder = Path(folder)
-    if folder.exists() and not folder.is_dir():
-        raise AdaRLValueError(f"{str(folder)!r} exists and is not a folder")
-    if folder.is_dir() and any(folder.iterdir()) and not overwrite:
-        raise AdaRLValueError(f"the pack folder {str(folder)!r} is not empty (--overwrite replaces it)")
-    folder.mkdir(parents=True, exist_ok=True)
-    run_dirs = []
-    try:
-        for s in seeds:
-            run_dirs.append(RunDir.create(folder / seed_folder(s), overwrite=overwrite))
-        for run_dir, s in zip(run_dirs, seeds, strict=True):
-            run_dir.save_recipe(recipe.model_copy(update={"seed": s}))
-        (folder / PACK_FILE).write_text(json.dumps({"seeds": seeds, "runs": [seed_folder(s) for s in seeds]}) + "\n")
-        return SeedPack.build(recipe, seeds, run_dirs, quiet=quiet)
-    except BaseException:
-        for run_dir in run_dirs:
-            run_dir.discard()
-        (folder / PACK_FILE).unlink(missing_ok=True)
-        raise
-
-
-def pack_runs(folder) -> list[Path]:
-    """The run folders of a pack folder, as its ``pack.json`` names them (checked)."""
-
-    folder = Path(folder)
-    try:
-        data = json.loads((folder / PACK_FILE).read_text())
-        runs = [folder / str(r) for r in data["runs"]]
-    except (OSError, ValueError, KeyError, TypeError) as err:
-        raise AdaRLValueError(f"{str(folder / PACK_FILE)!r} does not name a pack's runs: {err}") from None
-    if not runs or any(r.parent != folder or r.name in ("", ".", "..") for r in runs):
-        raise AdaRLValueError(f"{str(folder / PACK_FILE)!r} must name run folders inside the pack folder, got {runs}")
-    return runs
-
-
-def finish(report: dict) -> dict[str, dict]:
-    """The pack's outcome: every seed's summary, or the first signal's stop (every seed then saved a checkpoint),
-    or an error naming each seed that failed (after the others finished)."""
-
-    stops = [r for r in report.values() if isinstance(r, RunInterrupted)]
-    failed = {p: r for p, r in report.items() if isinstance(r, BaseException) and not isinstance(r, RunInterrupted)}
-    if stops:
-        folder = Path(next(iter(report))).parent
-        raise RunInterrupted(
-            f"stopped on a signal: every seed saved a checkpoint; continue them with `adarl resume {folder}`"
-            + (f" (failed before: {sorted(failed)})" if failed else ""),
-            signum=stops[0].signum,
-            checkpoint=stops[0].checkpoint,
-        )
-    if failed:
-        lines = "; ".join(
-            f"{p}: {type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}" for p, e in failed.items()
-        )
-        raise AdaRLError(f"{len(failed)} of {len(report)} packed seeds failed (the others finished): {lines}")
-    return {p: r for p, r in report.items()}
-
-
-def resume_pack(folder, *, checkpoint=None, quiet: bool = False) -> tuple[SeedPack | None, list[str]]:
-    """The pack of a pack folder's seeds that have not finished (each from its latest checkpoint, its RNGs as the
-    checkpoint saved them), and a line for each seed already complete (None: every seed is)."""
-
-    trainers, rngs, said = [], [], []
-    for run in pack_runs(folder):
-        trainer = PackedSeedTrainer.resume(run, quiet=True, checkpoint=checkpoint)
-        total = trainer.recipe.collector.total_frames
-        done = already_complete(run, trainer.frames, total, stopped=trainer.stopped_early)
-        if done is not None:
-            trainer.close()
-            said.append(done)
-            continue
-        trainers.append(trainer)
-        rngs.append(_RNG())
-    return (SeedPack(trainers, rngs, quiet=quiet) if trainers else None), said

@@ -1,0 +1,232 @@
+"""``adarl experiment --pack N``: the runs of one arm that differ only in the seed, trained N at a time in one process
+(:class:`~adarl.runtime.trainers.packed.SeedPack`, each seed's SAC update one batched program).
+
+:func:`plan_packs` groups the runs to start: runs whose validated recipes are equal but for ``seed`` form an arm; an
+arm whose recipe cannot be packed (:func:`~adarl.runtime.trainers.packed.pack_refusal`: TorchRL's update path, a
+loss term such as Parseval's, another training loop) runs solo, said by name before anything runs. Each pack is a
+:class:`PlannedPack` the launcher runs as one unit; :func:`execute_pack` starts ``adarl resume OUT/packs/<pack id>``
+(its ``pack.json`` names the runs, :mod:`~adarl.runtime.trainers.pack_folder`) and sets each run's status as
+:func:`~adarl.experiments.execute.execute_run` sets a solo run's. Every run keeps its own folder ``OUT/<run id>``, file
+for file a solo run's; ``experiment.json`` records the pack a run trained in (``pack``) and its summary.json the runs it
+was packed with (``packed_with``).
+
+The local launcher runs packs; the ray and submitit launchers, and outputs at an fsspec URL, are refused with
+``--pack`` (not built yet).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from adarl.errors import AdaRLValueError
+from adarl.experiments.execute import (
+    _cli,
+    _die_with_parent,
+    _live,
+    _make_below,
+    _record_attempt,
+    _set_unfinished,
+    _train_env,
+    _wait,
+    execute_run,
+    holds_training,
+    run_is_finished,
+)
+from adarl.experiments.spec import PlannedRun
+from adarl.runtime.config import load_recipe
+from adarl.runtime.fingerprint import differences
+from adarl.runtime.run_folder.results import is_url
+from adarl.runtime.run_folder.run_dir import RunDir
+from adarl.runtime.trainers.pack_folder import relative_run, write_pack_file
+from adarl.runtime.trainers.packed import pack_refusal, recipe_without_seed
+
+__all__ = [
+    "PACKS_DIR",
+    "PlannedPack",
+    "check_packable_launch",
+    "execute_pack",
+    "execute_unit",
+    "members",
+    "plan_packs",
+]
+
+PACKS_DIR = "packs"  # OUT/packs/<pack id>/pack.json, OUT/packs/<pack id>.log
+
+
+@dataclass
+class PlannedPack:
+    """Runs of one arm trained in one process: what a launcher runs as one unit (its ``run_id`` is the pack's id,
+    its ``path`` the pack folder, whose stop file stops every seed), ``members`` the runs, each set as it ends."""
+
+    run_id: str
+    members: list[PlannedRun]
+    path: str
+    output: str | None = None
+    status: str = "pending"
+    message: str = ""
+    wall_time_s: float = 0.0
+    member_ids: list[str] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self.member_ids = [r.run_id for r in self.members]
+
+
+def pack_id(runs: list[PlannedRun]) -> str:
+    """A pack's id, from its runs' ids: the same runs make the same pack folder when the experiment resumes."""
+    digest = hashlib.sha1("\n".join(sorted(r.run_id for r in runs)).encode()).hexdigest()[:10]
+    return f"pack-{digest}"
+
+
+def check_packable_launch(pack: int, output, launcher_name: str) -> None:
+    """Refuse, by name, what ``--pack`` does not run yet (before anything is written)."""
+    if pack < 1:
+        raise AdaRLValueError(f"--pack takes a number of seeds per process >= 1, got {pack}")
+    if pack == 1:
+        return
+    if launcher_name != "local":
+        raise AdaRLValueError(
+            f"--pack {pack}: packed seeds run with the local launcher only (not {launcher_name!r} yet); "
+            "drop --pack (or set pack: 1) to run each seed in its own task"
+        )
+    if is_url(output):
+        raise AdaRLValueError(
+            f"--pack {pack}: packed seeds write to a local output folder only, not an fsspec URL ({output}) yet"
+        )
+
+
+def plan_packs(
+    runs: list[PlannedRun], recipes: dict, pack: int, output, log: Callable[[str], None] = print
+) -> list[PlannedRun | PlannedPack]:
+    """``runs`` as the units a launcher runs: packs of up to ``pack`` runs of one arm (in seed order), and solo runs
+    (an arm of one run to start, or one whose recipe cannot be packed: logged with why)."""
+    if pack <= 1:
+        return list(runs)
+    arms: dict[str, list[PlannedRun]] = {}
+    for r in runs:
+        key = json.dumps(recipe_without_seed(recipes[r.run_id]), sort_keys=True, default=str)
+        arms.setdefault(key, []).append(r)
+    units: list[PlannedRun | PlannedPack] = []
+    for arm in arms.values():
+        arm.sort(key=lambda r: r.seed)
+        first = arm[0]
+        if len(arm) == 1:
+            units.append(first)
+            continue
+        reason = pack_refusal(recipes[first.run_id])
+        if reason is not None:
+            log(f"[solo] {_arm(first)}: {len(arm)} runs, each in its own process (cannot pack: {reason})")
+            units.extend(arm)
+            continue
+        for i in range(0, len(arm), pack):
+            members = arm[i : i + pack]
+            if len(members) == 1:
+                units.append(members[0])
+                continue
+            pid = pack_id(members)
+            units.append(PlannedPack(pid, members, str(Path(output) / PACKS_DIR / pid), output=first.output))
+            log(f"[pack] {pid}: {_arm(first)}, seeds {', '.join(str(r.seed) for r in members)}")
+    return units
+
+
+def _arm(run: PlannedRun) -> str:
+    """An arm as a reader names it: its axes' values (the recipe when the spec has no axes)."""
+    return ", ".join(f"{k}={v}" for k, v in run.axes.items()) or f"recipe {run.recipe}"
+
+
+def _settle(pack: PlannedPack) -> None:
+    """The pack's own status, from its runs' (what a launcher's loop reads)."""
+    states = [r.status for r in pack.members]
+    for worst in ("failed", "interrupted", "stopped", "changed", "pending"):
+        if worst in states:
+            pack.status = worst
+            pack.message = "; ".join(f"{r.run_id}: {r.message}" for r in pack.members if r.status == worst)
+            return
+    pack.status, pack.message = "finished", "every run finished"
+
+
+def execute_pack(pack: PlannedPack, threads: int | None, watch: Callable[[], bool] | None = None) -> PlannedPack:
+    """Train the pack's runs that need it in one ``adarl resume OUT/packs/<pack id>`` process; set each run's status
+    as :func:`~adarl.experiments.execute.execute_run` would (finished, failed, interrupted, stopped, changed,
+    skipped-finished), and the pack's from them."""
+    todo = []
+    for run in pack.members:
+        if holds_training(run.path):
+            diff = differences(run.path, load_recipe(run.recipe, run.overrides))
+            if diff:
+                run.status, run.message = "changed", f"made from another recipe ({run.path}): " + "; ".join(diff)
+                continue
+        if run_is_finished(run.path):
+            run.status, run.message = "skipped-finished", "already finished"
+            continue
+        todo.append(run)
+    if todo and watch is not None and watch():
+        for run in todo:
+            run.status, run.message = "pending", "asked to stop before it started"
+        todo = []
+    if not todo:
+        _settle(pack)
+        return pack
+    folder = Path(pack.path)
+    _make_below(todo[0], folder)
+    write_pack_file(
+        folder,
+        [relative_run(r.path, folder) for r in todo],
+        [r.seed for r in todo],
+        [{"recipe": r.recipe, "overrides": r.overrides} for r in todo],
+    )
+    log = folder.parent / f"{pack.run_id}.log"
+    actions = {r.run_id: "resumed" if RunDir(r.path).latest_checkpoint_frames() is not None else "ran" for r in todo}
+    for r in todo:
+        _record_attempt(r, event="start", action=actions[r.run_id], pack=pack.run_id)
+    start = time.perf_counter()
+    with log.open("w") as fh:
+        proc = subprocess.Popen(
+            _cli("resume", str(folder), "--quiet"),
+            stdout=fh,
+            stderr=subprocess.STDOUT,
+            env=_train_env(threads),
+            preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None,
+            process_group=0,
+        )
+        with _live(proc) as sent:
+            try:
+                stopped, interrupted = _wait(proc, watch), None
+            except KeyboardInterrupt as err:
+                stopped, interrupted = False, err
+    wall = time.perf_counter() - start
+    tail = log.read_text().strip().splitlines()[-1:] if log.is_file() else []
+    for r in todo:
+        r.wall_time_s, r.pack = wall, pack.run_id
+        if run_is_finished(r.path):  # its budget spent (the pack's exit status may be another seed's failure)
+            r.status, r.message = "finished", f"{actions[r.run_id]} in {pack.run_id}"
+        elif stopped:
+            r.status, r.message = "stopped", f"stopped by its watcher (exit {proc.returncode}) (log: {log})"
+        else:
+            _set_unfinished(r, proc.returncode, tail, log, sent=sent[0])
+        _record_attempt(r, event="end", action=actions[r.run_id], status=r.status, pack=pack.run_id)
+    pack.wall_time_s = wall
+    _settle(pack)
+    if pack.status == "finished":
+        log.unlink(missing_ok=True)
+    if interrupted is not None:
+        raise interrupted
+    return pack
+
+
+def execute_unit(unit, threads: int | None, watch: Callable[[], bool] | None = None):
+    """What a launcher runs: a :class:`PlannedPack` (:func:`execute_pack`) or one run (``execute_run``)."""
+    if isinstance(unit, PlannedPack):
+        return execute_pack(unit, threads, watch)
+    return execute_run(unit, threads, watch=watch)
+
+
+def members(unit) -> list[PlannedRun]:
+    """The runs of a unit a launcher ran: a pack's runs, or the run itself."""
+    return list(unit.members) if isinstance(unit, PlannedPack) else [unit]
