@@ -10,7 +10,7 @@ loss term such as Parseval's, another training loop) runs solo, said by name bef
 for file a solo run's; ``experiment.json`` records the pack a run trained in (``pack``) and its summary.json the runs it
 was packed with (``packed_with``).
 
-The local launcher runs packs; the ray and submitit launchers, and outputs at an fsspec URL, are refused with
+Every launcher runs packs (a pack is one Ray task, one submitit job); outputs at an fsspec URL are refused with
 ``--pack`` (not built yet).
 """
 
@@ -55,6 +55,7 @@ __all__ = [
     "execute_unit",
     "members",
     "plan_packs",
+    "settle",
 ]
 
 PACKS_DIR = "packs"  # OUT/packs/<pack id>/pack.json, OUT/packs/<pack id>.log
@@ -84,17 +85,12 @@ def pack_id(runs: list[PlannedRun]) -> str:
     return f"pack-{digest}"
 
 
-def check_packable_launch(pack: int, output, launcher_name: str) -> None:
+def check_packable_launch(pack: int, output) -> None:
     """Refuse, by name, what ``--pack`` does not run yet (before anything is written)."""
     if pack < 1:
         raise AdaRLValueError(f"--pack takes a number of seeds per process >= 1, got {pack}")
     if pack == 1:
         return
-    if launcher_name != "local":
-        raise AdaRLValueError(
-            f"--pack {pack}: packed seeds run with the local launcher only (not {launcher_name!r} yet); "
-            "drop --pack (or set pack: 1) to run each seed in its own task"
-        )
     if is_url(output):
         raise AdaRLValueError(
             f"--pack {pack}: packed seeds write to a local output folder only, not an fsspec URL ({output}) yet"
@@ -140,7 +136,7 @@ def _arm(run: PlannedRun) -> str:
     return ", ".join(f"{k}={v}" for k, v in run.axes.items()) or f"recipe {run.recipe}"
 
 
-def _settle(pack: PlannedPack) -> None:
+def settle(pack: PlannedPack) -> None:
     """The pack's own status, from its runs' (what a launcher's loop reads)."""
     states = [r.status for r in pack.members]
     for worst in ("failed", "interrupted", "stopped", "changed", "pending"):
@@ -171,7 +167,7 @@ def execute_pack(pack: PlannedPack, threads: int | None, watch: Callable[[], boo
             run.status, run.message = "pending", "asked to stop before it started"
         todo = []
     if not todo:
-        _settle(pack)
+        settle(pack)
         return pack
     folder = Path(pack.path)
     _make_below(todo[0], folder)
@@ -212,7 +208,7 @@ def execute_pack(pack: PlannedPack, threads: int | None, watch: Callable[[], boo
             _set_unfinished(r, proc.returncode, tail, log, sent=sent[0])
         _record_attempt(r, event="end", action=actions[r.run_id], status=r.status, pack=pack.run_id)
     pack.wall_time_s = wall
-    _settle(pack)
+    settle(pack)
     if pack.status == "finished":
         log.unlink(missing_ok=True)
     if interrupted is not None:

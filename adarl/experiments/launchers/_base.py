@@ -11,6 +11,7 @@ from collections.abc import Callable, Iterator
 from adarl.experiments.execute import (
     request_stop,
 )
+from adarl.experiments.packing import PlannedPack, members, settle
 from adarl.runtime.signals import RunInterrupted
 
 
@@ -66,9 +67,26 @@ class Launcher(ABC):
 
 
 def _take_result(run, result):
-    """Copy a worker's outcome (the run as ``execute_run`` returned it there) onto the driver's run."""
-    run.status, run.message, run.wall_time_s = result.status, result.message, result.wall_time_s
+    """Copy a worker's outcome (the run as ``execute_run`` returned it there, or a pack as ``execute_pack`` did, each
+    of its runs set) onto the driver's run or pack."""
+    for mine, theirs in zip(members(run), members(result), strict=True):
+        mine.status, mine.message, mine.wall_time_s = theirs.status, theirs.message, theirs.wall_time_s
+        mine.pack = theirs.pack
+    if isinstance(run, PlannedPack):
+        run.status, run.message, run.wall_time_s = result.status, result.message, result.wall_time_s
     return run
+
+
+def _fail(unit, message: str):
+    """A worker lost for good (its task raised, its job gone): each of the unit's runs that had not ended fails."""
+    for r in members(unit):
+        if r.status in ("pending", "running"):
+            r.status, r.message = "failed", message
+    if isinstance(unit, PlannedPack):
+        settle(unit)
+    else:
+        unit.status, unit.message = "failed", message
+    return unit
 
 
 def _watch_remote(run, watch: Callable[[], bool], asked: list[bool]) -> None:

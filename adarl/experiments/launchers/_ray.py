@@ -11,11 +11,11 @@ from adarl.experiments.execute import (
     WATCH_POLL_S,
     StopAsked,
     clear_stop,
-    execute_run,
     request_stop,
 )
-from adarl.experiments.launchers._base import Launcher, _take_result, _watch_remote
+from adarl.experiments.launchers._base import Launcher, _fail, _take_result, _watch_remote
 from adarl.experiments.launchers._remote_stop import _RemoteStop
+from adarl.experiments.packing import execute_unit
 
 
 def _ray_outcome(ray, ref, run):
@@ -24,12 +24,11 @@ def _ray_outcome(ray, ref, run):
     try:
         return _take_result(run, ray.get(ref))
     except Exception as err:  # noqa: BLE001 - any task failure is the run's failure, named
-        run.status, run.message = "failed", f"ray: {type(err).__name__}: {str(err).splitlines()[0]}"
-        return run
+        return _fail(run, f"ray: {type(err).__name__}: {str(err).splitlines()[0]}")
 
 
 def _ray_execute(run, threads, watch=None):
-    return execute_run(run, threads, watch=watch)
+    return execute_unit(run, threads, watch=watch)  # a run, or a pack of runs (adarl.experiments.packing)
 
 
 #: seconds the ray launcher waits for a cluster's address to answer before it gives up (one line, exit 1)

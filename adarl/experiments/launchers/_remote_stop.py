@@ -13,6 +13,7 @@ from adarl.experiments.execute import (
     run_is_finished,
 )
 from adarl.experiments.launchers._base import ExperimentInterrupted
+from adarl.experiments.packing import PlannedPack, members, settle
 from adarl.runtime.run_folder.results import is_url
 from adarl.runtime.signals import GracefulInterrupt
 
@@ -50,12 +51,14 @@ class _RemoteStop:
                 request_stop(r.path)
         return self.asked
 
-    def outcome(self, run):
-        """``run`` as its worker returned it: a run stopped through its stop file was interrupted by the signal."""
-        if self.asked and run.status == "stopped":
-            run.status = "interrupted"
-            run.message = f"{signal.Signals(self.interrupt.requested).name} to its experiment: {run.message}"
-        return run
+    def outcome(self, unit):
+        """``unit`` (a run, or a pack of runs) as its worker returned it: a run stopped through its stop file was
+        interrupted by the signal."""
+        for run in members(unit):
+            if self.asked and run.status == "stopped":
+                run.status = "interrupted"
+                run.message = f"{signal.Signals(self.interrupt.requested).name} to its experiment: {run.message}"
+        return _settled(unit)
 
     def started(self, run) -> bool:
         """Whether this launch started ``run`` (its attempts record a start since; a lost worker records no end)."""
@@ -64,17 +67,27 @@ class _RemoteStop:
             e["event"] == "start" and e.get("time", 0) >= self.since - 1 for e in read_attempts(output, run.run_id)
         )
 
-    def ended(self, run, why: str):
-        """``run``, whose worker ended without its outcome (cancelled, killed at once, interrupted itself):
-        ``finished`` if its budget is spent, ``interrupted`` if it had started, else left ``pending``."""
-        if run_is_finished(run.path):
-            run.status, run.message = "finished", f"finished ({why} after it)"
-        elif self.started(run):
-            run.status, run.message = "interrupted", f"{why}; resumes from its last checkpoint"
-        return run
+    def ended(self, unit, why: str):
+        """``unit`` (a run, or a pack of runs), whose worker ended without its outcome (cancelled, killed at once,
+        interrupted itself): each run ``finished`` if its budget is spent, ``interrupted`` if it had started, else
+        left ``pending``."""
+        for run in members(unit):
+            if run_is_finished(run.path):
+                run.status, run.message = "finished", f"finished ({why} after it)"
+            elif self.started(run):
+                run.status, run.message = "interrupted", f"{why}; resumes from its last checkpoint"
+        return _settled(unit)
 
     def raise_if_asked(self) -> None:
         if self.interrupt.requested is not None:
-            stopped = [r.run_id for r in self.runs if r.status == "interrupted"]
-            never = sum(r.status == "pending" for r in self.runs)
+            each = [r for unit in self.runs for r in members(unit)]
+            stopped = [r.run_id for r in each if r.status == "interrupted"]
+            never = sum(r.status == "pending" for r in each)
             raise ExperimentInterrupted(self.interrupt.requested, stopped, never, at_once=self.at_once)
+
+
+def _settled(unit):
+    """A pack's own status from its runs' (a run is its own)."""
+    if isinstance(unit, PlannedPack):
+        settle(unit)
+    return unit

@@ -13,11 +13,11 @@ from adarl.experiments.execute import (
     WATCH_POLL_S,
     StopAsked,
     clear_stop,
-    execute_run,
     request_stop,
 )
-from adarl.experiments.launchers._base import Launcher, _take_result, _watch_remote
+from adarl.experiments.launchers._base import Launcher, _fail, _take_result, _watch_remote
 from adarl.experiments.launchers._remote_stop import _RemoteStop
+from adarl.experiments.packing import execute_unit
 
 
 class SubmititLauncher(Launcher):
@@ -89,7 +89,7 @@ class SubmititLauncher(Launcher):
         except Exception as err:  # noqa: BLE001 - a lost job is retried, then the run's failure, named
             if tries < self.max_retries:
                 return False
-            run.status, run.message = "failed", f"submitit job {job.job_id}: {str(err).splitlines()[0]}"
+            _fail(run, f"submitit job {job.job_id}: {str(err).splitlines()[0]}")
         return True
 
     def run_watched(self, run, watch):
@@ -210,4 +210,4 @@ class _CheckpointableRun(_Checkpointable):
     """The job submitit runs; on preemption/timeout it is resubmitted as is (the run resumes from its checkpoint)."""
 
     def __call__(self, run, threads, watch=None):
-        return execute_run(run, threads, watch=watch)
+        return execute_unit(run, threads, watch=watch)  # a run, or a pack of runs (adarl.experiments.packing)
