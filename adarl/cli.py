@@ -612,7 +612,8 @@ def build_parser() -> argparse.ArgumentParser:
         description="Interleaved, repeated (median) speed benchmark of AdaRL-SAC against the same loop "
         "without rank adaptation, a stock TorchRL SAC loop and Stable-Baselines3 SAC (when installed: "
         "pip install 'adarl[bench]'). Prints a table and writes a JSON report. --whole-run: whole runs "
-        "instead, timed from process start to exit (docs/performance.md, 'Whole runs').",
+        "instead, timed from process start to exit (docs/performance.md, 'Whole runs'). --pack: N seeds packed in "
+        "one process against the same N seeds solo (docs/performance.md, 'Packed seeds').",
     )
     bench_arguments(bn)
     bn.set_defaults(func=cmd_bench)

@@ -10,5 +10,6 @@
   :mod:`~adarl.experiments.report.stats` (IQM, bootstrap intervals, probability of improvement);
 * :mod:`~adarl.experiments.tune` - ``adarl tune``: the spec, the Optuna study and the command (a hub);
 * :mod:`~adarl.experiments.bench` - ``adarl bench``: the side-by-side speed benchmark and, with ``--whole-run``,
-  whole runs (process start to finished run folder) against SB3 (a hub).
+  whole runs (process start to finished run folder) against SB3, with ``--pack`` packed seeds against solo seeds
+  (a hub).
 """

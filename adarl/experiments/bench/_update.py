@@ -589,12 +589,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--whole-run: adarl adarl_norank torchrl sb3, the only ones it runs)",
     )
     p.add_argument("--repeats", type=int, default=3, help="repeats per variant (the median is reported)")
-    p.add_argument("--steps", type=int, default=1000, help="timed updates per measurement")
+    p.add_argument(
+        "--steps",
+        type=int,
+        default=None,
+        help="timed updates per measurement (default: 1000; --pack: 200 a seed per timed window)",
+    )
     p.add_argument(
         "--warmup",
         type=int,
         default=None,
-        help="random-action frames before updates start (default: 1000; --whole-run: 5000, the quickstart recipe's)",
+        help="random-action frames before updates start (default: 1000; --whole-run: 5000, the quickstart recipe's; "
+        "--pack: the frames each seed's replay holds, default 1000; --pack --whole-run: --frames // 6)",
     )
     p.add_argument("--skip", type=int, default=100, help="untimed updates before the timed window")
     p.add_argument("--batch", type=int, default=256)
@@ -633,7 +639,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--output apply too.",
     )
     w.add_argument("--whole-run", action="store_true", help="time whole runs end to end (docs/performance.md)")
-    w.add_argument("--frames", type=int, default=12000, help="env frames of each run (default: 12000)")
+    w.add_argument(
+        "--frames", type=int, default=None, help="env frames of each run (default: 12000; --pack --whole-run: 6000)"
+    )
     w.add_argument(
         "--frames-per-batch",
         type=int,
@@ -663,14 +671,38 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     w.add_argument("--inference-rank", type=int, default=7, help="rank of the truncated actor's layers (default: 7)")
     w.add_argument("--inference-calls", type=int, default=2000, help="timed act() calls per actor (default: 2000)")
     w.add_argument("--markdown", default=None, metavar="PATH", help="also write the markdown table to PATH")
+    k = p.add_argument_group(
+        "packed seeds (--pack)",
+        "N seeds of the quickstart recipe's fused SAC packed in one process (adarl run --pack-seeds) against the same "
+        "N seeds solo, side by side, each time next to the ~1.3 ms floor of a (64, 64) Hopper step: the update window "
+        "(--steps, --skip, --warmup), or with --whole-run whole runs (--frames, --frames-per-batch, --warmup, "
+        "--pack-threads, --no-two-packs). --envs, --widths, --repeats, --batch, --threads, --set, --output and "
+        "--markdown apply too.",
+    )
+    k.add_argument("--pack", action="store_true", help="packed seeds against solo seeds (docs/performance.md)")
+    k.add_argument(
+        "--seeds", nargs="+", type=int, default=None, metavar="N", help="seed counts N (default: 1 2 4 8 16)"
+    )
+    k.add_argument(
+        "--pack-threads",
+        nargs="+",
+        type=int,
+        default=None,
+        metavar="T",
+        help="--whole-run: torch threads of the one packed process, a row each (default: --threads)",
+    )
+    k.add_argument("--no-two-packs", action="store_true", help="--whole-run: no row of two packs of N/2 side by side")
 
 
 def cli(a) -> int:
     """``adarl bench`` (the update window; ``--whole-run`` goes to :mod:`adarl.experiments.bench._whole_run`)."""
     if getattr(a, "whole_run", False):  # `python -m adarl.experiments.bench --whole-run`: not this driver's mode
         raise AdaRLValueError("--whole-run is timed by `adarl bench --whole-run` (adarl.experiments.bench._whole_run)")
+    if getattr(a, "pack", False):
+        raise AdaRLValueError("--pack is measured by `adarl bench --pack` (adarl.experiments.bench._packed)")
     a.variants = list(VARIANTS) if a.variants is None else a.variants
     a.warmup = 1000 if a.warmup is None else a.warmup
+    a.steps = 1000 if a.steps is None else a.steps
     a.output = "bench.json" if a.output is None else a.output
     for name in ("repeats", "steps", "warmup", "batch", "threads", "rank_interval"):
         if getattr(a, name) < 1:

@@ -70,8 +70,8 @@ OURS = ("adarl", "adarl_norank")
 BASELINES = ("sb3", "torchrl")
 #: the recipe every adarl variant runs
 RECIPE = "quickstart"
-#: defaults of the options whose update-window default differs (bench.add_arguments leaves them None)
-DEFAULTS = {"variants": list(WHOLE_RUN_VARIANTS), "warmup": 5000, "output": "bench_whole_run.json"}
+#: defaults of the options whose default differs between modes (bench.add_arguments leaves them None)
+DEFAULTS = {"variants": list(WHOLE_RUN_VARIANTS), "warmup": 5000, "frames": 12000, "output": "bench_whole_run.json"}
 SB3_NOTE = "sb3 skipped: stable-baselines3 is not installed (pip install 'adarl[bench]')"
 
 
