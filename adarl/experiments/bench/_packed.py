@@ -20,7 +20,6 @@ drivers this one imports torch: it times the update window in its own process; t
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import shlex
 import statistics
@@ -34,7 +33,7 @@ import torch
 
 from adarl.errors import AdaRLValueError
 from adarl.experiments.bench._update import add_arguments, interleave
-from adarl.experiments.bench._whole_run import _versions
+from adarl.experiments.bench._whole_run import _versions, write_and_print
 from adarl.fast.packed import PackedSACUpdate
 from adarl.runtime.builders.sac import build_sac_components
 from adarl.runtime.config import load_recipe
@@ -449,11 +448,5 @@ def format_pack_table(report: dict) -> str:
 def cli(a) -> int:
     """``adarl bench --pack``: check the options, measure, write the JSON and print (and write) the table."""
     validate_pack(a)
-    report = run_pack(a)
-    Path(a.output).write_text(json.dumps(report, indent=2) + "\n")
-    table = format_pack_table(report)
-    if a.markdown:
-        Path(a.markdown).write_text(table + "\n")
-    print(table)
-    print(f"\nJSON report: {a.output}" + (f"; markdown: {a.markdown}" if a.markdown else ""))
+    write_and_print(a, run_pack(a), format_pack_table)
     return 0

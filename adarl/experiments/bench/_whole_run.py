@@ -506,11 +506,15 @@ def cli(a) -> int:
     validate(a)
     if "sb3" in a.variants and not _sb3_available():
         print(SB3_NOTE, file=sys.stderr, flush=True)
-    report = run_whole_runs(a)
+    write_and_print(a, run_whole_runs(a), format_whole_run_table)
+    return 0
+
+
+def write_and_print(a, report: dict, table_of) -> None:
+    """The JSON report at ``--output``, the table printed (and at ``--markdown``): every bench mode's ending."""
     Path(a.output).write_text(json.dumps(report, indent=2) + "\n")
-    table = format_whole_run_table(report)
+    table = table_of(report)
     if a.markdown:
         Path(a.markdown).write_text(table + "\n")
     print(table)
     print(f"\nJSON report: {a.output}" + (f"; markdown: {a.markdown}" if a.markdown else ""))
-    return 0
