@@ -27,6 +27,7 @@ from pathlib import Path
 
 from adarl.errors import AdaRLValueError
 from adarl.experiments.execute import (
+    OutputFolderGone,
     _cli,
     _die_with_parent,
     _live,
@@ -197,6 +198,8 @@ def execute_pack(pack: PlannedPack, threads: int | None, watch: Callable[[], boo
             except KeyboardInterrupt as err:
                 stopped, interrupted = False, err
     wall = time.perf_counter() - start
+    if not Path(pack.output or folder.parent.parent).is_dir():  # deleted or moved under the runs (which stopped)
+        raise OutputFolderGone(pack.output or folder.parent.parent)
     tail = log.read_text().strip().splitlines()[-1:] if log.is_file() else []
     for r in todo:
         r.wall_time_s, r.pack = wall, pack.run_id
