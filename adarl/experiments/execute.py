@@ -48,6 +48,7 @@ from adarl.runtime.run_folder.run_dir import RunDir
 
 __all__ = [
     "execute_run",
+    "settled_before_start",
     "run_is_finished",
     "holds_training",
     "read_attempts",
@@ -259,6 +260,21 @@ def holds_training(path: str) -> bool:
     return (Path(path) / "recipe.yaml").is_file() and RunDir(path).latest_checkpoint_frames() is not None
 
 
+def settled_before_start(run: PlannedRun) -> bool:
+    """Whether a worker must not train ``run`` (its status then set): its folder holds training made from another
+    recipe (``changed``), or it has finished (``skipped-finished``). The driver placed it so; a worker checks again:
+    its files may be another's, or a retried task's first try finished before its worker was lost."""
+    if holds_training(run.path):
+        diff = differences(run.path, load_recipe(run.recipe, run.overrides))
+        if diff:
+            run.status, run.message = "changed", f"made from another recipe ({run.path}): " + "; ".join(diff)
+            return True
+    if run_is_finished(run.path):
+        run.status, run.message = "skipped-finished", "already finished"
+        return True
+    return False
+
+
 def execute_run(run: PlannedRun, threads: int | None, watch: Callable[[], bool] | None = None) -> PlannedRun:
     """Run (or resume, when its folder has a checkpoint) one run with the ``adarl`` command; sets its status.
 
@@ -269,13 +285,7 @@ def execute_run(run: PlannedRun, threads: int | None, watch: Callable[[], bool] 
     SIGTERM (it checkpoints and stops, resumable) and its status is ``stopped`` (``adarl tune`` prunes a trial so, on
     the evaluations the run has written; a launcher stops its runs so on a signal). A run whose ``watch`` is already
     true when it would start is not started: its status stays ``pending``."""
-    if holds_training(run.path):  # the driver placed it so; a worker checks again (its files may be another's)
-        diff = differences(run.path, load_recipe(run.recipe, run.overrides))
-        if diff:
-            run.status, run.message = "changed", f"made from another recipe ({run.path}): " + "; ".join(diff)
-            return run
-    if run_is_finished(run.path):  # e.g. a retried task whose first try finished before its worker was lost
-        run.status, run.message = "skipped-finished", "already finished"
+    if settled_before_start(run):
         return run
     if watch is not None and watch():  # its launcher stopped before this worker started it
         run.status, run.message = "pending", "asked to stop before it started"

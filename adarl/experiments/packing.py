@@ -37,12 +37,10 @@ from adarl.experiments.execute import (
     _train_env,
     _wait,
     execute_run,
-    holds_training,
     run_is_finished,
+    settled_before_start,
 )
 from adarl.experiments.spec import PlannedRun
-from adarl.runtime.config import load_recipe
-from adarl.runtime.fingerprint import differences
 from adarl.runtime.run_folder.results import is_url
 from adarl.runtime.run_folder.run_dir import RunDir
 from adarl.runtime.trainers.pack_folder import relative_run, write_pack_file
@@ -152,17 +150,7 @@ def execute_pack(pack: PlannedPack, threads: int | None, watch: Callable[[], boo
     """Train the pack's runs that need it in one ``adarl resume OUT/packs/<pack id>`` process; set each run's status
     as :func:`~adarl.experiments.execute.execute_run` would (finished, failed, interrupted, stopped, changed,
     skipped-finished), and the pack's from them."""
-    todo = []
-    for run in pack.members:
-        if holds_training(run.path):
-            diff = differences(run.path, load_recipe(run.recipe, run.overrides))
-            if diff:
-                run.status, run.message = "changed", f"made from another recipe ({run.path}): " + "; ".join(diff)
-                continue
-        if run_is_finished(run.path):
-            run.status, run.message = "skipped-finished", "already finished"
-            continue
-        todo.append(run)
+    todo = [run for run in pack.members if not settled_before_start(run)]
     if todo and watch is not None and watch():
         for run in todo:
             run.status, run.message = "pending", "asked to stop before it started"
