@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import csv
 import statistics
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -776,12 +777,15 @@ def test_the_stated_multiplicity_is_the_reports():
 
 # -- issue 45: the mechanism arms (docs/reproduction.md, "Issue 45: what costs the factorised networks") -----------
 
-MECHANISM = {  # arm: (its base, the one recipe key it changes, its value)
+MECHANISM = {  # arm (a)-(d): (its base, the one recipe key it changes, its value)
     "adarl_project": ("adarl", "rank.target_mode", "project"),
     "factorised_product": ("factorised_restarts", "algorithm.polyak", "product"),
     "factorised_lr": ("factorised_restarts", "algorithm.factor_lr_scale", 0.82),
     "factorised_torchrl": ("factorised_restarts", "algorithm.fused", False),
 }
+# arm (e), by its amendment (run only when none of (a)-(d) counts): one choice, the factors' initialisation, set on both
+# networks as (b)-(d) act on both
+ARM_E = ("factorised_init", "factorised_restarts", ("network.actor.init.scheme", "network.critic.init.scheme"))
 
 
 def _flat_recipe(path: Path) -> dict:
@@ -830,16 +834,20 @@ def test_issue45s_landed_mechanism_runs_differ_from_their_bases_in_their_key_alo
     runs = REPORTS / "mechanism-pilot" / "runs"
     pilot = REPORTS / "table1-pilot" / "runs"
     landed = sorted(runs.glob("env=hopper__algorithm=*__seed=*")) if runs.is_dir() else []
+    arms = {arm: (base, {key: value}) for arm, (base, key, value) in MECHANISM.items()}
+    arms[ARM_E[0]] = (ARM_E[1], dict.fromkeys(ARM_E[2], "independent_factors"))
     for run in landed:
         arm, seed = run.name.split("__algorithm=")[1].split("__seed=")
         ours = _flat_recipe(run / "recipe.yaml")
-        if arm in MECHANISM:
-            base, key, value = MECHANISM[arm]
+        if arm in arms:
+            base, changed = arms[arm]
             base_dir = (pilot if base == "adarl" else runs) / f"env=hopper__algorithm={base}__seed={seed}"
             if not base_dir.is_dir():
                 continue  # its base's seed has not landed yet
             theirs = _flat_recipe(base_dir / "recipe.yaml")  # the pilot's (579fa0b) lack keys added since: absent
-            assert _differences(ours, theirs) == {key: (value, theirs.get(key, "<absent>"))}, run.name
+            assert _differences(ours, theirs) == {k: (v, theirs.get(k, "<absent>")) for k, v in changed.items()}, (
+                run.name
+            )
         elif arm == "factorised_restarts" and (pilot / run.name).is_dir():
             assert _differences(ours, _flat_recipe(pilot / run.name / "recipe.yaml")) == {}, run.name
     # the spec's arms are these (and its bases are the pilot's arms of the same names)
@@ -847,9 +855,14 @@ def test_issue45s_landed_mechanism_runs_differ_from_their_bases_in_their_key_alo
 
     spec = yaml.safe_load((REPORTS.parents[1] / "recipes" / "experiments" / "mechanism.yaml").read_text())
     values = {v["name"]: v.get("overrides", []) for v in spec["axes"]["algorithm"]}
-    for arm, (base, key, value) in MECHANISM.items():
-        want = f"{key}={'false' if value is False else value}"
-        assert want in values[arm] and set(values[arm]) - {want} <= set(values[base] + ["rank.truncate=false"])
+    for arm, (base, changed) in arms.items():
+        want = {f"{k}={'false' if v is False else v}" for k, v in changed.items()}
+        assert want <= set(values[arm]) and set(values[arm]) - want <= set(values[base] + ["rank.truncate=false"])
+    # arm (e)'s budget is the pilot's, for that arm alone
+    budgets = spec["budgets"]
+    assert budgets["pilot_init"]["axes"] == {"algorithm": [ARM_E[0]]}
+    assert budgets["pilot_init"]["overrides"] == budgets["pilot"]["overrides"]
+    assert [ARM_E[0], ARM_E[1]] in spec["report"]["pairs"] and [ARM_E[0], "sac_restarts"] in spec["report"]["pairs"]
 
 
 def test_issue45s_mechanism_status_claims_no_more_than_its_report():
@@ -909,7 +922,7 @@ def test_issue45s_decided_mechanism_arms_are_stated_as_their_report_decides_them
         scores.setdefault(r["algorithm"], []).append(float(r["score"]))
     text = " ".join((REPORTS.parent / "reproduction.md").read_text().split())
     decided = 0
-    for arm in ("factorised_lr", "factorised_product", "factorised_torchrl"):
+    for arm in ("factorised_lr", "factorised_product", "factorised_torchrl", ARM_E[0]):
         rows = [pairs.get((arm, base)) for base in ("factorised_restarts", "sac_restarts")]
         if any(r is None or int(r["n_a"]) < 8 or int(r["n_b"]) < 8 for r in rows):
             continue
@@ -931,6 +944,42 @@ def test_issue45s_decided_mechanism_arms_are_stated_as_their_report_decides_them
         ]
         assert ("does **not count**" in window) == (not counts), arm
     assert decided >= 1  # factorised_lr has its 8 seeds (committed 2026-11-27)
+
+
+def test_issue45s_arm_e_runs_only_when_no_arm_counts():
+    """arm_e_due.py (queue.sh asks it after arms (a)-(d)) applies the amendment's rule: (e) is due (0) when none of the
+    four "counts" pairs has its interval above 0.5, not run (1) when one has, and undecided (2) before every pair has 8
+    seeds a side; on the committed mechanism report it says what that report's pairs say."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("arm_e_due", REPORTS / "issue45" / "arm_e_due.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+
+    def write(path, lows, n=8):
+        rows = [
+            {"env": "hopper", "a": a, "b": b, "n_a": n, "n_b": 8, "poi": lo + 0.2, "poi_lo": lo, "poi_hi": lo + 0.4}
+            for (a, b), lo in zip(module.COUNTS, lows)
+        ]
+        with path.open("w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=list(rows[0]))
+            w.writeheader()
+            w.writerows(rows)
+        return path
+
+    with tempfile.TemporaryDirectory() as d:
+        f = Path(d) / "pairs.csv"
+        assert module.decide(write(f, [0.2, 0.3, 0.1, 0.5]))[0] == 0  # 0.5 is not above 0.5
+        code, why = module.decide(write(f, [0.2, 0.3, 0.52, 0.1]))
+        assert code == 1 and "factorised_product" in why
+        assert module.decide(write(f, [0.2, 0.3, 0.1, 0.1], n=7))[0] == 2
+    committed = {(r["a"], r["b"]): r for r in csv.DictReader((REPORTS / "mechanism-pilot" / "pairs.csv").open())}
+    rows = [committed.get(pair) for pair in module.COUNTS]
+    code, _ = module.decide(REPORTS / "mechanism-pilot" / "pairs.csv")
+    if any(r is None or min(int(r["n_a"] or 0), int(r["n_b"] or 0)) < 8 for r in rows):
+        assert code == 2
+    else:
+        assert code == (1 if any(float(r["poi_lo"]) > 0.5 for r in rows) else 0)
 
 
 def test_issue45s_landed_runs_are_made_into_a_report_by_their_rule():

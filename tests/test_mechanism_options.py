@@ -1,6 +1,7 @@
 """Issue 45's mechanism options, each where it acts: ``algorithm.polyak: product`` (the target critics' factorised
 layers follow the averaged product) and ``algorithm.factor_lr_scale`` (the factors' Adam rate), on both update
-paths (the fused step and TorchRL's SACLoss + SoftUpdate), through a rank event."""
+paths (the fused step and TorchRL's SACLoss + SoftUpdate), through a rank event; and
+``network.<net>.init.scheme: independent_factors`` (arm (e): the factors drawn apart, as Fig. 5's bottleneck)."""
 
 from __future__ import annotations
 
@@ -8,6 +9,8 @@ import pytest
 import torch
 from _helpers import BUILT
 
+from adarl.baselines import independent_factors_init_
+from adarl.core.lowrank import LowRankLinear
 from adarl.core.product_polyak import ProductSoftUpdate, averaged_factors, factor_pairs, product_polyak_
 from adarl.runtime.builders.sac import build_sac_components
 from adarl.runtime.config import load_recipe
@@ -138,8 +141,86 @@ def _params(c):
         (["algorithm.factor_lr_scale=0"], "algorithm.factor_lr_scale"),
         (["algorithm.name=td3", "algorithm.polyak=product"], "implemented for SAC"),
         (["algorithm.name=td3", "algorithm.factor_lr_scale=0.8"], "implemented for SAC"),
+        (["network.critic.low_rank_layers=[]", "network.critic.init.scheme=independent_factors"], "low_rank_layers is"),
+        (["network.actor.init.scheme=kaiming"], "independent_factors"),
     ],
 )
 def test_mechanism_options_are_validated(override, message):
     with pytest.raises(ValueError, match=message):
         load_recipe("quickstart", override)
+
+
+def _factor_layers(loss, network):
+    """``{path: (w1, w2, bias)}`` of the loss's parameters of ``network``'s factorised layers (stacked members kept)."""
+    flat = _flat(getattr(loss, f"{network}_params"))
+    return {
+        k[: -len(".w1")]: (v, flat[k[:-1] + "2"], flat[k[: -len("w1")] + "bias"])
+        for k, v in flat.items()
+        if k.endswith("w1")
+    }
+
+
+def test_independent_factors_draws_each_factor_as_a_bias_free_linear():
+    """Arm (e): W2 as nn.Linear(in, r, bias=False), W1 as nn.Linear(r, out) start (Kaiming-uniform at each factor's
+    fan-in), every critic member apart and the targets equal to them; biases and unfactorised layers as the default
+    scheme draws them, so that the arm differs from its base in the factors alone."""
+    scheme = ["network.actor.init.scheme=independent_factors", "network.critic.init.scheme=independent_factors"]
+    built = {
+        name: build_sac_components(load_recipe("quickstart", [*BUILT, *o]))
+        for name, o in (("default", []), ("independent", scheme))
+    }
+    loss = {name: c.modules.loss for name, c in built.items()}
+    for network in ("actor_network", "qvalue_network"):
+        layers = {name: _factor_layers(l, network) for name, l in loss.items()}
+        assert layers["default"].keys() == layers["independent"].keys() and len(layers["default"]) == 2, network
+        for path, (w1, w2, bias) in layers["independent"].items():
+            d1, d2, dbias = layers["default"][path]
+            rank, fan_in = w1.shape[-1], w2.shape[-1]
+            for w, bound in ((w1, rank**-0.5), (w2, fan_in**-0.5)):
+                assert w.abs().max() <= bound
+                # uniform on [-bound, bound]: std bound / sqrt(3), here within a few % (>= 700 entries)
+                assert w.std().item() == pytest.approx(bound / 3**0.5, rel=0.12), (network, path)
+            torch.testing.assert_close(bias, dbias)  # the layer's own bias draw, untouched
+            for a, b, da, db in zip(
+                w1.view(-1, *w1.shape[-2:]),
+                w2.view(-1, *w2.shape[-2:]),
+                d1.view(-1, *d1.shape[-2:]),
+                d2.view(-1, *d2.shape[-2:]),
+            ):
+                # the default's factors are balanced (W1^T W1 = W2 W2^T = S); drawn apart they are not
+                torch.testing.assert_close(da.T @ da, db @ db.T, atol=1e-4, rtol=1e-4)
+                assert (a.T @ a - b @ b.T).abs().max() > 0.1
+                # the product: entries of variance 1 / (9 in) against the dense draw's 1 / (3 in)
+                assert (a @ b).std().item() == pytest.approx((9 * fan_in) ** -0.5, rel=0.2)
+                assert (da @ db).std().item() == pytest.approx((3 * fan_in) ** -0.5, rel=0.2)
+            if w1.dim() == 3:  # the twin critics drawn apart, and the targets start equal to them
+                assert not torch.equal(w1[0], w1[1])
+                target = _flat(loss["independent"].target_qvalue_network_params)
+                torch.testing.assert_close(target[f"{path}.w1"], w1, rtol=0, atol=0)
+                torch.testing.assert_close(target[f"{path}.w2"], w2, rtol=0, atol=0)
+        # every parameter of a layer that is not factorised is the default scheme's
+        flat = {name: _flat(getattr(l, f"{network}_params")) for name, l in loss.items()}
+        others = [k for k in flat["default"] if not any(k.startswith(p + ".") for p in layers["default"])]
+        assert others
+        for k in others:
+            torch.testing.assert_close(flat["independent"][k], flat["default"][k], rtol=0, atol=0, msg=k)
+    # the actor the collector runs is the loss's actor: the drawn factors are what it acts with
+    actor = built["independent"].modules.actor
+    factored = [m for m in actor.modules() if isinstance(m, LowRankLinear)]
+    assert factored and all(
+        any(torch.equal(m.w1, w1) for w1, _, _ in _factor_layers(loss["independent"], "actor_network").values())
+        for m in factored
+    )
+
+
+def test_independent_factors_on_a_module_draws_stacked_members_apart_and_refuses_a_dense_network():
+    layer = LowRankLinear(14, 64, rank=14)
+    layer.w1.data = layer.w1.data.expand(3, -1, -1).clone()
+    layer.w2.data = layer.w2.data.expand(3, -1, -1).clone()
+    bias = layer.bias.detach().clone()
+    assert independent_factors_init_(torch.nn.Sequential(layer, torch.nn.ReLU())) == 1
+    assert not torch.equal(layer.w1[0], layer.w1[1]) and not torch.equal(layer.w2[1], layer.w2[2])
+    assert layer.w1.abs().max() <= 14**-0.5 and layer.w2.abs().max() <= 14**-0.5
+    torch.testing.assert_close(layer.bias, bias, rtol=0, atol=0)
+    with pytest.raises(ValueError, match="has none"):
+        independent_factors_init_(torch.nn.Sequential(torch.nn.Linear(3, 4)))

@@ -5,7 +5,8 @@
 * :mod:`adarl.baselines.rnac` - RNAC-IPM (a GAE with a shifted reward) and RNAC-DS (a collection-time transform);
 * :mod:`adarl.baselines.normalization` - the PPO trainer's running observation normalisation and reward scaling;
 * :mod:`adarl.baselines.policy` - the PPO trainer's Gaussian policy with actions clipped to the box;
-* :mod:`adarl.baselines.init` - orthogonal initialisation as RNAC's and Parseval's original code does it;
+* :mod:`adarl.baselines.init` - orthogonal initialisation as RNAC's and Parseval's original code does it, and the
+  factors drawn apart as Fig. 5's bias-free bottleneck (``independent_factors``);
 * :mod:`adarl.baselines.mlp` - one MLP builder for the network variants;
 * :mod:`adarl.baselines.registry` - how they plug into the recipe builders (network variants, init schemes, loss
   terms), each module registering itself on import.
@@ -15,7 +16,12 @@ Fixed- and full-rank SAC need no new code (``rank.enabled: false``); the PPO loo
 """
 
 from adarl.baselines import registry
-from adarl.baselines.init import orthogonal_init_, orthogonal_init_loss_
+from adarl.baselines.init import (
+    independent_factors_init_,
+    independent_factors_init_loss_,
+    orthogonal_init_,
+    orthogonal_init_loss_,
+)
 from adarl.baselines.mlp import BaselineMLP, make_baseline_mlp
 from adarl.baselines.normalization import RewardScaler, RunningMeanStd, RunningObsNorm
 from adarl.baselines.parseval import DiagonalScale, InputScale, ParsevalRegularizer, parseval_penalty, parseval_weights
@@ -45,4 +51,6 @@ __all__ = [
     "ClippedNormal",
     "orthogonal_init_",
     "orthogonal_init_loss_",
+    "independent_factors_init_",
+    "independent_factors_init_loss_",
 ]

@@ -12,7 +12,7 @@ without torch. Each table here is an :class:`adarl.plugins.Registry` too.
 
 >>> from adarl.baselines import registry
 >>> sorted(registry.init_schemes())
-['default', 'orthogonal']
+['default', 'independent_factors', 'orthogonal']
 >>> sorted(registry.loss_term_names())
 ['parseval']
 """

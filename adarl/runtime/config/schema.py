@@ -336,23 +336,25 @@ class SparseLayerConfig(_Section):
 
 
 class InitConfig(_Section):
-    scheme: Literal["default", "orthogonal"] = Field(
+    scheme: Literal["default", "orthogonal", "independent_factors"] = Field(
         "default",
         description="Initial weights: 'default' = each layer's own (PyTorch's nn.Linear, LowRankLinear's factorised "
-        "nn.Linear init); 'orthogonal' = torch.nn.init.orthogonal_ with gain on the hidden layers and head_gain on the "
-        "output layer, zero biases, every critic of an ensemble drawn apart (the RNAC and Parseval originals; "
-        "adarl.baselines.init).",
+        "nn.Linear init: the balanced SVD of a dense draw); 'orthogonal' = torch.nn.init.orthogonal_ with gain on the "
+        "hidden layers and head_gain on the output layer, zero biases, every critic of an ensemble drawn apart (the "
+        "RNAC and Parseval originals); 'independent_factors' = each factorised layer's W1 and W2 drawn apart as the "
+        "bias-free nn.Linear pair of the paper's Fig. 5 would start (Kaiming-uniform at each factor's fan-in; biases "
+        "and other layers their own; needs low_rank_layers). adarl.baselines.init.",
     )
     gain: PosFloat = Field(
         1.0,
         description="Gain of the hidden layers' orthogonal init: singular values = gain, so W W^T starts at gain^2 I "
         "where rows <= columns (RNAC's trainer: 1; Parseval's code: sqrt(2) = 1.4142135623730951, i.e. s = 2). "
-        "Ignored with scheme 'default'.",
+        "Used by scheme 'orthogonal' only.",
     )
     head_gain: PosFloat = Field(
         1.0,
         description="Gain of the output layer's orthogonal init (both originals: 0.01 for the policy head, 1 for the "
-        "value head). Ignored with scheme 'default'.",
+        "value head). Used by scheme 'orthogonal' only.",
     )
 
 
@@ -467,6 +469,15 @@ class MLPConfig(_Section):
                         + ")",
                     )
                 )
+        if self.init.scheme == "independent_factors" and not self.low_rank_layers:
+            problems.append(
+                (
+                    "init.scheme",
+                    self.init.scheme,
+                    "'independent_factors' draws the factors of the low-rank layers, and low_rank_layers is empty: "
+                    "factorise a layer or use 'default' or 'orthogonal'",
+                )
+            )
         sp = self.sparse.layer
         if sp is not None:
             if sp >= n:

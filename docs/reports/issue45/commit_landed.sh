@@ -12,8 +12,9 @@ while true; do
     src=/work/exp/${pair#*:}
     [ -d "$src" ] || continue
     dest=docs/reports/$name
-    wt=wt-t; [ "$name" = mechanism-pilot ] && wt=wt-m  # the worktree (its commit) the runs were made from
     new=$(.venv/bin/python docs/reports/issue34/export_runs.py "$src" "$dest")
+    wt=wt-t  # the worktree (its commit) the runs were made from (runs.csv names each run's own)
+    if [ "$name" = mechanism-pilot ]; then wt=wt-m; case "$new" in *factorised_init*) wt=wt-e ;; esac; fi
     if [ -n "$new" ] || [ -n "$(git status --porcelain -- "$dest/runs")" ]; then
       bash docs/reports/issue45/make_report.sh "$name" || echo "$(date -u +%FT%TZ) report of $dest failed"
       git add "$dest" && git commit -q -m "Issue 45 runs landed ($name; the queue runs at $(git -C /work/exp/$wt rev-parse --short HEAD), runs copied in by fresh_machine.sh keep their own commit, named in runs.csv and the report): $(echo $new | tr '\n' ' ')" --only -- "$dest" \

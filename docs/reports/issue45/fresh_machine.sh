@@ -48,6 +48,16 @@ if [ ! -x $EXP/wt-t/.venv/bin/adarl ]; then
   $EXP/wt-t/.venv/bin/pip install -q torch==2.13.0
   (cd $EXP/wt-t && .venv/bin/pip install -q -c constraints.txt .)
 fi
+# arm (e) (the bottleneck's initialisation, run only when none of (a)-(d) counts) from the worktree wt-e at WT_E: the
+# commit that added its init scheme, spec budget and amendment
+WT_E=${ISSUE45_WT_E:-WT_E_COMMIT}
+[ -d $EXP/wt-e ] || git worktree add $EXP/wt-e $WT_E
+if [ ! -x $EXP/wt-e/.venv/bin/adarl ]; then
+  python3 -m venv $EXP/wt-e/.venv
+  $EXP/wt-e/.venv/bin/pip install -q --upgrade pip
+  $EXP/wt-e/.venv/bin/pip install -q torch==2.13.0
+  (cd $EXP/wt-e && .venv/bin/pip install -q -c constraints.txt .)
+fi
 # each committed run back into its experiment folder (a finished one is skipped by the driver, checked by content)
 restore() {  # restore REPORT_FOLDER EXPERIMENT_FOLDER [GLOB]
   [ -d "$MAIN/docs/reports/$1/runs" ] || return 0
