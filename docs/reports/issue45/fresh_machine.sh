@@ -50,7 +50,7 @@ if [ ! -x $EXP/wt-t/.venv/bin/adarl ]; then
 fi
 # arm (e) (the bottleneck's initialisation, run only when none of (a)-(d) counts) from the worktree wt-e at WT_E: the
 # commit that added its init scheme, spec budget and amendment
-WT_E=${ISSUE45_WT_E:-WT_E_COMMIT}
+WT_E=${ISSUE45_WT_E:-cc50c7f}
 [ -d $EXP/wt-e ] || git worktree add $EXP/wt-e $WT_E
 if [ ! -x $EXP/wt-e/.venv/bin/adarl ]; then
   python3 -m venv $EXP/wt-e/.venv
