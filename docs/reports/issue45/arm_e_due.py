@@ -18,6 +18,8 @@ import sys
 import tempfile
 from pathlib import Path
 
+from adarl.experiments.execute import run_is_finished
+
 HERE = Path(__file__).resolve()
 REPO = HERE.parents[3]
 # (arm, its base): the four "counts" decisions
@@ -57,11 +59,14 @@ def main(argv=None) -> int:
     ap.add_argument("--adarl", default=str(Path(sys.executable).with_name("adarl")), help="the adarl command to run")
     ap.add_argument("--spec", type=Path, default=REPO / "recipes" / "experiments" / "mechanism.yaml")
     args = ap.parse_args(argv)
+    # every finished run folder by name (as the committed report reads its runs/): the experiment folder's
+    # experiment.json lists only the runs its last call planned, not the bases copied in
+    runs = sorted(str(d) for d in args.experiment.glob("env=*") if d.is_dir() and run_is_finished(d))
     with tempfile.TemporaryDirectory() as out:
         cmd = [
             args.adarl,
             "report",
-            str(args.experiment),
+            *runs,
             "--spec",
             str(args.spec),
             "--set",
