@@ -49,8 +49,8 @@ if [ ! -x $EXP/wt-t/.venv/bin/adarl ]; then
   (cd $EXP/wt-t && .venv/bin/pip install -q -c constraints.txt .)
 fi
 # arm (e) (the bottleneck's initialisation, run only when none of (a)-(d) counts) from the worktree wt-e at WT_E: the
-# commit that added its init scheme, spec budget and amendment
-WT_E=${ISSUE45_WT_E:-cc50c7f}
+# commit that added its init scheme, spec budget and amendment (cc50c7f) with arm_e_due.py fixed (f6676ac)
+WT_E=${ISSUE45_WT_E:-f6676ac}
 [ -d $EXP/wt-e ] || git worktree add $EXP/wt-e $WT_E
 if [ ! -x $EXP/wt-e/.venv/bin/adarl ]; then
   python3 -m venv $EXP/wt-e/.venv
