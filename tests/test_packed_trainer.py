@@ -254,8 +254,54 @@ def test_an_arm_that_cannot_pack_runs_solo_said_by_name_and_what_packing_does_no
     assert plan_packs(runs, recipes, 1, str(tmp_path / "exp"), said.append) == runs
     with pytest.raises(AdaRLValueError, match=">= 1, got 0"):
         check_packable_launch(0, tmp_path)
-    bad = adarl("experiment", str(spec), "-o", "memory://exp", "--pack", "2")
-    assert bad.returncode != 0 and "not an fsspec URL (memory://exp)" in bad.stderr, bad.stderr
+    bad = adarl("experiment", str(spec), "-o", str(tmp_path / "exp"), "--pack", "-2")
+    assert bad.returncode != 0 and "--pack takes a number of seeds per process >= 1, got -2" in bad.stderr, bad.stderr
+    units = plan_packs(runs, recipes, 2, "file:///bucket/exp", said.append)  # a pack's stop file sits at the URL
+    assert units[0].path == f"file:///bucket/exp/packs/{units[0].run_id}"
+
+
+def test_a_pack_at_a_url_trains_in_scratch_folders_and_resumes_on_another_machines(runs, tmp_path):
+    """``--pack`` with an fsspec URL output (``file://``, the protocol of adarl.runtime.run_folder.results):
+    the pack trains its runs in a local scratch folder and uploads each after its checkpoints; SIGTERM stops it (exit
+    143, each run's checkpoint at the URL, no summary); the same command on another scratch folder (another machine)
+    downloads both and finishes them in one pack, each as its solo run, ``packed_with`` naming the runs' URLs."""
+    root, _ = runs
+    bucket, first, second = tmp_path / "bucket", tmp_path / "scratch-a", tmp_path / "scratch-b"
+    url = f"file://{bucket}/exp"
+    spec = _spec(tmp_path, seeds=[0, 1], pack=2)
+    cmd = ("experiment", str(spec), "-o", url, "--no-live", "--progress", "0", "--no-report")
+
+    def checkpointed():
+        return all(list(first.glob(f"*/seed={s}/checkpoints/ckpt-{200:012d}.pt")) for s in (0, 1))
+
+    proc = start_adarl(*cmd, "--scratch", str(first))
+    assert wait_for(checkpointed, proc), proc.communicate()
+    proc.send_signal(signal.SIGTERM)
+    said, err = proc.communicate(timeout=300)
+    assert proc.returncode == 128 + signal.SIGTERM, said + err
+    pack_id = re.search(r"\[pack\] (pack-[0-9a-f]+): recipe quickstart, seeds 0, 1", said).group(1)
+    for s in (0, 1):
+        at_url = bucket / "exp" / f"seed={s}"
+        assert json.loads((at_url / "checkpoints" / "LATEST").read_text())["frames"] >= 200
+        assert not (at_url / "summary.json").exists()
+
+    done = adarl(*cmd, "--scratch", str(second))
+    assert done.returncode == 0, done.stdout + done.stderr
+    for s in (0, 1):
+        run = bucket / "exp" / f"seed={s}"
+        _same_run(root / f"solo{s}", run, checkpoints=False)
+        assert json.loads((run / "summary.json").read_text())["packed_with"] == [f"{url}/seed=0", f"{url}/seed=1"]
+        attempts = read_attempts(url, f"seed={s}")
+        assert [(e["event"], e.get("action"), e.get("status"), e["pack"]) for e in attempts] == [
+            ("start", "ran", None, pack_id),
+            ("end", "ran", "interrupted", pack_id),
+            ("start", "resumed", None, pack_id),
+            ("end", "resumed", "finished", pack_id),
+        ]
+        assert attempts[2]["scratch"].startswith(str(second))
+    # finished runs leave nothing in the scratch folder (the pack folder included); the URL no temporary name
+    assert not [p for p in second.rglob("*") if p.is_file()]
+    assert not [p for p in bucket.rglob("*") if ".part-" in p.name]
 
 
 def test_a_pack_killed_before_its_first_checkpoint_starts_its_seeds_afresh(tmp_path):

@@ -305,20 +305,12 @@ def execute_run(run: PlannedRun, threads: int | None, watch: Callable[[], bool] 
             shutil.rmtree(path)
             RunDir(path).unlock()
         cmd, action = _cli("run", run.recipe, *run.overrides, "-o", str(path), "--quiet"), "ran"
-    env = _train_env(threads)
     _make_below(run, path.parent)
     log = path.parent / f"{run.run_id}.log"
     _record_attempt(run, event="start", action=action)
     start = time.perf_counter()
     with log.open("w") as fh:
-        proc = subprocess.Popen(
-            cmd,
-            stdout=fh,
-            stderr=subprocess.STDOUT,
-            env=env,
-            preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None,
-            process_group=0,  # a terminal's Ctrl-C reaches its launcher alone, which stops it once (_wait)
-        )
+        proc = start_training(cmd, fh, threads)
         with _live(proc) as sent:
             try:
                 stopped, interrupted = _wait(proc, watch), None
@@ -438,75 +430,96 @@ def _train_env(threads: int | None) -> dict:
 _POLL_S = 1.0  # how often a URL run's scratch folder is checked for a new checkpoint to upload
 
 
-def _execute_at_url(run: PlannedRun, threads: int | None, watch: Callable[[], bool] | None = None) -> PlannedRun:
-    """:func:`execute_run` for a run at a URL: train in the local scratch folder (downloaded from the URL first when
-    it lacks the URL's latest checkpoint), upload after each checkpoint and at the end (:class:`RunMirror`)."""
+def start_training(cmd: list[str], log, threads: int | None) -> subprocess.Popen:
+    """A training process (``adarl run`` / ``resume``) writing to the open file ``log``, in its own process group (a
+    terminal's Ctrl-C reaches its launcher alone, which stops it once: :func:`_wait`), dying with this process."""
+    return subprocess.Popen(
+        cmd,
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        env=_train_env(threads),
+        preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None,
+        process_group=0,
+    )
+
+
+def wait_uploading(
+    proc: subprocess.Popen, watch: Callable[[], bool] | None, uploads: list[tuple[RunMirror, str]], log
+) -> tuple[int | None, bool, KeyboardInterrupt | None]:
+    """Wait for a training process whose runs are at URLs, uploading each ``(mirror, url)`` when due
+    (:func:`push_when_due`) and sending SIGTERM when ``watch`` says stop. Returns ``(exit status, stopped by the
+    watch, the KeyboardInterrupt to raise once the runs are settled)``: interrupted, the training is stopped first
+    (:func:`_end_training`: it checkpoints, then everything is uploaded by the caller); any other error is raised."""
+    stopped = False
+    try:
+        while True:
+            try:
+                return proc.wait(timeout=_POLL_S), stopped, None
+            except subprocess.TimeoutExpired:
+                pass
+            if watch is not None and not stopped and watch():
+                stopped = True
+                proc.send_signal(signal.SIGTERM)  # the trainer checkpoints after its batch; uploaded after
+            for mirror, url in uploads:
+                push_when_due(mirror, log, url)
+    except BaseException as err:
+        _end_training(proc, err, sigterm_sent=stopped)
+        if not isinstance(err, KeyboardInterrupt):
+            raise
+        return proc.returncode, stopped, err
+
+
+def prepare_url_run(run: PlannedRun) -> tuple[Path, RunMirror, str] | None:
+    """Before an attempt at a run at a URL: its scratch folder made to hold the run's latest state (downloaded when
+    it lacks the URL's latest checkpoint) and how the attempt goes on: ``"ran"`` (no checkpoint at the URL: a fresh
+    start), ``"resumed"``, or ``"uploaded"`` (finished here, but the worker was lost before the upload ended).
+    Returns ``(scratch folder, mirror, action)``, or None with the run ``failed`` when the URL cannot be read."""
     local = scratch_folder(run.path, run.run_id, run.scratch)
     local.parent.mkdir(parents=True, exist_ok=True)
     mirror = RunMirror(local, run.path)
-    remote_log = join(run.path.rsplit("/", 1)[0], f"{run.run_id}.log")
-    log = local.with_name(f"{run.run_id}.log")
     try:
         state = mirror.prepare()
     except Exception as err:  # noqa: BLE001 - e.g. the store does not answer: this attempt fails, others go on
         run.status, run.message = "failed", f"could not read {run.path}: {type(err).__name__}: {err}"
-        return run
-    if state == "fresh":
-        cmd, action = _cli("run", run.recipe, *run.overrides, "-o", str(local), "--quiet"), "ran"
-    elif run_is_finished(local):  # finished here, but the worker was lost before the upload ended
-        cmd, action = None, "uploaded"
-    else:
-        cmd, action = _cli("resume", str(local), "--quiet"), "resumed"
-    _record_attempt(run, event="start", action=action, scratch=str(local))
-    start = time.perf_counter()
-    returncode, upload_error, sent, stopped, interrupted = 0, None, None, False, None
-    if cmd is not None:
-        with log.open("w") as fh:
-            proc = subprocess.Popen(
-                cmd,
-                stdout=fh,
-                stderr=subprocess.STDOUT,
-                env=_train_env(threads),
-                preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None,
-                process_group=0,  # a terminal's Ctrl-C reaches its launcher alone, which stops it once (_wait)
-            )
-            try:
-                with _LIVE_LOCK:
-                    _LIVE[proc] = None
-                while True:
-                    try:
-                        returncode = proc.wait(timeout=_POLL_S)
-                        break
-                    except subprocess.TimeoutExpired:
-                        pass
-                    if watch is not None and not stopped and watch():
-                        stopped = True
-                        proc.send_signal(signal.SIGTERM)  # the trainer checkpoints after its batch; uploaded below
-                    if mirror.has_new_checkpoint() or time.monotonic() - mirror.last_push >= SYNC_INTERVAL_S:
-                        try:
-                            mirror.push()
-                        except Exception as err:  # noqa: BLE001 - retried at the next checkpoint; the run goes on
-                            fh.write(f"adarl: upload to {run.path} failed (retrying later): {err}\n")
-                            fh.flush()
-            except BaseException as err:
-                _end_training(proc, err, sigterm_sent=stopped)
-                if not isinstance(err, KeyboardInterrupt):
-                    raise
-                returncode, interrupted = proc.returncode, err  # stopped after its checkpoint: uploaded below
-            finally:
-                with _LIVE_LOCK:
-                    sent = _LIVE.pop(proc, None)
-    run.wall_time_s = time.perf_counter() - start
-    finished_here = _ended_finished(returncode, local)
+        return None
+    action = "ran" if state == "fresh" else "uploaded" if run_is_finished(local) else "resumed"
+    return local, mirror, action
+
+
+def push_when_due(mirror: RunMirror, log, url: str) -> None:
+    """While a URL run trains: upload after each new checkpoint (and every :data:`SYNC_INTERVAL_S` for the metrics);
+    a failed upload is written to the training's ``log`` (an open file) and retried at the next."""
+    if mirror.has_new_checkpoint() or time.monotonic() - mirror.last_push >= SYNC_INTERVAL_S:
+        try:
+            mirror.push()
+        except Exception as err:  # noqa: BLE001 - retried at the next checkpoint; the run goes on
+            log.write(f"adarl: upload to {url} failed (retrying later): {err}\n")
+            log.flush()
+
+
+def settle_url_run(
+    run: PlannedRun,
+    local: Path,
+    mirror: RunMirror,
+    finished_here: bool,
+    returncode: int | None,
+    log: Path,
+    *,
+    stopped: bool = False,
+    sent: int | None = None,
+) -> None:
+    """After an attempt at a run at a URL: the last upload (everything, ``summary.json`` last, when it finished in
+    ``local``) and the run's status; an unfinished run's ``log`` goes to the URL beside it (``<run id>.log``), a
+    finished one leaves nothing in the scratch folder."""
+    remote_log = join(run.path.rsplit("/", 1)[0], f"{run.run_id}.log")
     try:
         mirror.push(final=finished_here)
         upload_error = None
     except Exception as err:  # noqa: BLE001 - reported below; the scratch folder is kept for a retry
         upload_error = err
     if finished_here and upload_error is None and run_is_finished(run.path):
-        run.status, run.message = "finished", action
+        run.status, run.message = "finished", run.message
         mirror.clean()
-        log.unlink(missing_ok=True)
         fs, rpath = filesystem(remote_log)
         if fs.exists(rpath):  # the log of an earlier failed attempt
             fs.rm(rpath)
@@ -524,6 +537,35 @@ def _execute_at_url(run: PlannedRun, threads: int | None, watch: Callable[[], bo
             run.status, run.message = "stopped", f"stopped by its watcher (exit {returncode}); resumable (log: {where})"
         else:
             _set_unfinished(run, returncode, tail, where, sent=sent)
+
+
+def _execute_at_url(run: PlannedRun, threads: int | None, watch: Callable[[], bool] | None = None) -> PlannedRun:
+    """:func:`execute_run` for a run at a URL: train in the local scratch folder (downloaded from the URL first when
+    it lacks the URL's latest checkpoint), upload after each checkpoint and at the end (:class:`RunMirror`)."""
+    prepared = prepare_url_run(run)
+    if prepared is None:
+        return run
+    local, mirror, action = prepared
+    log = local.with_name(f"{run.run_id}.log")
+    cmd = {
+        "ran": _cli("run", run.recipe, *run.overrides, "-o", str(local), "--quiet"),
+        "resumed": _cli("resume", str(local), "--quiet"),
+        "uploaded": None,
+    }[action]
+    _record_attempt(run, event="start", action=action, scratch=str(local))
+    start = time.perf_counter()
+    returncode, sent, stopped, interrupted = 0, None, False, None
+    if cmd is not None:
+        with log.open("w") as fh:
+            proc = start_training(cmd, fh, threads)
+            with _live(proc) as sent_box:
+                returncode, stopped, interrupted = wait_uploading(proc, watch, [(mirror, run.path)], fh)
+            sent = sent_box[0]
+    run.wall_time_s = time.perf_counter() - start
+    run.message = action
+    settle_url_run(run, local, mirror, _ended_finished(returncode, local), returncode, log, stopped=stopped, sent=sent)
+    if run.status == "finished":
+        log.unlink(missing_ok=True)
     _record_attempt(run, event="end", action=action, status=run.status)
     if interrupted is not None:
         raise interrupted

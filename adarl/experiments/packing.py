@@ -10,16 +10,16 @@ loss term such as Parseval's, another training loop) runs solo, said by name bef
 for file a solo run's; ``experiment.json`` records the pack a run trained in (``pack``) and its summary.json the runs it
 was packed with (``packed_with``).
 
-Every launcher runs packs (a pack is one Ray task, one submitit job); outputs at an fsspec URL are refused with
-``--pack`` (not built yet).
+Every launcher runs packs (a pack is one Ray task, one submitit job). At an fsspec URL a pack trains as a solo run
+there does: its runs in local scratch folders, each uploaded after each of its checkpoints
+(:func:`~adarl.experiments.execute.prepare_url_run`, :func:`~adarl.experiments.execute.settle_url_run`).
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
-import subprocess
-import sys
+import shutil
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -29,19 +29,21 @@ from adarl.errors import AdaRLValueError
 from adarl.experiments.execute import (
     OutputFolderGone,
     _cli,
-    _die_with_parent,
     _live,
     _make_below,
     _record_attempt,
     _set_unfinished,
-    _train_env,
     _wait,
     execute_run,
+    prepare_url_run,
     run_is_finished,
+    settle_url_run,
     settled_before_start,
+    start_training,
+    wait_uploading,
 )
 from adarl.experiments.spec import PlannedRun
-from adarl.runtime.run_folder.results import is_url
+from adarl.runtime.run_folder.results import is_url, join
 from adarl.runtime.run_folder.run_dir import RunDir
 from adarl.runtime.trainers.pack_folder import relative_run, write_pack_file
 from adarl.runtime.trainers.packed import pack_refusal, recipe_without_seed
@@ -88,12 +90,6 @@ def check_packable_launch(pack: int, output) -> None:
     """Refuse, by name, what ``--pack`` does not run yet (before anything is written)."""
     if pack < 1:
         raise AdaRLValueError(f"--pack takes a number of seeds per process >= 1, got {pack}")
-    if pack == 1:
-        return
-    if is_url(output):
-        raise AdaRLValueError(
-            f"--pack {pack}: packed seeds write to a local output folder only, not an fsspec URL ({output}) yet"
-        )
 
 
 def plan_packs(
@@ -125,7 +121,8 @@ def plan_packs(
                 units.append(members[0])
                 continue
             pid = pack_id(members)
-            units.append(PlannedPack(pid, members, str(Path(output) / PACKS_DIR / pid), output=first.output))
+            path = join(str(output), PACKS_DIR, pid) if is_url(output) else str(Path(output) / PACKS_DIR / pid)
+            units.append(PlannedPack(pid, members, path, output=first.output))
             log(f"[pack] {pid}: {_arm(first)}, seeds {', '.join(str(r.seed) for r in members)}")
     return units
 
@@ -158,6 +155,8 @@ def execute_pack(pack: PlannedPack, threads: int | None, watch: Callable[[], boo
     if not todo:
         settle(pack)
         return pack
+    if is_url(todo[0].path):
+        return _execute_pack_at_url(pack, todo, threads, watch)
     folder = Path(pack.path)
     _make_below(todo[0], folder)
     write_pack_file(
@@ -172,14 +171,7 @@ def execute_pack(pack: PlannedPack, threads: int | None, watch: Callable[[], boo
         _record_attempt(r, event="start", action=actions[r.run_id], pack=pack.run_id)
     start = time.perf_counter()
     with log.open("w") as fh:
-        proc = subprocess.Popen(
-            _cli("resume", str(folder), "--quiet"),
-            stdout=fh,
-            stderr=subprocess.STDOUT,
-            env=_train_env(threads),
-            preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None,
-            process_group=0,
-        )
+        proc = start_training(_cli("resume", str(folder), "--quiet"), fh, threads)
         with _live(proc) as sent:
             try:
                 stopped, interrupted = _wait(proc, watch), None
@@ -202,6 +194,67 @@ def execute_pack(pack: PlannedPack, threads: int | None, watch: Callable[[], boo
     settle(pack)
     if pack.status == "finished":
         log.unlink(missing_ok=True)
+    if interrupted is not None:
+        raise interrupted
+    return pack
+
+
+def _execute_pack_at_url(
+    pack: PlannedPack, todo: list[PlannedRun], threads: int | None, watch: Callable[[], bool] | None
+) -> PlannedPack:
+    """:func:`execute_pack` for runs at a URL, as a solo run at a URL trains (``execute_run``): each run in its local
+    scratch folder (downloaded first when it lacks the URL's latest checkpoint), the pack folder beside them
+    (``<scratch>/<experiment hash>/packs/<pack id>``), each run uploaded after each of its checkpoints and at its
+    end."""
+    prepared = {}
+    for r in todo:
+        got = prepare_url_run(r)  # None: the URL could not be read (the run failed; the others go on)
+        if got is not None:
+            prepared[r.run_id] = got
+    train = [r for r in todo if r.run_id in prepared and prepared[r.run_id][2] != "uploaded"]
+    trained = {r.run_id for r in train}
+    for r in todo:
+        if r.run_id in prepared:
+            local, _, action = prepared[r.run_id]
+            in_pack = pack.run_id if r.run_id in trained else None
+            _record_attempt(r, event="start", action=action, scratch=str(local), pack=in_pack)
+    returncode, sent, stopped, interrupted, wall = 0, None, False, None, 0.0
+    log = None
+    if train:
+        local_root = prepared[train[0].run_id][0].parent  # every run of an experiment URL shares it
+        folder = local_root / "packs" / pack.run_id
+        write_pack_file(
+            folder,
+            [relative_run(prepared[r.run_id][0], folder) for r in train],
+            [r.seed for r in train],
+            [{"recipe": r.recipe, "overrides": r.overrides} for r in train],
+            names=[r.path for r in train],  # packed_with names each run by its URL, not its scratch folder
+        )
+        log = local_root / f"{pack.run_id}.log"
+        start = time.perf_counter()
+        with log.open("w") as fh:
+            proc = start_training(_cli("resume", str(folder), "--quiet"), fh, threads)
+            uploads = [(prepared[r.run_id][1], r.path) for r in train]
+            with _live(proc) as sent_box:  # every seed checkpoints on a stop; uploaded below
+                returncode, stopped, interrupted = wait_uploading(proc, watch, uploads, fh)
+            sent = sent_box[0]
+        wall = time.perf_counter() - start
+    for r in todo:
+        if r.run_id not in prepared:
+            continue
+        local, mirror, action = prepared[r.run_id]
+        r.wall_time_s, r.message = wall, f"{action} in {pack.run_id}" if r.run_id in trained else action
+        if r.run_id in trained:
+            r.pack = pack.run_id
+        # finished when its budget is spent (the pack's exit status may be another seed's failure)
+        run_log = log if log is not None else local.with_name(f"{r.run_id}.log")
+        settle_url_run(r, local, mirror, run_is_finished(local), returncode, run_log, stopped=stopped, sent=sent)
+        _record_attempt(r, event="end", action=action, status=r.status, pack=r.pack if r.run_id in trained else None)
+    pack.wall_time_s = wall
+    settle(pack)
+    if pack.status == "finished" and log is not None:
+        log.unlink(missing_ok=True)
+        shutil.rmtree(log.with_name("packs") / pack.run_id, ignore_errors=True)
     if interrupted is not None:
         raise interrupted
     return pack

@@ -51,12 +51,21 @@ def is_pack_folder(path) -> bool:
     return (Path(path) / PACK_FILE).is_file()
 
 
-def write_pack_file(folder, runs: Sequence[str], seeds: Sequence[int], starts: Sequence[dict] | None = None) -> None:
+def write_pack_file(
+    folder,
+    runs: Sequence[str],
+    seeds: Sequence[int],
+    starts: Sequence[dict] | None = None,
+    names: Sequence[str] | None = None,
+) -> None:
     """``folder/pack.json``: the runs (paths relative to ``folder``), their seeds, and (experiment packs) how to start
-    each one: ``{"recipe": name or file, "overrides": [...]}``."""
+    each one: ``{"recipe": name or file, "overrides": [...]}``, and what each run's ``packed_with`` calls it (``names``:
+    a run at an fsspec URL trains in a scratch folder and is named by its URL; default its folder)."""
     data: dict = {"seeds": [int(s) for s in seeds], "runs": [str(r) for r in runs]}
     if starts is not None:
         data["starts"] = [{"recipe": str(s["recipe"]), "overrides": [str(o) for o in s["overrides"]]} for s in starts]
+    if names is not None:
+        data["names"] = [str(n) for n in names]
     Path(folder).mkdir(parents=True, exist_ok=True)
     atomic_write_text(Path(folder) / PACK_FILE, json.dumps(data, indent=1) + "\n")
 
@@ -74,24 +83,27 @@ def _checked(entry, folder: Path) -> Path:
     return Path(os.path.normpath(folder.joinpath(*parts)))
 
 
-def _read(folder: Path) -> tuple[list[Path], list[int], list[dict | None]]:
+def _read(folder: Path) -> tuple[list[Path], list[int], list[dict | None], list[str]]:
     path = folder / PACK_FILE
     try:
         data = json.loads(path.read_text())
         runs = [_checked(r, folder) for r in data["runs"]]
         seeds = [int(s) for s in data["seeds"]]
         starts = data.get("starts") or [None] * len(runs)
+        names = data.get("names") or [str(r) for r in runs]
+        if not all(isinstance(n, str) and n for n in names):
+            raise ValueError(f"names must be non-empty strings, got {names!r}")
         for s in starts:
             if s is not None and not (isinstance(s.get("recipe"), str) and isinstance(s.get("overrides"), list)):
                 raise ValueError(f"a start must name a recipe and a list of overrides, got {s!r}")
     except (OSError, ValueError, KeyError, TypeError, AttributeError) as err:
         raise AdaRLValueError(f"{str(path)!r} does not name a pack's runs: {err}") from None
-    if not runs or len(seeds) != len(runs) or len(starts) != len(runs) or len(set(runs)) != len(runs):
+    if not runs or len(set(runs)) != len(runs) or any(len(x) != len(runs) for x in (seeds, starts, names)):
         raise AdaRLValueError(
-            f"{str(path)!r} must name distinct run folders, one seed (and start) each: {len(runs)} runs, "
-            f"{len(seeds)} seeds, {len(starts)} starts"
+            f"{str(path)!r} must name distinct run folders, one seed (and start, name) each: {len(runs)} runs, "
+            f"{len(seeds)} seeds, {len(starts)} starts, {len(names)} names"
         )
-    return runs, seeds, starts
+    return runs, seeds, starts, names
 
 
 def pack_runs(folder) -> list[Path]:
@@ -171,13 +183,14 @@ def resume_pack(folder, *, checkpoint=None, quiet: bool = False) -> tuple[SeedPa
     """The pack of a pack folder's seeds that have not finished (each from its latest checkpoint, its RNGs as the
     checkpoint saved them; afresh without one), and a line for each seed already complete (None: every seed is)."""
 
-    runs, seeds, starts = _read(Path(folder))
-    trainers, rngs, said = [], [], []
+    runs, seeds, starts, names = _read(Path(folder))
+    trainers, rngs, kept, said = [], [], [], []
     try:
-        for run, seed, start in zip(runs, seeds, starts, strict=True):
+        for run, seed, start, name in zip(runs, seeds, starts, names, strict=True):
             if checkpoint is None and RunDir(run).latest_checkpoint_frames() is None:
                 trainers.append(_fresh(run, seed, start))
                 rngs.append(SeedRNG())  # as its build left them, as in its own process
+                kept.append(name)
                 continue
             trainer = PackedSeedTrainer.resume(run, quiet=True, checkpoint=checkpoint)
             done = already_complete(
@@ -189,7 +202,8 @@ def resume_pack(folder, *, checkpoint=None, quiet: bool = False) -> tuple[SeedPa
                 continue
             trainers.append(trainer)
             rngs.append(SeedRNG())
-        return (SeedPack(trainers, rngs, quiet=quiet) if trainers else None), said
+            kept.append(name)
+        return (SeedPack(trainers, rngs, quiet=quiet, names=kept) if trainers else None), said
     except BaseException:
         for t in trainers:
             try:

@@ -167,7 +167,7 @@ class PackedSeedTrainer(OffPolicyTrainer):
     def _summary(self, elapsed: float) -> dict:
         summary = super()._summary(elapsed)
         if self.pack is not None:
-            summary["packed_with"] = [str(t.run_dir.path) for t in self.pack.trainers]
+            summary["packed_with"] = list(self.pack.names)
         return summary
 
 
@@ -190,8 +190,20 @@ class SeedPack:
     [300, 300]
     """
 
-    def __init__(self, trainers: Sequence[PackedSeedTrainer], rngs: Sequence[SeedRNG], *, quiet: bool = False) -> None:
+    def __init__(
+        self,
+        trainers: Sequence[PackedSeedTrainer],
+        rngs: Sequence[SeedRNG],
+        *,
+        quiet: bool = False,
+        names: Sequence[str] | None = None,
+    ) -> None:
         self.trainers = list(trainers)
+        # what each seed's summary.json calls the runs it was packed with (``packed_with``): their folders, or the
+        # names pack.json gives (a run at a URL trains in a scratch folder)
+        self.names = [str(t.run_dir.path) for t in self.trainers] if names is None else [str(n) for n in names]
+        if len(self.names) != len(self.trainers):
+            raise AdaRLValueError(f"one name per seed: {len(self.trainers)} seeds, {len(self.names)} names")
         if not self.trainers:
             raise AdaRLValueError("a seed pack needs at least one seed")
         first = recipe_without_seed(self.trainers[0].recipe)

@@ -12,13 +12,16 @@ EXP=${ISSUE45_EXP:-/work/exp}
 I=$MAIN/docs/reports/issue45
 echo 0 > /proc/sys/kernel/sched_autogroup_enabled 2>/dev/null || echo "could not turn sched_autogroup off"
 mkdir -p $EXP
-[ -d $EXP/wt-m ] || git worktree add $EXP/wt-m 862724f
-if [ ! -x $EXP/wt-m/.venv/bin/adarl ]; then
-  python3 -m venv $EXP/wt-m/.venv
-  $EXP/wt-m/.venv/bin/pip install -q --upgrade pip
-  $EXP/wt-m/.venv/bin/pip install -q torch==2.13.0
-  (cd $EXP/wt-m && .venv/bin/pip install -q -c constraints.txt .)
-fi
+worktree() {  # worktree NAME COMMIT: $EXP/NAME at COMMIT with its own non-editable install (made once)
+  [ -d $EXP/$1 ] || git worktree add $EXP/$1 $2
+  if [ ! -x $EXP/$1/.venv/bin/adarl ]; then
+    python3 -m venv $EXP/$1/.venv
+    $EXP/$1/.venv/bin/pip install -q --upgrade pip
+    $EXP/$1/.venv/bin/pip install -q torch==2.13.0
+    (cd $EXP/$1 && .venv/bin/pip install -q -c constraints.txt .)
+  fi
+}
+worktree wt-m 862724f
 into=$EXP/mechanism-pilot
 mkdir -p $into
 for arm in adarl sac_restarts; do
@@ -41,23 +44,11 @@ fi
 echo "restored $(ls -d $into/env=* | wc -l) runs into $into"
 # the experiments after the mechanism arms run from the worktree wt-t at WT_T (queue.sh)
 WT_T=${ISSUE45_WT_T:-fa38c5c}
-[ -d $EXP/wt-t ] || git worktree add $EXP/wt-t $WT_T
-if [ ! -x $EXP/wt-t/.venv/bin/adarl ]; then
-  python3 -m venv $EXP/wt-t/.venv
-  $EXP/wt-t/.venv/bin/pip install -q --upgrade pip
-  $EXP/wt-t/.venv/bin/pip install -q torch==2.13.0
-  (cd $EXP/wt-t && .venv/bin/pip install -q -c constraints.txt .)
-fi
+worktree wt-t $WT_T
 # arm (e) (the bottleneck's initialisation, run only when none of (a)-(d) counts) from the worktree wt-e at WT_E: the
 # commit that added its init scheme, spec budget and amendment (cc50c7f) with arm_e_due.py fixed (f6676ac)
 WT_E=${ISSUE45_WT_E:-f6676ac}
-[ -d $EXP/wt-e ] || git worktree add $EXP/wt-e $WT_E
-if [ ! -x $EXP/wt-e/.venv/bin/adarl ]; then
-  python3 -m venv $EXP/wt-e/.venv
-  $EXP/wt-e/.venv/bin/pip install -q --upgrade pip
-  $EXP/wt-e/.venv/bin/pip install -q torch==2.13.0
-  (cd $EXP/wt-e && .venv/bin/pip install -q -c constraints.txt .)
-fi
+worktree wt-e $WT_E
 # each committed run back into its experiment folder (a finished one is skipped by the driver, checked by content)
 restore() {  # restore REPORT_FOLDER EXPERIMENT_FOLDER [GLOB]
   [ -d "$MAIN/docs/reports/$1/runs" ] || return 0
