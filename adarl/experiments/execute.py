@@ -58,6 +58,11 @@ __all__ = [
     "request_stop",
     "clear_stop",
     "OutputFolderGone",
+    "start_training",
+    "prepare_url_run",
+    "push_when_due",
+    "wait_uploading",
+    "settle_url_run",
 ]
 
 ATTEMPTS_DIR = "attempts"  # <output>/attempts/<run id>.jsonl: one line per start and end of a run, by any launcher
