@@ -253,7 +253,7 @@ def test_an_arm_that_cannot_pack_runs_solo_said_by_name_and_what_packing_does_no
     assert said[1].startswith("[solo] path=torchrl: 3 runs, each in its own process (cannot pack: LossStep")
     assert plan_packs(runs, recipes, 1, str(tmp_path / "exp"), said.append) == runs
     with pytest.raises(AdaRLValueError, match=">= 1, got 0"):
-        check_packable_launch(0, tmp_path)
+        check_packable_launch(0)
     bad = adarl("experiment", str(spec), "-o", str(tmp_path / "exp"), "--pack", "-2")
     assert bad.returncode != 0 and "--pack takes a number of seeds per process >= 1, got -2" in bad.stderr, bad.stderr
     units = plan_packs(runs, recipes, 2, "file:///bucket/exp", said.append)  # a pack's stop file sits at the URL
@@ -318,4 +318,14 @@ def test_a_pack_killed_before_its_first_checkpoint_starts_its_seeds_afresh(tmp_p
             t.close()
     (tmp_path / "p" / "pack.json").write_text(json.dumps({"seeds": [3], "runs": ["../elsewhere"]}))
     with pytest.raises(AdaRLValueError, match="neither inside the pack folder nor an experiment's run"):
+        resume_pack(tmp_path / "p")
+    (tmp_path / "p" / "pack.json").write_text(
+        json.dumps({"seeds": [3, 4], "runs": ["seed=3", "seed=4"], "names": ["a"]})
+    )
+    with pytest.raises(
+        AdaRLValueError, match="one seed \\(and start, name\\) each: 2 runs, 2 seeds, 2 starts, 1 names"
+    ):
+        resume_pack(tmp_path / "p")
+    (tmp_path / "p" / "pack.json").write_text(json.dumps({"seeds": [3], "runs": ["seed=3"], "names": [""]}))
+    with pytest.raises(AdaRLValueError, match="names must be non-empty strings"):
         resume_pack(tmp_path / "p")

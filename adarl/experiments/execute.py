@@ -509,13 +509,14 @@ def settle_url_run(
     finished_here: bool,
     returncode: int | None,
     log: Path,
+    done: str,
     *,
     stopped: bool = False,
     sent: int | None = None,
 ) -> None:
     """After an attempt at a run at a URL: the last upload (everything, ``summary.json`` last, when it finished in
-    ``local``) and the run's status; an unfinished run's ``log`` goes to the URL beside it (``<run id>.log``), a
-    finished one leaves nothing in the scratch folder."""
+    ``local``) and the run's status (``finished`` with the message ``done`` once the URL holds it); an unfinished
+    run's ``log`` goes to the URL beside it (``<run id>.log``), a finished one leaves nothing in the scratch folder."""
     remote_log = join(run.path.rsplit("/", 1)[0], f"{run.run_id}.log")
     try:
         mirror.push(final=finished_here)
@@ -523,7 +524,7 @@ def settle_url_run(
     except Exception as err:  # noqa: BLE001 - reported below; the scratch folder is kept for a retry
         upload_error = err
     if finished_here and upload_error is None and run_is_finished(run.path):
-        run.status, run.message = "finished", run.message
+        run.status, run.message = "finished", done
         mirror.clean()
         fs, rpath = filesystem(remote_log)
         if fs.exists(rpath):  # the log of an earlier failed attempt
@@ -567,8 +568,8 @@ def _execute_at_url(run: PlannedRun, threads: int | None, watch: Callable[[], bo
                 returncode, stopped, interrupted = wait_uploading(proc, watch, [(mirror, run.path)], fh)
             sent = sent_box[0]
     run.wall_time_s = time.perf_counter() - start
-    run.message = action
-    settle_url_run(run, local, mirror, _ended_finished(returncode, local), returncode, log, stopped=stopped, sent=sent)
+    finished_here = _ended_finished(returncode, local)
+    settle_url_run(run, local, mirror, finished_here, returncode, log, action, stopped=stopped, sent=sent)
     if run.status == "finished":
         log.unlink(missing_ok=True)
     _record_attempt(run, event="end", action=action, status=run.status)

@@ -274,7 +274,7 @@ def run_experiment(
         else:
             log(f"note: --scratch is ignored: results at a local path ({out}) are written in place")
     pack = spec.pack if pack is None else pack
-    check_packable_launch(pack, out)
+    check_packable_launch(pack)
     recipes = _check_recipes(runs)
     changed = _place(runs, recipes, rerun_changed)
     if changed and not dry_run:

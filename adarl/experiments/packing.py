@@ -86,8 +86,8 @@ def pack_id(runs: list[PlannedRun]) -> str:
     return f"pack-{digest}"
 
 
-def check_packable_launch(pack: int, output) -> None:
-    """Refuse, by name, what ``--pack`` does not run yet (before anything is written)."""
+def check_packable_launch(pack: int) -> None:
+    """Refuse, by name, a ``--pack`` that is not a number of seeds per process (before anything is written)."""
     if pack < 1:
         raise AdaRLValueError(f"--pack takes a number of seeds per process >= 1, got {pack}")
 
@@ -243,12 +243,13 @@ def _execute_pack_at_url(
         if r.run_id not in prepared:
             continue
         local, mirror, action = prepared[r.run_id]
-        r.wall_time_s, r.message = wall, f"{action} in {pack.run_id}" if r.run_id in trained else action
+        r.wall_time_s = wall
         if r.run_id in trained:
             r.pack = pack.run_id
         # finished when its budget is spent (the pack's exit status may be another seed's failure)
         run_log = log if log is not None else local.with_name(f"{r.run_id}.log")
-        settle_url_run(r, local, mirror, run_is_finished(local), returncode, run_log, stopped=stopped, sent=sent)
+        done = f"{action} in {pack.run_id}" if r.run_id in trained else action
+        settle_url_run(r, local, mirror, run_is_finished(local), returncode, run_log, done, stopped=stopped, sent=sent)
         _record_attempt(r, event="end", action=action, status=r.status, pack=r.pack if r.run_id in trained else None)
     pack.wall_time_s = wall
     settle(pack)
