@@ -10,7 +10,7 @@ from _helpers import BUILT
 
 from adarl.core._surgery import resize_to_ranks
 from adarl.errors import AdaRLValueError
-from adarl.fast.packed import PackedSACUpdate
+from adarl.fast.packed import PackedSACUpdate, _adam_kernel
 from adarl.runtime.builders.sac import build_sac_components
 from adarl.runtime.config import load_recipe
 from adarl.runtime.update import FusedStep
@@ -93,10 +93,26 @@ def _copies(cs):
     return [copy.deepcopy(c.update.fused) for c in cs]
 
 
-def test_packed_seeds_match_their_solo_updates(seeds):
+def _counting_backend(graphs: list):
+    """``aot_eager`` that records each graph it is handed: every compilation, counted."""
+    from torch._dynamo.backends.registry import lookup_backend
+
+    def backend(gm, example_inputs):
+        graphs.append(gm)
+        return lookup_backend("aot_eager")(gm, example_inputs)
+
+    return backend
+
+
+@pytest.mark.parametrize("compiled", [False, True], ids=["eager", "compiled"])
+def test_packed_seeds_match_their_solo_updates(seeds, compiled):
     """Three seeds, each with its own values, a rank the others do not share, its own Adam history (state popped
     for the truncated factors) and learning rate, through a rank event between two stretches of updates: the packed
-    update gives every seed the parameters, targets, Adam state, learning rates and losses of its solo updates."""
+    update gives every seed the parameters, targets, Adam state, learning rates and losses of its solo updates.
+
+    ``compiled`` (``algorithm.compile``, traced by dynamo with a counting ``aot_eager`` backend): the same against
+    the eager solo updates, one compilation per layout of padded shapes (the first pack and the rank event), none
+    for a re-pack with an unchanged layout (a checkpoint's), never dynamo's fall-back to eager."""
     cs = [copy.deepcopy(c) for c in seeds]
     for c in cs:  # an Adam history of its own, before anything differs
         for _ in range(2):
@@ -115,8 +131,20 @@ def test_packed_seeds_match_their_solo_updates(seeds):
     first, second = _batches(cs, 4, seed=1), _batches(cs, 3, seed=2)
 
     solo_losses = [_solo(u, *first, i) for i, u in enumerate(solo)]
+    graphs: list = []
+    if compiled:
+        for u in packed_seeds:
+            u.compile, u.compile_backend = True, _counting_backend(graphs)
+        packed_seeds[1].compile_backend = packed_seeds[0].compile_backend  # the seeds' recipes are equal
+        packed_seeds[2].compile_backend = packed_seeds[0].compile_backend
     packed = PackedSACUpdate(packed_seeds)
-    packed_losses = [packed.step(b, n) for b, n in zip(*first, strict=True)]
+    packed_losses = [packed.step(b, n) for b, n in zip(first[0][:2], first[1][:2], strict=True)]
+    per_layout = 1 + len(packed.groups)  # the computation and each group's Adam: one graph each, no break
+    assert len(graphs) == (per_layout if compiled else 0) and packed.compilations == int(compiled)
+    packed.unpack()  # a checkpoint between updates: the same layout packs again without compiling
+    packed.pack()
+    packed_losses += [packed.step(b, n) for b, n in zip(first[0][2:], first[1][2:], strict=True)]
+    assert len(graphs) == (per_layout if compiled else 0) and packed.compilations == int(compiled)
     # the padding of seed 1's narrower layers stays exactly zero
     for group in packed.groups:
         for slot in group.slots:
@@ -130,13 +158,16 @@ def test_packed_seeds_match_their_solo_updates(seeds):
             assert pad.numel() == 0 or torch.equal(pad, torch.zeros_like(pad)), slot.key
     packed.unpack()
 
-    # a rank event on seed 0 (its Adam state for that layer dropped), then more updates
+    # a rank event narrowing one layer of every seed by a different amount (its Adam state dropped), so that the
+    # padded layout changes too, then more updates
     for c_list in (solo, packed_seeds):
-        resize_to_ranks(c_list[0].loss, {paths[1]: ranks[paths[1]] - 7}, c_list[0].optimizers)
+        for i, cut in enumerate((7, 3, 5)):
+            resize_to_ranks(c_list[i].loss, {paths[1]: ranks[paths[1]] - cut}, c_list[i].optimizers)
     solo_losses2 = [_solo(u, *second, i) for i, u in enumerate(solo)]
     packed.pack()
     packed_losses2 = [packed.step(b, n) for b, n in zip(*second, strict=True)]
     packed.unpack()
+    assert len(graphs) == (2 * per_layout if compiled else 0) and packed.compilations == 2 * int(compiled)
 
     for i in range(SEEDS):
         got, want = _state(packed_seeds[i]), _state(solo[i])
@@ -151,6 +182,37 @@ def test_packed_seeds_match_their_solo_updates(seeds):
     assert not torch.equal(_state(packed_seeds[0])["log_alpha"], _state(packed_seeds[1])["log_alpha"])
     assert not torch.equal(_state(packed_seeds[2])["log_alpha"], _state(cs[2].update.fused)["log_alpha"])
     assert cs[1].adapter.ranks[paths[0]] == ranks[paths[0]] - 9 != cs[0].adapter.ranks[paths[0]]
+
+
+def test_packed_step_compiled_by_inductor_equals_eager(seeds):
+    """What ``algorithm.compile: true`` runs in a pack: the packed computation and each group's Adam kernel compiled
+    by inductor (fused C++ kernels) give the eager ones' losses, gradients and Adam updates within fp tolerance."""
+    us = _copies(seeds[:2])
+    for u in us:
+        u.compile, u.compile_backend = True, "inductor"
+    packed = PackedSACUpdate(us)
+    batches, noises = _batches(seeds[:2], 1, seed=5)
+    obs, action, reward, next_obs, terminated = (torch.stack(ts) for ts in zip(*batches[0], strict=True))
+    args = (obs, action, reward, next_obs, terminated.bool(), *(torch.stack(nz) for nz in zip(*noises[0], strict=True)))
+    with torch.no_grad():
+        *out_c, grads_c = packed._compute(*args)
+        *out_e, grads_e = packed.compute(*args)
+    assert sorted(grads_c) == sorted(grads_e) and packed.compilations == 1
+    for a, b in zip(out_c + [grads_c[k] for k in sorted(grads_c)], out_e + [grads_e[k] for k in sorted(grads_e)]):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-6)
+    gen = torch.Generator().manual_seed(0)
+    for group, kernel in zip(packed.groups, packed._adam_kernels, strict=True):
+        flat = group.param.view(2, -1)
+        grad = torch.randn(flat.shape, generator=gen)
+        state = [flat.clone(), torch.randn(flat.shape, generator=gen), torch.rand(flat.shape, generator=gen)]
+        sizes = (torch.full_like(flat, 3e-4), torch.full_like(flat, 0.2))
+        compiled, eager = [t.clone() for t in state], [t.clone() for t in state]
+        clip = torch.tensor([[0.5], [1.0]])
+        kernel(grad, *compiled, *sizes, 0.9, 0.999, 1e-8, clip)
+        _adam_kernel(grad, *eager, *sizes, 0.9, 0.999, 1e-8, clip)
+        for a, b, before in zip(compiled, eager, state, strict=True):
+            torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-7)
+            assert not torch.equal(a, before)  # the kernel did update in place
 
 
 def test_packed_seed_tensors_are_live_views(seeds):

@@ -36,10 +36,12 @@ def affine(x: torch.Tensor, w_t: torch.Tensor, b: torch.Tensor | None) -> torch.
     return torch.matmul(x, w_t) + b.unsqueeze(-2)
 
 
-def compile_fresh(function, owner, name: str, backend: str):
-    """``torch.compile`` of ``function`` bound to ``owner``, from a fresh copy of its code object.
+def compile_fresh(function, owner, name: str, backend):
+    """``torch.compile`` of ``function`` bound to ``owner`` (None: unbound), from a fresh copy of its code object.
 
     Why: a fresh code object has a fresh dynamo cache, so rebuilding at each rank event compiles exactly once per
-    event and dynamo's recompile limit (8 by default) is never reached: no silent fall-back to eager."""
+    event and dynamo's recompile limit (8 by default) is never reached: no silent fall-back to eager. ``backend``
+    is ``torch.compile``'s (a name, or a callable backend)."""
     fresh = types.FunctionType(function.__code__.replace(), function.__globals__, name)
-    return torch.compile(types.MethodType(fresh, owner), backend=backend, fullgraph=True, dynamic=False)
+    target = fresh if owner is None else types.MethodType(fresh, owner)
+    return torch.compile(target, backend=backend, fullgraph=True, dynamic=False)

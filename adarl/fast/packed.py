@@ -21,10 +21,16 @@ factors it changed) and its own learning rates (read from its optimisers, steppe
 own Polyak update. The Gaussian noise of the two reparameterised samples is passed in per seed (drawn with each
 seed's own generator state by the caller), so a packed seed can reproduce its solo run.
 
+With ``algorithm.compile`` (the seeds' ``FusedSACUpdate.compile``) the step's computation and each optimiser group's
+Adam are compiled (``torch.compile``) once per layout of padded shapes (the first pack, and a rank event that changes
+the largest rank of a layer), each from a fresh code object so that dynamo never falls back to eager; a re-pack with
+an unchanged layout (after a checkpoint) reuses them.
+
 Mirrors: ``FusedSACUpdate.step`` (``backward="manual"``, fused Adam, ``polyak="factors"``) of each seed.
 Equality: ``tests/test_packed.py::test_packed_seeds_match_their_solo_updates`` (parameters, targets, Adam states and
 losses of every seed, with different ranks, popped Adam state and different learning rates per seed, within fp
-tolerance); what it does not implement is refused by name
+tolerance; compiled, by a counting backend, and by inductor in
+``test_packed_step_compiled_by_inductor_equals_eager``); what it does not implement is refused by name
 (``tests/test_packed.py::test_packed_update_refuses_what_it_does_not_implement``).
 """
 
@@ -40,6 +46,7 @@ import torch
 from adarl.core._surgery import _erase_loss_caches
 from adarl.core.target_shift import TargetShiftSACLoss
 from adarl.errors import AdaRLValueError
+from adarl.fast.kernels import compile_fresh
 from adarl.fast.manual_backward import ManualSACStep, _Net, backward, forward
 from adarl.fast.sac import FusedSACUpdate
 
@@ -50,8 +57,6 @@ def packing_refusal(update: FusedSACUpdate) -> str | None:
     """Why one seed's :class:`~adarl.fast.sac.FusedSACUpdate` cannot be packed (None: it can)."""
     if update.backward != "manual":
         return f"backward={update.backward!r} (packing runs the manual backward only)"
-    if update.compile:
-        return "algorithm.compile: true (the packed step is not compiled)"
     if update.terms:
         return f"loss terms {sorted(update.terms)} (e.g. Parseval's)"
     if update.polyak != "factors":
@@ -140,6 +145,12 @@ class PackedSACUpdate:
         ext = first._param_extractor
         self._sp_bias, self._sp_min = float(ext.scale_mapping.bias), float(ext.scale_mapping.min_val)
         self._scale_lb = float(ext.scale_lb)
+        # algorithm.compile (the seeds share it): the step's computation and each group's Adam are compiled once per
+        # layout of padded shapes (the first pack and each rank event that changes it), kept for a re-pack with the
+        # same layout (after a checkpoint) until the layout changes
+        self.compile, self.compile_backend = bool(first.compile), first.compile_backend
+        self._compiled: dict[tuple, tuple] = {}
+        self.compilations = 0
         self.packed = False
         self.groups: list[_Group] = []
         self.pack()
@@ -165,6 +176,7 @@ class PackedSACUpdate:
                 float(u._half.sum()),
                 [[(g.get("betas"), g.get("eps"), len(g["params"])) for g in o.param_groups] for o in u.optimizers],
                 isinstance(u.loss, TargetShiftSACLoss),
+                (bool(u.compile), u.compile_backend if u.compile else None),
             )
 
         ref = layout(first)
@@ -185,6 +197,7 @@ class PackedSACUpdate:
                     "action box",
                     "optimiser groups",
                     "target shift",
+                    "algorithm.compile",
                 )
                 diff = [n for n, a, b in zip(names, ref, got, strict=True) if a != b]
                 raise AdaRLValueError(
@@ -318,6 +331,21 @@ class PackedSACUpdate:
         self.actor = _Net("actor", self.u.actor_mlp, actor)
         self.critic = _Net("critic", self.u.q_net, critic)
         self.target = _Net("target", self.u.q_net, target)
+        self._compute, self._adam_kernels = self.compute, [_adam_kernel] * len(self.groups)
+        if self.compile:
+            self._compute, self._adam_kernels = self._compiled_for_layout()
+
+    def _compiled_for_layout(self) -> tuple:
+        """The compiled computation and per-group Adam kernels for the current padded shapes (built on first use:
+        ``compile_fresh``, so each layout compiles once and dynamo never falls back to eager)."""
+        key = (self.n, self._fixed_alpha, tuple((s.key, s.shape) for g in self.groups for s in g.slots))
+        if key not in self._compiled:
+            self.compilations += 1
+            backend = self.compile_backend
+            compute = compile_fresh(PackedSACUpdate.compute, self, "packed_sac_compute", backend)
+            kernels = [compile_fresh(_adam_kernel, None, f"packed_adam_{i}", backend) for i in range(len(self.groups))]
+            self._compiled = {key: (compute, kernels)}  # ranks only shrink: an older layout does not come back
+        return self._compiled[key]
 
     def unpack(self) -> None:
         """Give each seed contiguous tensors of its own (the current values) and its Adam state in
@@ -437,11 +465,11 @@ class PackedSACUpdate:
         if isinstance(u.loss, TargetShiftSACLoss):
             shift = torch.stack([v.loss.target_shift().detach().reshape(()) for v in self.updates])
             reward = reward - shift.view(self.n, 1, 1)
-        loss_actor, loss_q, loss_alpha, alpha, entropy, grads = self.compute(
+        loss_actor, loss_q, loss_alpha, alpha, entropy, grads = self._compute(
             obs, action, reward, next_obs, terminated.bool(), noise_next, noise_now
         )
-        for group in self.groups:
-            self._adam(group, grads)
+        for group, kernel in zip(self.groups, self._adam_kernels, strict=True):
+            self._adam(group, grads, kernel)
         with warnings.catch_warnings():  # the seeds' Adam steps are this update's, not optimizer.step()
             warnings.filterwarnings("ignore", message=r"Seems like `optimizer.step\(\)` has been overridden")
             warnings.filterwarnings("ignore", message=r"Detected call of `lr_scheduler.step\(\)` before")
@@ -466,18 +494,14 @@ class PackedSACUpdate:
             ok &= torch.isfinite(group.param.view(self.n, -1)).all(1)
         return ok
 
-    def _adam(self, group: _Group, grads: dict[str, torch.Tensor]) -> None:
+    def _adam(self, group: _Group, grads: dict[str, torch.Tensor], kernel=None) -> None:
         """Clip (per seed, the group's norm) and take one Adam step for every seed, each at its own rates."""
         n = self.n
         rows = group.rows
         grad = torch.cat([grads[s.key].reshape(n * rows, -1) for s in group.slots], 1).view(n, -1)
-        if self.max_grad_norm is not None:
-            norm = torch.linalg.vector_norm(grad, dim=1, keepdim=True)
-            grad.mul_((self.max_grad_norm / (norm + 1e-6)).clamp_(max=1.0))
         opt_index, group_index = group.opt_index, group.group_index
         ref = self.updates[0].optimizers[opt_index].param_groups[group_index]
         beta1, beta2 = ref["betas"]
-        eps = ref["eps"]
         lr = torch.tensor(
             [float(v.optimizers[opt_index].param_groups[group_index]["lr"]) for v in self.updates], dtype=torch.float64
         ).view(n, 1)
@@ -486,11 +510,36 @@ class PackedSACUpdate:
         bc2_sqrt = (1 - beta2**group.steps).sqrt()
         step_size = (lr / bc1).to(grad.dtype).index_select(1, group.element_slot)
         bc2_sqrt = bc2_sqrt.to(grad.dtype).index_select(1, group.element_slot)
-        m, v = group.exp_avg.view(n, -1), group.exp_avg_sq.view(n, -1)
-        m.lerp_(grad, 1 - beta1)
-        v.mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
-        denom = (v.sqrt() / bc2_sqrt).add_(eps)
-        group.param.view(n, -1).sub_(step_size * m / denom)
+        clip = None
+        if self.max_grad_norm is not None:  # per seed, the group's norm
+            norm = torch.linalg.vector_norm(grad, dim=1, keepdim=True)
+            clip = (self.max_grad_norm / (norm + 1e-6)).clamp_(max=1.0)
+        (kernel or _adam_kernel)(
+            grad,
+            group.param.view(n, -1),
+            group.exp_avg.view(n, -1),
+            group.exp_avg_sq.view(n, -1),
+            step_size,
+            bc2_sqrt,
+            float(beta1),
+            float(beta2),
+            float(ref["eps"]),
+            clip,
+        )
+
+
+def _adam_kernel(grad, param, exp_avg, exp_avg_sq, step_size, bc2_sqrt, beta1, beta2, eps, clip) -> None:
+    """Adam's moments and step for every seed, in place on the ``[N, T]`` buffers, the gradient scaled by ``clip``
+    (``[N, 1]``, None: not clipped) first: the part of :meth:`PackedSACUpdate._adam` that ``algorithm.compile``
+    fuses (``step_size`` and ``bc2_sqrt`` are per element, from each seed's learning rate and step counts). The
+    clipping factor is computed outside: inductor (torch 2.13) fails with ``KeyError: 'buf5'`` when the norm's
+    reduction feeds both moments in one kernel."""
+    if clip is not None:
+        grad = grad * clip
+    exp_avg.lerp_(grad, 1 - beta1)
+    exp_avg_sq.mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
+    denom = (exp_avg_sq.sqrt() / bc2_sqrt).add_(eps)
+    param.sub_(step_size * exp_avg / denom)
 
 
 def _erase_caches(loss) -> None:
