@@ -133,10 +133,9 @@ def test_packed_seeds_match_their_solo_updates(seeds, compiled):
     solo_losses = [_solo(u, *first, i) for i, u in enumerate(solo)]
     graphs: list = []
     if compiled:
+        backend = _counting_backend(graphs)  # one for every seed, as their equal recipes name one
         for u in packed_seeds:
-            u.compile, u.compile_backend = True, _counting_backend(graphs)
-        packed_seeds[1].compile_backend = packed_seeds[0].compile_backend  # the seeds' recipes are equal
-        packed_seeds[2].compile_backend = packed_seeds[0].compile_backend
+            u.compile, u.compile_backend = True, backend
     packed = PackedSACUpdate(packed_seeds)
     packed_losses = [packed.step(b, n) for b, n in zip(first[0][:2], first[1][:2], strict=True)]
     per_layout = 1 + len(packed.groups)  # the computation and each group's Adam: one graph each, no break

@@ -494,8 +494,9 @@ class PackedSACUpdate:
             ok &= torch.isfinite(group.param.view(self.n, -1)).all(1)
         return ok
 
-    def _adam(self, group: _Group, grads: dict[str, torch.Tensor], kernel=None) -> None:
-        """Clip (per seed, the group's norm) and take one Adam step for every seed, each at its own rates."""
+    def _adam(self, group: _Group, grads: dict[str, torch.Tensor], kernel) -> None:
+        """Clip (per seed, the group's norm) and take one Adam step for every seed, each at its own rates, with
+        ``kernel`` (:func:`_adam_kernel`, or its compiled form)."""
         n = self.n
         rows = group.rows
         grad = torch.cat([grads[s.key].reshape(n * rows, -1) for s in group.slots], 1).view(n, -1)
@@ -514,7 +515,7 @@ class PackedSACUpdate:
         if self.max_grad_norm is not None:  # per seed, the group's norm
             norm = torch.linalg.vector_norm(grad, dim=1, keepdim=True)
             clip = (self.max_grad_norm / (norm + 1e-6)).clamp_(max=1.0)
-        (kernel or _adam_kernel)(
+        kernel(
             grad,
             group.param.view(n, -1),
             group.exp_avg.view(n, -1),
