@@ -90,10 +90,21 @@ def _missing_parents(path: Path) -> list[Path]:
     return out
 
 
+def _checked_run_folder(run_dir, overrides=()) -> None:
+    """What ``adarl resume`` and ``adarl eval`` refuse before they load anything (no folder, not a run folder, a
+    recipe that no longer validates, an override resume does not take), checked before torch is imported: a wrong
+    path is said at once, not after the seconds torch and TorchRL take to import. The trainer checks them again."""
+    from adarl.runtime.continuing import continued_recipe
+    from adarl.runtime.run_folder.run_dir import RunDir
+
+    run_dir = RunDir.open(run_dir)
+    continued_recipe(run_dir, run_dir.load_recipe(), overrides)
+
+
 def cmd_run(args) -> int:
+    # torch-free up to the training: a wrong key, value or output folder is refused at once (tests/test_cli_usability)
     from adarl.runtime.config import load_recipe
     from adarl.runtime.run_folder.run_dir import RunDir, logging_backends
-    from adarl.runtime.trainers import trainer_class
 
     recipe = load_recipe(args.recipe, args.overrides)  # validates everything before anything is written
     logging_backends(recipe)  # a logging extra that is not installed: refused before any folder is made
@@ -105,6 +116,8 @@ def cmd_run(args) -> int:
     run_dir = RunDir.create(path, overwrite=args.overwrite)
     try:
         run_dir.save_recipe(recipe)
+        from adarl.runtime.trainers import trainer_class  # torch and TorchRL, once the input is known to be valid
+
         trainer = trainer_class(recipe)(recipe, run_dir, quiet=args.quiet)
     except BaseException:
         # Nothing ran: leave no half-made run folder behind (and never remove one the user had), nor the empty
@@ -198,11 +211,12 @@ def _print_summary(summary: dict, path: Path) -> None:
 
 def cmd_resume(args) -> int:
     from adarl.runtime.continuing import already_complete
-    from adarl.runtime.trainers import BaseTrainer
     from adarl.runtime.trainers.pack_folder import is_pack_folder
 
     if is_pack_folder(args.run_dir):
         return _resume_pack(args)
+    _checked_run_folder(args.run_dir, args.overrides)
+    from adarl.runtime.trainers import BaseTrainer
 
     trainer = BaseTrainer.resume(args.run_dir, quiet=args.quiet, checkpoint=args.checkpoint, overrides=args.overrides)
     total = trainer.recipe.collector.total_frames
@@ -255,6 +269,7 @@ def cmd_eval(args) -> int:
         print(result.describe())
         return 0
 
+    _checked_run_folder(args.run_dir)
     from adarl.runtime.evaluation import describe_returns, evaluate_policy
     from adarl.runtime.trainers import BaseTrainer
 

@@ -49,6 +49,15 @@ LAZY_ADARL_IMPORTS = {
     "adarl.experiments.bench._update": "the benchmark driver never imports torch; each measurement's worker does",
     "adarl.experiments.tune": "the tune hub, in the parser: the spec, the study (Optuna, torch) load on first use",
     "adarl.experiments.tune._cli": "`adarl tune`'s arguments, in the parser: Optuna and torch load when it runs",
+    # what a command checks before it trains (the run folder, a pack folder, an experiment's plan) needs no torch:
+    # bad input is refused before torch's seconds of import (tests/test_cli_usability.py), and an experiment's
+    # driver, which trains nothing itself, never imports it to plan
+    "adarl.experiments.packing": "the packed trainer (torch) only once an experiment packs its runs",
+    "adarl.experiments.sweep": "the policy's evaluation (torch, MuJoCo) once a sweep runs; reading one needs neither",
+    "adarl.runtime.run_folder._file_safety": "torch where a checkpoint is saved or loaded",
+    "adarl.runtime.run_folder._loggers": "TorchRL's loggers where a run first logs",
+    "adarl.runtime.run_folder._records": "TorchRL's loggers where a run first logs",
+    "adarl.runtime.trainers.pack_folder": "the packed trainer where a pack is built; reading a pack folder needs none",
 }
 #: third-party packages a module may import inside a function: optional extras (ray, submitit, stable-baselines3,
 #: tensorboard), MuJoCo (the env registry validates recipes without it), matplotlib (its backend is chosen first),
@@ -72,6 +81,8 @@ MAX_LINES = 600
 SPLIT_PENDING: dict[str, str] = {}
 #: what recipe validation and ``import adarl`` reach, which must not load torch, TorchRL or MuJoCo at module top
 LIGHT_MODULES = ("adarl.plugins", "adarl.envs.registry", "adarl.envs.registration", "adarl.envs.presets")
+#: and what a command checks its input with before it trains, and an experiment's driver (it trains nothing itself)
+LIGHT_MODULES += ("adarl.runtime.run_folder.run_dir", "adarl.runtime.continuing", "adarl.experiments.orchestrate")
 HEAVY_THIRD_PARTY = {"torch", "torchrl", "tensordict", "mujoco", "gymnasium"}
 
 

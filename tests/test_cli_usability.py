@@ -3,6 +3,7 @@ a clear error for an unavailable device, and quiet meaning quiet (issue 20)."""
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -271,3 +272,51 @@ def test_a_broken_pipe_that_is_not_stdouts_is_a_real_failure(monkeypatch):
     monkeypatch.setattr(cli, "cmd_recipes", broken)
     with pytest.raises(BrokenPipeError):
         cli.main(["recipes"])
+
+
+def test_bad_input_is_refused_before_torch_is_imported(tmp_path):
+    """A wrong recipe key, an output name the file system cannot hold, a run folder that is not there, an override
+    resume does not take, an unknown budget: each refused (exit 2, its one line) before torch, TorchRL or TensorDict
+    is imported, so the user hears at once, not after their seconds of import; an experiment's driver, which trains
+    nothing itself, plans a dry run without them too."""
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "recipe.yaml").write_text(
+        subprocess.run(
+            [sys.executable, "-m", "adarl.cli", "show", "quickstart"],
+            cwd=REPO,
+            env={**os.environ, "PYTHONPATH": str(REPO)},
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout
+    )
+    spec = tmp_path / "exp.yaml"
+    spec.write_text("kind: experiment\nname: x\nrecipe: quickstart\nseeds: [0, 1]\n")
+    commands = [
+        (["run", "quickstart", "rank.betta=0.9", "-o", str(tmp_path / "a")], 2, "unknown key 'rank.betta'"),
+        (["run", "quickstart", "-o", str(tmp_path / ("b" * 300))], 2, "at most 255 bytes"),
+        (["resume", str(tmp_path / "nope")], 2, "does not exist"),
+        (["eval", str(tmp_path / "nope")], 2, "does not exist"),
+        (["resume", str(run), "rank.beta=0.5"], 2, "cannot change 'rank.beta'"),
+        (["experiment", str(spec), "--budget", "nope", "--no-live"], 2, "budget"),
+        (["experiment", str(spec), "-o", str(tmp_path / "e"), "--no-live", "--dry-run"], 0, "2 runs"),
+    ]
+    code = (
+        "import contextlib, io, json, sys\n"
+        "from adarl.cli import main\n"
+        f"for argv in {[c for c, _, _ in commands]!r}:\n"
+        "    err, out = io.StringIO(), io.StringIO()\n"
+        "    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(out):\n"
+        "        rc = main(argv)\n"
+        "    heavy = sorted({m.split('.')[0] for m in sys.modules} & {'torch', 'torchrl', 'tensordict'})\n"
+        "    print(json.dumps([rc, heavy, err.getvalue() + out.getvalue()]))\n"
+    )
+    proc = _python(code, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    results = [json.loads(line) for line in proc.stdout.splitlines()]
+    assert len(results) == len(commands), proc.stdout[-3000:]
+    for (argv, status, words), (rc, heavy, said) in zip(commands, results):
+        assert rc == status and words in said, (argv, rc, said)
+        assert heavy == [], f"adarl {' '.join(argv)} imported {heavy} before it answered"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["exp.yaml", "run"]  # nothing written

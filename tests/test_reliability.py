@@ -146,13 +146,12 @@ def test_disk_full_while_writing_keeps_the_previous_checkpoint(finished_run, tmp
     run = _copy_run(finished_run, tmp_path / "run")
     before = run.checkpoints()
     good = run.load_checkpoint(before[-1])
-    import adarl.runtime.run_folder._file_safety as file_safety
 
     def full_disk(obj, fh, *a, **k):
         fh.write(b"PK\x03\x04partial")  # some bytes made it, then the disk filled up
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
 
-    monkeypatch.setattr(file_safety.torch, "save", full_disk)
+    monkeypatch.setattr(torch, "save", full_disk)  # the torch.save that atomic_torch_save calls
     with pytest.raises(CheckpointError, match="disk full") as info:
         run.save_checkpoint(good, frames=10_000, keep_last=1)
     assert before[-1].name in str(info.value)

@@ -45,8 +45,6 @@ from adarl.experiments.execute import (
 from adarl.experiments.spec import PlannedRun
 from adarl.runtime.run_folder.results import is_url, join
 from adarl.runtime.run_folder.run_dir import RunDir
-from adarl.runtime.trainers.pack_folder import relative_run, write_pack_file
-from adarl.runtime.trainers.packed import pack_refusal, recipe_without_seed
 
 __all__ = [
     "PACKS_DIR",
@@ -99,6 +97,8 @@ def plan_packs(
     (an arm of one run to start, or one whose recipe cannot be packed: logged with why)."""
     if pack <= 1:
         return list(runs)
+    from adarl.runtime.trainers.packed import pack_refusal, recipe_without_seed  # torch: only when packing
+
     arms: dict[str, list[PlannedRun]] = {}
     for r in runs:
         key = json.dumps(recipe_without_seed(recipes[r.run_id]), sort_keys=True, default=str)
@@ -147,6 +147,8 @@ def execute_pack(pack: PlannedPack, threads: int | None, watch: Callable[[], boo
     """Train the pack's runs that need it in one ``adarl resume OUT/packs/<pack id>`` process; set each run's status
     as :func:`~adarl.experiments.execute.execute_run` would (finished, failed, interrupted, stopped, changed,
     skipped-finished), and the pack's from them."""
+    from adarl.runtime.trainers.pack_folder import relative_run, write_pack_file
+
     todo = [run for run in pack.members if not settled_before_start(run)]
     if todo and watch is not None and watch():
         for run in todo:
@@ -206,6 +208,8 @@ def _execute_pack_at_url(
     scratch folder (downloaded first when it lacks the URL's latest checkpoint), the pack folder beside them
     (``<scratch>/<experiment hash>/packs/<pack id>``), each run uploaded after each of its checkpoints and at its
     end."""
+    from adarl.runtime.trainers.pack_folder import relative_run, write_pack_file
+
     prepared = {}
     for r in todo:
         got = prepare_url_run(r)  # None: the URL could not be read (the run failed; the others go on)

@@ -19,13 +19,10 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from adarl.envs.factory import make_eval_env, resolve_schedule
 from adarl.envs.registry import parameters_for
 from adarl.errors import AdaRLValueError, did_you_mean
-from adarl.runtime.evaluation import EvalResult, evaluate_policy
 from adarl.runtime.report import pyplot
 from adarl.runtime.run_folder.run_dir import RunDir
-from adarl.runtime.trainers import BaseTrainer
 
 __all__ = ["parse_sweep", "SweepPoint", "SweepResult", "sweep_policy", "sweep_run", "read_sweep", "plot_sweep"]
 
@@ -72,6 +69,8 @@ class SweepPoint:
     worst: float = field(init=False)
 
     def __post_init__(self) -> None:
+        from adarl.runtime.evaluation import EvalResult  # torch: imported once a sweep is read, not before
+
         r = EvalResult(returns=list(self.returns), lengths=[0] * len(self.returns))
         self.mean, self.std, self.ci95 = r.mean, r.std, r.ci95
         self.worst = min(self.returns) if self.returns else float("nan")
@@ -177,6 +176,9 @@ def sweep_policy(
             )
     if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 1:
         raise AdaRLValueError(f"episodes must be an integer >= 1, got {episodes!r}")
+    from adarl.envs.factory import make_eval_env
+    from adarl.runtime.evaluation import evaluate_policy
+
     points = []
     for values in _grid(axes):
         env = make_eval_env(env_id, values={**nominal, **values}, seed=seed, **env_kwargs)
@@ -189,6 +191,8 @@ def sweep_policy(
 
 
 def _nominal_values(recipe) -> dict[str, float]:
+    from adarl.envs.factory import resolve_schedule
+
     p = recipe.env.perturbation
     schedule = p.schedule.model_dump() if hasattr(p.schedule, "model_dump") else p.schedule
     sched = resolve_schedule(recipe.env.id, p.preset, schedule)
@@ -216,6 +220,8 @@ def sweep_run(
                 f"unknown sweep parameter {n!r} for {env_id}; allowed: {list(allowed)}{did_you_mean(n, allowed)}"
                 + ("" if allowed else " (it has none: a MuJoCo env can declare some in env.parameters)")
             )
+    from adarl.runtime.trainers import BaseTrainer  # torch and TorchRL: once the grid is known to be valid
+
     trainer = BaseTrainer.resume(run_dir, quiet=True, read_only=True, checkpoint=checkpoint)
     try:
         recipe = trainer.recipe

@@ -21,10 +21,9 @@ import pickletools
 import re
 import shutil
 import stat
+import sys
 import warnings
 from pathlib import Path
-
-import torch
 
 from adarl.errors import describe_os_error
 
@@ -46,6 +45,13 @@ __all__ = [
 ]
 
 
+def _is_tensor(obj) -> bool:
+    """``isinstance(obj, torch.Tensor)`` without importing torch here: a process that made a tensor imported torch,
+    and one that did not (an experiment's driver, a refused command) is spared torch's seconds of import."""
+    torch = sys.modules.get("torch")
+    return torch is not None and isinstance(obj, torch.Tensor)
+
+
 def plain(obj):
     """``obj`` as plain JSON values: tensors as lists, records as dicts, non-finite floats as None."""
     if isinstance(obj, float):
@@ -56,7 +62,7 @@ def plain(obj):
         return {str(k): plain(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
         return [plain(v) for v in obj]
-    if isinstance(obj, torch.Tensor):
+    if _is_tensor(obj):
         return plain(obj.tolist())
     if hasattr(obj, "as_dict"):
         return plain(obj.as_dict())
@@ -95,6 +101,8 @@ def safe_load(path: Path):
         raise
     with fh, warnings.catch_warnings():  # torch's pickle-protocol chatter about files it then refuses anyway
         warnings.simplefilter("ignore")
+        import torch
+
         return torch.load(fh, map_location="cpu", weights_only=True)
 
 
@@ -190,6 +198,8 @@ def why_unloadable(err: Exception) -> str:
 def buffer_nbytes(replay_buffer) -> int:
     """Bytes of a replay buffer's storage tensors (what its dump will take), 0 when unknown."""
     try:
+        import torch
+
         data = replay_buffer._storage._storage
         leaves = [data] if isinstance(data, torch.Tensor) else data.values(include_nested=True, leaves_only=True)
         return sum(t.numel() * t.element_size() for t in leaves if isinstance(t, torch.Tensor))
@@ -199,7 +209,7 @@ def buffer_nbytes(replay_buffer) -> int:
 
 def nbytes(obj) -> int:
     """Bytes of the tensors in a (nested) state dict."""
-    if isinstance(obj, torch.Tensor):
+    if _is_tensor(obj):
         return obj.numel() * obj.element_size()
     if isinstance(obj, dict):
         return sum(nbytes(v) for v in obj.values())
@@ -249,6 +259,8 @@ def atomic_write_text(path: Path, text: str) -> None:
 
 
 def atomic_torch_save(obj, path: Path) -> None:
+    import torch
+
     tmp = path.with_name(path.name + ".tmp")
     try:
         with tmp.open("wb") as fh:

@@ -11,8 +11,6 @@ import importlib.util
 import os
 from pathlib import Path
 
-from torchrl.record import loggers as torchrl_loggers
-
 from adarl.errors import MissingExtraError
 from adarl.runtime import metrics
 
@@ -104,6 +102,8 @@ def null_logger() -> Fanout:
 
 def tensorboard_logger(path: Path, *, purge_step: int | None):
     """TorchRL's TensorboardLogger, with SummaryWriter's ``purge_step`` (events at or after it are hidden)."""
+
+    from torchrl.record import loggers as torchrl_loggers
 
     class _Tensorboard(torchrl_loggers.TensorboardLogger):
         def _create_experiment(self):

@@ -14,8 +14,6 @@ import os
 import uuid
 from pathlib import Path
 
-from torchrl.record import loggers as torchrl_loggers
-
 from adarl.runtime import metrics
 from adarl.runtime.config import recipe_to_yaml
 from adarl.runtime.run_folder._file_safety import (
@@ -65,6 +63,8 @@ class RunRecords:
 
     def _loggers(self, recipe, backends: set[str], step: int | None) -> list:
         """The loggers :meth:`make_logger` names, made (files created) at the run's first scalar."""
+        from torchrl.record import loggers as torchrl_loggers  # here: a process that never logs skips its import
+
         loggers = [torchrl_loggers.CSVLogger(exp_name="metrics", log_dir=str(self.path))]
         config = recipe.model_dump(mode="json") if hasattr(recipe, "model_dump") else None
         if "tensorboard" in backends:

@@ -17,6 +17,7 @@ import json
 import os
 from collections.abc import Sequence
 from pathlib import Path, PurePosixPath
+from typing import TYPE_CHECKING
 
 from adarl.errors import AdaRLError, AdaRLValueError
 from adarl.runtime.config import load_recipe
@@ -24,7 +25,9 @@ from adarl.runtime.continuing import already_complete
 from adarl.runtime.run_folder._file_safety import atomic_write_text
 from adarl.runtime.run_folder.run_dir import RunDir
 from adarl.runtime.signals import RunInterrupted
-from adarl.runtime.trainers.packed import PackedSeedTrainer, SeedPack, SeedRNG
+
+if TYPE_CHECKING:  # torch and TorchRL: imported where a pack is built, so that reading a pack folder needs neither
+    from adarl.runtime.trainers.packed import PackedSeedTrainer, SeedPack
 
 __all__ = [
     "PACK_FILE",
@@ -113,6 +116,7 @@ def pack_runs(folder) -> list[Path]:
 
 def create_pack(recipe, seeds: Sequence[int], folder, *, overwrite: bool = False, quiet: bool = False) -> SeedPack:
     """A new pack folder ``folder`` (``pack.json`` and one run folder per seed, ``seed=S``) and its pack."""
+    from adarl.runtime.trainers.packed import SeedPack
 
     seeds = [int(s) for s in seeds]
     if not seeds or len(set(seeds)) != len(seeds):
@@ -162,6 +166,8 @@ def finish(report: dict) -> dict[str, dict]:
 
 def _fresh(run: Path, seed: int, start: dict | None) -> PackedSeedTrainer:
     """A seed that never checkpointed, started afresh in its folder (cleared) as ``adarl run`` starts it."""
+    from adarl.runtime.trainers.packed import PackedSeedTrainer
+
     if start is not None:
         recipe = load_recipe(start["recipe"], start["overrides"])
     elif (run / "recipe.yaml").is_file():  # `adarl run --pack-seeds` wrote it before training
@@ -182,6 +188,7 @@ def _fresh(run: Path, seed: int, start: dict | None) -> PackedSeedTrainer:
 def resume_pack(folder, *, checkpoint=None, quiet: bool = False) -> tuple[SeedPack | None, list[str]]:
     """The pack of a pack folder's seeds that have not finished (each from its latest checkpoint, its RNGs as the
     checkpoint saved them; afresh without one), and a line for each seed already complete (None: every seed is)."""
+    from adarl.runtime.trainers.packed import PackedSeedTrainer, SeedPack, SeedRNG
 
     runs, seeds, starts, names = _read(Path(folder))
     trainers, rngs, kept, said = [], [], [], []
