@@ -91,14 +91,11 @@ def _missing_parents(path: Path) -> list[Path]:
 
 
 def _checked_run_folder(run_dir, overrides=()) -> None:
-    """What ``adarl resume`` and ``adarl eval`` refuse before they load anything (no folder, not a run folder, a
-    recipe that no longer validates, an override resume does not take), checked before torch is imported: a wrong
-    path is said at once, not after the seconds torch and TorchRL take to import. The trainer checks them again."""
-    from adarl.runtime.continuing import continued_recipe
-    from adarl.runtime.run_folder.run_dir import RunDir
+    """What ``adarl resume`` and ``adarl eval`` refuse before they load anything, said before torch is imported (a
+    wrong path at once, not after torch's and TorchRL's seconds of import); the trainer opens it again."""
+    from adarl.runtime.continuing import open_continued
 
-    run_dir = RunDir.open(run_dir)
-    continued_recipe(run_dir, run_dir.load_recipe(), overrides)
+    open_continued(run_dir, overrides)
 
 
 def cmd_run(args) -> int:

@@ -27,7 +27,14 @@ from adarl.errors import RecipeError, command, did_you_mean, one_of
 from adarl.runtime.config import load_recipe
 from adarl.runtime.run_folder.run_dir import RunDir, recipe_fingerprint
 
-__all__ = ["RESUMABLE_KEYS", "continued_recipe", "already_complete", "schedule_totals", "retarget_schedules"]
+__all__ = [
+    "RESUMABLE_KEYS",
+    "open_continued",
+    "continued_recipe",
+    "already_complete",
+    "schedule_totals",
+    "retarget_schedules",
+]
 
 #: the recipe keys ``adarl resume RUN key=value`` may change: the frame budget (raised only) and the callbacks (what
 #: a run stopped early by one needs to train on: docs/callbacks.md), the whole list or a key under it
@@ -40,6 +47,16 @@ _TOTAL_ATTRIBUTES = ("total_steps", "total")
 
 def _key(override: str) -> str:
     return override.split("=", 1)[0].strip().lstrip("+~")
+
+
+def open_continued(path: str | os.PathLike, overrides: Sequence[str] = ()) -> tuple[RunDir, object, object]:
+    """The run folder ``path``, its recorded recipe and the recipe it continues with (``overrides`` applied by
+    :func:`continued_recipe`): what a resume or an evaluation refuses before it loads anything (no folder, not a run
+    folder, a recipe that no longer validates, an override resume does not take), without torch, so the CLI can
+    say it at once, before the trainer's imports."""
+    run_dir = RunDir.open(path)
+    recorded = run_dir.load_recipe()  # refuses, naming the package, a run whose algorithm is not installed
+    return run_dir, recorded, continued_recipe(run_dir, recorded, overrides)
 
 
 def continued_recipe(run_dir: RunDir, recipe, overrides: Sequence[str]):

@@ -39,7 +39,7 @@ from adarl.errors import AdaRLError, CheckpointError, FusedFallbackWarning, comm
 from adarl.runtime import metrics
 from adarl.runtime.builders.common import RunComponents
 from adarl.runtime.callbacks import TrainerHooks, build_callbacks, stop_holds
-from adarl.runtime.continuing import continued_recipe, retarget_schedules, schedule_totals
+from adarl.runtime.continuing import open_continued, retarget_schedules, schedule_totals
 from adarl.runtime.evaluation import EvalResult, evaluate_policy
 from adarl.runtime.families import check_trainer, family
 from adarl.runtime.guards import NonFiniteError, NonFiniteGuard
@@ -208,9 +208,7 @@ class BaseTrainer:
         ``overrides``: ``collector.total_frames=M`` continues the run (a finished one too) to ``M`` frames, and
         recipe.yaml records it; any other key is refused by name (:mod:`adarl.runtime.continuing`).
         """
-        run_dir = RunDir.open(path)
-        recorded = run_dir.load_recipe()  # refuses, naming the package, a run whose algorithm is not installed
-        recipe = continued_recipe(run_dir, recorded, overrides)
+        run_dir, recorded, recipe = open_continued(path, overrides)
         target = trainer_class(recipe)
         cls = cls if issubclass(cls, target) else target
         read_only = not truncate_metrics if read_only is None else read_only
