@@ -733,7 +733,11 @@ def test_the_stated_multiplicity_is_the_reports():
     judged = [  # (report, a, b, (low, high)) of every pair the protocol judged
         *(("pilot", "adarl", r["algorithm"], bounds(r)) for r in rows("table1-pilot", "statistics.csv")),
         *(("pilot", r["a"], r["b"], bounds(r)) for r in rows("table1-pilot", "pairs.csv")),
-        *(("decisive", "adarl", r["algorithm"], bounds(r)) for r in rows("table1-decisive", "statistics.csv")),
+        *(  # the decisive stage's AdaRL vs Parseval; its sac_full row is issue 45's (Fig. 3 at 1e6), counted apart
+            ("decisive", "adarl", r["algorithm"], bounds(r))
+            for r in rows("table1-decisive", "statistics.csv")
+            if r["algorithm"] != "sac_full"
+        ),
         *(("table2", "both", r["scope"], bounds(r)) for r in rows("table2-laptop", "statistics.csv")),
         *(("fig1", r["a"], r["b"], bounds(r)) for r in rows("cartpole_rank_sweep-laptop_scored", "pairs.csv")),
     ]

@@ -251,3 +251,30 @@ def test_packed_update_refuses_what_it_does_not_implement(seeds):
     packed.unpack()
     with pytest.raises(AdaRLValueError, match="unpacked: call pack"):
         packed.step(batches[0], noises[0])
+
+
+def test_packed_update_lives_on_its_seeds_device(seeds, monkeypatch):
+    """The flat buffers, step counts and per-seed rates are made on the seeds' device (a GPU pack computes there),
+    and seeds on different devices are refused by name before anything is copied."""
+    a, b = _copies(seeds[:2])
+    packed = PackedSACUpdate([a, b])
+    for group in packed.groups:
+        tensors = [group.param, group.exp_avg, group.exp_avg_sq, group.steps, group.element_slot]
+        assert {t.device for t in tensors + [group.target] if t is not None} == {packed.device}
+    assert packed.params_finite().device == packed.device
+    batches, noises = _batches(seeds[:2], 1)
+    assert {n.device for pair in noises[0] for n in pair} == {batches[0][0][0].device}  # the batch's own device
+    packed.unpack()
+    keyed = PackedSACUpdate._keyed
+
+    def one_on_meta(u):  # seed 1's first critic weight on another device
+        out = keyed(u)
+        if u is b:
+            k = next(k for k in out if k.startswith("critic:"))
+            out[k] = (torch.empty(out[k][0].shape, device="meta"), out[k][1])
+        return out
+
+    monkeypatch.setattr(PackedSACUpdate, "_keyed", staticmethod(one_on_meta))
+    with pytest.raises(AdaRLValueError, match=r"one device: found \['cpu', 'meta'\] .*seed 1 critic:"):
+        packed.pack()
+    assert not packed.packed and not packed.groups

@@ -94,18 +94,18 @@ class _Group:
     """One optimiser group of every seed as flat buffers ``[N * rows, T]``: parameters, gradients, Adam moments,
     targets (critics), and per seed and parameter the Adam step count."""
 
-    def __init__(self, opt_index: int, group_index: int, rows: int, slots: list[_Slot], n: int, dtype) -> None:
+    def __init__(self, opt_index: int, group_index: int, rows: int, slots: list[_Slot], n: int, dtype, device) -> None:
         self.opt_index, self.group_index = opt_index, group_index  # where in each seed's optimisers it lives
         self.rows, self.slots, self.n = rows, slots, n
         width = sum(s.numel for s in slots)
-        self.param = torch.zeros(n * rows, width, dtype=dtype)
+        self.param = torch.zeros(n * rows, width, dtype=dtype, device=device)
         self.exp_avg = torch.zeros_like(self.param)
         self.exp_avg_sq = torch.zeros_like(self.param)
         self.target = torch.zeros_like(self.param) if any(s.seed_targets[0] is not None for s in slots) else None
-        self.steps = torch.zeros(n, len(slots), dtype=torch.float64)
+        self.steps = torch.zeros(n, len(slots), dtype=torch.float64, device=device)
         # for each element of one seed's rows, the index of its slot (per-parameter step counts -> per element)
         per_row = torch.cat([torch.full((s.numel,), j, dtype=torch.long) for j, s in enumerate(slots)])
-        self.element_slot = per_row.repeat(rows)
+        self.element_slot = per_row.repeat(rows).to(device)
 
     def view(self, buffer: torch.Tensor, slot: _Slot) -> torch.Tensor:
         """The stacked ``[N * rows, *shape]`` view of one slot in ``buffer``."""
@@ -234,6 +234,7 @@ class PackedSACUpdate:
         first = self.updates[0]
         keyed = [self._keyed(u) for u in self.updates]
         dtype = first.loss.log_alpha.dtype
+        self.device = self._one_device(keyed)
         # which optimiser group each key belongs to (seed 0's groups; the others have the same layout: checked)
         by_id = {id(t): k for k, (t, _) in keyed[0].items()}
         self.groups = []
@@ -251,7 +252,7 @@ class PackedSACUpdate:
                         f"optimiser {oi} group {gi} mixes {sorted(nets)}: packing needs one per group"
                     )
                 seen.update(keys)
-                self.groups.append(self._make_group(oi, gi, keys, keyed, dtype))
+                self.groups.append(self._make_group(oi, gi, keys, keyed, dtype, self.device))
         missing = sorted(set(keyed[0]) - seen)
         if missing and missing != ["log_alpha"]:
             raise AdaRLValueError(f"the optimisers do not step {missing}: packing steps every trained tensor")
@@ -261,7 +262,24 @@ class PackedSACUpdate:
         self._bind()
         self.packed = True
 
-    def _make_group(self, oi, gi, keys, keyed, dtype) -> _Group:
+    @staticmethod
+    def _one_device(keyed: list[dict[str, tuple[torch.Tensor, torch.Tensor | None]]]) -> torch.device:
+        """The device every seed's trained tensors and targets live on (the flat buffers are made there)."""
+        where: dict[str, list[str]] = {}
+        for i, kd in enumerate(keyed):
+            for k, (p, t) in kd.items():
+                for name, x in ((k, p), (f"{k} (target)", t)):
+                    if x is not None:
+                        where.setdefault(str(x.device), []).append(f"seed {i} {name}")
+        if len(where) != 1:
+            found = {d: names[:3] for d, names in sorted(where.items())}
+            raise AdaRLValueError(
+                f"packed seeds must live on one device: found {sorted(where)} (e.g. {found}); build every seed with "
+                "the same recipe device"
+            )
+        return torch.device(next(iter(where)))
+
+    def _make_group(self, oi, gi, keys, keyed, dtype, device) -> _Group:
         rows = 2 if keys[0].startswith("critic:") else 1
         slots: list[_Slot] = []
         offset = 0
@@ -284,7 +302,7 @@ class PackedSACUpdate:
             slot.seed_targets = [kd[k][1] for kd in keyed]
             slots.append(slot)
             offset += numel
-        group = _Group(oi, gi, rows, slots, self.n, dtype)
+        group = _Group(oi, gi, rows, slots, self.n, dtype, device)
         for i, u in enumerate(self.updates):
             state = u.optimizers[oi].state
             for j, slot in enumerate(slots):
@@ -489,7 +507,7 @@ class PackedSACUpdate:
     def params_finite(self) -> torch.Tensor:
         """Per seed ``[N]``, whether every trained tensor is finite: one pass over the flat buffers (a seed's
         :class:`~adarl.runtime.guards.NonFiniteGuard` then names the tensor only where one is not)."""
-        ok = torch.ones(self.n, dtype=torch.bool)
+        ok = torch.ones(self.n, dtype=torch.bool, device=self.device)
         for group in self.groups:
             ok &= torch.isfinite(group.param.view(self.n, -1)).all(1)
         return ok
@@ -504,7 +522,9 @@ class PackedSACUpdate:
         ref = self.updates[0].optimizers[opt_index].param_groups[group_index]
         beta1, beta2 = ref["betas"]
         lr = torch.tensor(
-            [float(v.optimizers[opt_index].param_groups[group_index]["lr"]) for v in self.updates], dtype=torch.float64
+            [float(v.optimizers[opt_index].param_groups[group_index]["lr"]) for v in self.updates],
+            dtype=torch.float64,
+            device=group.steps.device,
         ).view(n, 1)
         group.steps.add_(1)
         bc1 = 1 - beta1**group.steps  # [N, slots]

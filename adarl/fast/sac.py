@@ -497,7 +497,8 @@ class FusedSACUpdate:
     def draw_noise(self, obs: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Standard-normal noise for the next-state and current-state samples, in SACLoss's order."""
         shape = (*obs.shape[:-1], action.shape[-1])
-        return torch.randn(shape, dtype=obs.dtype), torch.randn(shape, dtype=obs.dtype)
+        kw = {"dtype": obs.dtype, "device": obs.device}  # the batch's device: its generator (CPU: the global one)
+        return torch.randn(shape, **kw), torch.randn(shape, **kw)
 
     def __call__(self, batch: TensorDictBase) -> dict[str, torch.Tensor]:
         return self.step(*self.batch_tensors(batch))

@@ -38,6 +38,8 @@ def rng_state() -> dict:
             "cached_gaussian": float(np_state[4]),
         },
         "python": json.dumps(random.getstate()),
+        # a run on a GPU draws its update noise there (FusedSACUpdate.draw_noise): its generators resume with it
+        **({"cuda": torch.cuda.get_rng_state_all()} if torch.cuda.is_initialized() else {}),
     }
 
 
@@ -50,6 +52,8 @@ def set_rng_state(state: dict) -> None:
     )
     py = json.loads(state["python"])
     random.setstate((py[0], tuple(py[1]), py[2]))
+    if "cuda" in state:
+        torch.cuda.set_rng_state_all(state["cuda"])
 
 
 def collector_state_dict(collector) -> dict:

@@ -182,20 +182,31 @@ def _seed(a, env_id: str, width: int, seed: int):
     return c
 
 
+def _finished(cs) -> None:
+    """Wait for the seeds' device (a GPU queues its kernels: a window ends when its work is done, not queued)."""
+    device = cs[0].update.fused.loss.log_alpha.device
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
 def _solo_window(cs, steps: int) -> float:
+    _finished(cs)
     t0 = time.perf_counter()
     for _ in range(steps):
         for c in cs:
             c.update()
+    _finished(cs)
     return time.perf_counter() - t0
 
 
 def _packed_window(cs, packed: PackedSACUpdate, steps: int) -> float:
+    _finished(cs)
     t0 = time.perf_counter()
     for _ in range(steps):
         batches = [c.update.sampler() for c in cs]
         noises = [c.update.fused.draw_noise(b[0], b[1]) for c, b in zip(cs, batches, strict=True)]
         packed.step(batches, noises)
+    _finished(cs)
     return time.perf_counter() - t0
 
 

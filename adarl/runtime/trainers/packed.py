@@ -81,23 +81,28 @@ def pack_refusal(recipe) -> str | None:
 
 
 class SeedRNG:
-    """A seed's global RNG states (torch, NumPy, Python), switched in and out with its greenlet.
+    """A seed's global RNG states (torch, NumPy, Python; CUDA's once a GPU is in use), switched in and out with its
+    greenlet.
 
     The same three states :func:`adarl.runtime.state.rng_state` checkpoints, kept as the objects the RNGs hand out
     instead of converted for a file: this runs at every switch, twice per seed and update."""
 
-    __slots__ = ("torch", "numpy", "python")
+    __slots__ = ("torch", "numpy", "python", "cuda")
 
     def __init__(self) -> None:
         self.save()
 
     def save(self) -> None:
         self.torch, self.numpy, self.python = torch.get_rng_state(), np.random.get_state(), random.getstate()
+        # seeds on a GPU draw their update noise there (FusedSACUpdate.draw_noise): each keeps its own CUDA generators
+        self.cuda = torch.cuda.get_rng_state_all() if torch.cuda.is_initialized() else None
 
     def load(self) -> None:
         torch.set_rng_state(self.torch)
         np.random.set_state(self.numpy)
         random.setstate(self.python)
+        if self.cuda is not None:
+            torch.cuda.set_rng_state_all(self.cuda)
 
 
 class _SharedInterrupt:
