@@ -693,20 +693,19 @@ def _one_line(proc: subprocess.CompletedProcess, status: int, *words: str) -> st
     return line
 
 
-def test_a_ray_address_nothing_answers_at_is_one_line_within_seconds(tmp_path):
+def test_a_ray_address_nothing_answers_at_is_refused_in_one_line_before_ray_retries(tmp_path):
     """Issue 46.8: `--launcher ray --ray-address 127.0.0.1:1` retried for minutes with no end (Ray's own retries):
     refused in one line naming the address, within the launcher's connect timeout."""
     pytest.importorskip("ray")
-    start = time.monotonic()
     proc = subprocess.run(
         _experiment_cli(_spec(tmp_path), tmp_path / "out", "--launcher", "ray", "--ray-address", "127.0.0.1:1"),
         cwd=REPO,
         capture_output=True,
         text=True,
-        timeout=300,
+        timeout=300,  # a guard against a hang; what is checked is who refused it
     )
-    _one_line(proc, 1, "cannot reach the Ray cluster at '127.0.0.1:1'")
-    assert time.monotonic() - start < 120  # Ray's import and start-up on a loaded machine, not its retries
+    # refused by our own connect check (its words), so Ray's retries never started: an event, not a clock
+    _one_line(proc, 1, "cannot reach the Ray cluster at '127.0.0.1:1'", "(within 10 s)")
 
 
 def test_a_ray_address_that_never_answers_is_refused_after_the_connect_timeout(monkeypatch):
@@ -716,18 +715,19 @@ def test_a_ray_address_that_never_answers_is_refused_after_the_connect_timeout(m
 
     from adarl.experiments.launchers import RayLauncher
 
-    def no_answer(address, timeout=None):
-        time.sleep(timeout)  # as a connect that hangs until its timeout
+    asked: list[float | None] = []
+
+    def no_answer(address, timeout=None):  # as a connect that hangs until its timeout
+        asked.append(timeout)
         raise TimeoutError("timed out")
 
     monkeypatch.setattr(socket, "create_connection", no_answer)
-    start = time.monotonic()
     with pytest.raises(
         AdaRLError, match=r"cannot reach the Ray cluster at '127.0.0.1:6379': no answer \(within 0.5 s\)"
     ):
         with RayLauncher("127.0.0.1:6379", connect_timeout_s=0.5).session():
             pass
-    assert time.monotonic() - start < 10
+    assert asked == [0.5]  # one connect, bounded by the timeout, no retries (events, not a clock)
 
 
 def test_a_ray_client_address_without_ray_client_is_one_line_and_writes_nothing(tmp_path, monkeypatch):

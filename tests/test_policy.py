@@ -8,7 +8,6 @@ import json
 import os
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import _helpers
@@ -68,10 +67,7 @@ def test_load_policy_restores_truncated_ranks_without_building_env_buffer_or_col
     monkeypatch.setattr(torchrl.envs.libs.gym.GymEnv, "__init__", refuse)
     monkeypatch.setattr(torchrl.collectors.Collector, "__init__", refuse)
     monkeypatch.setattr(torchrl.data.TensorDictReplayBuffer, "__init__", refuse)
-    adarl.load_policy(out)  # imports warmed up
-    t0 = time.perf_counter()
-    actor = adarl.load_policy(out)
-    assert time.perf_counter() - t0 < 2.0
+    actor = adarl.load_policy(out)  # fast because it builds none of the above (refused), not timed
     from tensordict.nn import TensorDictModuleBase
 
     assert isinstance(actor, TensorDictModuleBase)
