@@ -11,8 +11,8 @@ from pathlib import Path, PurePosixPath
 from typing import Any
 
 from adarl.errors import RecipeError, did_you_mean
+from adarl.runtime.config._schema_base import _show
 from adarl.runtime.config.files import _read_file
-from adarl.runtime.config.schema import _show
 
 __all__ = ["RECIPES_PATH_ENV", "EXPERIMENTS_DIR", "TUNE_DIR", "recipes_dir", "list_recipes", "list_specs"]
 

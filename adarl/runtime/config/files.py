@@ -12,7 +12,7 @@ import yaml
 from omegaconf._yaml import get_yaml_loader  # OmegaConf's safe loader (yaml.SafeLoader/CSafeLoader based)
 
 from adarl.errors import RecipeError
-from adarl.runtime.config.schema import SCHEMA_VERSION, _newer_version_message, _show
+from adarl.runtime.config._schema_base import SCHEMA_VERSION, _newer_version_message, _show
 
 _MAX_FILE_BYTES = 1 << 20  # a recipe is a few KB; refuse anything absurd before parsing it
 _MAX_YAML_NODES = 10_000  # OmegaConf's alias-expansion cap, pinned (its env var could lift it)

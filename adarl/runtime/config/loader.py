@@ -19,10 +19,11 @@ from pydantic import BaseModel
 
 from adarl import plugins
 from adarl.errors import NO_VALUE, RecipeError, did_you_mean
+from adarl.runtime.config._schema_base import _show
 from adarl.runtime.config.discovery import _available_names, _find_by_name, _is_path_like, _locate, recipes_dir
 from adarl.runtime.config.files import _check_version, _one_line, _parse_yaml, _read_file
 from adarl.runtime.config.local_plugins import import_plugins, resolve_entry
-from adarl.runtime.config.schema import Recipe, _show
+from adarl.runtime.config.schema import Recipe
 from adarl.runtime.config.validation import _is_free_mapping, _join_path, _list_item, _model_of, validate_recipe
 
 __all__ = ["load_recipe"]

@@ -13,7 +13,8 @@ from pydantic import BaseModel, ValidationError
 from pydantic_core import PydanticUndefined
 
 from adarl.errors import NO_VALUE, RecipeError, did_you_mean, one_of
-from adarl.runtime.config.schema import Recipe, _Problems, _show, _WrongType
+from adarl.runtime.config._schema_base import _Problems, _show, _WrongType
+from adarl.runtime.config.schema import Recipe
 
 __all__ = ["validate_recipe", "describe_schema"]
 
