@@ -332,29 +332,37 @@ def test_stage_twos_landed_runs_are_stated_as_its_report_has_them():
     assert [f"{float(rows[s]['best_eval']):.0f}" for s in p_seeds] == [str(x) for x in p_best]
 
 
+def _decisive_row(text: str, claim: str, arms: str):
+    """The decisive stage's row of reproduction.md's verdict table for ``claim`` (regex) and ``arms``: its P and
+    verdict cells."""
+    import re
+
+    row = re.search(rf"\| {claim} \| 2 \(1e6: 28\.6%\) \| {arms} \| (.+?) \| (.+?) \|", text)
+    assert row, f"no row for {claim} in the verdict table"
+    return row
+
+
+def _by_the_rule(stats_row: dict) -> tuple[str, str]:
+    """A report row's P(AdaRL > arm) as the docs print it, and the verdict issue 34's rule gives it."""
+    lo, hi = float(stats_row["poi_lo"]), float(stats_row["poi_hi"])
+    said = "reproduced" if lo > 0.5 else "contradicted" if hi < 0.5 else "not reproduced (no difference shown)"
+    return f"{float(stats_row['poi_ref']):.2f} [{lo:.2f}, {hi:.2f}]", said
+
+
 def test_stage_twos_verdict_is_stated_once_both_arms_are_complete_and_then_by_the_rule():
     """Stage 2's row in docs/reproduction.md's verdict table: "running", with no P, while an arm has fewer than its
     8 planned seeds (the count of runs in as the report has them); once both have 8, P(AdaRL > `parseval`) as the
     report computes it and the verdict the pre-registered rule gives, here and in README.md."""
-    import re
-
     stats = {r["algorithm"]: r for r in csv.DictReader((REPORTS / "table1-decisive" / "statistics.csv").open())}
     n_adarl, n_parseval = int(stats["adarl"]["n_seeds"]), int(stats["parseval"]["n_seeds"])
     text = " ".join((REPORTS.parents[1] / "docs" / "reproduction.md").read_text().split())
     readme = " ".join((REPORTS.parents[1] / "README.md").read_text().split())
-    row = re.search(
-        r"\| Table 1: AdaRL above Parseval \(1e-5\) \| 2 \(1e6: 28\.6%\) \| `adarl` 8, `parseval` 8 "
-        r"\| (.+?) \| (.+?) \|",
-        text,
-    )
-    assert row, "stage 2's row is not in the verdict table"
+    row = _decisive_row(text, r"Table 1: AdaRL above Parseval \(1e-5\)", "`adarl` 8, `parseval` 8")
     if min(n_adarl, n_parseval) < 8:
         assert row.group(1) == "–" and row.group(2).startswith(f"running ({n_adarl + n_parseval} of 16 runs in"), row[0]
         assert "the decisive stage (1e6 frames, 8 seeds each) is running" in readme
         return
-    lo, hi = float(stats["parseval"]["poi_lo"]), float(stats["parseval"]["poi_hi"])
-    p = f"{float(stats['parseval']['poi_ref']):.2f} [{lo:.2f}, {hi:.2f}]"
-    said = "reproduced" if lo > 0.5 else "contradicted" if hi < 0.5 else "not reproduced (no difference shown)"
+    p, said = _by_the_rule(stats["parseval"])
     assert (row.group(1), row.group(2)) == (p, said), row[0]
     assert f"P(AdaRL > Parseval) = {p} at 1e6 frames" in readme
 
@@ -365,28 +373,19 @@ def test_fig3_at_1e6_is_stated_once_sac_has_its_seeds_and_then_by_the_rule():
     computes it, the pre-registered rule's verdict and the exact Mann-Whitney p, here and in README.md's Fig. 3 row.
     Its runs differ from stage 2's AdaRL in the algorithm alone (the resolved recipes, keys absent from the older
     commit's at their defaults)."""
-    import re
-
     import yaml
     from scipy.stats import mannwhitneyu
 
     stats = {r["algorithm"]: r for r in csv.DictReader((REPORTS / "table1-decisive" / "statistics.csv").open())}
     text = " ".join((REPORTS.parent / "reproduction.md").read_text().split())
     readme = " ".join((REPORTS.parents[1] / "README.md").read_text().split())
-    row = re.search(
-        r"\| Fig\. 3: AdaRL above full-rank SAC \(issue 45\) \| 2 \(1e6: 28\.6%\) \| `adarl` 8, `sac_full` 8 "
-        r"\| (.+?) \| (.+?) \|",
-        text,
-    )
-    assert row, "Fig. 3 at 1e6 has no row in the verdict table"
+    row = _decisive_row(text, r"Fig\. 3: AdaRL above full-rank SAC \(issue 45\)", "`adarl` 8, `sac_full` 8")
     n_sac = int(stats["sac_full"]["n_seeds"]) if "sac_full" in stats else 0
     if n_sac < 8:
         assert row.group(1) == "–" and row.group(2).startswith("running"), row[0]
         assert "Fig. 3 at 1e6 is running" in readme
         return
-    lo, hi = float(stats["sac_full"]["poi_lo"]), float(stats["sac_full"]["poi_hi"])
-    p = f"{float(stats['sac_full']['poi_ref']):.2f} [{lo:.2f}, {hi:.2f}]"
-    said = "reproduced" if lo > 0.5 else "contradicted" if hi < 0.5 else "not reproduced (no difference shown)"
+    p, said = _by_the_rule(stats["sac_full"])
     assert (row.group(1), row.group(2)) == (p, said), row[0]
     scores: dict[str, list[float]] = {}
     for r in csv.DictReader((REPORTS / "table1-decisive" / "runs.csv").open()):
