@@ -332,21 +332,14 @@ def test_stage_twos_landed_runs_are_stated_as_its_report_has_them():
     assert [f"{float(rows[s]['best_eval']):.0f}" for s in p_seeds] == [str(x) for x in p_best]
 
 
-def _decisive_row(text: str, claim: str, arms: str):
-    """The decisive stage's row of reproduction.md's verdict table for ``claim`` (regex) and ``arms``: its P and
-    verdict cells."""
-    import re
-
-    row = re.search(rf"\| {claim} \| 2 \(1e6: 28\.6%\) \| {arms} \| (.+?) \| (.+?) \|", text)
-    assert row, f"no row for {claim} in the verdict table"
-    return row
+#: the decisive stage's cell in the verdict table's stage column
+DECISIVE = "2 (1e6: 28.6%)"
 
 
 def _by_the_rule(stats_row: dict) -> tuple[str, str]:
-    """A report row's P(AdaRL > arm) as the docs print it, and the verdict issue 34's rule gives it."""
-    lo, hi = float(stats_row["poi_lo"]), float(stats_row["poi_hi"])
-    said = "reproduced" if lo > 0.5 else "contradicted" if hi < 0.5 else "not reproduced (no difference shown)"
-    return f"{float(stats_row['poi_ref']):.2f} [{lo:.2f}, {hi:.2f}]", said
+    """A report row's P(AdaRL > arm) as the docs print it, and the verdict the pre-registered rule gives it."""
+    p = _poi_text(stats_row["poi_ref"], stats_row["poi_lo"], stats_row["poi_hi"])
+    return p, _by_rule([float(stats_row["poi_lo"])], [float(stats_row["poi_hi"])])
 
 
 def test_stage_twos_verdict_is_stated_once_both_arms_are_complete_and_then_by_the_rule():
@@ -355,15 +348,15 @@ def test_stage_twos_verdict_is_stated_once_both_arms_are_complete_and_then_by_th
     report computes it and the verdict the pre-registered rule gives, here and in README.md."""
     stats = {r["algorithm"]: r for r in csv.DictReader((REPORTS / "table1-decisive" / "statistics.csv").open())}
     n_adarl, n_parseval = int(stats["adarl"]["n_seeds"]), int(stats["parseval"]["n_seeds"])
-    text = " ".join((REPORTS.parents[1] / "docs" / "reproduction.md").read_text().split())
     readme = " ".join((REPORTS.parents[1] / "README.md").read_text().split())
-    row = _decisive_row(text, r"Table 1: AdaRL above Parseval \(1e-5\)", "`adarl` 8, `parseval` 8")
+    arms, p_said, said_said = _verdict_row("Table 1: AdaRL above Parseval (1e-5)", DECISIVE)
+    assert arms == "`adarl` 8, `parseval` 8", arms
     if min(n_adarl, n_parseval) < 8:
-        assert row.group(1) == "–" and row.group(2).startswith(f"running ({n_adarl + n_parseval} of 16 runs in"), row[0]
+        assert p_said == "–" and said_said.startswith(f"running ({n_adarl + n_parseval} of 16 runs in"), said_said
         assert "the decisive stage (1e6 frames, 8 seeds each) is running" in readme
         return
     p, said = _by_the_rule(stats["parseval"])
-    assert (row.group(1), row.group(2)) == (p, said), row[0]
+    assert (p_said, said_said) == (p, said)
     assert f"P(AdaRL > Parseval) = {p} at 1e6 frames" in readme
 
 
@@ -371,44 +364,34 @@ def test_fig3_at_1e6_is_stated_once_sac_has_its_seeds_and_then_by_the_rule():
     """Fig. 3 at stage 2's budget (issue 45, decisive_sac): its row in reproduction.md's verdict table is "running"
     with no P while `sac_full` has fewer than its 8 seeds; once it has them, P(AdaRL > `sac_full`) as the report
     computes it, the pre-registered rule's verdict and the exact Mann-Whitney p, here and in README.md's Fig. 3 row.
-    Its runs differ from stage 2's AdaRL in the algorithm alone (the resolved recipes, keys absent from the older
-    commit's at their defaults)."""
-    import yaml
+    Its runs differ from stage 2's AdaRL in the algorithm alone (the resolved recipes: the SAC recipe's schedule,
+    dense layers and no rank control; keys absent from the older commit's at their defaults)."""
     from scipy.stats import mannwhitneyu
 
     stats = {r["algorithm"]: r for r in csv.DictReader((REPORTS / "table1-decisive" / "statistics.csv").open())}
     text = " ".join((REPORTS.parent / "reproduction.md").read_text().split())
     readme = " ".join((REPORTS.parents[1] / "README.md").read_text().split())
-    row = _decisive_row(text, r"Fig\. 3: AdaRL above full-rank SAC \(issue 45\)", "`adarl` 8, `sac_full` 8")
+    arms_of_fig3 = ("sac_full", "adarl")
+    arms, p_said, said_said = _verdict_row("Fig. 3: AdaRL above full-rank SAC (issue 45)", DECISIVE)
+    assert arms == "`adarl` 8, `sac_full` 8", arms
     n_sac = int(stats["sac_full"]["n_seeds"]) if "sac_full" in stats else 0
     if n_sac < 8:
-        assert row.group(1) == "–" and row.group(2).startswith("running"), row[0]
+        assert p_said == "–" and said_said.startswith("running"), said_said
         assert "Fig. 3 at 1e6 is running" in readme
         return
     p, said = _by_the_rule(stats["sac_full"])
-    assert (row.group(1), row.group(2)) == (p, said), row[0]
+    assert (p_said, said_said) == (p, said)
     scores: dict[str, list[float]] = {}
     for r in csv.DictReader((REPORTS / "table1-decisive" / "runs.csv").open()):
         scores.setdefault(r["algorithm"], []).append(float(r["score"]))
     mw = mannwhitneyu(scores["adarl"], scores["sac_full"], method="exact").pvalue
     assert f"P(AdaRL > SAC) = {p} at 1e6 frames" in readme and f"p = {mw:.3f}" in text, (p, mw)
     runs = REPORTS / "table1-decisive" / "runs"
-    recipes = {
-        (a, s): yaml.safe_load((runs / f"env=hopper__algorithm={a}__seed={s}" / "recipe.yaml").read_text())
-        for a in ("adarl", "sac_full")
-        for s in range(8)
-    }
+    algorithm = {"name", "description", "lr_schedule.cosine", "lr_schedule.warmup_steps", "rank.enabled"}
+    algorithm |= {"network.actor.low_rank_layers", "network.critic.low_rank_layers"}
     for s in range(8):
-        sac, ada = recipes["sac_full", s], recipes["adarl", s]
-        for key in ("env", "collector", "replay", "eval", "algorithm", "device", "seed"):
-            assert _without_new_defaults(sac[key], ada[key]) == ada[key], (s, key)
-
-
-def _without_new_defaults(newer, older):
-    """``newer`` with the keys ``older`` does not have dropped (keys added since at their defaults), recursively."""
-    if isinstance(newer, dict) and isinstance(older, dict):
-        return {k: _without_new_defaults(v, older[k]) for k, v in newer.items() if k in older}
-    return newer
+        sac, ada = (_flat_recipe(runs / f"env=hopper__algorithm={a}__seed={s}" / "recipe.yaml") for a in arms_of_fig3)
+        assert set(_differences(sac, ada)) == algorithm, s
 
 
 def test_fig1s_verdict_is_stated_once_every_rank_is_complete_and_then_by_the_rule():
@@ -437,13 +420,14 @@ def test_fig1s_verdict_is_stated_once_every_rank_is_complete_and_then_by_the_rul
     assert f"Fig. 1 (linear CartPole, 10 seeds per rank): {want}: {verdict}" in readme
 
 
-def _verdict_row(claim: str) -> tuple[str, str, str]:
+def _verdict_row(claim: str, stage: str | None = None) -> tuple[str, str, str]:
     """(arms, P, verdict) of a claim's row in docs/reproduction.md's verdict table (its first cell starts with
-    `claim`)."""
+    `claim`; with ``stage``, the row of that stage, e.g. :data:`DECISIVE`)."""
     import re
 
     text = " ".join((REPORTS.parents[1] / "docs" / "reproduction.md").read_text().split())
-    row = re.search(r"\| " + re.escape(claim) + r"[^|]*\| [^|]+ \| ([^|]+) \| ([^|]+) \| ([^|]+?) \|", text)
+    where = re.escape(stage) if stage is not None else "[^|]+"
+    row = re.search(r"\| " + re.escape(claim) + rf"[^|]*\| {where} \| ([^|]+) \| ([^|]+) \| ([^|]+?) \|", text)
     assert row, f"no row for {claim!r} in the verdict table"
     return row.group(1), row.group(2), row.group(3)
 
