@@ -84,8 +84,8 @@ class SeedRNG:
     """A seed's global RNG states (torch, NumPy, Python; CUDA's once a GPU is in use), switched in and out with its
     greenlet.
 
-    The same three states :func:`adarl.runtime.state.rng_state` checkpoints, kept as the objects the RNGs hand out
-    instead of converted for a file: this runs at every switch, twice per seed and update."""
+    The same states :func:`adarl.runtime.state.rng_state` checkpoints, kept as the objects the RNGs hand out instead
+    of converted for a file: this runs at every switch, twice per seed and update."""
 
     __slots__ = ("torch", "numpy", "python", "cuda")
 
