@@ -394,6 +394,49 @@ def test_fig3_at_1e6_is_stated_once_sac_has_its_seeds_and_then_by_the_rule():
         assert set(_differences(sac, ada)) == algorithm, s
 
 
+TABLE1_ROWS = ("Hopper", "Walker2d", "Ant", "Humanoid")
+TABLE1_PAIRS = {"rnac_ds": 5, "rnac_ipm": 5, "parseval": 5, "sparse": 5, "sac_full": 8}  # X: its planned seeds
+
+
+def test_table1s_row_verdicts_are_stated_once_each_pair_has_its_seeds_and_then_by_the_rule():
+    """Issue 45's Table 1, row by row: reproduction.md's table "Table 1's verdicts, row by row" has one line per env and
+    method X (20), with AdaRL's 8 and X's planned seeds; "queued" while the row has no report, "running" (no P, no p)
+    while a side has fewer than its planned seeds; once both have them, P(AdaRL > X) as the row's paper_table.csv has
+    it (the same as its statistics.csv), the exact Mann-Whitney p recomputed here from runs.csv's scores, and the
+    pre-registered rule's verdict."""
+    import re
+
+    from scipy.stats import mannwhitneyu
+
+    text = " ".join((REPORTS.parent / "reproduction.md").read_text().split())
+    found = re.findall(r"\| (\w+) \| AdaRL vs [^|]*\(`(\w+)`\) \| 8, (\d+) \| ([^|]+) \| ([^|]+) \| ([^|]+?) \|", text)
+    lines = {(env, x): rest for env, x, *rest in found}
+    assert len(found) == len(lines) == 20 and {env for env, _ in lines} == set(TABLE1_ROWS), sorted(lines)
+    for (env, x), (planned, p_said, mw_said, said) in lines.items():
+        assert x in TABLE1_PAIRS and int(planned) == TABLE1_PAIRS[x], (env, x, planned)
+        folder = REPORTS / f"table1-{env.lower()}"
+        if not (folder / "paper_table.csv").exists():
+            assert (p_said, mw_said, said) == ("–", "–", "queued"), (env, x)
+            continue
+        mine = {"env": env.lower()}.items()  # a row's report has every env's line in paper_table.csv
+        row = {r["algorithm"]: r for r in csv.DictReader((folder / "paper_table.csv").open()) if mine <= r.items()}
+        stats = {r["algorithm"]: r for r in csv.DictReader((folder / "statistics.csv").open()) if mine <= r.items()}
+        n = {a: int(row[a]["n_seeds"]) for a in ("adarl", x)}
+        if n["adarl"] < 8 or n[x] < int(planned):
+            assert p_said == mw_said == "–" and said.startswith(("running", "queued")), (env, x, said)
+            continue
+        p, verdict = _by_the_rule(stats[x])
+        assert _poi_text(row[x]["poi_ref"], row[x]["poi_lo"], row[x]["poi_hi"]) == p, (env, x)
+        scores: dict[str, list[float]] = {}
+        for r in csv.DictReader((folder / "runs.csv").open()):
+            if r["env"] == env.lower():
+                scores.setdefault(r["algorithm"], []).append(float(r["score"]))
+        assert [len(scores[a]) for a in ("adarl", x)] == [n["adarl"], n[x]], (env, x)
+        mw = mannwhitneyu(scores["adarl"], scores[x], method="exact").pvalue
+        assert float(row[x]["mannwhitney_p"]) == pytest.approx(mw), (env, x)
+        assert (p_said, mw_said) == (p, f"{mw:.3f}") and said.startswith(verdict), (env, x, p_said, mw_said, said)
+
+
 def test_fig1s_verdict_is_stated_once_every_rank_is_complete_and_then_by_the_rule():
     """Fig. 1's row in docs/reproduction.md's verdict table: "running (N of 80 runs in" with no P while a rank has
     fewer than its 10 seeds; once all have 10, P(rank 8 > 4) and P(rank 8 > 16) as pairs.csv has them and the
