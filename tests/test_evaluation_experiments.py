@@ -252,6 +252,68 @@ def test_aggregate_table_matches_runs(tmp_path):
     assert "<table>" in (out / "report.html").read_text()
 
 
+def test_budgets_run_into_one_folder_are_all_reported_and_never_pooled(tmp_path):
+    """Two budgets of a spec run into one output folder: experiment.json keeps the earlier budget's record (under
+    ``earlier``; the same budget run again replaces its own), so that a report over the folder has every budget's runs,
+    not only the last one's; where two budgets ran the same setting (other seeds, other frames), a ``budget`` axis
+    keeps them apart instead of pooling them as replicates of one setting."""
+    from adarl.experiments.launchers import LocalLauncher
+    from adarl.experiments.orchestrate import run_experiment
+    from adarl.experiments.report import collect_runs
+    from adarl.runtime.config import load_recipe
+    from adarl.runtime.config.dump import save_resolved
+
+    class FakeTraining(LocalLauncher):  # each run "trains" into a finished run folder of its recipe, scoring its seed
+        def launch(self, runs, on_done, *, tick=lambda running: None):
+            for run in runs:
+                recipe = load_recipe(run.recipe, run.overrides)
+                frames = recipe.collector.total_frames
+                _fake_run(Path(run.path).parent, Path(run.path).name, run.seed, 4, [(frames, float(run.seed))])
+                save_resolved(recipe, Path(run.path) / "recipe.yaml")  # what the spec plans: reused when planned again
+                run.status = "finished"
+                on_done(run)
+
+    spec = {
+        "kind": "experiment",
+        "name": "twobudgets",
+        "recipe": "linear_cartpole_sac",
+        "overrides": TINY,
+        "axes": {"algorithm": [{"name": "a"}, {"name": "b", "overrides": ["rank.enabled=false"]}]},
+        "seeds": [0, 1],
+        "budgets": {
+            "first": {"axes": {"algorithm": ["a"]}},
+            "second": {"axes": {"algorithm": ["b"]}},
+            "more_a": {"axes": {"algorithm": ["a"]}, "seeds": [2, 3]},
+        },
+    }
+    path = tmp_path / "spec.yaml"
+    path.write_text(yaml.safe_dump(spec))
+    out = tmp_path / "exp"
+    quiet = dict(output=out, report=False, log=lambda *_: None, launcher=FakeTraining())
+    for budget in ("first", "second"):
+        run_experiment(path, budget=budget, **quiet)
+    state = json.loads((out / "experiment.json").read_text())
+    assert state["budget"] == "second" and [e["budget"] for e in state["earlier"]] == ["first"]
+    runs, info = collect_runs([out])
+    assert sorted((r.axes["algorithm"], r.seed) for r in runs) == [("a", 0), ("a", 1), ("b", 0), ("b", 1)]
+    assert all("budget" not in r.axes for r in runs)  # one budget per setting: nothing to keep apart
+    assert [e["budget"] for e in info["experiments"]] == ["first", "second"]
+    run_experiment(path, budget="second", **quiet)  # the same budget again replaces its own record
+    assert [e["budget"] for e in json.loads((out / "experiment.json").read_text())["earlier"]] == ["first"]
+    run_experiment(path, budget="more_a", **quiet)  # arm a again, other seeds: never pooled with the first's
+    state = json.loads((out / "experiment.json").read_text())
+    assert [e["budget"] for e in state["earlier"]] == ["first", "second"]
+    runs, _ = collect_runs([out])
+    assert sorted((r.axes["algorithm"], r.axes["budget"], r.seed) for r in runs) == [
+        ("a", "twobudgets:first", 0),
+        ("a", "twobudgets:first", 1),
+        ("a", "twobudgets:more_a", 2),
+        ("a", "twobudgets:more_a", 3),
+        ("b", "twobudgets:second", 0),
+        ("b", "twobudgets:second", 1),
+    ]
+
+
 # ------------------------------------------------------------------------------------------- end to end
 TINY = tiny()
 

@@ -1,7 +1,8 @@
 """Running an experiment: :func:`run_experiment` plans the spec's runs, skips finished ones, flags runs whose recipe
 does not exist (yet), hands the rest to a launcher (one after another, ``workers`` at a time, Ray or SLURM), shows
 their progress, sweeps each finished run if the spec asks, and writes the aggregate report
-(:mod:`adarl.experiments.report`). ``experiment.json`` in the output folder records what ran.
+(:mod:`adarl.experiments.report`). ``experiment.json`` in the output folder records what ran (the last budget's runs,
+and under ``earlier`` those of the other budgets or specs run into the same folder, which a report reads too).
 
 A finished (or resumable) run folder is reused only while it is what the spec plans now: its recipe, re-validated with
 today's schema, equal to the planned one in every training key, and its plugin modules the same
@@ -196,8 +197,30 @@ def _sweep(run: PlannedRun, sweeps: list[SweepSpec]) -> None:
         upload_tree(mirror.local / "sweeps", join(run.path, "sweeps"))
 
 
+RECORD_KEYS = ("name", "description", "budget", "command", "axes", "report", "runs")
+
+
+def _earlier_records(previous: str | None, spec: ExperimentSpec, budget: str | None) -> list[dict]:
+    """The records of the other budgets (or specs) that ran into this folder before, oldest first: kept in
+    ``experiment.json`` under ``earlier`` so that a report over the folder still finds their runs (the record of
+    this spec's budget is replaced)."""
+    try:
+        state = json.loads(previous) if previous is not None else {}
+    except json.JSONDecodeError:
+        return []
+    if not isinstance(state, dict):
+        return []
+    records = [*(state.get("earlier") or []), {k: state.get(k) for k in RECORD_KEYS}] if state.get("runs") else []
+    return [e for e in records if isinstance(e, dict) and (e.get("name"), e.get("budget")) != (spec.name, budget)]
+
+
 def _write_state(
-    out: Path | str, spec: ExperimentSpec, budget: str | None, runs: list[PlannedRun], command: str = ""
+    out: Path | str,
+    spec: ExperimentSpec,
+    budget: str | None,
+    runs: list[PlannedRun],
+    command: str = "",
+    earlier: list[dict] | None = None,
 ) -> None:
     payload = {
         "name": spec.name,
@@ -208,6 +231,8 @@ def _write_state(
         "report": spec.report.model_dump(),
         "runs": [r.as_dict() for r in runs],
     }
+    if earlier:
+        payload["earlier"] = earlier
     if is_url(out):
         write_atomic(join(out, EXPERIMENT_FILE), json.dumps(payload, indent=2) + "\n")
         return
@@ -290,6 +315,7 @@ def run_experiment(
         else:
             todo.append(r)
     previous = _read_previous(out)
+    earlier = _earlier_records(previous, spec, budget)
     if previous is not None:  # keep the timings of runs finished in earlier sessions
         try:
             before = {r["run_id"]: r for r in json.loads(previous).get("runs", [])}
@@ -334,7 +360,7 @@ def run_experiment(
         # quoted as a shell reads it: a folder named `a b;rm -rf x` stays one argument of the command it suggests
         budget_args = ["--budget", str(budget)] if budget else []
         command = shlex.join(["adarl", "experiment", str(spec_path), *budget_args, "-o", str(out)])
-        _write_state(out, spec, budget, runs, command)
+        _write_state(out, spec, budget, runs, command, earlier)
         board, last_tick = ProgressBoard(runs), [time.monotonic()]
         screen = LiveBoard(board, console=console) if live and progress_interval > 0 else None
         shown = screen.log if screen is not None else log
@@ -357,7 +383,7 @@ def run_experiment(
                     continue
                 said = "" if r.status == "finished" else ": " + r.message
                 say(f"[{r.status}] {r.run_id} ({r.wall_time_s:.0f} s){said}")
-            _write_state(out, spec, budget, runs, command)
+            _write_state(out, spec, budget, runs, command, earlier)
             if screen is not None:
                 screen.update()
 
@@ -381,7 +407,7 @@ def run_experiment(
                 else:
                     launcher.launch(units, done, tick=tick)
             except ExperimentInterrupted:  # SIGINT/SIGTERM: the state as it stands, no report; the same command resumes
-                _write_state(out, spec, budget, runs, command)
+                _write_state(out, spec, budget, runs, command, earlier)
                 raise
         _, b = resolve_budget(spec, budget)
         sweeps = spec.sweeps if b.sweeps is None else b.sweeps
@@ -389,7 +415,7 @@ def run_experiment(
             for r in runs:
                 if r.status in ("finished", "skipped-finished"):
                     _sweep(r, sweeps)
-        _write_state(out, spec, budget, runs, command)
+        _write_state(out, spec, budget, runs, command, earlier)
         failed = [r for r in runs if r.status == "failed"]
         interrupted = [r for r in runs if r.status == "interrupted"]
         if report:

@@ -105,7 +105,8 @@ def write_aggregate_report(
         else f"the mean of its last {last} evaluations on the nominal dynamics (each the mean over its episodes)"
     )
     exps = agg.info["experiments"]
-    title = "Experiment report: " + ", ".join(e["name"] for e in exps) if exps else "Aggregate report"
+    names = list(dict.fromkeys(e["name"] for e in exps))  # a spec's budgets run into one folder: named once
+    title = "Experiment report: " + ", ".join(names) if exps else "Aggregate report"
     blocks: list = [Heading(1, title)]
     for e in exps:
         if e.get("description"):

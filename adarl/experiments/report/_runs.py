@@ -206,15 +206,23 @@ def axes_from_run_id(name: str, seed) -> dict[str, str] | None:
 
 
 def collect_runs(dirs: list[str | os.PathLike]) -> tuple[list[RunRecord], dict]:
-    """Run records from run folders, experiment folders (``experiment.json``) or folders holding run folders."""
+    """Run records from run folders, experiment folders (``experiment.json``) or folders holding run folders.
+
+    An experiment folder that several budgets (or specs) ran into lists each one's runs in its ``experiment.json``
+    (the last one's, and those it keeps under ``earlier``): every one of them is read, and when two of them have runs
+    of the same setting (the same axes, other seeds or frames) the runs get a ``budget`` axis, so that a report never
+    pools two budgets' runs as replicates of one setting."""
     runs: list[RunRecord] = []
     info: dict = {"experiments": [], "missing": [], "unfinished": []}
     seen: set[Path] = set()
+    made_by: dict[int, str] = {}  # id(run record) -> the budget (experiment record) that lists it
 
-    def add(rec: RunRecord | None) -> None:
+    def add(rec: RunRecord | None, label: str | None = None) -> None:
         if rec is not None and rec.path.resolve() not in seen:
             seen.add(rec.path.resolve())
             runs.append(rec)
+            if label is not None:
+                made_by[id(rec)] = label
 
     for d in dirs:
         p = Path(d)
@@ -225,23 +233,17 @@ def collect_runs(dirs: list[str | os.PathLike]) -> tuple[list[RunRecord], dict]:
         exp = p / "experiment.json"
         if exp.is_file():
             state = json.loads(exp.read_text())
-            info["experiments"].append(
-                {k: state.get(k) for k in ("name", "description", "budget", "command", "axes", "report")}
-            )
-            for r in state.get("runs", []):
-                if is_url(r["path"]):  # an experiment at a URL, read from a local copy (write_aggregate_report)
-                    r = {**r, "path": str(p / r["path"].rstrip("/").rsplit("/", 1)[-1])}
-                rp = Path(r["path"])
-                if not rp.is_absolute() and not rp.exists():
-                    rp = p / rp.name
-                if r.get("status") == "missing-recipe":
-                    info["missing"].append(f"{r['run_id']} ({r['recipe']})")
-                    continue
-                rp = rp if rp.exists() else p / Path(r["path"]).name
-                if not run_is_finished(rp):
-                    info["unfinished"].append(r["run_id"])
-                    continue
-                add(_load_run(rp, dict(r["axes"])))
+            records = [*[e for e in state.get("earlier") or [] if isinstance(e, dict)], state]
+            info["experiments"] += [
+                {k: e.get(k) for k in ("name", "description", "budget", "command", "axes", "report")} for e in records
+            ]
+            listed: set[str] = set()  # a run id is one run of the folder: the newest record's entry of it counts
+            for e in reversed(records):
+                label = f"{e.get('name')}:{e.get('budget') or 'default'}"
+                for r in e.get("runs", []):
+                    if r.get("run_id") not in listed:
+                        listed.add(r.get("run_id"))
+                        _add_listed(p, r, info, lambda rec, label=label: add(rec, label))
         elif is_single_run(p):
             add(_load_run(p, None))
         else:
@@ -250,8 +252,38 @@ def collect_runs(dirs: list[str | os.PathLike]) -> tuple[list[RunRecord], dict]:
                     add(_load_run(sub.parent, None))
     if not runs:
         raise AdaRLError(f"no run folders (with recipe.yaml) found in {[str(d) for d in dirs]}")
+    _split_budgets(runs, made_by)
     _split_loose_variants(runs)
     return runs, info
+
+
+def _add_listed(folder: Path, r: dict, info: dict, add) -> None:
+    """One run an ``experiment.json`` lists: loaded when finished, else named as missing or unfinished."""
+    if is_url(r["path"]):  # an experiment at a URL, read from a local copy (write_aggregate_report)
+        r = {**r, "path": str(folder / r["path"].rstrip("/").rsplit("/", 1)[-1])}
+    rp = Path(r["path"])
+    if not rp.is_absolute() and not rp.exists():
+        rp = folder / rp.name
+    if r.get("status") == "missing-recipe":
+        info["missing"].append(f"{r['run_id']} ({r['recipe']})")
+        return
+    rp = rp if rp.exists() else folder / Path(r["path"]).name
+    if not run_is_finished(rp):
+        info["unfinished"].append(r["run_id"])
+        return
+    add(_load_run(rp, dict(r["axes"])))
+
+
+def _split_budgets(runs: list[RunRecord], made_by: dict[int, str]) -> None:
+    """Give the runs of experiment folders a ``budget`` axis when one setting holds runs of two budgets."""
+    budgets: dict[tuple, set[str]] = {}
+    for r in runs:
+        if id(r) in made_by:
+            budgets.setdefault(tuple(sorted(r.axes.items())), set()).add(made_by[id(r)])
+    if any(len(b) > 1 for b in budgets.values()):
+        for r in runs:
+            if id(r) in made_by:
+                r.axes["budget"] = made_by[id(r)]
 
 
 def _split_loose_variants(runs: list[RunRecord]) -> None:
