@@ -78,12 +78,17 @@ TINY_PPO = (
 )
 
 
+#: the device the update tests build their components on: ``ADARL_TEST_DEVICE=cuda`` runs them on a GPU (issue 49's
+#: GPU check, docs/reports/issue49/gpu_check.sh); unset, the CPU (CI)
+TEST_DEVICE = os.environ.get("ADARL_TEST_DEVICE", "cpu")
+
 #: components built, not trained (the update tests): quickstart at 2000 frames, a 2000-frame buffer, batch 64
 BUILT = (
     "collector.total_frames=2000",
     "collector.init_random_frames=500",
     "replay.size=2000",
     "algorithm.batch_size=64",
+    *((f"device={TEST_DEVICE}",) if TEST_DEVICE != "cpu" else ()),
 )
 
 
