@@ -221,6 +221,81 @@ def test_full_step_matches_plain_step(filled, backward, parseval):
         assert not torch.allclose(without["actor_network_params"][key], fused["actor_network_params"][key])
 
 
+def test_the_sparsification_layer_runs_on_the_fused_update_as_sacloss_computes_it():
+    """Tiwari et al.'s layer (1024 units, k-winners-take-all; baselines/hopper_sparse): the recipe now trains on the
+    fused update (autograd backward: the hand-written one refuses the layer by name), whose losses and gradients on
+    one batch, and whose parameters, targets and alpha after three steps (Adam, clipping, Polyak), are SACLoss's."""
+    c = build_sac_components(load_recipe("baselines/hopper_sparse", [*BUILT, "algorithm.fused=false"]))
+    assert isinstance(c.update, LossStep)
+    torch.manual_seed(3)
+    c.replay_buffer.extend(c.env.rollout(300, break_when_any_done=False).reshape(-1))
+    loss = c.modules.loss
+    with torch.no_grad():
+        loss.log_alpha.fill_(-1.3)
+        for p in loss.target_qvalue_network_params.flatten_keys().values():
+            p.add_(0.01 * torch.randn_like(p))
+    with pytest.raises(AdaRLValueError, match="sparsification layer"):
+        FusedSACUpdate(loss, [], tau=0.005, backward="manual")
+    batch = c.replay_buffer.sample()
+    params = _params(loss)
+    torch.manual_seed(11)
+    ref = loss(batch.clone())
+    (ref["loss_actor"] + ref["loss_qvalue"] + ref["loss_alpha"]).backward()
+    ref_grads = _grads(params)
+    for p in params:
+        p.grad = None
+    fu = FusedSACUpdate(loss, [], tau=0.005)
+    assert fu.backward == "autograd"
+    torch.manual_seed(11)
+    out = _fused_losses(fu, batch)
+    for name, value in zip(["loss_actor", "loss_qvalue", "loss_alpha", "alpha", "entropy"], out):
+        torch.testing.assert_close(value.detach(), ref[name].detach(), rtol=1e-5, atol=1e-6, msg=name)
+    for g, r in zip(_grads(params), ref_grads):
+        torch.testing.assert_close(g, r, rtol=1e-4, atol=1e-6)
+    for p in params:
+        p.grad = None
+    # three whole steps each way from the same start
+    start = _snapshot(loss)
+
+    def opts(fused):
+        return [
+            make_adam(list(loss.actor_network_params.flatten_keys().values()), 3e-3, fused=fused),
+            make_adam(list(loss.qvalue_network_params.flatten_keys().values()), 3e-3, fused=fused),
+            make_adam([loss.log_alpha], 3e-4, fused=fused),
+        ]
+
+    plain_opts = opts(False)
+    torch.manual_seed(5)
+    for _ in range(3):
+        td = loss(batch.clone())
+        (td["loss_actor"] + td["loss_qvalue"] + td["loss_alpha"]).backward()
+        for o in plain_opts:
+            for g in o.param_groups:
+                torch.nn.utils.clip_grad_norm_(g["params"], 1.0)
+            o.step()
+            o.zero_grad(set_to_none=True)
+        c.modules.target_updater.step()
+    plain = _snapshot(loss)
+    with torch.no_grad():
+        for k in ("actor_network_params", "qvalue_network_params", "target_qvalue_network_params"):
+            getattr(loss, k).flatten_keys().apply(lambda x: x).update_(start[k])
+        loss.log_alpha.copy_(start["log_alpha"])
+    fu = FusedSACUpdate(loss, opts(True), tau=0.005, max_grad_norm=1.0)
+    torch.manual_seed(5)
+    for _ in range(3):
+        fu(batch)
+    fused = _snapshot(loss)
+    for k in plain:
+        torch.testing.assert_close(fused[k], plain[k], rtol=1e-4, atol=1e-6, msg=k)
+    moved = plain["actor_network_params"]["module.0.module.0.2.0.weight"]  # the sparse layer's weight
+    assert not torch.equal(moved, start["actor_network_params"]["module.0.module.0.2.0.weight"])
+    c.close()
+    # the recipe as shipped ('auto') takes the fused update
+    c = build_sac_components(load_recipe("baselines/hopper_sparse", list(BUILT)))
+    assert isinstance(c.update, FusedStep) and c.update.fused.backward == "autograd"
+    c.close()
+
+
 def test_fused_update_refuses_a_loss_term_that_reads_the_batch(filled):
     c, _ = filled
 

@@ -283,7 +283,8 @@ def _components():
     from adarl.runtime.builders.sac import build_sac_components
     from adarl.runtime.config import load_recipe
 
-    c = build_sac_components(load_recipe("baselines/hopper_sparse", list(BUILT)))
+    # TorchRL's SACLoss path (the critics under torch.vmap); the fused update's is tests/test_fast_sac.py's
+    c = build_sac_components(load_recipe("baselines/hopper_sparse", [*BUILT, "algorithm.fused=false"]))
     torch.manual_seed(3)
     c.replay_buffer.extend(c.env.rollout(200, break_when_any_done=False).reshape(-1))
     return c

@@ -75,7 +75,15 @@ try:  # functorch's interpreter stack, read to step below a vmap level (_under_t
 except ImportError:  # pragma: no cover - another torch: the dense form under transforms
     _current_interpreter = None
 
-__all__ = ["FORMS", "intrinsic_rank", "KWinnersTakeAll", "SparsificationLayer", "set_form", "winners"]
+__all__ = [
+    "FORMS",
+    "intrinsic_rank",
+    "KWinnersTakeAll",
+    "SparsificationLayer",
+    "set_form",
+    "sparse_relu_kwta",
+    "winners",
+]
 
 #: the two computations of :class:`SparsificationLayer` (the same function; the module docstring says how)
 FORMS = ("sparse", "dense")
@@ -202,6 +210,16 @@ def _dense_relu_kwta(x, weight, bias, k):
     return h * (h >= h.topk(k, dim=-1).values[..., -1:])
 
 
+def sparse_relu_kwta(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, k: int) -> torch.Tensor:
+    """``KWinnersTakeAll(k)(relu(F.linear(x, weight, bias)))`` on plain tensors, ``weight`` possibly stacked
+    (``[*S, out, in]`` with ``x`` ``[*S, *B, in]``: the fused update's critic ensemble): the sparse form (its
+    backward through the winners alone), or the dense one for fewer than :data:`_MIN_ROWS` rows and under
+    ``torch.compile``, as :class:`SparsificationLayer` chooses; the same values and gradients either way."""
+    if torch.compiler.is_compiling() or x.numel() < _MIN_ROWS * x.shape[-1] * max(1, math.prod(weight.shape[:-2])):
+        return _dense_relu_kwta(x, weight, bias, k)
+    return _sparse_relu_linear(x, weight, bias, k)
+
+
 def _sparse_relu_linear(x, weight, bias, k):
     """:class:`_SparseReLULinear` wherever it is called from: directly, or under functorch transforms."""
     if not torch._C._are_functorch_transforms_active():
@@ -291,6 +309,12 @@ class SparsificationLayer(nn.Sequential):
                 x = module(x)
             return x
         return _sparse_relu_linear(x, self[0].weight, self[0].bias, self[-1].k)
+
+    @torch.jit.unused
+    def fusable(self) -> bool:
+        """Whether the fused SAC update computes this layer (:func:`sparse_relu_kwta` on its weight and bias):
+        ``Linear -> ReLU -> KWinnersTakeAll`` with ``k`` below the width, in either form."""
+        return self._sparse_form_applies()
 
     @torch.jit.unused
     def _sparse_form_applies(self) -> bool:

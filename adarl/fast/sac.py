@@ -39,6 +39,7 @@ from torchrl.modules.distributions.utils import safetanh_noeps
 from torchrl.objectives import SACLoss
 from torchrl.objectives.value import TD0Estimator
 
+from adarl.baselines.sparse import SparsificationLayer, sparse_relu_kwta
 from adarl.core.lowrank import LowRankLinear
 from adarl.core.product_polyak import factor_keys, factor_pairs, product_polyak_
 from adarl.core.target_shift import TargetShiftSACLoss
@@ -123,12 +124,19 @@ def wants_fused(setting, loss) -> bool:
 
 
 def _mlp_layers(net: nn.Module, what: str) -> list[nn.Module]:
-    layers = list(net.children()) if isinstance(net, nn.Sequential) else [net]
+    layers = list(net.children()) if isinstance(net, nn.Sequential) and type(net) is not SparsificationLayer else [net]
     for layer in layers:
-        if not isinstance(layer, (nn.Linear, LowRankLinear)) and not supported_activation(layer):
+        if isinstance(layer, SparsificationLayer):
+            if not layer.fusable():
+                raise AdaRLValueError(
+                    f"the fused SAC update runs the sparsification layer as Linear -> ReLU -> k-WTA with k below its "
+                    f"width; found {layer!r} in the {what} (set algorithm.fused: false to use TorchRL's SACLoss)"
+                )
+        elif not isinstance(layer, (nn.Linear, LowRankLinear)) and not supported_activation(layer):
             raise AdaRLValueError(
-                f"the fused SAC update supports {what} MLPs of Linear, LowRankLinear and activation layers; "
-                f"found {type(layer).__name__} (set algorithm.fused: false to use TorchRL's SACLoss)"
+                f"the fused SAC update supports {what} MLPs of Linear, LowRankLinear, the sparsification layer and "
+                f"activation layers; found {type(layer).__name__} (set algorithm.fused: false to use TorchRL's "
+                "SACLoss)"
             )
     return layers
 
@@ -146,11 +154,14 @@ class _StackedMLP:
                 self.layers.append(
                     ("lowrank", (key + ".w1", key + ".w2", key + ".bias" if layer.bias is not None else None))
                 )
+            elif isinstance(layer, SparsificationLayer):  # Linear -> ReLU -> k-WTA (its k the third entry)
+                bias = key + ".0.bias" if layer[0].bias is not None else None
+                self.layers.append(("sparse", (key + ".0.weight", bias, layer.k)))
             elif isinstance(layer, nn.Linear):
                 self.layers.append(("linear", (key + ".weight", key + ".bias" if layer.bias is not None else None)))
             else:
                 self.layers.append(("act", layer))
-        missing = [k for kind, ks in self.layers if kind != "act" for k in ks if k is not None and k not in params]
+        missing = [k for kind, ks in self.layers if kind != "act" for k in ks[:2] if k is not None and k not in params]
         if missing:
             raise AdaRLValueError(f"fused SAC update: Q parameters {missing} not found in the loss's parameters")
 
@@ -166,6 +177,8 @@ class _StackedMLP:
                 out.append(("act", spec, None))
             elif kind == "linear":
                 out.append(("linear", params[spec[0]], params[spec[1]] if spec[1] is not None else None))
+            elif kind == "sparse":
+                out.append(("sparse", (params[spec[0]], spec[2]), params[spec[1]] if spec[1] is not None else None))
             else:
                 w1, w2 = params[spec[0]], params[spec[1]]
                 b = params[spec[2]] if spec[2] is not None else None
@@ -180,8 +193,10 @@ class _StackedMLP:
     def detached(prepared: list[tuple]) -> list[tuple]:
         """The same layers with every tensor detached (the critics inside the actor loss)."""
 
-        def d(t):
-            return None if t is None else tuple(x.detach() for x in t) if isinstance(t, tuple) else t.detach()
+        def d(t):  # a sparse layer's (weight, k) keeps its k
+            if isinstance(t, tuple):
+                return tuple(x.detach() if isinstance(x, torch.Tensor) else x for x in t)
+            return None if t is None else t.detach()
 
         return [(k, w if k == "act" else d(w), d(b)) for k, w, b in prepared]
 
@@ -194,6 +209,11 @@ class _StackedMLP:
                 continue
             if kind == "linear":
                 x = affine(x, w.transpose(-1, -2), b)
+            elif kind == "sparse":
+                weight, k = w
+                if weight.dim() == 3 and x.dim() == 2:  # the critics' first layer: one input for every critic
+                    x = x.expand(weight.shape[0], *x.shape)
+                x = sparse_relu_kwta(x, weight, b, k)
             else:
                 x = affine(torch.matmul(x, w[1].transpose(-1, -2)), w[0].transpose(-1, -2), b)
         return x
