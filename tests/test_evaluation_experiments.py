@@ -475,6 +475,57 @@ def test_a_budget_may_give_a_value_other_seeds():
     assert sorted({r.axes["algorithm"] for r in decisive}) == ["adarl", "parseval"] and len(decisive) == 16
 
 
+def test_a_budget_may_give_a_value_its_own_overrides():
+    """``value_overrides``: a budget adds overrides to the runs of one axis value, after the value's and the budget's
+    own (so they win), e.g. one env's Table 1 row runs Parseval at the lambda selected on that env; an unknown axis or
+    value is refused, naming the known ones; the other values' runs are untouched."""
+    from pydantic import ValidationError
+
+    from adarl.experiments.spec import ExperimentSpec, plan_runs
+
+    def spec(value_overrides):
+        return ExperimentSpec.model_validate(
+            {
+                "kind": "experiment",
+                "name": "x",
+                "recipe": "quickstart",
+                "seeds": [0],
+                "axes": {
+                    "env": ["e1", "e2"],
+                    "arm": [
+                        {"name": "a", "overrides": ["eval.episodes=1"]},
+                        {"name": "b", "overrides": ["rank.beta=0.9"]},
+                    ],
+                },
+                "budgets": {"all": {"overrides": ["eval.episodes=2"], "value_overrides": value_overrides}},
+            }
+        )
+
+    def planned(s):
+        return {r.run_id: r.overrides for r in plan_runs(s, "/x", "all")}
+
+    plain = planned(spec({}))
+    given = planned(spec({"arm": {"b": ["rank.beta=0.95", "eval.episodes=3"]}}))
+    assert (
+        given["env=e1__arm=a__seed=0"]
+        == plain["env=e1__arm=a__seed=0"]
+        == ["eval.episodes=1", "eval.episodes=2", "seed=0"]
+    )
+    assert given["env=e2__arm=b__seed=0"] == [
+        "rank.beta=0.9",
+        "eval.episodes=2",
+        "rank.beta=0.95",
+        "eval.episodes=3",
+        "seed=0",
+    ]
+    with pytest.raises(ValidationError, match=r"value_overrides names unknown axis 'arms'; axes: \['env', 'arm'\]"):
+        spec({"arms": {"b": []}})
+    with pytest.raises(
+        ValidationError, match=r"value_overrides of axis 'arm' names no value\(s\) \['c'\]; values: \['a', 'b'\]"
+    ):
+        spec({"arm": {"c": []}})
+
+
 def test_table2s_budgets_run_the_arms_they_name():
     """A scope added to table2's axis (the follow-up's sac_full) must not join a budget that names no scope list:
     each laptop budget runs exactly the arms its description gives."""

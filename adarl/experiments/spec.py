@@ -119,6 +119,12 @@ class Budget(_Model):
         "`seeds` (null: every seed of the budget), e.g. {algorithm: {parseval: null}} where a control that a smaller "
         "budget runs at 5 seeds runs at all 8.",
     )
+    value_overrides: dict[str, dict[str, list[str]]] = Field(
+        default_factory=dict,
+        description="Per axis and value name, overrides (templates) the runs with that value get in this budget, "
+        "after the value's and the budget's own, e.g. {algorithm: {parseval: ['algorithm.parseval.lam=1.0e-4']}} "
+        "where one env's row runs a baseline at the value selected on that env.",
+    )
 
     @field_validator("axes", mode="before")
     @classmethod
@@ -321,17 +327,18 @@ class ExperimentSpec(_Model):
                 unknown = [k for k in keep if k not in known]
                 if unknown:
                     raise ValueError(f"budget {bname!r}: axis {axis!r} has no value(s) {unknown}; values: {known}")
-            for axis, per_value in budget.value_seeds.items():
-                if axis not in self.axes:
-                    raise ValueError(
-                        f"budget {bname!r}: value_seeds names unknown axis {axis!r}; axes: {list(self.axes)}"
-                    )
-                known = [v.name for v in self.axes[axis]]
-                unknown = [k for k in per_value if k not in known]
-                if unknown:
-                    raise ValueError(
-                        f"budget {bname!r}: value_seeds of axis {axis!r} names no value(s) {unknown}; values: {known}"
-                    )
+            for field, given in (("value_seeds", budget.value_seeds), ("value_overrides", budget.value_overrides)):
+                for axis, per_value in given.items():
+                    if axis not in self.axes:
+                        raise ValueError(
+                            f"budget {bname!r}: {field} names unknown axis {axis!r}; axes: {list(self.axes)}"
+                        )
+                    known = [v.name for v in self.axes[axis]]
+                    unknown = [k for k in per_value if k not in known]
+                    if unknown:
+                        raise ValueError(
+                            f"budget {bname!r}: {field} of axis {axis!r} names no value(s) {unknown}; values: {known}"
+                        )
         if self.default_budget is not None and self.default_budget not in self.budgets:
             raise ValueError(f"default_budget {self.default_budget!r} is not one of the budgets {list(self.budgets)}")
         for where, axis in (("report.columns", self.report.columns), ("report.x_axis", self.report.x_axis)):
@@ -564,6 +571,8 @@ def plan_runs(spec: ExperimentSpec, output: str | os.PathLike, budget: str | Non
                     recipe_t = v.recipe
                 overrides_t += v.overrides
             overrides_t += b.overrides
+            for a, v in named.items():  # the budget's overrides for this value, last: they win
+                overrides_t += b.value_overrides.get(a, {}).get(v.name, [])
             run_id = "__".join([f"{a}={v.name}" for a, v in named.items()] + [f"seed={seed}"])
             recipe = _fill(recipe_t, values, f"run {run_id} recipe")
             overrides = [_fill(o, values, f"run {run_id} override") for o in overrides_t] + [f"seed={seed}"]
