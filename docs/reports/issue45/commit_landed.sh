@@ -6,6 +6,7 @@ cd /work/main || exit 1
 while true; do
   # report folder:experiment folder (decisive_sac's runs join stage 2's report)
   for pair in mechanism-pilot:mechanism-pilot table1-decisive:table1-decisive_sac table1-hopper:table1-hopper \
+      table1-walker2d:table1-walker2d table1-ant:table1-ant table1-humanoid:table1-humanoid \
       parseval_lambda-laptop_walker2d:parseval_lambda-laptop_walker2d parseval_lambda-laptop_ant:parseval_lambda-laptop_ant \
       parseval_lambda-laptop_humanoid:parseval_lambda-laptop_humanoid; do
     name=${pair%%:*}
@@ -14,6 +15,7 @@ while true; do
     dest=docs/reports/$name
     new=$(.venv/bin/python docs/reports/issue34/export_runs.py "$src" "$dest")
     wt=wt-t  # the worktree (its commit) the runs were made from (runs.csv names each run's own)
+    case "$name" in table1-walker2d | table1-ant | table1-humanoid) wt=wt-r ;; esac
     if [ "$name" = mechanism-pilot ]; then wt=wt-m; case "$new" in *factorised_init*) wt=wt-e ;; esac; fi
     if [ -n "$new" ] || [ -n "$(git status --porcelain -- "$dest/runs")" ]; then
       bash docs/reports/issue45/make_report.sh "$name" || echo "$(date -u +%FT%TZ) report of $dest failed"

@@ -49,6 +49,10 @@ worktree wt-t $WT_T
 # commit that added its init scheme, spec budget and amendment (cc50c7f) with arm_e_due.py fixed (f6676ac)
 WT_E=${ISSUE45_WT_E:-f6676ac}
 worktree wt-e $WT_E
+# Table 1's Walker2d, Ant and Humanoid rows run from the worktree wt-r at the commit rows_commit names (written once
+# the selected lambdas are in table1.yaml; absent before: no wt-r, and queue.sh says the rows wait)
+WT_R=${ISSUE45_WT_R:-$(cat $I/rows_commit 2>/dev/null || true)}
+[ -n "$WT_R" ] && worktree wt-r $WT_R
 # each committed run back into its experiment folder (a finished one is skipped by the driver, checked by content)
 restore() {  # restore REPORT_FOLDER EXPERIMENT_FOLDER [GLOB]
   [ -d "$MAIN/docs/reports/$1/runs" ] || return 0
@@ -61,6 +65,7 @@ restore() {  # restore REPORT_FOLDER EXPERIMENT_FOLDER [GLOB]
 restore table1-decisive table1-decisive_sac "*algorithm=sac_full*"
 for arm in adarl sac_full parseval; do restore table1-pilot table1-hopper "env=hopper__algorithm=${arm}__seed=*"; done
 restore table1-hopper table1-hopper
+for env in walker2d ant humanoid; do restore table1-$env table1-$env; done
 for env in walker2d ant humanoid; do restore parseval_lambda-laptop_$env parseval_lambda-laptop_$env; done
 [ "${1:-}" = --restore-only ] && exit 0
 if pgrep -f "adarl experiment" >/dev/null || pgrep -f "queue[0-9]*.sh" >/dev/null; then

@@ -32,4 +32,21 @@ run $T experiment $SPECS_T/table1.yaml --budget table1_hopper -o /work/exp/table
 for env in walker2d ant humanoid; do
   run $T experiment $SPECS_T/parseval_lambda.yaml --budget laptop_$env -o /work/exp/parseval_lambda-laptop_$env
 done
+# Table 1's Walker2d, Ant and Humanoid rows (amendment f4d851d: their sparse arm on the fused update): from the
+# worktree wt-r at the commit named in docs/reports/issue45/rows_commit (fresh_machine.sh builds it), a row only once
+# that commit's table1.yaml gives its budget the selected lambda (value_overrides: {algorithm: {parseval: [...]}})
+R=/work/exp/wt-r/.venv/bin
+for env in walker2d ant humanoid; do
+  if [ -x $R/adarl ] && $R/python - "$env" <<'PY'
+import sys
+from adarl.experiments.spec import load_experiment
+budget = load_experiment("/work/exp/wt-r/recipes/experiments/table1.yaml").budgets[f"table1_{sys.argv[1]}"]
+sys.exit(0 if budget.value_overrides.get("algorithm", {}).get("parseval") else 1)
+PY
+  then
+    run $R/adarl experiment /work/exp/wt-r/recipes/experiments/table1.yaml --budget table1_$env -o /work/exp/table1-$env
+  else
+    echo "=== $(date -u +%FT%TZ) table1_$env waits: no worktree wt-r, or its table1.yaml has no selected lambda for $env"
+  fi
+done
 echo "=== $(date -u +%FT%TZ) queue done"
