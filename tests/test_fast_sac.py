@@ -159,6 +159,42 @@ def _snapshot(loss):
     return {k: getattr(loss, k).flatten_keys().clone() for k in keys} | {"log_alpha": loss.log_alpha.detach().clone()}
 
 
+def _restore(loss, start) -> None:
+    """Put a :func:`_snapshot` back into the loss's own tensors (in place: the update holds them)."""
+    with torch.no_grad():
+        for k in ("actor_network_params", "qvalue_network_params", "target_qvalue_network_params"):
+            getattr(loss, k).flatten_keys().apply(lambda x: x).update_(start[k])
+        loss.log_alpha.copy_(start["log_alpha"])
+
+
+def _adams(loss, fused: bool) -> list:
+    """Adam for the actor, the critics and alpha, as the recipes make them (for-loop or fused)."""
+    return [
+        make_adam(list(loss.actor_network_params.flatten_keys().values()), 3e-3, fused=fused),
+        make_adam(list(loss.qvalue_network_params.flatten_keys().values()), 3e-3, fused=fused),
+        make_adam([loss.log_alpha], 3e-4, fused=fused),
+    ]
+
+
+def _plain_steps(c, batch, n: int, terms: dict | None = None) -> list:
+    """``n`` steps of TorchRL's path by hand: SACLoss (+ terms), for-loop Adam with clipping at 1, SoftUpdate; the
+    terms' values."""
+    loss, opts, values = c.modules.loss, _adams(c.modules.loss, False), []
+    for _ in range(n):
+        td = loss(batch.clone())
+        for term in (terms or {}).values():
+            td = term.wrap_output(td)
+            values.append(td["loss_parseval"].detach())
+        sum(v for k, v in td.items() if k.startswith("loss_")).backward()
+        for o in opts:
+            for g in o.param_groups:
+                torch.nn.utils.clip_grad_norm_(g["params"], 1.0)
+            o.step()
+            o.zero_grad(set_to_none=True)
+        c.modules.target_updater.step()
+    return values
+
+
 @pytest.mark.parametrize("parseval", [False, True], ids=["sac", "parseval"])
 @pytest.mark.parametrize("backward", ["manual", "autograd"])
 def test_full_step_matches_plain_step(filled, backward, parseval):
@@ -169,54 +205,28 @@ def test_full_step_matches_plain_step(filled, backward, parseval):
     start = _snapshot(loss)
     terms = {"parseval": ParsevalRegularizer(loss, lam=1e-2)} if parseval else {}
 
-    def restore():
-        with torch.no_grad():
-            for k in ("actor_network_params", "qvalue_network_params", "target_qvalue_network_params"):
-                getattr(loss, k).flatten_keys().apply(lambda x: x).update_(start[k])
-            loss.log_alpha.copy_(start["log_alpha"])
-
-    def opts(fused):
-        return [
-            make_adam(list(loss.actor_network_params.flatten_keys().values()), 3e-3, fused=fused),
-            make_adam(list(loss.qvalue_network_params.flatten_keys().values()), 3e-3, fused=fused),
-            make_adam([loss.log_alpha], 3e-4, fused=fused),
-        ]
-
-    plain_opts = opts(False)
     torch.manual_seed(5)
-    plain_terms = []
-    for _ in range(2):
-        td = loss(batch.clone())
-        for term in terms.values():
-            td = term.wrap_output(td)
-            plain_terms.append(td["loss_parseval"].detach())
-        sum(v for k, v in td.items() if k.startswith("loss_")).backward()
-        for o in plain_opts:
-            for g in o.param_groups:
-                torch.nn.utils.clip_grad_norm_(g["params"], 1.0)
-            o.step()
-            o.zero_grad(set_to_none=True)
-        c.modules.target_updater.step()
+    plain_terms = _plain_steps(c, batch, 2, terms)
     plain = _snapshot(loss)
 
-    restore()
-    fu = FusedSACUpdate(loss, opts(True), tau=0.005, max_grad_norm=1.0, backward=backward, terms=terms)
+    _restore(loss, start)
+    fu = FusedSACUpdate(loss, _adams(loss, True), tau=0.005, max_grad_norm=1.0, backward=backward, terms=terms)
     torch.manual_seed(5)
     fused_terms = [fu(batch).get("loss_parseval") for _ in range(2)]
     fused = _snapshot(loss)
-    restore()
+    _restore(loss, start)
     for k in plain:
         torch.testing.assert_close(fused[k], plain[k], rtol=1e-4, atol=1e-6, msg=k)
     assert not torch.equal(plain["log_alpha"], start["log_alpha"])  # the step did move things
     if parseval:
         torch.testing.assert_close(torch.stack(fused_terms), torch.stack(plain_terms))
         # the term moved the step: without it the parameters end elsewhere
-        fu = FusedSACUpdate(loss, opts(True), tau=0.005, max_grad_norm=1.0, backward=backward)
+        fu = FusedSACUpdate(loss, _adams(loss, True), tau=0.005, max_grad_norm=1.0, backward=backward)
         torch.manual_seed(5)
         for _ in range(2):
             fu(batch)
         without = _snapshot(loss)
-        restore()
+        _restore(loss, start)
         key = "module.0.module.0.0.w1"  # the actor's first (low-rank) layer
         assert not torch.allclose(without["actor_network_params"][key], fused["actor_network_params"][key])
 
@@ -256,31 +266,11 @@ def test_the_sparsification_layer_runs_on_the_fused_update_as_sacloss_computes_i
         p.grad = None
     # three whole steps each way from the same start
     start = _snapshot(loss)
-
-    def opts(fused):
-        return [
-            make_adam(list(loss.actor_network_params.flatten_keys().values()), 3e-3, fused=fused),
-            make_adam(list(loss.qvalue_network_params.flatten_keys().values()), 3e-3, fused=fused),
-            make_adam([loss.log_alpha], 3e-4, fused=fused),
-        ]
-
-    plain_opts = opts(False)
     torch.manual_seed(5)
-    for _ in range(3):
-        td = loss(batch.clone())
-        (td["loss_actor"] + td["loss_qvalue"] + td["loss_alpha"]).backward()
-        for o in plain_opts:
-            for g in o.param_groups:
-                torch.nn.utils.clip_grad_norm_(g["params"], 1.0)
-            o.step()
-            o.zero_grad(set_to_none=True)
-        c.modules.target_updater.step()
+    _plain_steps(c, batch, 3)
     plain = _snapshot(loss)
-    with torch.no_grad():
-        for k in ("actor_network_params", "qvalue_network_params", "target_qvalue_network_params"):
-            getattr(loss, k).flatten_keys().apply(lambda x: x).update_(start[k])
-        loss.log_alpha.copy_(start["log_alpha"])
-    fu = FusedSACUpdate(loss, opts(True), tau=0.005, max_grad_norm=1.0)
+    _restore(loss, start)
+    fu = FusedSACUpdate(loss, _adams(loss, True), tau=0.005, max_grad_norm=1.0)
     torch.manual_seed(5)
     for _ in range(3):
         fu(batch)
