@@ -299,7 +299,15 @@ def test_budgets_run_into_one_folder_are_all_reported_and_never_pooled(tmp_path)
     assert all("budget" not in r.axes for r in runs)  # one budget per setting: nothing to keep apart
     assert [e["budget"] for e in info["experiments"]] == ["first", "second"]
     run_experiment(path, budget="second", **quiet)  # the same budget again replaces its own record
-    assert [e["budget"] for e in json.loads((out / "experiment.json").read_text())["earlier"]] == ["first"]
+    state = json.loads((out / "experiment.json").read_text())
+    assert [e["budget"] for e in state["earlier"]] == ["first"]
+    (out / "experiment.json").write_text("{not json")  # a damaged record: kept beside, named, a new one written
+    said: list[str] = []
+    run_experiment(path, budget="second", **{**quiet, "log": said.append})
+    (kept,) = out.glob("experiment.json.unreadable-*")
+    assert kept.read_text() == "{not json" and any(kept.name in line for line in said)
+    assert json.loads((out / "experiment.json").read_text())["budget"] == "second"
+    (out / "experiment.json").write_text(json.dumps(state))  # the record as it was
     run_experiment(path, budget="more_a", **quiet)  # arm a again, other seeds: never pooled with the first's
     state = json.loads((out / "experiment.json").read_text())
     assert [e["budget"] for e in state["earlier"]] == ["first", "second"]

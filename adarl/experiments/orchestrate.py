@@ -214,6 +214,24 @@ def _earlier_records(previous: str | None, spec: ExperimentSpec, budget: str | N
     return [e for e in records if isinstance(e, dict) and (e.get("name"), e.get("budget")) != (spec.name, budget)]
 
 
+def _keep_unreadable(out: Path | str, previous: str | None, log) -> None:
+    """An ``experiment.json`` that does not read as adarl's record (a hand edit, another program's file) is kept
+    beside the new one as ``experiment.json.unreadable-<UTC time>`` and named, never silently overwritten."""
+    if previous is None:
+        return
+    try:
+        if isinstance(json.loads(previous), dict):
+            return
+    except json.JSONDecodeError:
+        pass
+    name = f"{EXPERIMENT_FILE}.unreadable-{time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())}"
+    if is_url(out):
+        write_atomic(join(out, name), previous)
+    else:
+        (out / name).write_text(previous)
+    log(f"note: {EXPERIMENT_FILE} in {out} did not read as an experiment record; kept as {name}, a new one written")
+
+
 def _write_state(
     out: Path | str,
     spec: ExperimentSpec,
@@ -360,6 +378,7 @@ def run_experiment(
         # quoted as a shell reads it: a folder named `a b;rm -rf x` stays one argument of the command it suggests
         budget_args = ["--budget", str(budget)] if budget else []
         command = shlex.join(["adarl", "experiment", str(spec_path), *budget_args, "-o", str(out)])
+        _keep_unreadable(out, previous, log)
         _write_state(out, spec, budget, runs, command, earlier)
         board, last_tick = ProgressBoard(runs), [time.monotonic()]
         screen = LiveBoard(board, console=console) if live and progress_interval > 0 else None
