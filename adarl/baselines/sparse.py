@@ -52,6 +52,7 @@ per-update overhead remain, so a SAC update of the Hopper recipe gains about a s
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Iterable
 
@@ -311,10 +312,13 @@ class SparsificationLayer(nn.Sequential):
         return _sparse_relu_linear(x, self[0].weight, self[0].bias, self[-1].k)
 
     @torch.jit.unused
-    def fusable(self) -> bool:
-        """Whether the fused SAC update computes this layer (:func:`sparse_relu_kwta` on its weight and bias):
-        ``Linear -> ReLU -> KWinnersTakeAll`` with ``k`` below the width, in either form."""
-        return self._sparse_form_applies()
+    def fused_kernel(self):
+        """How the fused SAC update computes this layer (:func:`adarl.fast.sac.fused_kernel`): ``(kernel, weight name,
+        bias name)`` with ``kernel(x, weight, bias)`` = :func:`sparse_relu_kwta` at this ``k``, for the layout
+        ``Linear -> ReLU -> KWinnersTakeAll`` with ``k`` below the width; None for any other."""
+        if not self._sparse_form_applies():
+            return None
+        return functools.partial(sparse_relu_kwta, k=self.k), "0.weight", "0.bias" if self[0].bias is not None else None
 
     @torch.jit.unused
     def _sparse_form_applies(self) -> bool:

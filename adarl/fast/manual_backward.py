@@ -66,8 +66,8 @@ def unsupported_reason(update) -> str | None:
         return f"torch {torch.__version__} (its ATen backward kernels are checked on torch {', '.join(private.TESTED)})"
     for what, mlp in (("actor", update.actor_mlp), ("critic", update.q_net)):
         for kind, spec in mlp.layers:
-            if kind == "sparse":
-                return f"{what} sparsification layer (k-winners-take-all; the autograd backward runs it)"
+            if kind == "kernel":
+                return f"{what} layer {spec[3]} (a layer with its own kernel; the autograd backward runs it)"
             if kind == "act" and (getattr(spec, "inplace", False) or _activation_backward(spec) is None):
                 return (
                     f"{what} activation {type(spec).__name__} (supported: ReLU, Tanh, Softplus, ELU, GELU, SiLU, "

@@ -39,7 +39,6 @@ from torchrl.modules.distributions.utils import safetanh_noeps
 from torchrl.objectives import SACLoss
 from torchrl.objectives.value import TD0Estimator
 
-from adarl.baselines.sparse import SparsificationLayer, sparse_relu_kwta
 from adarl.core.lowrank import LowRankLinear
 from adarl.core.product_polyak import factor_keys, factor_pairs, product_polyak_
 from adarl.core.target_shift import TargetShiftSACLoss
@@ -123,20 +122,28 @@ def wants_fused(setting, loss) -> bool:
     return bool(setting)
 
 
+def fused_kernel(layer: nn.Module):
+    """``layer.fused_kernel()`` (``(kernel(x, weight, bias), weight name, bias name)``, weight maybe stacked ``[N, out,
+    in]``; e.g. the sparsification layer's), or None. Asked of the module: the speed engine sits below the baselines."""
+    ask = getattr(layer, "fused_kernel", None)
+    return ask() if callable(ask) else None
+
+
 def _mlp_layers(net: nn.Module, what: str) -> list[nn.Module]:
-    layers = list(net.children()) if isinstance(net, nn.Sequential) and type(net) is not SparsificationLayer else [net]
+    has_kernel = callable(getattr(net, "fused_kernel", None))
+    layers = list(net.children()) if isinstance(net, nn.Sequential) and not has_kernel else [net]
     for layer in layers:
-        if isinstance(layer, SparsificationLayer):
-            if not layer.fusable():
+        if callable(getattr(layer, "fused_kernel", None)):
+            if fused_kernel(layer) is None:
                 raise AdaRLValueError(
-                    f"the fused SAC update runs the sparsification layer as Linear -> ReLU -> k-WTA with k below its "
-                    f"width; found {layer!r} in the {what} (set algorithm.fused: false to use TorchRL's SACLoss)"
+                    f"the fused SAC update cannot compute the {what}'s {layer!r} (its fused_kernel() says None; "
+                    "set algorithm.fused: false to use TorchRL's SACLoss)"
                 )
         elif not isinstance(layer, (nn.Linear, LowRankLinear)) and not supported_activation(layer):
             raise AdaRLValueError(
-                f"the fused SAC update supports {what} MLPs of Linear, LowRankLinear, the sparsification layer and "
-                f"activation layers; found {type(layer).__name__} (set algorithm.fused: false to use TorchRL's "
-                "SACLoss)"
+                f"the fused SAC update supports {what} MLPs of Linear, LowRankLinear, activation layers and layers "
+                f"with a fused_kernel() (the sparsification layer); found {type(layer).__name__} (set "
+                "algorithm.fused: false to use TorchRL's SACLoss)"
             )
     return layers
 
@@ -154,9 +161,10 @@ class _StackedMLP:
                 self.layers.append(
                     ("lowrank", (key + ".w1", key + ".w2", key + ".bias" if layer.bias is not None else None))
                 )
-            elif isinstance(layer, SparsificationLayer):  # Linear -> ReLU -> k-WTA (its k the third entry)
-                bias = key + ".0.bias" if layer[0].bias is not None else None
-                self.layers.append(("sparse", (key + ".0.weight", bias, layer.k)))
+            elif (kernel := fused_kernel(layer)) is not None:  # e.g. the sparsification layer
+                fn, weight, bias = kernel
+                bias = None if bias is None else f"{key}.{bias}"
+                self.layers.append(("kernel", (f"{key}.{weight}", bias, fn, type(layer).__name__)))
             elif isinstance(layer, nn.Linear):
                 self.layers.append(("linear", (key + ".weight", key + ".bias" if layer.bias is not None else None)))
             else:
@@ -177,8 +185,8 @@ class _StackedMLP:
                 out.append(("act", spec, None))
             elif kind == "linear":
                 out.append(("linear", params[spec[0]], params[spec[1]] if spec[1] is not None else None))
-            elif kind == "sparse":
-                out.append(("sparse", (params[spec[0]], spec[2]), params[spec[1]] if spec[1] is not None else None))
+            elif kind == "kernel":
+                out.append(("kernel", (params[spec[0]], spec[2]), params[spec[1]] if spec[1] is not None else None))
             else:
                 w1, w2 = params[spec[0]], params[spec[1]]
                 b = params[spec[2]] if spec[2] is not None else None
@@ -193,7 +201,7 @@ class _StackedMLP:
     def detached(prepared: list[tuple]) -> list[tuple]:
         """The same layers with every tensor detached (the critics inside the actor loss)."""
 
-        def d(t):  # a sparse layer's (weight, k) keeps its k
+        def d(t):  # a kernel layer's (weight, kernel) keeps its kernel
             if isinstance(t, tuple):
                 return tuple(x.detach() if isinstance(x, torch.Tensor) else x for x in t)
             return None if t is None else t.detach()
@@ -209,11 +217,11 @@ class _StackedMLP:
                 continue
             if kind == "linear":
                 x = affine(x, w.transpose(-1, -2), b)
-            elif kind == "sparse":
-                weight, k = w
+            elif kind == "kernel":
+                weight, kernel = w
                 if weight.dim() == 3 and x.dim() == 2:  # the critics' first layer: one input for every critic
                     x = x.expand(weight.shape[0], *x.shape)
-                x = sparse_relu_kwta(x, weight, b, k)
+                x = kernel(x, weight, b)
             else:
                 x = affine(torch.matmul(x, w[1].transpose(-1, -2)), w[0].transpose(-1, -2), b)
         return x
