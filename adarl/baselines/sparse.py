@@ -216,7 +216,7 @@ def sparse_relu_kwta(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor |
     (``[*S, out, in]`` with ``x`` ``[*S, *B, in]``: the fused update's critic ensemble): the sparse form (its
     backward through the winners alone), or the dense one for fewer than :data:`_MIN_ROWS` rows and under
     ``torch.compile``, as :class:`SparsificationLayer` chooses; the same values and gradients either way."""
-    if torch.compiler.is_compiling() or x.numel() < _MIN_ROWS * x.shape[-1] * max(1, math.prod(weight.shape[:-2])):
+    if torch.compiler.is_compiling() or x.numel() < _MIN_ROWS * x.shape[-1] * math.prod(weight.shape[:-2]):
         return _dense_relu_kwta(x, weight, bias, k)
     return _sparse_relu_linear(x, weight, bias, k)
 

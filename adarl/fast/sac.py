@@ -169,7 +169,8 @@ class _StackedMLP:
                 self.layers.append(("linear", (key + ".weight", key + ".bias" if layer.bias is not None else None)))
             else:
                 self.layers.append(("act", layer))
-        missing = [k for kind, ks in self.layers if kind != "act" for k in ks[:2] if k is not None and k not in params]
+        names = [ks[:2] if kind == "kernel" else ks for kind, ks in self.layers if kind != "act"]  # a kernel's: 2
+        missing = [k for ks in names for k in ks if k is not None and k not in params]
         if missing:
             raise AdaRLValueError(f"fused SAC update: Q parameters {missing} not found in the loss's parameters")
 
