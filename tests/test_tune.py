@@ -152,6 +152,59 @@ def test_the_pruner_reads_the_trials_evaluations(tmp_path):
     assert driver.storage.get_trial(bad._trial_id).intermediate_values == {300: 5.0}
 
 
+def test_a_watched_run_holds_after_an_evaluation_until_its_watcher_read_it(tmp_path, capsys):
+    """The trainer's side of the pruning handshake (adarl.runtime.run_folder.verdicts): no watcher's file, no wait;
+    a verdict on that evaluation or a later one, or a stop asked, releases it; a watcher gone silent for STALE_S
+    releases it with a word (the handshake never hangs a run whose study died)."""
+    from adarl.runtime.run_folder import verdicts
+
+    run = tmp_path / "trials" / "trial-0000" / "seed=1"
+    never = lambda: False  # noqa: E731
+    assert verdicts.await_verdict(run, 300, never) == "unwatched"
+    watcher = verdicts.Watcher(run)
+    watcher.start()  # before the run's folder exists: a trial's seeds' runs make theirs later
+    assert json.loads(verdicts.watch_file(run).read_text())["seen"] == -1
+    assert verdicts.await_verdict(run, 300, lambda: True) == "stopping"
+    watcher.seen(600)
+    assert verdicts.await_verdict(run, 300, never) == "seen" and verdicts.await_verdict(run, 600, never) == "seen"
+    old = time.time() - verdicts.STALE_S - 5
+    os.utime(verdicts.watch_file(run), (old, old))
+    assert verdicts.await_verdict(run, 900, never) == "stale"
+    assert (
+        "has not answered for 60 s: training on without its verdict on the evaluation at 900" in capsys.readouterr().err
+    )
+    watcher.close()
+    assert not verdicts.watch_file(run).exists() and verdicts.await_verdict(run, 900, never) == "unwatched"
+
+
+@pytest.mark.slow
+def test_a_trial_is_pruned_at_the_first_evaluation_past_the_warm_up_however_slow_its_watcher(tmp_path, monkeypatch):
+    """The CI failure of 2026-11-28: a short trial trained past the evaluation that prunes it before the watcher's
+    next poll, and ended COMPLETE. Each evaluation now waits for the watcher's verdict, so a watcher polling every
+    3 s (slower than a few batches train: without the wait it pruned at 700 or later) prunes it at 500 frames, the
+    first evaluation at or past the warm-up, and its run checkpoints there and stops, resumable."""
+    from adarl.experiments import execute
+    from adarl.experiments.tune import run_tune
+    from adarl.runtime.run_folder.verdicts import watch_file
+
+    monkeypatch.setattr(execute, "WATCH_POLL_S", 3.0)
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    monkeypatch.setenv("PYTHONPATH", str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    pruner = {"name": "median", "n_startup_trials": 1, "n_warmup_steps": 500}
+    spec = _spec(tmp_path, overrides=[*TINY, "collector.total_frames=3000", "eval.interval=100"], pruner=pruner)
+    out = tmp_path / "out"
+    _add_unbeatable_trial(spec, out)
+    said: list[str] = []
+    result = run_tune(spec, output=out, log=said.append)
+    assert result.states == {"COMPLETE": 1, "PRUNED": 1}, said
+    _assert_pruned_and_checkpointed(out, 1, 500)
+    trial = out / "trials" / "trial-0001"
+    assert json.loads((trial / "tune_trial.json").read_text())["pruned_at_frames"] == 500
+    with (trial / "eval.csv").open() as fh:
+        assert [int(r["frames"]) for r in csv.DictReader(fh)] == [100, 200, 300, 400, 500]  # held until each verdict
+    assert not watch_file(trial).exists()  # the watcher's file goes with its trial
+
+
 def _checkpoint_frames(run: Path) -> list[int]:
     return [int(p.stem.split("-")[1]) for p in (run / "checkpoints").glob("ckpt-*.pt")]
 

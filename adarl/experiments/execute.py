@@ -386,7 +386,7 @@ def _set_unfinished(run: PlannedRun, returncode: int | None, tail: list[str], lo
         run.status, run.message = "failed", f"exit {returncode}: {' '.join(tail)} (log: {log})"
 
 
-WATCH_POLL_S = 1.0  # how often a watched run's watcher is asked whether to stop it
+WATCH_POLL_S = 0.25  # how often a watched run's watcher is asked whether to stop it (a tune trial waits on it)
 
 
 def _wait(proc: subprocess.Popen, watch: Callable[[], bool] | None) -> bool:

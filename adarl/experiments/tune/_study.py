@@ -66,6 +66,7 @@ from adarl.experiments.tune._spec import (
 from adarl.runtime.config import load_recipe
 from adarl.runtime.fingerprint import recipe_values, revalidated
 from adarl.runtime.run_folder.run_dir import exclusive_lock
+from adarl.runtime.run_folder.verdicts import Watcher, watching
 
 __all__ = [
     "run_tune",
@@ -372,12 +373,19 @@ class _Study:
         state = {"pruned_at": None, "failed": False}
         guard = threading.Lock()  # each seed's run asks the watcher; one report at a time
 
+        watchers = [Watcher(p) for p in paths]  # each run holds after an evaluation until its watcher read it
+
         def watch() -> bool:
             if self.stopping.is_set() or state["failed"]:
                 return True  # interrupted, or a seed failed: the trial fails, its other runs need not go on
             with guard:
-                if state["pruned_at"] is None and self._report(trial, paths):
-                    state["pruned_at"] = self._last_step(trial)
+                if state["pruned_at"] is None:
+                    read: list[int] = []
+                    if self._report(trial, paths, read):
+                        state["pruned_at"] = self._last_step(trial)
+                    else:
+                        for watcher, frames in zip(watchers, read, strict=True):
+                            watcher.seen(frames)  # read, and not pruned on: that run trains on
                 return state["pruned_at"] is not None
 
         def one(run: PlannedRun) -> PlannedRun:
@@ -394,15 +402,16 @@ class _Study:
         if state["pruned_at"] is None:
             for p in paths:
                 clear_stop(p)  # a stop asked of an earlier attempt (killed before it was told)
-            if len(runs) == 1:
-                runs = [one(runs[0])]
-            else:
-                with ThreadPoolExecutor(max_workers=len(runs)) as pool:
-                    try:
-                        runs = list(pool.map(one, runs))
-                    except BaseException:
-                        self.stopping.set()  # the other seeds' runs are stopped (checkpointed) and left to resume
-                        raise
+            with watching(watchers):
+                if len(runs) == 1:
+                    runs = [one(runs[0])]
+                else:
+                    with ThreadPoolExecutor(max_workers=len(runs)) as pool:
+                        try:
+                            runs = list(pool.map(one, runs))
+                        except BaseException:
+                            self.stopping.set()  # the other seeds' runs are stopped (checkpointed), left to resume
+                            raise
             for run in runs:
                 if run.status == "stopped" and run_is_finished(run.path):
                     run.status = "finished"  # it trained to the end before the stop reached it
@@ -420,9 +429,13 @@ class _Study:
             steps = self.storage.get_trial(trial._trial_id).intermediate_values
         return max(steps) if steps else None
 
-    def _report(self, trial, paths: list[Path]) -> bool:
-        """Report the evaluations not reported yet (the mean over the trial's seeds); whether the pruner stops it."""
-        scores = mean_scores([_scores(p, self.spec.objective.score_last) for p in paths])
+    def _report(self, trial, paths: list[Path], read: list[int] | None = None) -> bool:
+        """Report the evaluations not reported yet (the mean over the trial's seeds); whether the pruner stops it.
+        ``read`` gets each run's last evaluation read (its frames; -1 for none): the verdict covers those."""
+        per_seed = [_scores(p, self.spec.objective.score_last) for p in paths]
+        if read is not None:
+            read[:] = [s[-1][0] if s else -1 for s in per_seed]
+        scores = mean_scores(per_seed)
         with self.mutex:
             known = self.storage.get_trial(trial._trial_id).intermediate_values
             new = [(f, s) for f, s in scores if f not in known]

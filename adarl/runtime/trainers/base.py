@@ -45,6 +45,7 @@ from adarl.runtime.families import check_trainer, family
 from adarl.runtime.guards import NonFiniteError, NonFiniteGuard
 from adarl.runtime.report import write_report
 from adarl.runtime.run_folder.run_dir import RunDir, null_logger, recipe_fingerprint
+from adarl.runtime.run_folder.verdicts import await_verdict
 from adarl.runtime.signals import FINISHING, GracefulInterrupt, RunInterrupted, stopped_after_the_end
 from adarl.runtime.state import rng_state, set_rng_state
 
@@ -84,6 +85,7 @@ class BaseTrainer:
         self.updates = 0
         self.episodes = 0
         self.last_eval_frames = 0
+        self._watched = True  # until its evaluations find no watcher's file (run_folder.verdicts)
         self.last_ckpt_frames = 0
         self.best_eval = -math.inf
         self.last_return = float("nan")
@@ -303,12 +305,19 @@ class BaseTrainer:
             self._sync_bar()  # the batch and any warm-start frames that count towards the budget
             if self.hooks.wants("post_steps"):
                 self.hooks.call("post_steps", batch)
-            if self.frames - self.last_eval_frames >= rc.eval.interval:
+            evaluated = self.frames - self.last_eval_frames >= rc.eval.interval
+            if evaluated:
                 self._evaluate()
             saved = None
             if self.frames - self.last_ckpt_frames >= rc.checkpoint.interval:
                 saved = self.save_checkpoint()
             bar.set_postfix(refresh=False, **self._postfix())
+            if evaluated and self.frames < total and self._watched:
+                # `adarl tune`'s pruner decides on this evaluation before the run trains on (run_folder.verdicts)
+                held = await_verdict(
+                    self.run_dir.path, self.frames, lambda: interrupt.requested is not None, quiet=self.quiet
+                )
+                self._watched = held not in ("unwatched", "stale")
             if interrupt.requested is not None and self.frames < total:
                 # from here on a second signal is ignored: the stop is moments away and must not be cut short
                 interrupt.stopping(f"saving the checkpoint at {self.frames} frames, then exiting")
