@@ -460,7 +460,11 @@ def test_sighup_checkpoints_and_stops_as_sigterm_does(finished, tmp_path):
     """Issue 46.8: SIGHUP (the terminal or SSH session closed) killed the run like kill -9, without a checkpoint; it
     checkpoints after its batch and exits 129 (128 + SIGHUP), and the run resumes exactly."""
     run = tmp_path / "run"
-    proc = start_adarl("run", "quickstart", *FAST, "-o", str(run), "--quiet")
+    previous = signal.signal(signal.SIGHUP, signal.SIG_DFL)  # a suite under `nohup` would start it with SIGHUP ignored
+    try:
+        proc = start_adarl("run", "quickstart", *FAST, "-o", str(run), "--quiet")
+    finally:
+        signal.signal(signal.SIGHUP, previous)
     try:
         first = run / "checkpoints" / "ckpt-000000000100.pt"
         assert wait_for(first.is_file, proc, poll=0.002), proc.communicate()[1][-3000:]
