@@ -36,6 +36,10 @@ done
 # worktree wt-r at the commit named in docs/reports/issue45/rows_commit (fresh_machine.sh builds it), a row only once
 # that commit's table1.yaml gives its budget the selected lambda (value_overrides: {algorithm: {parseval: [...]}})
 R=/work/exp/wt-r/.venv/bin
+# wt-r is made once the selections are in (a commit writes rows_commit; `fresh_machine.sh --restore-only` builds it
+# beside this running queue): the queue waits for its install, not for a clock
+[ -x $R/adarl ] || echo "=== $(date -u +%FT%TZ) the rows wait for the worktree wt-r (docs/reports/issue45/rows_commit)"
+until [ -x $R/adarl ]; do sleep 60; done
 for env in walker2d ant humanoid; do
   if [ -x $R/adarl ] && $R/python - "$env" <<'PY'
 import sys
