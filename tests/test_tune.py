@@ -152,10 +152,11 @@ def test_the_pruner_reads_the_trials_evaluations(tmp_path):
     assert driver.storage.get_trial(bad._trial_id).intermediate_values == {300: 5.0}
 
 
-def test_a_watched_run_holds_after_an_evaluation_until_its_watcher_read_it(tmp_path, capsys):
+def test_a_watched_run_holds_after_an_evaluation_until_its_watcher_read_it(tmp_path, capsys, monkeypatch):
     """The trainer's side of the pruning handshake (adarl.runtime.run_folder.verdicts): no watcher's file, no wait;
-    a verdict on that evaluation or a later one, or a stop asked, releases it; a watcher gone silent for STALE_S
-    releases it with a word (the handshake never hangs a run whose study died)."""
+    a verdict on that evaluation or a later one, or a stop asked, releases it; a file left unchanged for STALE_S
+    (measured by the run's own clock, never against the watcher's) releases it with a word (the handshake never hangs
+    a run whose study died)."""
     from adarl.runtime.run_folder import verdicts
 
     run = tmp_path / "trials" / "trial-0000" / "seed=1"
@@ -167,12 +168,10 @@ def test_a_watched_run_holds_after_an_evaluation_until_its_watcher_read_it(tmp_p
     assert verdicts.await_verdict(run, 300, lambda: True) == "stopping"
     watcher.seen(600)
     assert verdicts.await_verdict(run, 300, never) == "seen" and verdicts.await_verdict(run, 600, never) == "seen"
-    old = time.time() - verdicts.STALE_S - 5
-    os.utime(verdicts.watch_file(run), (old, old))
+    monkeypatch.setattr(verdicts, "STALE_S", 0.3)  # the file left unchanged (its watcher gone) this long, by our clock
     assert verdicts.await_verdict(run, 900, never) == "stale"
-    assert (
-        "has not answered for 60 s: training on without its verdict on the evaluation at 900" in capsys.readouterr().err
-    )
+    said = capsys.readouterr().err
+    assert "has not answered for 0.3 s: training on without its verdict on the evaluation at 900 frames" in said
     watcher.close()
     assert not verdicts.watch_file(run).exists() and verdicts.await_verdict(run, 900, never) == "unwatched"
 

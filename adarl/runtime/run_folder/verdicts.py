@@ -7,7 +7,7 @@ in-process ``trial.report`` / ``should_prune`` and Ray Tune's function API, the 
 evaluation until its watcher has read it: the watcher says so in a file beside the run folder (``.<name>.watch``,
 beside it for the reason the stop file is: a run's first start clears its folder), or stops the run (SIGTERM: it
 checkpoints). A run whose file is absent is not watched and never waits; a watcher that stops refreshing its file
-for :data:`STALE_S` seconds (its process gone) lets the run train on, said once.
+(its process gone) lets the run train on after :data:`STALE_S` seconds, said once.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from pathlib import Path
 
 from adarl.runtime.run_folder._file_safety import atomic_write_text
 
-#: a watcher that has not rewritten its file for this long is taken as gone: its run trains on
+#: a watcher whose file a held run sees unchanged for this long is taken as gone: the run trains on
 STALE_S = 60.0
 #: a live watcher rewrites its file at least this often, new verdict or not
 REFRESH_S = 5.0
@@ -76,25 +76,29 @@ def watching(watchers: Sequence[Watcher]) -> Iterator[None]:
 
 def await_verdict(path: str | os.PathLike, frames: int, stopping: Callable[[], bool], *, quiet: bool = False) -> str:
     """Hold the run in ``path`` after its evaluation at ``frames`` until its watcher has read it, ``stopping()`` is
-    true (the watcher's SIGTERM arrived) or the watcher is gone. Returns which: ``"unwatched"``, ``"seen"``,
-    ``"stopping"`` or ``"stale"``."""
+    true (the watcher's SIGTERM arrived) or the watcher is gone: its file unchanged for :data:`STALE_S` seconds of
+    this process's own clock (no comparison with the watcher's clock, which may be another machine's). Returns which:
+    ``"unwatched"``, ``"seen"``, ``"stopping"`` or ``"stale"``."""
     f = watch_file(path)
+    last, changed = None, time.monotonic()
     while True:
         try:
-            stat = f.stat()
+            stamp = f.stat().st_mtime_ns
             seen = int(json.loads(f.read_text())["seen"])
         except FileNotFoundError:
             return "unwatched"
         except (OSError, ValueError, KeyError, TypeError):  # replaced between the stat and the read: read it again
-            seen, stat = -1, None
+            stamp, seen = last, -1
         if seen >= frames:
             return "seen"
         if stopping():
             return "stopping"
-        if stat is not None and time.time() - stat.st_mtime > STALE_S:
+        if stamp != last:
+            last, changed = stamp, time.monotonic()
+        elif time.monotonic() - changed > STALE_S:
             if not quiet:
                 print(
-                    f"adarl: the watcher of this run ({f}) has not answered for {STALE_S:.0f} s: training on without "
+                    f"adarl: the watcher of this run ({f}) has not answered for {STALE_S:g} s: training on without "
                     f"its verdict on the evaluation at {frames} frames, nor waiting for it again",
                     file=sys.stderr,
                     flush=True,
