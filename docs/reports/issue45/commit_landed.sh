@@ -19,6 +19,15 @@ while true; do
     if [ "$name" = mechanism-pilot ]; then wt=wt-m; case "$new" in *factorised_init*) wt=wt-e ;; esac; fi
     if [ -n "$new" ] || [ -n "$(git status --porcelain -- "$dest/runs")" ]; then
       bash docs/reports/issue45/make_report.sh "$name" || echo "$(date -u +%FT%TZ) report of $dest failed"
+      # A landing that completes a Table-1 pair needs its verdict line in reproduction.md in the same commit series:
+      # hold it (uncommitted, retried every round) while the row-verdict test fails, and say so once a round.
+      case "$name" in table1-*)
+        if ! .venv/bin/python -m pytest -q -x -p no:cacheprovider tests/test_committed_reports.py \
+            -k "row_verdicts or parseval_runs_at" > /tmp/commit_landed_guard.log 2>&1; then
+          echo "$(date -u +%FT%TZ) HELD $name (its pair's verdict line is due; see /tmp/commit_landed_guard.log): $(echo $new | tr '\n' ' ')"
+          continue
+        fi ;;
+      esac
       git add "$dest" && git commit -q -m "Issue 45 runs landed ($name; the queue runs at $(git -C /work/exp/$wt rev-parse --short HEAD), runs copied in by fresh_machine.sh keep their own commit, named in runs.csv and the report): $(echo $new | tr '\n' ' ')" --only -- "$dest" \
         && echo "$(date -u +%FT%TZ) committed $name: $new"
     fi
