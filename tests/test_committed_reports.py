@@ -437,6 +437,37 @@ def test_table1s_row_verdicts_are_stated_once_each_pair_has_its_seeds_and_then_b
         assert (p_said, mw_said) == (p, f"{mw:.3f}") and said.startswith(verdict), (env, x, p_said, mw_said, said)
 
 
+def test_table1s_aggregate_across_rows_covers_exactly_the_complete_rows():
+    """Issue 45's aggregate across Table 1's envs (docs/reports/table1, rliable's normalised scores: described, no rule)
+    is made from the complete rows alone (every arm with its planned seeds), so that no method's pooled score mixes
+    envs another method lacks: rows.txt names them, and its normalised scores are those rows' runs, one per run."""
+    planned = {"adarl": 8, **TABLE1_PAIRS}
+    complete = []
+    for env in (e.lower() for e in TABLE1_ROWS):
+        table = REPORTS / f"table1-{env}" / "paper_table.csv"
+        if table.exists():
+            n = {r["algorithm"]: int(r["n_seeds"]) for r in csv.DictReader(table.open()) if r["env"] == env}
+            if all(n.get(a, 0) >= k for a, k in planned.items()):
+                complete.append(env)
+    folder = REPORTS / "table1"
+    if not complete:
+        assert not folder.exists()
+        return
+    rows = (folder / "rows.txt").read_text().split()
+    assert rows == [f"docs/reports/table1-{env}/runs" for env in complete]
+    per_run = list(csv.DictReader((folder / "normalised_scores.csv").open()))
+    expected = [r for env in complete for r in csv.DictReader((REPORTS / f"table1-{env}" / "runs.csv").open())]
+    assert sorted((r["env"], r["method"], r["seed"]) for r in per_run) == sorted(
+        (r["env"], r["algorithm"], r["seed"]) for r in expected
+    )
+    for r, e in zip(
+        sorted(per_run, key=lambda r: (r["env"], r["method"], int(r["seed"]))),
+        sorted(expected, key=lambda r: (r["env"], r["algorithm"], int(r["seed"]))),
+        strict=True,
+    ):
+        assert float(r["score"]) == pytest.approx(float(e["score"]))
+
+
 def test_each_table1_rows_parseval_runs_at_its_envs_selected_lambda():
     """Parseval's lambda per env is the paper's selection (App. D.1: the best mean score of 1e-3, 1e-4, 1e-5 on the
     selection seeds 100-101), made before that row's Parseval arm: once an env's selection report has its 6 runs, the

@@ -124,11 +124,19 @@ def _report_rules(folder: Path) -> tuple[int, str | None, int]:
     return last, ref.group(1) if ref else None, int(reps.group(1))
 
 
+def _runs_folders(folder: Path) -> list[Path]:
+    """Where a report's runs are: its own ``runs/``, or for an aggregate of other reports' runs (Table 1 across its
+    rows, docs/reports/table1) the ``runs/`` folders its ``rows.txt`` names, relative to the repository."""
+    if (folder / "rows.txt").is_file():
+        return [REPORTS.parents[1] / line for line in (folder / "rows.txt").read_text().split()]
+    return [folder / "runs"]
+
+
 def _run_scores(folder: Path, last: int) -> dict[tuple[tuple[str, str], ...], list[float]]:
     """Per setting (the run folder's ``axis=value`` parts but the seed), one score per seed: the mean of the run's
     last ``last`` eval.csv means. The folder's seed must be its recipe's."""
     out: dict[tuple[tuple[str, str], ...], dict[int, float]] = {}
-    for run in sorted((folder / "runs").iterdir()):
+    for run in sorted(r for runs in _runs_folders(folder) for r in runs.iterdir()):
         parts = [p.partition("=") for p in run.name.split("__")]
         assert parts[-1][0] == "seed" and all(sep for _, sep, _ in parts), f"{run}: not an <axis>=<value> name"
         seed = int(parts[-1][2])
@@ -228,10 +236,11 @@ def check_statistics(folder: Path, statistics_csv: Path | None = None) -> tuple[
 
 def test_every_committed_statistics_csv_has_its_runs():
     """The check covers every statistics.csv under docs/reports (a report committed without its runs, or a new
-    report's interval, cannot escape it)."""
+    report's interval, cannot escape it); an aggregate of other reports' runs names them in rows.txt."""
     assert len(STATISTICS) >= 17
     for path in STATISTICS:
-        assert (path.parent / "runs").is_dir() and (path.parent / "report.md").is_file(), path.parent
+        runs = _runs_folders(path.parent)
+        assert runs and all(r.is_dir() for r in runs) and (path.parent / "report.md").is_file(), path.parent
 
 
 @pytest.mark.parametrize("report", [p.parent.name for p in STATISTICS])
