@@ -44,7 +44,7 @@ class OwnForward(ShiftedSAC):
 
 @pytest.fixture
 def registered(monkeypatch):
-    monkeypatch.setattr(plugins, "_algorithms", dict(plugins._algorithms))
+    monkeypatch.setattr(plugins._algorithm, "_algorithms", dict(plugins._algorithm._algorithms))
     plugins.register_algorithm("shifted_sac", ShiftedSAC, options=ShiftOptions)
     plugins.register_algorithm("own_forward_sac", OwnForward, options=ShiftOptions)
     return plugins
@@ -130,7 +130,7 @@ def test_a_plugin_that_fails_to_load_is_named(monkeypatch):
     from importlib.metadata import EntryPoint
 
     broken = EntryPoint("broken", "adarl_no_such_plugin_module", plugins.ENTRY_POINT_GROUP)
-    monkeypatch.setattr(plugins, "entry_points", lambda group: [broken])
-    monkeypatch.setattr(plugins, "_loaded", set())
+    monkeypatch.setattr(plugins._registry, "entry_points", lambda group: [broken])
+    monkeypatch.setattr(plugins._registry, "_loaded", set())
     with pytest.raises(RecipeError, match=r"plugin 'broken' \(adarl_no_such_plugin_module.*ModuleNotFoundError"):
         load_recipe("quickstart", ["algorithm.name=anything"])

@@ -76,7 +76,7 @@ STOP = "callbacks=[{name: stop_on_return, options: {threshold: -1.0e9, min_frame
 @pytest.fixture(autouse=True)
 def _undone(monkeypatch):
     """The local module's registration and import are undone after each test."""
-    monkeypatch.setattr(plugins, "_callbacks", dict(plugins._callbacks))
+    monkeypatch.setattr(plugins._callback, "_callbacks", dict(plugins._callback._callbacks))
     monkeypatch.setattr(local_plugins, "_IMPORTED", {})
     monkeypatch.setattr(sys, "path", list(sys.path))
     yield

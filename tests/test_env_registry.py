@@ -240,7 +240,7 @@ def test_unknown_names_load_the_installed_plugins_first(monkeypatch, tmp_path):
             _register_plugin_hopper(tmp_path)
             register_parameter("Hopper-v5", THIGH, thigh_length)
 
-    monkeypatch.setattr(plugins, "load_entry_points", fake_load_entry_points)
+    monkeypatch.setattr(plugins._registry, "load_entry_points", fake_load_entry_points)
     assert check_env_id("Hopper-v5") == "Hopper-v5" and calls == []  # known names never load plugins
     assert validate_values("Hopper-v5", {"torso_length": 0.3}) == {"torso_length": 0.3} and calls == []
     assert validate_values("Hopper-v5", {"thigh_length": 0.3}) == {"thigh_length": 0.3} and calls == [1]
@@ -252,7 +252,7 @@ def test_a_recipe_naming_a_plugin_env_loads_it(monkeypatch, tmp_path):
         if PLUGIN_HOPPER not in supported_envs(load=False):
             _register_plugin_hopper(tmp_path)
 
-    monkeypatch.setattr(plugins, "load_entry_points", fake_load_entry_points)
+    monkeypatch.setattr(plugins._registry, "load_entry_points", fake_load_entry_points)
     recipe = load_recipe("quickstart", [f"env.id={PLUGIN_HOPPER}", "env.perturbation.preset=nominal"])
     assert recipe.env.id == PLUGIN_HOPPER
 
@@ -355,7 +355,7 @@ def test_a_run_whose_env_or_rank_rule_package_is_gone_is_refused_by_package(tmp_
     from adarl.core.rank import EnergyRule
     from adarl.runtime.run_folder.run_dir import RunDir
 
-    monkeypatch.setattr(plugins, "_rank_rules", dict(plugins._rank_rules))
+    monkeypatch.setattr(plugins._rank_rule, "_rank_rules", dict(plugins._rank_rule._rank_rules))
     state = registration._registry_state()
     with plugins.providing("adarl-gone-plugin"):
         gymnasium.register(PLUGIN_HOPPER, entry_point="gymnasium.envs.mujoco.hopper_v5:HopperEnv")
@@ -373,7 +373,7 @@ def test_a_run_whose_env_or_rank_rule_package_is_gone_is_refused_by_package(tmp_
     if kind == "env":
         registration._restore_registry(state)  # the package is uninstalled: its env is gone
     else:
-        del plugins._rank_rules["gone_rule"]
+        del plugins._rank_rule._rank_rules["gone_rule"]
     with pytest.raises(RecipeError) as err:
         RunDir(tmp_path / "run").load_recipe()
     what = {"env": f"env {PLUGIN_HOPPER!r}", "rank_rule": "rank rule 'gone_rule'"}[kind]

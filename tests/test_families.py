@@ -146,9 +146,9 @@ def build_toy_components(recipe, *, init_random_frames=None, scratch_dir=None):
 def toy_family(monkeypatch):
     """The ``toy`` base and its algorithm, registered for one test: a base's TorchRL losses (adarl.plugins, where an
     algorithm's base is checked), the family (one register_family call) and an algorithm on it."""
-    monkeypatch.setattr(plugins, "BASES", (*plugins.BASES, "toy"))
+    monkeypatch.setattr(plugins._algorithm, "BASES", (*plugins.BASES, "toy"))
     monkeypatch.setitem(plugins.BASE_LOSSES, "toy", ("SACLoss",))
-    monkeypatch.setattr(plugins, "_algorithms", dict(plugins._algorithms))
+    monkeypatch.setattr(plugins._algorithm, "_algorithms", dict(plugins._algorithm._algorithms))
     register_family(
         "toy",
         builder=build_toy_components,

@@ -38,7 +38,7 @@ algorithm: {name: local_sac}
 def _undone(monkeypatch):
     """Each test's plugin imports and registrations are undone after it: another test on the same worker (the
     doctests of adarl.plugins list the registered algorithms) must not see ``local_sac``."""
-    monkeypatch.setattr(plugins, "_algorithms", dict(plugins._algorithms))
+    monkeypatch.setattr(plugins._algorithm, "_algorithms", dict(plugins._algorithm._algorithms))
     monkeypatch.setattr(local_plugins, "_IMPORTED", {})
     monkeypatch.setattr(sys, "path", list(sys.path))
     yield
@@ -224,8 +224,8 @@ def test_a_plugin_calling_sys_exit_at_import_is_an_error_naming_it_with_no_folde
     (tmp_path / "quitter_ep.py").write_text("import sys\nsys.exit(3)\n")
     sys.path.insert(0, str(tmp_path))  # (into the fixture's copy of sys.path: monkeypatch's own restore would keep it)
     quitter = EntryPoint("quitter", "quitter_ep", plugins.ENTRY_POINT_GROUP)
-    monkeypatch.setattr(plugins, "entry_points", lambda group: [quitter])
-    monkeypatch.setattr(plugins, "_loaded", set())
+    monkeypatch.setattr(plugins._registry, "entry_points", lambda group: [quitter])
+    monkeypatch.setattr(plugins._registry, "_loaded", set())
     try:
         with pytest.raises(RecipeError, match=r"plugin 'quitter' \(quitter_ep.*SystemExit: 3"):
             load_recipe("quickstart", ["algorithm.name=anything"])

@@ -60,7 +60,7 @@ class NotARule:
 @pytest.fixture
 def registered(monkeypatch):
     """``top_k`` and ``fit_top_k`` registered for one test (the registry is restored afterwards)."""
-    monkeypatch.setattr(plugins, "_rank_rules", dict(plugins._rank_rules))
+    monkeypatch.setattr(plugins._rank_rule, "_rank_rules", dict(plugins._rank_rule._rank_rules))
     plugins.register_rank_rule("top_k", TopK, options=TopKOptions, description="keep the k largest")
     plugins.register_rank_rule("fit_top_k", f"{FitTopK.__module__}:FitTopK", options=TopKOptions)  # lazy path
     return plugins

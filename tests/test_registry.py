@@ -52,14 +52,16 @@ def test_protected_names_are_never_registered_again():
 
 def test_an_unknown_name_loads_the_installed_plugins_first(monkeypatch):
     reg = Registry("thing.name", how="how")
-    monkeypatch.setattr(plugins, "load_entry_points", lambda: reg.entries.setdefault("late", 3))
+    monkeypatch.setattr(plugins._registry, "load_entry_points", lambda: reg.entries.setdefault("late", 3))
     assert reg.get("late") == 3
 
 
 def test_the_store_is_read_at_every_call():
     stores = [{"alpha": 1}]
     reg = Registry("thing.name", plugins=False, entries=lambda: stores[-1])
-    stores.append({"beta": 2})  # a test swaps a copy in, as monkeypatch.setattr(plugins, "_algorithms", ...) does
+    stores.append(
+        {"beta": 2}
+    )  # a test swaps a copy in, as monkeypatch.setattr(plugins._algorithm, "_algorithms", ...) does
     assert reg.names() == ["beta"]
 
 

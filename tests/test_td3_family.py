@@ -50,7 +50,7 @@ TINY = tiny(
 
 @pytest.fixture
 def registered(monkeypatch):
-    monkeypatch.setattr(plugins, "_algorithms", dict(plugins._algorithms))
+    monkeypatch.setattr(plugins._algorithm, "_algorithms", dict(plugins._algorithm._algorithms))
     return plugins
 
 
