@@ -53,4 +53,9 @@ PY
     echo "=== $(date -u +%FT%TZ) table1_$env waits: no worktree wt-r, or its table1.yaml has no selected lambda for $env"
   fi
 done
+# Issue 49's packed check (its protocol: docs/performance.md, written before its runs) once Table 1's rows are done:
+# one process on one core, from its own worktree wt-p at the commit docs/reports/issue49/pack_commit names
+echo "=== $(date -u +%FT%TZ) issue 49's packed check"
+(cd /work/main && PACK_COMMIT=$(cat docs/reports/issue49/pack_commit) bash docs/reports/issue49/run_packed_check.sh) \
+  || echo "!!! issue 49's packed check failed or landed nothing new"
 echo "=== $(date -u +%FT%TZ) queue done"
