@@ -31,6 +31,10 @@ sys.exit(0 if all(n.get(a, 0) >= k for a, k in planned.items()) else 1)
 PY
     done
     [ ${#rows[@]} -gt 0 ] || exit 0
+    # a complete row's runs are final: the same rows make the same report (FORCE=1 re-makes it anyway)
+    if [ "${FORCE:-0}" != 1 ] && [ "$(printf '%s\n' "${rows[@]}")" = "$(cat docs/reports/table1/rows.txt 2>/dev/null)" ]; then
+      exit 0
+    fi
     mkdir -p docs/reports/table1
     .venv/bin/adarl report "${rows[@]}" --spec recipes/experiments/table1.yaml --set 'pairs=[]' \
       --set 'verdict_seeds={adarl: 8, sac_full: 8, parseval: 5, sparse: 5, rnac_ipm: 5, rnac_ds: 5}' \
