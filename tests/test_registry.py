@@ -59,9 +59,8 @@ def test_an_unknown_name_loads_the_installed_plugins_first(monkeypatch):
 def test_the_store_is_read_at_every_call():
     stores = [{"alpha": 1}]
     reg = Registry("thing.name", plugins=False, entries=lambda: stores[-1])
-    stores.append(
-        {"beta": 2}
-    )  # a test swaps a copy in, as monkeypatch.setattr(plugins._algorithm, "_algorithms", ...) does
+    # a test swaps a copy in, as monkeypatch.setattr(plugins._algorithm, "_algorithms", ...) does
+    stores.append({"beta": 2})
     assert reg.names() == ["beta"]
 
 
