@@ -1185,3 +1185,30 @@ def test_copies_of_the_committed_pilot_runs_are_finished_runs_of_its_spec_and_an
     expected = ["skipped-finished", "changed", "skipped-finished", "skipped-finished"]
     assert [runs[name].status for name in picked] == expected, said
     assert any(picked[1] in line and "rank.beta: 0.9 in the run, 0.98 in the spec" in line for line in said), said
+
+
+def test_issue45s_row_facts_quote_the_rows_report(capsys):
+    """row_facts.py (what a row's verdict paragraph quotes) reads the row's own env from the report: every pair it
+    prints has the P [CI], exact p and verdict of paper_table.csv's row for that env (the report holds all four envs'
+    paper rows, so a reader keyed by method alone would quote another env's)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("row_facts", REPORTS / "issue45" / "row_facts.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    module.main([str(REPORTS / "table1-walker2d")])
+    out = capsys.readouterr().out
+    paper = [
+        r for r in csv.DictReader((REPORTS / "table1-walker2d" / "paper_table.csv").open()) if r["env"] == "walker2d"
+    ]
+    decided = [r for r in paper if r["verdict"]]
+    assert len(decided) == 5  # the row is complete: five pairs
+    for r in decided:
+        line = (
+            f"P(adarl > {r['algorithm']}) = {float(r['poi_ref']):.2f} [{float(r['poi_lo']):.2f}, "
+            f"{float(r['poi_hi']):.2f}], exact p = {float(r['mannwhitney_p']):.3f}: {r['verdict']}"
+        )
+        assert line in out, line
+    for r in paper:
+        if r["paper_mean"]:
+            assert f"walker2d {r['algorithm']}: " in out and f"paper {r['paper_mean']};" in out
