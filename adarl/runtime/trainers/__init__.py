@@ -2,7 +2,7 @@
 
 * :mod:`~adarl.runtime.trainers.base` - :class:`BaseTrainer`: the run folder, logging, evaluation and checkpoint
   cadence, divergence guards, signals, exact resume, summary and report; :func:`trainer_class` (the recipe's loop's
-  trainer, :mod:`adarl.runtime.families`); what a checkpoint holds and ``resume`` in its private mixin
+  trainer, :mod:`adarl.runtime.families`); what a checkpoint holds, written and loaded, in its private mixin
   :mod:`~adarl.runtime.trainers._checkpointing`;
 * :mod:`~adarl.runtime.trainers.off_policy` - :class:`OffPolicyTrainer`: every off-policy family (AdaRL-SAC and the
   SAC baselines, TD3, DDPG, a family of your own), its components built by ``family(recipe).build(...)``;

@@ -1,4 +1,4 @@
-"""What a trainer's checkpoint holds and how a run continues from one: :class:`Checkpointing`.
+"""What a trainer's checkpoint holds, how it is written and how it loads back: :class:`Checkpointing`.
 
 A mixin of :class:`~adarl.runtime.trainers.base.BaseTrainer`, apart because exact resume is one idea with its own
 contract: every checkpoint holds the counters (the subclass's :attr:`~adarl.runtime.trainers.base.BaseTrainer.counters`
@@ -8,80 +8,18 @@ checked against the run's recipe before any tensor is used, and a checkpoint tha
 
 from __future__ import annotations
 
-import os
-from collections.abc import Sequence
 from pathlib import Path
 
 from adarl.errors import AdaRLError, CheckpointError
-from adarl.runtime.continuing import open_continued
-from adarl.runtime.families import family
-from adarl.runtime.run_folder.run_dir import recipe_fingerprint
 from adarl.runtime.state import rng_state, set_rng_state
 
 __all__ = ["Checkpointing"]
 
 
 class Checkpointing:
-    """Checkpoint state and exact resume, for :class:`~adarl.runtime.trainers.base.BaseTrainer` (which provides the
-    counters, components, callbacks, run folder and logger these methods read)."""
-
-    @classmethod
-    def resume(
-        cls,
-        path: str | os.PathLike,
-        *,
-        quiet: bool = False,
-        truncate_metrics: bool = True,
-        checkpoint: str | os.PathLike | None = None,
-        read_only: bool | None = None,
-        overrides: Sequence[str] = (),
-    ) -> Checkpointing:  # a BaseTrainer (this mixin's only user; base imports this module)
-        """Continue the run in ``path`` from its latest loadable checkpoint (metrics after it are dropped first).
-
-        The trainer is the recipe's (:func:`~adarl.runtime.trainers.base.trainer_class`: ``OffPolicyTrainer.resume``
-        of a PPO run gives a :class:`~adarl.runtime.trainers.ppo.PPOTrainer`) unless ``cls`` is a subclass of it.
-        ``checkpoint``: None, the newest checkpoint that loads (a damaged or foreign newer one is skipped with a
-        :class:`~adarl.errors.CheckpointFallbackWarning` naming it and why); ``"latest"``, the newest or a
-        :class:`~adarl.errors.CheckpointError` (no fallback); ``"best"`` (the best nominal evaluation); or a
-        checkpoint file (its replay buffer is looked for beside it). Every checkpoint is checked against the run's
-        recipe (:func:`~adarl.runtime.run_folder.run_dir.recipe_fingerprint`) before any tensor is used.
-        ``read_only`` (default: ``not truncate_metrics``, i.e. loading to evaluate): nothing in the run folder is
-        written, renamed or locked, and the replay buffer is not read; such a trainer evaluates, it does not train.
-        ``overrides``: ``collector.total_frames=M`` continues the run (a finished one too) to ``M`` frames, and
-        recipe.yaml records it; any other key is refused by name (:mod:`adarl.runtime.continuing`).
-        """
-        run_dir, recorded, recipe = open_continued(path, overrides)
-        target = family(recipe).trainer_class()  # trainer_class(recipe), said without importing base
-        cls = cls if issubclass(cls, target) else target
-        read_only = not truncate_metrics if read_only is None else read_only
-        if not read_only:
-            run_dir.lock()  # one process trains in a run folder at a time
-        fingerprint = recipe_fingerprint(recipe)
-        continuing = recipe is not recorded and not read_only
-        if not read_only and checkpoint in (None, "latest") and run_dir.starts_over():
-            if continuing:
-                run_dir.save_recipe(recipe)
-            return cls(recipe, run_dir, quiet=quiet)  # stopped before its frame-0 checkpoint: start it again
-        if checkpoint is None or checkpoint == "latest":
-            state = run_dir.load_latest_checkpoint(
-                quarantine=not read_only,
-                fingerprint=fingerprint,
-                strict=checkpoint == "latest",
-                replay_buffer=not read_only,
-            )
-        else:
-            state = run_dir.load_checkpoint(
-                run_dir.best_checkpoint_path if checkpoint == "best" else checkpoint,
-                fingerprint=fingerprint,
-                replay_buffer=not read_only,
-            )
-        if truncate_metrics and not read_only:
-            run_dir.truncate_metrics(int(state["counters"]["frames"]))
-        log_from = int(state["counters"]["frames"]) if truncate_metrics and not read_only else None
-        trainer = cls(recipe, run_dir, quiet=quiet, _resume_state=state, _log_from=log_from, _read_only=read_only)
-        if continuing:
-            run_dir.save_recipe(recipe)  # the new total, once the checkpoint has loaded into it
-        return trainer
+    """Checkpoint state for exact resume, for :class:`~adarl.runtime.trainers.base.BaseTrainer` (which provides the
+    counters, components, callbacks, run folder and logger these methods read, and
+    :meth:`~adarl.runtime.trainers.base.BaseTrainer.resume`, which picks the checkpoint and builds the trainer)."""
 
     def _load_checked(self, state: dict) -> None:
         """:meth:`_load_state`, with a checkpoint that does not fit (one written before checkpoints named their

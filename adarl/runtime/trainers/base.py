@@ -4,7 +4,7 @@ It owns the run folder (its lock, resolved recipe, logger, checkpoints, records 
 logging of episodes, losses and throughput, the evaluation and checkpoint cadence, the divergence guards (stop, or roll
 back to the last checkpoint with a lower learning rate), the first SIGINT/SIGTERM/SIGHUP (a checkpoint, then
 :class:`~adarl.runtime.signals.RunInterrupted`), and exact resume (counters, RNGs, the live episode and the
-collector's state in every checkpoint: what a checkpoint holds and how a run continues from one is its mixin
+collector's state in every checkpoint: what a checkpoint holds, and its writing and loading, are its mixin
 :class:`~adarl.runtime.trainers._checkpointing.Checkpointing`'s). A subclass builds its components and consumes one
 collected batch:
 
@@ -24,10 +24,12 @@ stop on a signal or at the frame budget.
 from __future__ import annotations
 
 import math
+import os
 import signal
 import sys
 import time
 import warnings
+from collections.abc import Sequence
 from typing import ClassVar
 
 import torch
@@ -38,7 +40,7 @@ from adarl.errors import FusedFallbackWarning, command
 from adarl.runtime import metrics
 from adarl.runtime.builders.common import RunComponents
 from adarl.runtime.callbacks import TrainerHooks, build_callbacks, stop_holds
-from adarl.runtime.continuing import retarget_schedules, schedule_totals
+from adarl.runtime.continuing import open_continued, retarget_schedules, schedule_totals
 from adarl.runtime.evaluation import EvalResult, evaluate_policy
 from adarl.runtime.families import check_trainer, family
 from adarl.runtime.guards import NonFiniteError, NonFiniteGuard
@@ -168,6 +170,64 @@ class BaseTrainer(Checkpointing):
             totals = schedule_totals(self.c.schedulers)  # as this recipe's total plans them
             self._load_checked(state)
             retarget_schedules(self.c.schedulers, totals)  # a run continued to more frames: re-planned from here
+
+    @classmethod
+    def resume(
+        cls,
+        path: str | os.PathLike,
+        *,
+        quiet: bool = False,
+        truncate_metrics: bool = True,
+        checkpoint: str | os.PathLike | None = None,
+        read_only: bool | None = None,
+        overrides: Sequence[str] = (),
+    ) -> BaseTrainer:
+        """Continue the run in ``path`` from its latest loadable checkpoint (metrics after it are dropped first).
+
+        The trainer is the recipe's (:func:`trainer_class`: ``OffPolicyTrainer.resume`` of a PPO run gives a
+        :class:`~adarl.runtime.trainers.ppo.PPOTrainer`) unless ``cls`` is a subclass of it.
+        ``checkpoint``: None, the newest checkpoint that loads (a damaged or foreign newer one is skipped with a
+        :class:`~adarl.errors.CheckpointFallbackWarning` naming it and why); ``"latest"``, the newest or a
+        :class:`~adarl.errors.CheckpointError` (no fallback); ``"best"`` (the best nominal evaluation); or a
+        checkpoint file (its replay buffer is looked for beside it). Every checkpoint is checked against the run's
+        recipe (:func:`~adarl.runtime.run_folder.run_dir.recipe_fingerprint`) before any tensor is used.
+        ``read_only`` (default: ``not truncate_metrics``, i.e. loading to evaluate): nothing in the run folder is
+        written, renamed or locked, and the replay buffer is not read; such a trainer evaluates, it does not train.
+        ``overrides``: ``collector.total_frames=M`` continues the run (a finished one too) to ``M`` frames, and
+        recipe.yaml records it; any other key is refused by name (:mod:`adarl.runtime.continuing`).
+        """
+        run_dir, recorded, recipe = open_continued(path, overrides)
+        target = trainer_class(recipe)
+        cls = cls if issubclass(cls, target) else target
+        read_only = not truncate_metrics if read_only is None else read_only
+        if not read_only:
+            run_dir.lock()  # one process trains in a run folder at a time
+        fingerprint = recipe_fingerprint(recipe)
+        continuing = recipe is not recorded and not read_only
+        if not read_only and checkpoint in (None, "latest") and run_dir.starts_over():
+            if continuing:
+                run_dir.save_recipe(recipe)
+            return cls(recipe, run_dir, quiet=quiet)  # stopped before its frame-0 checkpoint: start it again
+        if checkpoint is None or checkpoint == "latest":
+            state = run_dir.load_latest_checkpoint(
+                quarantine=not read_only,
+                fingerprint=fingerprint,
+                strict=checkpoint == "latest",
+                replay_buffer=not read_only,
+            )
+        else:
+            state = run_dir.load_checkpoint(
+                run_dir.best_checkpoint_path if checkpoint == "best" else checkpoint,
+                fingerprint=fingerprint,
+                replay_buffer=not read_only,
+            )
+        if truncate_metrics and not read_only:
+            run_dir.truncate_metrics(int(state["counters"]["frames"]))
+        log_from = int(state["counters"]["frames"]) if truncate_metrics and not read_only else None
+        trainer = cls(recipe, run_dir, quiet=quiet, _resume_state=state, _log_from=log_from, _read_only=read_only)
+        if continuing:
+            run_dir.save_recipe(recipe)  # the new total, once the checkpoint has loaded into it
+        return trainer
 
     # ------------------------------------------------------------------ the loop
     def train(self) -> dict:
