@@ -25,10 +25,48 @@ from adarl.fast.replay import UniformTensorSampler
 from adarl.fast.sac import FusedSACUpdate
 from adarl.runtime.guards import NonFiniteGuard
 
-__all__ = ["UpdateStep", "LossStep", "FusedStep", "DelayedActorStep", "delayed_optimisation", "SAC_LOSSES"]
+__all__ = [
+    "UpdateStep",
+    "LossStep",
+    "FusedStep",
+    "DelayedActorStep",
+    "delayed_optimisation",
+    "loss_output",
+    "require_losses",
+    "scalar_entries",
+    "SAC_LOSSES",
+]
 
 #: the losses every SAC step checks and returns (with ``alpha``, and ``loss_<term>`` per loss term)
 SAC_LOSSES = ("loss_actor", "loss_qvalue", "loss_alpha")
+
+
+def loss_output(loss: nn.Module, batch, terms: Mapping[str, nn.Module]) -> tuple:
+    """``loss(batch)`` with each term's ``loss_<name>`` added (``term.wrap_output``), and its ``loss_*`` entries:
+    TorchRL's convention sums every one (a registered algorithm's own included); the other entries are metrics."""
+    td = loss(batch)
+    for term in terms.values():
+        td = term.wrap_output(td)
+    return td, {k: td[k] for k in td.keys() if isinstance(k, str) and k.startswith("loss_")}
+
+
+def require_losses(losses: Mapping[str, torch.Tensor], required: Sequence[str], loss: nn.Module, loop: str) -> None:
+    """Refuse a loss whose output lacks one of the ``loss_*`` entries the ``loop`` steps (a plugin's loss, say)."""
+    missing = [k for k in required if k not in losses]
+    if missing:
+        raise AdaRLValueError(
+            f"{type(loss).__name__}'s output lacks {missing}; a loss on the {loop} loop returns "
+            f"{list(required)} (and may add more loss_* entries and metrics)"
+        )
+
+
+def scalar_entries(td) -> dict[str, torch.Tensor]:
+    """A loss output's scalar floating entries, detached: the losses and metrics a step returns by name."""
+    return {
+        k: v.detach()
+        for k, v in td.items()
+        if isinstance(k, str) and isinstance(v, torch.Tensor) and v.numel() == 1 and v.is_floating_point()
+    }
 
 
 class UpdateStep(ABC):
@@ -69,18 +107,8 @@ class LossStep(UpdateStep):
         self.max_grad_norm, self.terms = max_grad_norm, dict(terms or {})
 
     def __call__(self, guard: NonFiniteGuard | None = None, *, update: int = 0) -> dict[str, torch.Tensor]:
-        td = self.loss(self.replay_buffer.sample())
-        for term in self.terms.values():
-            td = term.wrap_output(td)
-        # TorchRL's convention: every "loss_*" entry is summed; the other scalars are metrics (a registered
-        # algorithm's own, e.g. target_shift, included)
-        losses = {k: td[k] for k in td.keys() if isinstance(k, str) and k.startswith("loss_")}
-        missing = [k for k in SAC_LOSSES if k not in losses]
-        if missing:
-            raise AdaRLValueError(
-                f"{type(self.loss).__name__}'s output lacks {missing}; a loss on the SAC loop returns "
-                f"{list(SAC_LOSSES)} (and may add more loss_* entries and metrics)"
-            )
+        td, losses = loss_output(self.loss, self.replay_buffer.sample(), self.terms)
+        require_losses(losses, SAC_LOSSES, self.loss, "SAC")
         if guard is not None:
             guard.check_losses(losses, update)
         total = sum(losses.values())
@@ -99,11 +127,7 @@ class LossStep(UpdateStep):
         self.target_updater.step()
         if guard is not None:
             guard.check_params(update)
-        return {
-            k: v.detach()
-            for k, v in td.items()
-            if isinstance(k, str) and isinstance(v, torch.Tensor) and v.numel() == 1 and v.is_floating_point()
-        }
+        return scalar_entries(td)
 
 
 class FusedStep(UpdateStep):
@@ -191,10 +215,7 @@ class DelayedActorStep(UpdateStep):
         return (update + 1) % self.delay == 0
 
     def __call__(self, guard: NonFiniteGuard | None = None, *, update: int = 0) -> dict[str, torch.Tensor]:
-        td = self.loss(self.replay_buffer.sample())
-        for term in self.terms.values():
-            td = term.wrap_output(td)
-        losses = {k: td[k] for k in td.keys() if isinstance(k, str) and k.startswith("loss_")}
+        td, losses = loss_output(self.loss, self.replay_buffer.sample(), self.terms)
         if "loss_actor" not in losses or not any(k in losses for k in self.CRITIC_LOSSES):
             raise AdaRLValueError(
                 f"{type(self.loss).__name__}'s output has {sorted(losses)}; a loss on the td3 loop returns "
@@ -208,8 +229,4 @@ class DelayedActorStep(UpdateStep):
             self.target_updater.step()
         if guard is not None:
             guard.check_params(update)
-        return {
-            k: v.detach()
-            for k, v in td.items()
-            if isinstance(k, str) and isinstance(v, torch.Tensor) and v.numel() == 1 and v.is_floating_point()
-        }
+        return scalar_entries(td)

@@ -59,7 +59,14 @@ from adarl.runtime.builders.common import action_spec, is_discrete, make_mlp
 from adarl.runtime.builders.off_policy import OffPolicyParts
 from adarl.runtime.builders.sac import VARIANT_PARTS, SACComponents, make_recipe_actor
 from adarl.runtime.guards import NonFiniteGuard
-from adarl.runtime.update import SAC_LOSSES, UpdateStep, delayed_optimisation
+from adarl.runtime.update import (
+    SAC_LOSSES,
+    UpdateStep,
+    delayed_optimisation,
+    loss_output,
+    require_losses,
+    scalar_entries,
+)
 
 __all__ = [
     "VARIANTS",
@@ -200,19 +207,11 @@ class DelayedPolicyStep(UpdateStep):
         for m in self.batch_norm:
             m.train()
         try:
-            td = self.loss(self.replay_buffer.sample())
+            td, losses = loss_output(self.loss, self.replay_buffer.sample(), self.terms)
         finally:
             for m in self.batch_norm:
                 m.eval()
-        for term in self.terms.values():
-            td = term.wrap_output(td)
-        losses = {k: td[k] for k in td.keys() if isinstance(k, str) and k.startswith("loss_")}
-        missing = [k for k in SAC_LOSSES if k not in losses]
-        if missing:
-            raise AdaRLValueError(
-                f"{type(self.loss).__name__}'s output lacks {missing}; a loss on the SAC loop returns "
-                f"{list(SAC_LOSSES)} (and may add more loss_* entries and metrics)"
-            )
+        require_losses(losses, SAC_LOSSES, self.loss, "SAC")
         policy_too = self.updates_policy(update)
         stepped = [o for name, o in self.optimizers.items() if policy_too or name == "critic"]
         delayed_optimisation(self, losses, stepped, guard, update)
@@ -220,11 +219,7 @@ class DelayedPolicyStep(UpdateStep):
             self.target_updater.step()
         if guard is not None:
             guard.check_params(update)
-        return {
-            k: v.detach()
-            for k, v in td.items()
-            if isinstance(k, str) and isinstance(v, torch.Tensor) and v.numel() == 1 and v.is_floating_point()
-        }
+        return scalar_entries(td)
 
 
 def _split_factors(params) -> tuple[list[torch.Tensor], list[torch.Tensor]]:

@@ -17,9 +17,9 @@ import torch
 from tensordict import TensorDictBase
 
 from adarl.baselines.rnac import IPMAdvantage
-from adarl.errors import AdaRLValueError
 from adarl.runtime.builders.ppo import simulator_steps_per_frame
 from adarl.runtime.trainers.base import BaseTrainer
+from adarl.runtime.update import loss_output, require_losses, scalar_entries
 
 __all__ = ["PPOTrainer", "normalize_advantage_"]
 
@@ -100,17 +100,8 @@ class PPOTrainer(BaseTrainer):
     def _update(self, minibatch) -> dict[str, torch.Tensor]:
         """One guarded minibatch update: the loss (plus its terms), backward, clipping, the optimisers."""
         c = self.c
-        td = c.modules.loss(minibatch)
-        for term in c.terms.values():
-            td = term.wrap_output(td)
-        # TorchRL's convention: every "loss_*" entry is summed (a registered algorithm's own included)
-        losses = {k: td[k] for k in td.keys() if isinstance(k, str) and k.startswith("loss_")}
-        missing = [k for k in PPO_LOSSES[:2] if k not in losses]
-        if missing:
-            raise AdaRLValueError(
-                f"{type(c.modules.loss).__name__}'s output lacks {missing}; a loss on the PPO loop returns "
-                f"{list(PPO_LOSSES[:2])} (and may add more loss_* entries and metrics)"
-            )
+        td, losses = loss_output(c.modules.loss, minibatch, c.terms)
+        require_losses(losses, PPO_LOSSES[:2], c.modules.loss, "PPO")
         self.guard.check_losses(losses, self.updates)
         sum(losses.values()).backward()
         self.guard.check_grads(self.updates)
@@ -119,15 +110,7 @@ class PPOTrainer(BaseTrainer):
         self.updates += 1
         out = {k: v.detach() for k, v in losses.items()}
         if c.plugin_metrics:  # a registered algorithm's loss: its own scalar entries are logged as train/<key>
-            out.update(
-                (k, v.detach())
-                for k, v in td.items()
-                if isinstance(k, str)
-                and k not in out
-                and isinstance(v, torch.Tensor)
-                and v.numel() == 1
-                and v.is_floating_point()
-            )
+            out.update((k, v) for k, v in scalar_entries(td).items() if k not in out)
         self.hooks.post_optim(out)  # the callbacks' post_optim hook point (adarl.runtime.callbacks)
         return out
 
