@@ -1212,3 +1212,19 @@ def test_issue45s_row_facts_quote_the_rows_report(capsys):
     for r in paper:
         if r["paper_mean"]:
             assert f"walker2d {r['algorithm']}: " in out and f"paper {r['paper_mean']};" in out
+    # the described, no-rule reading: each method's mean curve at 300k frames and AdaRL's final ranks per layer
+    curves = list(csv.DictReader((REPORTS / "table1-walker2d" / "learning_curves.csv").open()))
+    blocks = out.split("walker2d ")[1:]
+    for r in decided:
+        (block,) = [b for b in blocks if b.startswith(f"{r['algorithm']}: ")]
+        (last,) = [
+            c for c in curves if c["group"] == f"env=walker2d, algorithm={r['algorithm']}" and c["frames"] == "300000"
+        ]
+        assert f", 300k {float(last['mean']):.0f}\n" in block
+    settling = [r for r in csv.DictReader((REPORTS / "table1-walker2d" / "rank_settling.csv").open())]
+    (adarl,) = [b for b in blocks if b.startswith("adarl: ")]
+    for layer in {r["layer"] for r in settling}:
+        final = sorted(int(r["final_rank"]) for r in settling if r["layer"] == layer)
+        assert (
+            f"rank {layer}: " in adarl and f" -> {final[0]}-{final[-1]} (median " in adarl.split(f"rank {layer}: ")[1]
+        )

@@ -1,7 +1,9 @@
 """The facts a Table 1 row's verdict paragraph quotes, read from its committed report (no estimate computed here):
 per method the mean ± std, IQM, seeds' scores, seeds above the plateau, the training wall time per run, and per
 pair P(AdaRL > X) [95% CI], the exact Mann-Whitney p and the verdict, as make_report.sh wrote them; so a paragraph is
-written from the same files tests/test_committed_reports.py re-derives, not typed from a screen.
+written from the same files tests/test_committed_reports.py re-derives, not typed from a screen. For the row's
+described, no-rule reading (post hoc): each method's mean nominal curve at every 60k frames (learning_curves.csv) and
+each low-rank layer's final ranks over the seeds (rank_settling.csv).
 
     .venv/bin/python docs/reports/issue45/row_facts.py docs/reports/table1-ant
 """
@@ -28,6 +30,48 @@ def _wall_times(report: Path, algorithm: str) -> list[float]:
     return out
 
 
+#: the frames at which a method's mean curve is quoted (every 60k of the 300k budget: on the 20k evaluation grid)
+CURVE_FRAMES = (60_000, 120_000, 180_000, 240_000, 300_000)
+
+
+def _curve(report: Path, env: str, algorithm: str) -> str:
+    """The method's mean nominal return at CURVE_FRAMES (the evaluation nearest each, from learning_curves.csv)."""
+    points = [
+        (int(r["frames"]), float(r["mean"]))
+        for r in _rows(report / "learning_curves.csv")
+        if r["group"] == f"env={env}, algorithm={algorithm}"
+    ]
+    if not points:
+        return "no curve"
+    quoted = []
+    for f in CURVE_FRAMES:
+        frames, mean = min(points, key=lambda p: abs(p[0] - f))
+        quoted.append(f"{frames // 1000}k {mean:.0f}")
+    return ", ".join(quoted)
+
+
+def _ranks(report: Path, algorithm: str) -> list[str]:
+    """Per low-rank layer: its initial rank and its final ranks over the seeds (range, median; rank_settling.csv)."""
+    path = report / "rank_settling.csv"
+    if not path.exists():
+        return []
+    layers: dict[str, list[dict[str, str]]] = {}
+    for r in _rows(path):
+        if r["algorithm"] == algorithm:
+            layers.setdefault(r["layer"], []).append(r)
+    out = []
+    for layer, rows in layers.items():
+        final = sorted(int(r["final_rank"]) for r in rows)
+        mid = len(final) // 2
+        median = final[mid] if len(final) % 2 else (final[mid - 1] + final[mid]) / 2
+        initial = sorted({r["initial_rank"] for r in rows})
+        out.append(
+            f"{layer}: {'/'.join(initial)} -> {final[0]}-{final[-1]} (median {median:g}; {len(final)} seeds,"
+            f" events {'/'.join(sorted({r['events'] for r in rows}))})"
+        )
+    return out
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("report", type=Path, help="a row's report folder, e.g. docs/reports/table1-ant")
@@ -47,6 +91,9 @@ def main(argv: list[str] | None = None) -> None:
             f" seeds {scores}); above the {float(s['plateau']):.0f} plateau: {s['above_plateau']} of {s['n_seeds']};"
             f" {wall}; paper {p.get('paper_mean') or '-'}; protocol bold: {p.get('protocol') or '-'}"
         )
+        print(f"  mean curve: {_curve(args.report, env, algorithm)}")
+        for line in _ranks(args.report, algorithm):
+            print(f"  rank {line}")
         if not math.isnan(float(s["poi_ref"])):
             mw = float(p["mannwhitney_p"]) if p.get("mannwhitney_p") else float("nan")
             print(
