@@ -13,9 +13,8 @@ from torchrl.envs import EnvBase
 from torchrl.modules import BatchRenorm1d, ProbabilisticActor, TanhNormal
 
 from adarl import plugins
-from adarl.baselines import registry
 from adarl.errors import AdaRLValueError
-from adarl.runtime.builders.common import _activation, action_spec, make_mlp
+from adarl.runtime.builders.common import _activation, action_spec, make_mlp, recipe_mlp_kwargs
 
 __all__ = ["VARIANTS", "variant_of", "BatchRenormLayer", "make_batch_renorm_mlp", "make_crossq_actor"]
 
@@ -101,17 +100,6 @@ class _Concat(nn.Sequential):
         return super().forward(torch.cat(inputs, -1))
 
 
-def _mlp_kwargs(recipe, mlp, action_dim: int) -> dict:
-    return dict(
-        num_cells=mlp.num_cells,
-        activation=mlp.activation,
-        low_rank_layers=mlp.low_rank_layers,
-        rank=mlp.rank,
-        device=torch.device(recipe.device),
-        **registry.network_kwargs(mlp, recipe.algorithm, action_dim),
-    )
-
-
 def make_crossq_actor(recipe, env: EnvBase) -> ProbabilisticActor | None:
     """CrossQ's actor (SAC's TanhNormal actor with ``BatchRenorm1d`` layers), in eval mode; None with
     ``actor_batch_norm: false`` (SAC's plain actor then). :func:`~adarl.runtime.builders.sac.make_recipe_actor`, the
@@ -121,7 +109,7 @@ def make_crossq_actor(recipe, env: EnvBase) -> ProbabilisticActor | None:
         return None
     spec = action_spec(env)
     obs_dim, act_dim = env.observation_spec["observation"].shape[-1], spec.shape[-1]
-    kwargs = _mlp_kwargs(recipe, recipe.network.actor, act_dim)
+    kwargs = recipe_mlp_kwargs(recipe.network.actor, recipe.algorithm, act_dim, recipe.device)
     net = make_batch_renorm_mlp(
         obs_dim,
         2 * act_dim,

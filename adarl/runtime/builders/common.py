@@ -42,6 +42,7 @@ __all__ = [
     "check_device",
     "make_mlp",
     "make_recipe_mlp",
+    "recipe_mlp_kwargs",
     "init_network",
     "action_spec",
     "is_discrete",
@@ -145,19 +146,24 @@ def make_mlp(
     )
 
 
-def make_recipe_mlp(in_features: int, out_features: int, mlp, algorithm, action_dim: int, device) -> nn.Module:
-    """The MLP of a recipe's ``network.<net>`` section (``mlp``), with the variants the registered baselines ask
-    for given the ``algorithm`` section; its initial weights are each layer's own (see :func:`init_network`)."""
-    return make_mlp(
-        in_features,
-        out_features,
+def recipe_mlp_kwargs(mlp, algorithm, action_dim: int, device) -> dict:
+    """:func:`make_mlp`'s keyword arguments for a recipe's ``network.<net>`` section (``mlp``): its widths,
+    activation and low-rank layers, plus the variants the registered baselines ask for given the ``algorithm``
+    section (every family's actor and critic builder reads a section through this one function)."""
+    return dict(
         num_cells=mlp.num_cells,
         activation=mlp.activation,
         low_rank_layers=mlp.low_rank_layers,
         rank=mlp.rank,
-        device=device,
+        device=torch.device(device),
         **registry.network_kwargs(mlp, algorithm, action_dim),
     )
+
+
+def make_recipe_mlp(in_features: int, out_features: int, mlp, algorithm, action_dim: int, device) -> nn.Module:
+    """The MLP of a recipe's ``network.<net>`` section (``mlp``), with the variants the registered baselines ask
+    for given the ``algorithm`` section; its initial weights are each layer's own (see :func:`init_network`)."""
+    return make_mlp(in_features, out_features, **recipe_mlp_kwargs(mlp, algorithm, action_dim, device))
 
 
 def init_network(network: nn.Module, mlp) -> None:

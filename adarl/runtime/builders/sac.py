@@ -43,7 +43,7 @@ from adarl.errors import AdaRLValueError, FusedFallbackWarning
 from adarl.fast.adam import make_adam
 from adarl.fast.sac import FusedSACUpdate, fused_fallback_reason, wants_fused
 from adarl.runtime.builders._crossq_nets import make_crossq_actor
-from adarl.runtime.builders.common import action_spec, is_discrete, make_mlp, make_sac_critic
+from adarl.runtime.builders.common import action_spec, is_discrete, make_mlp, make_sac_critic, recipe_mlp_kwargs
 from adarl.runtime.builders.off_policy import (
     OffPolicyComponents,
     OffPolicyParts,
@@ -177,15 +177,7 @@ def make_recipe_actor(recipe, env: EnvBase) -> ProbabilisticActor:
     a = recipe.network.actor
     spec = action_spec(env)
     action_dim = spec.space.n if is_discrete(spec) else spec.shape[-1]
-    return make_sac_actor(
-        env,
-        num_cells=a.num_cells,
-        activation=a.activation,
-        low_rank_layers=a.low_rank_layers,
-        rank=a.rank,
-        device=torch.device(recipe.device),
-        **registry.network_kwargs(a, recipe.algorithm, action_dim),
-    )
+    return make_sac_actor(env, **recipe_mlp_kwargs(a, recipe.algorithm, action_dim, recipe.device))
 
 
 def make_sac_modules(recipe, env: EnvBase) -> SACModules:
@@ -196,15 +188,7 @@ def make_sac_modules(recipe, env: EnvBase) -> SACModules:
     action_dim = spec.space.n if is_discrete(spec) else spec.shape[-1]
     alg = recipe.algorithm
     actor = make_recipe_actor(recipe, env)
-    critic = make_sac_critic(
-        env,
-        num_cells=c.num_cells,
-        activation=c.activation,
-        low_rank_layers=c.low_rank_layers,
-        rank=c.rank,
-        device=device,
-        **registry.network_kwargs(c, alg, action_dim),
-    )
+    critic = make_sac_critic(env, **recipe_mlp_kwargs(c, alg, action_dim, device))
     loss = make_sac_loss(
         actor,
         critic,

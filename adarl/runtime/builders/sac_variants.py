@@ -49,13 +49,12 @@ from adarl.runtime.builders._crossq_nets import (
     VARIANTS,
     BatchRenormLayer,
     _Concat,
-    _mlp_kwargs,
     _options,
     make_batch_renorm_mlp,
     make_crossq_actor,
     variant_of,
 )
-from adarl.runtime.builders.common import action_spec, is_discrete, make_mlp
+from adarl.runtime.builders.common import action_spec, is_discrete, make_mlp, recipe_mlp_kwargs
 from adarl.runtime.builders.off_policy import OffPolicyParts
 from adarl.runtime.builders.sac import VARIANT_PARTS, SACComponents, make_recipe_actor
 from adarl.runtime.guards import NonFiniteGuard
@@ -86,7 +85,7 @@ __all__ = [
 def _critic(recipe, env: EnvBase, variant: str, opts) -> ValueOperator:
     c, spec = recipe.network.critic, action_spec(env)
     obs_dim, act_dim = env.observation_spec["observation"].shape[-1], spec.shape[-1]
-    kwargs = _mlp_kwargs(recipe, c, act_dim)
+    kwargs = recipe_mlp_kwargs(c, recipe.algorithm, act_dim, recipe.device)
     if variant == "CrossQLoss":
         net = make_batch_renorm_mlp(
             obs_dim + act_dim, 1, momentum=opts.batch_norm_momentum, warmup_steps=opts.renorm_warmup_steps, **kwargs

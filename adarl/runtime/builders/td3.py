@@ -41,7 +41,7 @@ from adarl.baselines import registry
 from adarl.core.ensemble import reinit_low_rank_ensemble
 from adarl.errors import AdaRLValueError
 from adarl.fast.adam import make_adam
-from adarl.runtime.builders.common import action_spec, is_discrete, make_mlp, make_sac_critic
+from adarl.runtime.builders.common import action_spec, is_discrete, make_mlp, make_sac_critic, recipe_mlp_kwargs
 from adarl.runtime.builders.off_policy import OffPolicyComponents, OffPolicyParts, build_off_policy_components
 from adarl.runtime.update import DelayedActorStep
 
@@ -144,30 +144,14 @@ def make_recipe_td3_actor(recipe, env: EnvBase) -> TensorDictSequential:
     """The TD3 actor of a recipe's ``network.actor`` section for ``env``'s specs (:func:`adarl.load_policy` passes
     the specs a checkpoint saved)."""
     a = recipe.network.actor
-    return make_td3_actor(
-        env,
-        num_cells=a.num_cells,
-        activation=a.activation,
-        low_rank_layers=a.low_rank_layers,
-        rank=a.rank,
-        device=torch.device(recipe.device),
-        **registry.network_kwargs(a, recipe.algorithm, action_spec(env).shape[-1]),
-    )
+    return make_td3_actor(env, **recipe_mlp_kwargs(a, recipe.algorithm, action_spec(env).shape[-1], recipe.device))
 
 
 def make_td3_modules(recipe, env: EnvBase) -> TD3Modules:
     """Actor, exploration policy, critic, loss and target updater from a recipe's ``network`` and ``algorithm``."""
     c, alg, t = recipe.network.critic, recipe.algorithm, recipe.algorithm.td3
     actor = make_recipe_td3_actor(recipe, env)
-    critic = make_sac_critic(
-        env,
-        num_cells=c.num_cells,
-        activation=c.activation,
-        low_rank_layers=c.low_rank_layers,
-        rank=c.rank,
-        device=torch.device(recipe.device),
-        **registry.network_kwargs(c, alg, action_spec(env).shape[-1]),
-    )
+    critic = make_sac_critic(env, **recipe_mlp_kwargs(c, alg, action_spec(env).shape[-1], recipe.device))
     spec = plugins.algorithm(alg.name)
     loss = make_td3_loss(
         actor,
