@@ -16,6 +16,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Mapping, Sequence
 
 import torch
+from tensordict import TensorDictBase
 from torch import nn
 from torchrl.data import TensorDictReplayBuffer
 from torchrl.objectives import SoftUpdate
@@ -41,7 +42,9 @@ __all__ = [
 SAC_LOSSES = ("loss_actor", "loss_qvalue", "loss_alpha")
 
 
-def loss_output(loss: nn.Module, batch, terms: Mapping[str, nn.Module]) -> tuple:
+def loss_output(
+    loss: nn.Module, batch: TensorDictBase, terms: Mapping[str, nn.Module]
+) -> tuple[TensorDictBase, dict[str, torch.Tensor]]:
     """``loss(batch)`` with each term's ``loss_<name>`` added (``term.wrap_output``), and its ``loss_*`` entries:
     TorchRL's convention sums every one (a registered algorithm's own included); the other entries are metrics."""
     td = loss(batch)
@@ -60,7 +63,7 @@ def require_losses(losses: Mapping[str, torch.Tensor], required: Sequence[str], 
         )
 
 
-def scalar_entries(td) -> dict[str, torch.Tensor]:
+def scalar_entries(td: TensorDictBase) -> dict[str, torch.Tensor]:
     """A loss output's scalar floating entries, detached: the losses and metrics a step returns by name."""
     return {
         k: v.detach()
