@@ -351,3 +351,97 @@ def test_one_sac_update_of_the_sparse_recipe_equals_the_dense_form(sparse_at_any
     torch.testing.assert_close(actions["sparse"], actions["dense"], rtol=1e-4, atol=1e-6)
     for c in sides.values():
         c.close()
+
+
+def _argpartition_calls(monkeypatch) -> list:
+    """Count numpy's selection inside :func:`adarl.baselines.sparse.largest` (so that no test below compares
+    ``topk`` with itself)."""
+    calls, argpartition = [], sparse.np.argpartition
+    monkeypatch.setattr(sparse.np, "argpartition", lambda *a, **kw: calls.append(1) or argpartition(*a, **kw))
+    return calls
+
+
+@pytest.mark.parametrize(
+    "shape, m, dtype",
+    [((256, 1024), 18, torch.float32), ((2, 64, 1024), 36, torch.float32), ((7, 300), 9, torch.float64)],
+)
+def test_largest_is_topk_where_numpy_selects(shape, m, dtype, monkeypatch):
+    calls = _argpartition_calls(monkeypatch)
+    x = torch.randn(shape, dtype=dtype, generator=torch.Generator().manual_seed(0))
+    for scores in (x, x.transpose(0, -2).contiguous().transpose(0, -2)):  # and a non-contiguous layout
+        values, index = sparse.largest(scores, m)
+        want_values, want_index = scores.topk(m, dim=-1)
+        assert index.dtype == torch.long and values.dtype == dtype
+        assert torch.equal(values, want_values) and torch.equal(index, want_index)  # untied: the same units
+    assert len(calls) == 2
+
+
+def test_largest_under_ties_nan_and_infinities(monkeypatch):
+    calls = _argpartition_calls(monkeypatch)
+    gen = torch.Generator().manual_seed(1)
+    scores = torch.randint(-4, 5, (300, 100), generator=gen).float()  # ties everywhere, across the m-th too
+    scores[0, 3] = float("nan")
+    scores[1, :50] = float("-inf")
+    scores[2, 7] = float("inf")
+    values, index = sparse.largest(scores, 9)
+    want, _ = scores.topk(9, dim=-1)
+    torch.testing.assert_close(values, want, rtol=0, atol=0, equal_nan=True)  # NaN first, as topk has it
+    torch.testing.assert_close(scores.gather(-1, index), values, rtol=0, atol=0, equal_nan=True)
+    assert all(len(set(row.tolist())) == 9 for row in index)  # nine distinct units a row
+    assert len(calls) == 1
+
+
+def test_largest_keeps_topk_where_it_is_fast_or_numpy_cannot_help(monkeypatch):
+    calls = _argpartition_calls(monkeypatch)
+    x = torch.randn(64, 1024)
+    sparse.largest(x, 8)  # the heap's range (64 m <= n), Hopper's k + 1
+    sparse.largest(x, 1024)  # all units
+    sparse.largest(x.requires_grad_(True), 36)  # a graph to keep
+    sparse.largest(x.detach().bfloat16(), 36)  # numpy has no bfloat16
+    vmap(lambda row: sparse.largest(row, 36))(x.detach())  # under a transform
+    assert not calls
+
+
+@pytest.mark.parametrize("k", [17, 35])  # Ant's and Humanoid's 2 d_a + 1
+def test_the_sparse_form_is_bit_for_bit_the_same_with_numpys_selection(k, monkeypatch):
+    calls = _argpartition_calls(monkeypatch)
+    net, x = _net(k=k), torch.randn(256, 11)
+    fast = _run(net, x, "sparse")
+    assert calls
+    with monkeypatch.context() as m:
+        m.setattr(sparse, "largest", lambda s, n: s.topk(n, dim=-1))
+        slow = _run(net, x, "sparse")
+    assert torch.equal(fast[0], slow[0]) and torch.equal(fast[1], slow[1])
+    assert all(torch.equal(fast[2][name], slow[2][name]) for name in slow[2])
+
+
+def test_fused_updates_of_a_humanoid_width_k_are_bit_for_bit_the_same_with_numpys_selection(monkeypatch):
+    """Three whole fused updates (the recipes' path: the critics stacked, Adam, Polyak) with k = 35, the same
+    batches: every parameter bit for bit the same whether ``largest`` selects with numpy or with ``topk``."""
+    from adarl.runtime.builders.sac import build_sac_components
+    from adarl.runtime.config import load_recipe
+    from adarl.runtime.update import FusedStep
+
+    calls = _argpartition_calls(monkeypatch)
+    overrides = [*BUILT, "network.actor.sparse.k=35", "network.critic.sparse.k=35"]
+    sides = {}
+    for side in ("numpy", "topk"):
+        c = build_sac_components(load_recipe("baselines/hopper_sparse", overrides))
+        assert isinstance(c.update, FusedStep)
+        torch.manual_seed(3)
+        c.replay_buffer.extend(c.env.rollout(300, break_when_any_done=False).reshape(-1))
+        sides[side] = c
+    start = _params(sides["numpy"].modules.loss)
+    with monkeypatch.context() as m:
+        for side, c in sides.items():
+            if side == "topk":
+                m.setattr(sparse, "largest", lambda s, n: s.topk(n, dim=-1))
+            for i in range(3):
+                torch.manual_seed(100 + i)
+                c.update(update=i)
+    assert calls
+    after = {side: _params(c.modules.loss) for side, c in sides.items()}
+    for name, value in after["topk"].items():
+        assert torch.equal(after["numpy"][name], value), name
+    moved = [name for name, value in start.items() if not torch.equal(after["numpy"][name], value)]
+    assert len(moved) >= 10, moved  # the updates changed the networks (actor, critics, targets)

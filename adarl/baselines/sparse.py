@@ -25,7 +25,8 @@ Two computations of the same function and gradients (``SparsificationLayer(form=
   gradient.
 * ``"sparse"`` (the default, for ``Linear -> ReLU -> k-WTA``, the recipes' layer): one
   ``torch.autograd.Function`` (:class:`_SparseReLULinear`). Its forward computes the wide pre-activation (the
-  winners must be found among all units), picks the winners with one ``topk`` on it (ReLU keeps the order of the
+  winners must be found among all units), picks the winners with one selection on it (:func:`largest`: ``topk``'s
+  values and units, by numpy's ``argpartition`` where PyTorch's CPU ``topk`` is slow; ReLU keeps the order of the
   positive units) and writes their ReLU into that buffer, zeroed: the ``width``-wide output the next layer reads,
   unchanged. Its backward gathers the output's gradient at the winners and reaches ``x``, the weight and the bias
   through the winners' rows alone (``index_select`` / ``index_add_``: ``batch x k x in`` instead of two
@@ -34,8 +35,8 @@ Two computations of the same function and gradients (``SparsificationLayer(form=
   gradients the dense form's up to summation order, every exact zero included (``tests/test_sparse_fast.py``).
 
   Ties: the dense form keeps every unit ``>= kth``, so a tie at the ``k``-th value keeps more than ``k`` units.
-  :func:`winners` checks for one (``topk(k + 1)``) and then takes as many units as the widest row keeps, each row's
-  surplus masked, so the forms agree on ties too. A unit at exactly 0 after ReLU has output 0 and gradient 0 in
+  :func:`winners` checks for one (the ``k + 1`` largest) and then takes as many units as the widest row keeps, each
+  row's surplus masked, so the forms agree on ties too. A unit at exactly 0 after ReLU has output 0 and gradient 0 in
   either form and is not counted (fewer than ``k`` positive units is not a tie). The check reads one boolean per
   forward (a device sync on a GPU).
 
@@ -56,6 +57,7 @@ import functools
 import math
 from collections.abc import Iterable
 
+import numpy as np
 import torch
 from torch import nn
 from torch.nn import functional as F
@@ -80,6 +82,7 @@ __all__ = [
     "FORMS",
     "intrinsic_rank",
     "KWinnersTakeAll",
+    "largest",
     "SparsificationLayer",
     "set_form",
     "sparse_relu_kwta",
@@ -123,6 +126,34 @@ class KWinnersTakeAll(nn.Module):
         return f"k={self.k}"
 
 
+def largest(scores: torch.Tensor, m: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``scores.topk(m, dim=-1)``: the ``m`` largest values of each row, largest first, and their units (tied
+    units may come in another order; NaN counts as largest, as in ``topk``).
+
+    Why not always ``topk``: PyTorch's CPU kernel takes a partial heap while ``64 m <= n`` and ``nth_element``
+    beyond, which costs more than twice as much; for the layer's ``k + 1`` on Ant (18) and Humanoid (36) of 1024
+    units numpy's ``argpartition`` (introselect on the values alone) and a sort of the ``m`` found are about 4x
+    faster on one thread (``benchmarks/sparse_topk.py``). A tensor that needs a gradient, sits off the CPU or is
+    not float32/float64, under a functorch transform or ``torch.compile``, and the heap's range keep ``topk``."""
+    n = scores.shape[-1]
+    if (
+        64 * m <= n
+        or m >= n
+        or scores.device.type != "cpu"
+        or scores.dtype not in (torch.float32, torch.float64)
+        or scores.requires_grad
+        or torch._C._are_functorch_transforms_active()
+        or torch.compiler.is_compiling()
+    ):
+        return scores.topk(m, dim=-1)
+    a = scores.numpy()
+    found = np.argpartition(a, n - m, axis=-1)[..., n - m :]
+    values = np.take_along_axis(a, found, -1)
+    order = np.argsort(values, axis=-1, kind="stable")[..., ::-1]  # ascending puts NaN last: reversed, first
+    index = np.take_along_axis(found, order, -1).astype(np.int64, copy=False)
+    return torch.from_numpy(np.take_along_axis(values, order, -1)), torch.from_numpy(index)
+
+
 def winners(
     scores: torch.Tensor, k: int, zeros_dead: bool = False
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
@@ -131,7 +162,7 @@ def winners(
     scores, largest first), or, where some row ties at its ``k``-th score, as many as the widest row keeps, ``keep``
     masking each row's surplus (None where there is none). ``zeros_dead``: a unit scoring 0 or less is inert (ReLU:
     output 0, gradient 0) and not counted, so fewer than ``k`` positive scores is not a tie."""
-    vals, idx = scores.topk(k + 1, dim=-1)
+    vals, idx = largest(scores, k + 1)
     kth, nxt = vals[..., k - 1], vals[..., k]
     tie = nxt == kth
     if zeros_dead:
@@ -142,7 +173,7 @@ def winners(
     kept = scores >= kth
     if zeros_dead:
         kept &= scores > 0
-    vals, idx = scores.topk(int(kept.sum(-1).max()), dim=-1)
+    vals, idx = largest(scores, int(kept.sum(-1).max()))
     keep = vals >= kth
     if zeros_dead:
         keep &= vals > 0
