@@ -3,9 +3,10 @@
 
 1. ``topk(k)`` on a batch x 1024 tensor for the layer's ``k + 1`` (Hopper 8, Walker2d 14, Ant 18, Humanoid 36) and
    around 16, where PyTorch's CPU kernel leaves its partial-heap path (``64 k <= n``) for ``nth_element``;
-2. the same winners from rounds of ``topk(<= 16)``, each round's winners masked to ``-inf`` (checked equal to one
-   ``topk`` on untied random data), beside one ``topk``;
-3. with ``--recipe``, torch.profiler's operator table over fused updates of that recipe on real frames.
+2. ``adarl.baselines.sparse.largest`` (what the layer selects with: numpy's ``argpartition`` beyond the heap's
+   range), checked equal to one ``topk`` (values and units) on untied random data, beside it;
+3. with ``--recipe``, fused updates of that recipe on real frames, the layer selecting by ``largest`` and by ``topk``
+   alone (as before numpy's selection) in alternating windows in one process, and torch.profiler's operator table.
 
 Each time is the best of three windows (one torch thread); on a busy machine compare the ratios.
 
@@ -13,9 +14,13 @@ Each time is the best of three windows (one torch thread); on a busy machine com
 """
 
 import argparse
+import statistics
 import time
 
 import torch
+
+from adarl.baselines import sparse
+from adarl.baselines.sparse import largest
 
 
 def best_us(fn, calls: int = 300) -> float:
@@ -29,18 +34,6 @@ def best_us(fn, calls: int = 300) -> float:
             fn()
         windows.append((time.perf_counter() - t) / calls * 1e6)
     return min(windows)
-
-
-def topk_in_rounds(x: torch.Tensor, k: int, step: int = 16) -> tuple[torch.Tensor, torch.Tensor]:
-    """The ``k`` largest of each row from rounds of ``topk(<= step)``, each round's winners masked before the next."""
-    y, values, indices = x.clone(), [], []
-    while k > 0:
-        v, i = y.topk(min(step, k), dim=-1)
-        values.append(v)
-        indices.append(i)
-        y.scatter_(-1, i, float("-inf"))
-        k -= v.shape[-1]
-    return torch.cat(values, -1), torch.cat(indices, -1)
 
 
 def profile_recipe(recipe: str, updates: int) -> None:
@@ -58,10 +51,22 @@ def profile_recipe(recipe: str, updates: int) -> None:
             c.replay_buffer.extend(next(frames).reshape(-1))
         for _ in range(20):
             c.update(None)
-        t = time.perf_counter()
-        for _ in range(updates):
-            c.update(None)
-        print(f"{recipe}: {(time.perf_counter() - t) / updates * 1e3:.2f} ms an update ({type(c.update).__name__})")
+        select = {"largest": sparse.largest, "topk": lambda x, m: x.topk(m, dim=-1)}
+        ms = {name: [] for name in select}
+        for _ in range(5):  # alternating windows: both selections see the same load
+            for name, fn in select.items():
+                sparse.largest = fn
+                t = time.perf_counter()
+                for _ in range(updates):
+                    c.update(None)
+                ms[name].append((time.perf_counter() - t) / updates * 1e3)
+        sparse.largest = select["largest"]
+        med = {name: statistics.median(v) for name, v in ms.items()}
+        print(
+            f"{recipe} ({type(c.update).__name__}), median of 5 windows of {updates} updates: "
+            f"{med['largest']:.2f} ms an update selecting by largest, {med['topk']:.2f} by topk "
+            f"({med['topk'] / med['largest']:.2f}x)"
+        )
         with profile(activities=[ProfilerActivity.CPU]) as prof:
             for _ in range(30):
                 c.update(None)
@@ -80,13 +85,11 @@ def main() -> None:
     x = torch.randn(a.rows, 1024)
     print(f"topk on {a.rows} x 1024, one thread, best of three windows:")
     for k in (8, 14, 16, 17, 18, 36):
-        line = f"  topk({k}): {best_us(lambda k=k: x.topk(k, dim=-1)):.0f} us"
-        if k > 16:
-            v1, i1 = x.topk(k, dim=-1)
-            v2, i2 = topk_in_rounds(x, k)
-            assert torch.equal(v1, v2) and torch.equal(i1, i2), "rounds of topk(<= 16) chose other winners"
-            line += f"; in rounds of topk(<= 16): {best_us(lambda k=k: topk_in_rounds(x, k)):.0f} us"
-        print(line)
+        v1, i1 = x.topk(k, dim=-1)
+        v2, i2 = largest(x, k)
+        assert torch.equal(v1, v2) and torch.equal(i1, i2), f"largest({k}) chose other units than topk"
+        t_topk, t_largest = best_us(lambda k=k: x.topk(k, dim=-1)), best_us(lambda k=k: largest(x, k))
+        print(f"  k = {k}: topk {t_topk:.0f} us, largest {t_largest:.0f} us ({t_topk / t_largest:.2f}x)")
     if a.recipe:
         profile_recipe(a.recipe, a.updates)
 

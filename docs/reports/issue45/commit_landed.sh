@@ -16,7 +16,7 @@ while true; do
     dest=docs/reports/$name
     new=$(.venv/bin/python docs/reports/issue34/export_runs.py "$src" "$dest")
     wt=wt-t  # the worktree (its commit) the runs were made from (runs.csv names each run's own)
-    case "$name" in table1-walker2d | table1-ant | table1-humanoid) wt=wt-r ;; esac
+    case "$name" in table1-walker2d | table1-ant) wt=wt-r ;; table1-humanoid) wt=wt-h ;; esac
     if [ "$name" = mechanism-pilot ]; then wt=wt-m; case "$new" in *factorised_init*) wt=wt-e ;; esac; fi
     if [ -n "$new" ] || [ -n "$(git status --porcelain -- "$dest/runs")" ]; then
       bash docs/reports/issue45/make_report.sh "$name" || echo "$(date -u +%FT%TZ) report of $dest failed"

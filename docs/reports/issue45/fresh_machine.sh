@@ -53,6 +53,10 @@ worktree wt-e $WT_E
 # the selected lambdas are in table1.yaml; absent before: no wt-r, and queue.sh says the rows wait)
 WT_R=${ISSUE45_WT_R:-$(cat $I/rows_commit 2>/dev/null || true)}
 [ -n "$WT_R" ] && worktree wt-r $WT_R
+# Humanoid's row runs from the worktree wt-h at the commit humanoid_commit names (rows_commit plus the sparse layer's
+# numpy selection alone; the amendment in docs/reproduction.md)
+WT_H=${ISSUE45_WT_H:-$(cat $I/humanoid_commit 2>/dev/null || true)}
+[ -n "$WT_H" ] && worktree wt-h $WT_H
 # each committed run back into its experiment folder (a finished one is skipped by the driver, checked by content)
 restore() {  # restore REPORT_FOLDER EXPERIMENT_FOLDER [GLOB]
   [ -d "$MAIN/docs/reports/$1/runs" ] || return 0

@@ -35,22 +35,26 @@ done
 # Table 1's Walker2d, Ant and Humanoid rows (amendment f4d851d: their sparse arm on the fused update): from the
 # worktree wt-r at the commit named in docs/reports/issue45/rows_commit (fresh_machine.sh builds it), a row only once
 # that commit's table1.yaml gives its budget the selected lambda (value_overrides: {algorithm: {parseval: [...]}})
-R=/work/exp/wt-r/.venv/bin
-# wt-r is made once the selections are in (a commit writes rows_commit; `fresh_machine.sh --restore-only` builds it
-# beside this running queue): the queue waits for its install, not for a clock
-[ -x $R/adarl ] || echo "=== $(date -u +%FT%TZ) the rows wait for the worktree wt-r (docs/reports/issue45/rows_commit)"
-until [ -x $R/adarl ]; do sleep 60; done
+# Humanoid's row (amendment in the commit that adds humanoid_commit, docs/reproduction.md): from the worktree wt-h at
+# the commit docs/reports/issue45/humanoid_commit names (rows_commit plus the sparse layer's numpy selection alone)
 for env in walker2d ant humanoid; do
-  if [ -x $R/adarl ] && $R/python - "$env" <<'PY'
+  wt=wt-r
+  [ "$env" = humanoid ] && wt=wt-h
+  W=/work/exp/$wt/.venv/bin
+  # a worktree is made once its commit is written (`fresh_machine.sh --restore-only` builds it beside this running
+  # queue): the queue waits for its install, not for a clock
+  [ -x $W/adarl ] || echo "=== $(date -u +%FT%TZ) table1_$env waits for the worktree $wt"
+  until [ -x $W/adarl ]; do sleep 60; done
+  if $W/python - "$env" "$wt" <<'PY'
 import sys
 from adarl.experiments.spec import load_experiment
-budget = load_experiment("/work/exp/wt-r/recipes/experiments/table1.yaml").budgets[f"table1_{sys.argv[1]}"]
+budget = load_experiment(f"/work/exp/{sys.argv[2]}/recipes/experiments/table1.yaml").budgets[f"table1_{sys.argv[1]}"]
 sys.exit(0 if budget.value_overrides.get("algorithm", {}).get("parseval") else 1)
 PY
   then
-    run $R/adarl experiment /work/exp/wt-r/recipes/experiments/table1.yaml --budget table1_$env -o /work/exp/table1-$env
+    run $W/adarl experiment /work/exp/$wt/recipes/experiments/table1.yaml --budget table1_$env -o /work/exp/table1-$env
   else
-    echo "=== $(date -u +%FT%TZ) table1_$env waits: no worktree wt-r, or its table1.yaml has no selected lambda for $env"
+    echo "=== $(date -u +%FT%TZ) table1_$env waits: its worktree $wt's table1.yaml has no selected lambda for $env"
   fi
 done
 # Issue 49's packed check (its protocol: docs/performance.md, written before its runs) once Table 1's rows are done:
