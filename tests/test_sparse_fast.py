@@ -383,9 +383,19 @@ def test_largest_under_ties_nan_and_infinities(monkeypatch):
     scores[0, 3] = float("nan")
     scores[1, :50] = float("-inf")
     scores[2, 7] = float("inf")
+    scores[3:, :] += torch.arange(100) * 1e-3  # rows 3-99 without ties; rows 100- tie among the 9 or at the 9th
+    scores[100:200, :] = torch.randn(100, 100, generator=gen)
+    scores[100:200, 40:60] = 9.0  # twenty units tie among the 9 largest
+    scores[200:, 40:42] = scores[200:].amax(-1, keepdim=True) + 1.0  # two tie above the rest ...
+    top10 = scores[200:].topk(10, dim=-1)
+    scores[200:].scatter_(-1, top10.indices[:, 9:], top10.values[:, 8:9])  # ... and the 10th unit at the 9th value
     values, index = sparse.largest(scores, 9)
-    want, _ = scores.topk(9, dim=-1)
+    want, want_index = scores.topk(9, dim=-1)
     torch.testing.assert_close(values, want, rtol=0, atol=0, equal_nan=True)  # NaN first, as topk has it
+    # tied units in topk's order; where the 9th value recurs outside the nine, the 9th unit is one of that value
+    assert torch.equal(index[:, :8], want_index[:, :8])
+    boundary = (scores >= want[:, -1:]).sum(-1) > 9
+    assert torch.equal(index[~boundary], want_index[~boundary]) and bool(boundary[200:].all())
     torch.testing.assert_close(scores.gather(-1, index), values, rtol=0, atol=0, equal_nan=True)
     assert all(len(set(row.tolist())) == 9 for row in index)  # nine distinct units a row
     assert len(calls) == 1

@@ -127,12 +127,15 @@ class KWinnersTakeAll(nn.Module):
 
 
 def largest(scores: torch.Tensor, m: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """``scores.topk(m, dim=-1)``: the ``m`` largest values of each row, largest first, and their units (tied
-    units may come in another order; NaN counts as largest, as in ``topk``).
+    """``scores.topk(m, dim=-1)``: the ``m`` largest values of each row, largest first, and their units, bit for
+    bit ``topk``'s (a row with ties among them or NaN is handed to ``topk`` itself, whose order of tied units is its
+    implementation's), except where the ``m``-th value recurs outside the ``m``: the ``m``-th unit is then one
+    unit of that value, maybe another than ``topk``'s (checking for it costs a pass over the row; :func:`winners`
+    asks for ``k + 1`` units and uses the ``m``-th one's value alone).
 
     Why not always ``topk``: PyTorch's CPU kernel takes a partial heap while ``64 m <= n`` and ``nth_element``
     beyond, which costs more than twice as much; for the layer's ``k + 1`` on Ant (18) and Humanoid (36) of 1024
-    units numpy's ``argpartition`` (introselect on the values alone) and a sort of the ``m`` found are about 4x
+    units numpy's ``argpartition`` (introselect on the values alone) and a sort of the ``m`` found are 3-4x
     faster on one thread (``benchmarks/sparse_topk.py``). A tensor that needs a gradient, sits off the CPU or is
     not float32/float64, under a functorch transform or ``torch.compile``, and the heap's range keep ``topk``."""
     n = scores.shape[-1]
@@ -149,9 +152,15 @@ def largest(scores: torch.Tensor, m: int) -> tuple[torch.Tensor, torch.Tensor]:
     a = scores.numpy()
     found = np.argpartition(a, n - m, axis=-1)[..., n - m :]
     values = np.take_along_axis(a, found, -1)
-    order = np.argsort(values, axis=-1, kind="stable")[..., ::-1]  # ascending puts NaN last: reversed, first
-    index = np.take_along_axis(found, order, -1).astype(np.int64, copy=False)
-    return torch.from_numpy(np.take_along_axis(values, order, -1)), torch.from_numpy(index)
+    order = np.argsort(values, axis=-1)[..., ::-1]
+    values = torch.from_numpy(np.take_along_axis(values, order, -1))
+    index = torch.from_numpy(np.take_along_axis(found, order, -1).astype(np.int64, copy=False))
+    # where topk's order is its implementation's choice (equal values among the m, NaN), those rows are topk's
+    # own: it computes each row alone, so their order is topk's bit for bit
+    tied = (values[..., 1:] == values[..., :-1]).any(-1) | values.isnan().any(-1)
+    if bool(tied.any()):
+        values[tied], index[tied] = scores[tied].topk(m, dim=-1)
+    return values, index
 
 
 def winners(
