@@ -455,3 +455,5 @@ def test_fused_updates_of_a_humanoid_width_k_are_bit_for_bit_the_same_with_numpy
         assert torch.equal(after["numpy"][name], value), name
     moved = [name for name, value in start.items() if not torch.equal(after["numpy"][name], value)]
     assert len(moved) >= 10, moved  # the updates changed the networks (actor, critics, targets)
+    for c in sides.values():
+        c.close()

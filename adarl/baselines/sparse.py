@@ -47,8 +47,9 @@ Two computations of the same function and gradients (``SparsificationLayer(form=
   policy) run the dense form.
 
 Speed (``benchmarks/sparse_speed.py``, docs/baselines/sparsification.md): the sparse form saves the backward's wide
-matmuls; the forward's (the wide matmul and the ``topk``, which every form needs to find the winners) and TorchRL's
-per-update overhead remain, so a SAC update of the Hopper recipe gains about a sixth, not a factor.
+matmuls; the forward's (the wide matmul and the selection of the winners, which every form needs) and TorchRL's
+per-update overhead remain, so a SAC update of the Hopper recipe gains about a sixth, not a factor. Where PyTorch's
+CPU ``topk`` is slow (Ant's and Humanoid's ``k``), :func:`largest` selects with numpy (``benchmarks/sparse_topk.py``).
 """
 
 from __future__ import annotations
