@@ -1,13 +1,21 @@
 #!/usr/bin/env bash
-# End of a session: stop issue 34's runs so that each checkpoints at its current batch (the worktree's driver
-# would otherwise start the next runs): freeze the driver, SIGTERM its trainers, wait, then kill the rest.
+# End of a session: stop the experiment driver's runs so that none is lost and the driver starts no other run.
+#   stop_gracefully.sh          freeze the driver, SIGTERM its trainers (each checkpoints at its current batch; a
+#                               resume needs the same machine: a new one restores only finished runs), wait, kill
+#   stop_gracefully.sh --drain  freeze the driver and let its trainers finish their runs (nothing to resume: for a
+#                               session whose machine may not come back), then kill the queue, driver and commit loop
 DRV=$(pgrep -f "adarl experiment /work/exp/" | head -1)
 [ -n "$DRV" ] || { echo "no experiment driver"; exit 0; }
 kill -STOP "$DRV"
 TR=$(pgrep -P "$DRV")
-echo "driver $DRV frozen; trainers: $TR"
-for t in $TR; do kill -TERM "$t"; done
-for i in $(seq 1 300); do
+echo "$(date -u +%T) driver $DRV frozen; trainers: $TR"
+if [ "${1:-}" = --drain ]; then
+  limit=86400
+else
+  limit=300
+  for t in $TR; do kill -TERM "$t"; done
+fi
+for i in $(seq 1 $limit); do
   alive=0
   for t in $TR; do
     st=$(awk '{print $3}' /proc/$t/stat 2>/dev/null)
@@ -16,6 +24,6 @@ for i in $(seq 1 300); do
   [ $alive = 0 ] && break
   sleep 1
 done
-echo "trainers exited after ${i}s"
+echo "$(date -u +%T) trainers exited after ${i}s"
 pkill -KILL -f "queue[0-9]*.sh"; kill -KILL "$DRV"; pkill -f commit_landed.sh
 sleep 1; pgrep -af "adarl|queue[0-9]*.sh|commit_landed" | grep -v stop_gracefully || echo "all stopped"
