@@ -4,6 +4,10 @@
 #                               resume needs the same machine: a new one restores only finished runs), wait, kill
 #   stop_gracefully.sh --drain  freeze the driver and let its trainers finish their runs (nothing to resume: for a
 #                               session whose machine may not come back), then kill the queue, driver and commit loop
+case "${1:-}" in
+  "" | --drain) ;;
+  *) echo "stop_gracefully.sh: unknown argument '$1' (allowed: none, or --drain)" >&2; exit 2 ;;
+esac
 DRV=$(pgrep -f "adarl experiment /work/exp/" | head -1)
 [ -n "$DRV" ] || { echo "no experiment driver"; exit 0; }
 kill -STOP "$DRV"
